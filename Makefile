@@ -1,0 +1,39 @@
+# The two set-up commands of README.md. Each builds its own virtualenv from scratch.
+PYTHON ?= python3
+VENV := .venv
+SERVE_VENV := .venv-serve
+PIP := --disable-pip-version-check --no-input -q
+HOST ?= 0.0.0.0
+PORT ?= 8000
+
+.PHONY: test serve lint bench clean
+
+# torch first and pinned: 2.13.0 is the CPU build; anything else pulls several GB of CUDA wheels.
+$(VENV)/.base:
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install $(PIP) --upgrade pip
+	$(VENV)/bin/python -m pip install $(PIP) torch==2.13.0
+	touch $@
+
+# Installs the package itself (not editable: tests run what a user installs, C++ ops included).
+install-dev: $(VENV)/.base
+	$(VENV)/bin/python -m pip install $(PIP) ".[train,serve,client,dev]"
+
+test: install-dev
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/python -m pytest tests
+
+$(SERVE_VENV)/.base:
+	$(PYTHON) -m venv $(SERVE_VENV)
+	$(SERVE_VENV)/bin/python -m pip install $(PIP) --upgrade pip
+	touch $@
+
+serve: $(SERVE_VENV)/.base
+	$(SERVE_VENV)/bin/python -m pip install $(PIP) ".[serve,client]"
+	$(SERVE_VENV)/bin/quietframe serve --host $(HOST) --port $(PORT)
+
+lint: install-dev
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(VENV) $(SERVE_VENV) build

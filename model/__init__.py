@@ -1,0 +1,1 @@
+"""PyTorch side of quietframe (training only): bilateral grid, NBG denoiser, temporal stage."""
