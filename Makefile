@@ -37,3 +37,9 @@ lint: install-dev
 
 clean:
 	rm -rf $(VENV) $(SERVE_VENV) build
+
+# Development: make the source folders importable as quietframe.<folder> in .venv without a
+# rebuild per edit (symlinks mimic the wheel layout). Point QUIETFRAME_OPS_LIBRARY at a build of
+# export/ops (cmake -S export/ops -B build/ops && cmake --build build/ops).
+dev: $(VENV)/.base
+	$(VENV)/bin/python tools/dev_links.py
