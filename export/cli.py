@@ -1,0 +1,41 @@
+"""quietframe-export: write an NBG model (trained checkpoint or seeded untrained) to ONNX."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="quietframe-export", description=__doc__)
+    parser.add_argument("--variant", default="nbg-2l-3g", help="architecture when untrained")
+    parser.add_argument("--checkpoint", type=Path, help="training checkpoint (.pt)")
+    parser.add_argument("--width", type=int, help="GuideNet width (untrained only)")
+    parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
+    parser.add_argument("--version", default="0")
+    parser.add_argument("--out", type=Path, required=True, help="output .onnx path")
+    args = parser.parse_args(argv)
+
+    import dataclasses
+
+    import torch
+    from quietframe.export.onnx_export import export_nbg
+    from quietframe.model.nbg import VARIANTS, NBGDenoiser, load_checkpoint
+
+    if args.checkpoint:
+        model, checkpoint = load_checkpoint(str(args.checkpoint))
+        training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
+    else:
+        torch.manual_seed(args.seed)
+        config = VARIANTS[args.variant]
+        if args.width:
+            config = dataclasses.replace(config, width=args.width)
+        model = NBGDenoiser(config)
+        training, metrics = {"trained": False, "seed": args.seed}, {}
+    path = export_nbg(model, args.out, version=args.version, training=training, metrics=metrics)
+    print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,148 @@
+"""torch -> ONNX export of the NBG denoiser with splat/slice as ai.quietframe custom ops.
+
+The graph follows docs/model-interface.md: named buffer inputs, a reset flag, state in/out,
+dynamic H and W, and metadata_props that make the file self-describing for the runtime.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import onnx
+import onnxscript
+import torch
+from onnx.defs import OpSchema
+from quietframe.export import OPS_DOMAIN
+from quietframe.model.grid import range_cells
+from quietframe.model.nbg import NBGDenoiser
+from torch import Tensor, nn
+
+OPSET = 18
+BUFFERS = ("color", "albedo", "normal", "depth", "motion")
+BUFFER_CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}
+REQUIRED_BUFFERS = ("color", "albedo", "normal", "depth")
+OPTIONAL_BUFFERS = ("motion",)  # missing: zeros, i.e. a static camera
+STATE_NAME = "accumulation"
+
+
+def _register_schemas() -> None:
+    """Declare our op schemas to onnx so onnxscript can emit them with typed outputs."""
+    float_t = [("T", ["tensor(float)"], "float32 tensors, NCHW / NCDHW")]
+    attrs = [
+        OpSchema.Attribute("sigma_s", OpSchema.AttrType.INT, "spatial sampling rate"),
+        OpSchema.Attribute("sigma_r", OpSchema.AttrType.FLOAT, "range sampling rate"),
+        OpSchema.Attribute("grid_depth", OpSchema.AttrType.INT, "range cells D"),
+    ]
+    param = OpSchema.FormalParameter
+    schemas = [
+        OpSchema(
+            "BilateralSplat", OPS_DOMAIN, 1,
+            inputs=[param("image", "T"), param("guide", "T")],
+            outputs=[param("grid", "T"), param("weight", "T")],
+            type_constraints=float_t, attributes=attrs,
+        ),
+        OpSchema(
+            "BilateralSlice", OPS_DOMAIN, 1,
+            inputs=[param("grid", "T"), param("weight", "T"), param("guide", "T")],
+            outputs=[param("image", "T")],
+            type_constraints=float_t, attributes=attrs,
+        ),
+    ]
+    for schema in schemas:
+        try:
+            onnx.defs.get_schema(schema.name, 1, OPS_DOMAIN)
+        except onnx.defs.SchemaError:
+            onnx.defs.register_schema(schema)
+
+
+_register_schemas()
+_QF = onnxscript.values.Opset(OPS_DOMAIN, 1)
+
+
+def _splat_to_onnx(image, guide, sigma_s: int, sigma_r: float):
+    return _QF.BilateralSplat(
+        image, guide, sigma_s=sigma_s, sigma_r=sigma_r, grid_depth=range_cells(sigma_r)
+    )
+
+
+def _slice_to_onnx(grid, weight, guide, sigma_s: int, sigma_r: float):
+    return _QF.BilateralSlice(
+        grid, weight, guide, sigma_s=sigma_s, sigma_r=sigma_r, grid_depth=range_cells(sigma_r)
+    )
+
+
+class _ExportWrapper(nn.Module):
+    """Positional signature in the order of the graph inputs."""
+
+    def __init__(self, model: NBGDenoiser) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
+        return self.model(color, albedo, normal, depth, motion, reset, state)
+
+
+def example_inputs(height: int = 48, width: int = 64, seed: int = 0) -> tuple[Tensor, ...]:
+    """Plausible inputs (used for tracing and tests): (color, albedo, normal, depth, motion,
+    reset, state)."""
+    gen = torch.Generator().manual_seed(seed)
+    normal = torch.randn(1, 3, height, width, generator=gen)
+    return (
+        torch.rand(1, 3, height, width, generator=gen) * 2,
+        torch.rand(1, 3, height, width, generator=gen),
+        normal / normal.norm(dim=1, keepdim=True).clamp_min(1e-6),
+        1 + torch.rand(1, 1, height, width, generator=gen) * 4,
+        torch.randn(1, 2, height, width, generator=gen),
+        torch.ones(1),
+        torch.zeros(1, NBGDenoiser.state_channels, height, width),
+    )
+
+
+def export_nbg(
+    model: NBGDenoiser,
+    path: Path,
+    *,
+    version: str = "0",
+    training: Mapping | None = None,
+    metrics: Mapping | None = None,
+) -> Path:
+    """Write `model` as a self-describing ONNX file at `path` and return the path."""
+    model = model.eval()
+    height = torch.export.Dim("height", min=1, max=8192)
+    width = torch.export.Dim("width", min=1, max=8192)
+    image_dims = {2: height, 3: width}
+    dynamic = {name: image_dims for name in (*BUFFERS, "state")} | {"reset": None}
+    table = {
+        torch.ops.quietframe.bilateral_splat.default: _splat_to_onnx,
+        torch.ops.quietframe.bilateral_slice.default: _slice_to_onnx,
+    }
+    with torch.no_grad():
+        program = torch.onnx.export(
+            _ExportWrapper(model), example_inputs(), dynamo=True, opset_version=OPSET,
+            custom_translation_table=table, dynamic_shapes=dynamic,
+            input_names=[*BUFFERS, "reset", f"state_in.{STATE_NAME}"],
+            output_names=["denoised", f"state_out.{STATE_NAME}"],
+            verbose=False,
+        )
+    proto = program.model_proto
+    config = model.config
+    metadata = {
+        "quietframe.name": config.name,
+        "quietframe.version": version,
+        "quietframe.architecture": json.dumps(config.to_dict()),
+        "quietframe.buffers.required": json.dumps(list(REQUIRED_BUFFERS)),
+        "quietframe.buffers.optional": json.dumps(list(OPTIONAL_BUFFERS)),
+        "quietframe.state": json.dumps([{"name": STATE_NAME, "channels": model.state_channels}]),
+        "quietframe.ops_domain": OPS_DOMAIN,
+        "quietframe.training": json.dumps(dict(training or {})),
+        "quietframe.metrics": json.dumps(dict(metrics or {})),
+    }
+    onnx.helper.set_model_props(proto, metadata)
+    onnx.checker.check_model(proto)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save_model(proto, str(path))
+    return path

@@ -1,0 +1,178 @@
+"""Neural Bilateral Grid denoiser (Meng et al. 2020): GuideNet + multi-scale bilateral grids.
+
+Frame flow (one call of NBGDenoiser.forward):
+  demodulate albedo -> suppress outliers -> temporal accumulation (state in/out) ->
+  GuideNet on LDR features -> per scale: splat + slice along its guide -> blend -> remodulate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from quietframe.model.grid import bilateral_slice, bilateral_splat
+from quietframe.model.temporal import STATE_CHANNELS, accumulate
+from torch import Tensor, nn
+
+ALBEDO_EPSILON = 1e-2  # demodulation divides by (albedo + eps): invertible, gain bounded by 100
+OUTLIER_SIGMAS = 3.0  # luminance above neighbourhood mean + k·std is pulled back to that bound
+GUIDE_INPUT_CHANNELS = 10  # LDR radiance·albedo (3) + albedo (3) + normal (3) + depth (1)
+
+
+@dataclass(frozen=True)
+class NBGConfig:
+    """Everything needed to rebuild a model; stored in checkpoints and ONNX metadata."""
+
+    name: str = "nbg-2l-3g"
+    layers: int = 2  # GuideNet depth: 2 (low spp, real time) or 7 (five-layer dense block)
+    width: int = 20  # channels of the first hidden layer (authors' code: 20)
+    growth: int = 5  # channels added per dense-block layer (7-layer net)
+    grids: int = 3  # 1 or 3 bilateral grids
+    sigma_s: int = 4  # finest grid; grid s uses sigma * 2**s (paper §4.5)
+    sigma_r: float = 4.0
+    temporal: bool = True
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def ldr(x: Tensor) -> Tensor:
+    """Map linear HDR radiance to [0, 1) for the network (Reinhard, then gamma 1/2.2)."""
+    x = x.clamp_min(0)
+    return (x / (1 + x)).pow(1 / 2.2)
+
+
+def luminance(rgb: Tensor) -> Tensor:
+    r, g, b = rgb[:, 0:1], rgb[:, 1:2], rgb[:, 2:3]
+    return 0.2126 * r + 0.7152 * g + 0.0722 * b
+
+
+def suppress_outliers(radiance: Tensor, kernel: int = 5) -> Tensor:
+    """Clamp firefly pixels to mean + k·std of their neighbours' luminance (KBS15-style).
+
+    The pixel itself is left out of its neighbourhood statistics: a single 1e6 sample would
+    otherwise inflate the std enough to pass its own test.
+    """
+    lum = luminance(radiance).clamp_min(0)
+    area = kernel * kernel
+    pad = kernel // 2
+    sum1 = F.avg_pool2d(lum, kernel, 1, pad, count_include_pad=False) * area
+    sum2 = F.avg_pool2d(lum * lum, kernel, 1, pad, count_include_pad=False) * area
+    count = F.avg_pool2d(torch.ones_like(lum), kernel, 1, pad, count_include_pad=False) * area
+    others = (count - 1).clamp_min(1)
+    mean = (sum1 - lum) / others
+    var = ((sum2 - lum * lum) / others - mean * mean).clamp_min(0)
+    bound = mean + OUTLIER_SIGMAS * var.sqrt()
+    scale = torch.where(lum > bound, bound / lum.clamp_min(1e-12), torch.ones_like(lum))
+    return radiance * scale
+
+
+class GuideNet(nn.Module):
+    """2-layer CNN, or 7 layers with a five-layer dense block (paper Fig. 2), 5×5 convolutions.
+
+    Outputs `grids` guides in (0, 1) and, for several grids, per-pixel blend logits.
+    """
+
+    def __init__(self, config: NBGConfig) -> None:
+        super().__init__()
+        self.grids = config.grids
+        out_channels = config.grids + (config.grids if config.grids > 1 else 0)
+        self.first = nn.Conv2d(GUIDE_INPUT_CHANNELS, config.width, 5, padding=2)
+        self.dense = nn.ModuleList()
+        channels = config.width
+        if config.layers == 7:
+            for _ in range(5):
+                self.dense.append(nn.Conv2d(channels, config.growth, 5, padding=2))
+                channels += config.growth
+        elif config.layers != 2:
+            raise ValueError(f"GuideNet has 2 or 7 layers, not {config.layers}")
+        self.last = nn.Conv2d(channels, out_channels, 5, padding=2)
+
+    def forward(self, features: Tensor) -> tuple[Tensor, Tensor | None]:
+        x = F.leaky_relu(self.first(features), 0.2)  # (N, width, H, W)
+        for conv in self.dense:
+            x = torch.cat((x, F.leaky_relu(conv(x), 0.2)), dim=1)
+        out = self.last(x)
+        guides = torch.sigmoid(out[:, : self.grids])  # (N, grids, H, W)
+        # The paper's w2 = 1 - w0 - w1 can go negative; a softmax keeps a convex combination.
+        weights = torch.softmax(out[:, self.grids :], dim=1) if self.grids > 1 else None
+        return guides, weights
+
+
+def guide_features(radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> Tensor:
+    """GuideNet input, every channel in [0, 1] (paper §5): (N, 10, H, W)."""
+    depth_scale = depth.mean(dim=(2, 3), keepdim=True).clamp_min(1e-6)
+    relative_depth = depth / depth_scale  # scene-unit free
+    return torch.cat(
+        (
+            ldr(radiance),
+            albedo.clamp(0, 1),
+            (normal.clamp(-1, 1) + 1) * 0.5,
+            relative_depth / (1 + relative_depth),
+        ),
+        dim=1,
+    )
+
+
+class NBGDenoiser(nn.Module):
+    """State-in / state-out NBG denoiser on (N, C, H, W) float tensors.
+
+    forward(color, albedo, normal, depth, motion, reset, state) -> (denoised, new_state)
+    """
+
+    def __init__(self, config: NBGConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or NBGConfig()
+        self.guide_net = GuideNet(self.config)
+        self.scales = [
+            (self.config.sigma_s * 2**s, self.config.sigma_r * 2**s)
+            for s in range(self.config.grids)
+        ]
+
+    state_channels = STATE_CHANNELS
+
+    def forward(
+        self,
+        color: Tensor,
+        albedo: Tensor,
+        normal: Tensor,
+        depth: Tensor,
+        motion: Tensor,
+        reset: Tensor,
+        state: Tensor,
+    ) -> tuple[Tensor, Tensor]:
+        safe_albedo = albedo.clamp_min(0) + ALBEDO_EPSILON
+        irradiance = suppress_outliers(color / safe_albedo)
+        if self.config.temporal:
+            irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state)
+        else:
+            new_state = state
+        guides, weights = self.guide_net(
+            guide_features(irradiance * safe_albedo, albedo, normal, depth)
+        )
+        result = torch.zeros_like(irradiance)
+        for s, (sigma_s, sigma_r) in enumerate(self.scales):
+            guide = guides[:, s : s + 1]
+            grid, weight = bilateral_splat(irradiance, guide, sigma_s, sigma_r)
+            sliced = bilateral_slice(grid, weight, guide, sigma_s, sigma_r)
+            result = result + (sliced if weights is None else weights[:, s : s + 1] * sliced)
+        return result * safe_albedo, new_state
+
+    def initial_state(self, batch: int, height: int, width: int) -> Tensor:
+        return torch.zeros(batch, STATE_CHANNELS, height, width)
+
+
+VARIANTS: dict[str, NBGConfig] = {
+    "nbg-2l-1g": NBGConfig(name="nbg-2l-1g", layers=2, grids=1),
+    "nbg-2l-3g": NBGConfig(name="nbg-2l-3g", layers=2, grids=3),
+    "nbg-7l-3g": NBGConfig(name="nbg-7l-3g", layers=7, grids=3),
+}
+
+
+def load_checkpoint(path: str) -> tuple[NBGDenoiser, dict]:
+    """Rebuild a model from a training checkpoint: {"config", "model", "training", "metrics"}."""
+    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    model = NBGDenoiser(NBGConfig(**checkpoint["config"]))
+    model.load_state_dict(checkpoint["model"])
+    return model, checkpoint

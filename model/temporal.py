@@ -1,0 +1,72 @@
+"""Temporal pre-stage of the NBG denoiser (Meng et al. 2020 §4.6): reprojection + accumulation.
+
+State-in / state-out (DESIGN.md): the caller passes the previous state tensor and gets the new
+one back, so the same code runs in training (unrolled sub-sequences) and in the exported graph.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+# History is kept where the reprojected surface matches the current one (disocclusion test).
+DEPTH_REL_TOLERANCE = 0.1  # |d_prev - d| / d
+NORMAL_MIN_DOT = 0.9  # n_prev · n
+# Current-frame weight: the paper's fixed 0.2 (previous 0.8) once the history holds >= 5 frames;
+# before that (after a reset or disocclusion) 1/n, i.e. a plain mean of the frames seen so far,
+# so that fresh history is not dominated by its first noisy frame.
+MIN_CURRENT_WEIGHT = 0.2
+# Channels of the accumulation state: radiance (3), depth (1), normal (3), history length (1).
+STATE_CHANNELS = 8
+
+
+def backward_warp(image: Tensor, motion: Tensor) -> tuple[Tensor, Tensor]:
+    """Fetch image(t-1) at p + motion(p) with bilinear filtering; also return in-frame mask.
+
+    image (N, C, H, W), motion (N, 2, H, W) in pixels -> ((N, C, H, W), (N, 1, H, W))
+    """
+    n, _, h, w = image.shape
+    ys = torch.arange(h, dtype=image.dtype, device=image.device).view(1, h, 1)
+    xs = torch.arange(w, dtype=image.dtype, device=image.device).view(1, 1, w)
+    src_x = xs + motion[:, 0]  # (N, H, W) pixel index in the previous frame
+    src_y = ys + motion[:, 1]
+    # grid_sample with align_corners=False maps pixel centre i to (2i + 1) / size - 1.
+    grid = torch.stack(((2 * src_x + 1) / w - 1, (2 * src_y + 1) / h - 1), dim=-1)
+    warped = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    inside = (src_x > -0.5) & (src_x < w - 0.5) & (src_y > -0.5) & (src_y < h - 0.5)
+    return warped, inside.unsqueeze(1).to(image.dtype)
+
+
+def history_valid(
+    warped_depth: Tensor, warped_normal: Tensor, depth: Tensor, normal: Tensor
+) -> Tensor:
+    """Disocclusion test: 1 where the reprojected surface is the current one, else 0."""
+    depth_ok = (warped_depth - depth).abs() <= DEPTH_REL_TOLERANCE * depth.clamp_min(1e-6)
+    normal_ok = (warped_normal * normal).sum(dim=1, keepdim=True) > NORMAL_MIN_DOT
+    return (depth_ok & normal_ok).to(depth.dtype)
+
+
+def accumulate(
+    radiance: Tensor,
+    depth: Tensor,
+    normal: Tensor,
+    motion: Tensor,
+    reset: Tensor,
+    state: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """One step of temporal accumulation of demodulated radiance (NBG §4.6).
+
+    radiance (N, 3, H, W), depth (N, 1, H, W), normal (N, 3, H, W), motion (N, 2, H, W),
+    reset (N,) 1 = drop history, state (N, 8, H, W) -> (accumulated radiance, new state).
+    """
+    warped, inside = backward_warp(state, motion)
+    prev_radiance, prev_depth = warped[:, 0:3], warped[:, 3:4]
+    prev_normal, prev_count = warped[:, 4:7], warped[:, 7:8]
+    keep = inside * history_valid(prev_depth, prev_normal, depth, normal)
+    keep = keep * (1 - reset.view(-1, 1, 1, 1))
+    count = keep * prev_count.clamp(0, 1 / MIN_CURRENT_WEIGHT) + 1
+    alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)  # (N, 1, H, W) weight of the current frame
+    accumulated = alpha * radiance + (1 - alpha) * prev_radiance
+    new_state = torch.cat((accumulated, depth, normal, count), dim=1)
+    return accumulated, new_state

@@ -1,0 +1,38 @@
+"""The one rule for bad input values, applied before a frame reaches a model.
+
+- color, albedo: NaN, ±Inf and negative values become 0 (a failed or overflowed sample carries
+  no usable estimate; radiance and albedo cannot be negative).
+- normal, motion: NaN and ±Inf become 0 (no orientation / no motion).
+- depth: NaN, ±Inf and negative values become the largest finite depth of the frame (renderers
+  write Inf or garbage for the background, which is far away), or 0 if none is finite.
+Every replaced value is counted per buffer so the service can report it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+NON_NEGATIVE = frozenset({"color", "albedo"})
+
+
+def sanitize_buffer(name: str, values: np.ndarray) -> tuple[np.ndarray, int]:
+    """Return (clean float32 array, number of replaced values); never modifies `values`."""
+    values = np.asarray(values, dtype=np.float32)
+    bad = ~np.isfinite(values)
+    if name in NON_NEGATIVE or name == "depth":
+        bad |= values < 0  # NaN compares False, already in `bad`
+    count = int(np.count_nonzero(bad))
+    if count == 0:
+        return values, 0
+    fill = 0.0
+    if name == "depth":
+        finite = values[~bad]
+        fill = float(finite.max()) if finite.size else 0.0
+    return np.where(bad, np.float32(fill), values), count
+
+
+def sanitize_output(values: np.ndarray) -> tuple[np.ndarray, int]:
+    """Last guard: nothing non-finite leaves the runtime (should never trigger)."""
+    bad = ~np.isfinite(values)
+    count = int(np.count_nonzero(bad))
+    return (np.where(bad, np.float32(0), values) if count else values), count
