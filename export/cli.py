@@ -19,6 +19,7 @@ def main(argv: list[str] | None = None) -> int:
     import dataclasses
 
     import torch
+
     from quietframe.export.onnx_export import export_nbg
     from quietframe.model.nbg import VARIANTS, NBGDenoiser, load_checkpoint
 

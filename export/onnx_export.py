@@ -14,10 +14,11 @@ import onnx
 import onnxscript
 import torch
 from onnx.defs import OpSchema
+from torch import Tensor, nn
+
 from quietframe.export import OPS_DOMAIN
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import NBGDenoiser
-from torch import Tensor, nn
 
 OPSET = 18
 BUFFERS = ("color", "albedo", "normal", "depth", "motion")
@@ -114,7 +115,8 @@ def export_nbg(
     height = torch.export.Dim("height", min=1, max=8192)
     width = torch.export.Dim("width", min=1, max=8192)
     image_dims = {2: height, 3: width}
-    dynamic = {name: image_dims for name in (*BUFFERS, "state")} | {"reset": None}
+    # In the order of the forward arguments: the exporter matches them by position.
+    dynamic = {name: image_dims for name in BUFFERS} | {"reset": None, "state": image_dims}
     table = {
         torch.ops.quietframe.bilateral_splat.default: _splat_to_onnx,
         torch.ops.quietframe.bilateral_slice.default: _slice_to_onnx,

@@ -11,9 +11,10 @@ from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
+from torch import Tensor, nn
+
 from quietframe.model.grid import bilateral_slice, bilateral_splat
 from quietframe.model.temporal import STATE_CHANNELS, accumulate
-from torch import Tensor, nn
 
 ALBEDO_EPSILON = 1e-2  # demodulation divides by (albedo + eps): invertible, gain bounded by 100
 OUTLIER_SIGMAS = 3.0  # luminance above neighbourhood mean + k·std is pulled back to that bound

@@ -65,7 +65,7 @@ def accumulate(
     prev_normal, prev_count = warped[:, 4:7], warped[:, 7:8]
     keep = inside * history_valid(prev_depth, prev_normal, depth, normal)
     keep = keep * (1 - reset.view(-1, 1, 1, 1))
-    count = keep * prev_count.clamp(0, 1 / MIN_CURRENT_WEIGHT) + 1
+    count = keep * prev_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
     alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)  # (N, 1, H, W) weight of the current frame
     accumulated = alpha * radiance + (1 - alpha) * prev_radiance
     new_state = torch.cat((accumulated, depth, normal, count), dim=1)

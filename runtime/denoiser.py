@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+
 from quietframe.export import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 
