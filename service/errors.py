@@ -1,0 +1,151 @@
+"""Errors a client can act on, and their one conversion to HTTP (`{"error", "detail"}`).
+
+Service code raises these exception types; `install_handlers` maps them (and the runtime's
+BufferError, request-validation errors and unexpected exceptions) to JSON responses at the
+boundary, and counts every error response by code.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from quietframe.runtime import BufferError
+
+log = logging.getLogger("quietframe.service")
+
+
+class ServiceError(Exception):
+    status = 500
+    code = "internal_error"
+
+    def __init__(self, detail: str, *, headers: dict[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        self.headers = headers or {}
+
+
+class BadExr(ServiceError):
+    """Not an EXR, truncated, corrupt."""
+
+    status, code = 400, "bad_exr"
+
+
+class Unauthorized(ServiceError):
+    status, code = 401, "unauthorized"
+
+
+class SessionNotFound(ServiceError):
+    status, code = 404, "session_not_found"
+
+
+class FrameOutOfOrder(ServiceError):
+    status, code = 409, "frame_out_of_order"
+
+
+class FrameConflict(ServiceError):
+    """Same index retried with a different body."""
+
+    status, code = 409, "frame_conflict"
+
+
+class BodyTooLarge(ServiceError):
+    status, code = 413, "body_too_large"
+
+
+class ResolutionTooLarge(ServiceError):
+    status, code = 413, "resolution_too_large"
+
+
+class UnsupportedMediaType(ServiceError):
+    status, code = 415, "unsupported_media_type"
+
+
+class InvalidRequest(ServiceError):
+    status, code = 422, "invalid_request"
+
+
+class UnknownModel(ServiceError):
+    status, code = 422, "unknown_model"
+
+
+class UnsupportedExr(ServiceError):
+    """Deep data, subsampled channels."""
+
+    status, code = 422, "unsupported_exr"
+
+
+class MissingChannels(ServiceError):
+    status, code = 422, "missing_channels"
+
+
+class AmbiguousChannels(ServiceError):
+    status, code = 422, "ambiguous_channels"
+
+
+class SizeMismatch(ServiceError):
+    status, code = 422, "size_mismatch"
+
+
+class TooManySessions(ServiceError):
+    status, code = 429, "too_many_sessions"
+
+
+class MemoryBudgetExceeded(ServiceError):
+    status, code = 429, "memory_budget_exceeded"
+
+
+class NotReady(ServiceError):
+    status, code = 503, "not_ready"
+
+
+ERROR_EXAMPLES = {
+    400: ("bad_exr", "body is not an OpenEXR file (bad magic number)"),
+    401: ("unauthorized", "missing or wrong bearer token"),
+    404: ("session_not_found", "no session 'Jx3…' (expired, deleted or never created)"),
+    409: ("frame_out_of_order", "frame 11 is older than the last frame 12 of this session"),
+    413: ("resolution_too_large", "frame is 16384x16384; this server accepts at most 8192x8192"),
+    422: ("missing_channels", "no channels for required buffer 'albedo'; found [...]"),
+    429: ("too_many_sessions", "64 sessions are open; retry after the time in Retry-After"),
+}
+
+
+def error_body(code: str, detail: str) -> dict[str, str]:
+    return {"error": code, "detail": detail}
+
+
+def install_handlers(app: FastAPI, count_error: Callable[[int, str], None]) -> None:
+    def respond(status: int, code: str, detail: str, headers=None) -> JSONResponse:
+        count_error(status, code)
+        return JSONResponse(error_body(code, detail), status_code=status, headers=headers)
+
+    @app.exception_handler(ServiceError)
+    async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
+        return respond(exc.status, exc.code, exc.detail, exc.headers)
+
+    @app.exception_handler(BufferError)
+    async def buffer_error(_: Request, exc: BufferError) -> JSONResponse:
+        return respond(422, "invalid_buffers", str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = []
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
+            parts.append(f"{where}: {err.get('msg')}" if where else str(err.get("msg")))
+        return respond(422, "invalid_request", "; ".join(parts) or "invalid request")
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+        return respond(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error", extra={"path": request.url.path})
+        return respond(500, "internal_error", f"{type(exc).__name__}: see the server log")

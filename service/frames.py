@@ -1,0 +1,419 @@
+"""EXR bytes <-> canonical float32 buffers: the header check, the one alias table, pixel I/O.
+
+A frame goes through three steps, so that a bad request is refused before any pixel is decoded:
+1. `read_header` parses the EXR header bytes in pure Python (size limits, channel list, flags);
+2. `resolve` maps the header's channel names onto the canonical buffers (ALIASES below, or the
+   session's own mapping), naming what was found and what was expected when something is missing;
+3. `decode` reads the pixels with OpenEXR and assembles (H, W, C) float32 buffers, converting
+   renderer motion-vector conventions to ours; `encode` writes the denoised frame back with the
+   input's header attributes.
+
+Canonical buffers (DESIGN.md): color (RGB), albedo (RGB), normal (XYZ), depth (Z), motion (XY,
+backward, in pixels, x right and y down: pixel p of frame t was at p + motion in frame t-1).
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import OpenEXR
+
+from quietframe.service.errors import (
+    AmbiguousChannels,
+    BadExr,
+    MissingChannels,
+    ResolutionTooLarge,
+    UnsupportedExr,
+)
+
+BUFFER_CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}
+# Component spellings tried for each buffer, in order (matched case-insensitively).
+COMPONENTS: dict[str, tuple[str, ...]] = {
+    "color": ("RGB",),
+    "albedo": ("RGB",),
+    "normal": ("XYZ", "RGB"),
+    "depth": ("Z", "V", "R", "Y"),
+    "motion": ("XY", "RG", "UV"),
+}
+
+
+@dataclass(frozen=True)
+class Alias:
+    """A renderer's name for a buffer. `layer` matches a channel prefix (case-insensitive),
+    optionally behind a view-layer prefix (`<ViewLayer>.Combined`); `bare` aliases match whole
+    channel names only. `motion_scale` converts the renderer's motion vectors to ours."""
+
+    layer: str
+    source: str
+    bare: bool = False
+    motion_scale: tuple[float, float] = (1.0, 1.0)
+
+
+# The one alias table. Order is priority: the first alias with a match wins.
+ALIASES: dict[str, tuple[Alias, ...]] = {
+    "color": (
+        # Blender writes the noisy beauty as "Noisy Image" when its own denoiser ran; then
+        # "Combined" is already denoised, so the noisy one comes first.
+        Alias("Noisy Image", "Blender Cycles"),
+        Alias("Combined", "Blender Cycles"),
+        Alias("Ci", "RenderMan"),
+        Alias("RGBA", "Arnold (beauty as a named layer)"),
+        Alias("beauty", "generic"),
+        Alias("", "Arnold, RenderMan, V-Ray, Mitsuba, plain R,G,B"),
+    ),
+    "albedo": (
+        Alias("Denoising Albedo", "Blender Cycles"),
+        Alias("denoise_albedo", "Arnold"),
+        Alias("diffuse_albedo", "Arnold (older)"),
+        Alias("albedo", "RenderMan, Mitsuba, plain"),
+        Alias("VRayDiffuseFilter", "V-Ray"),
+    ),
+    "normal": (
+        Alias("Denoising Normal", "Blender Cycles"),
+        Alias("N", "Arnold, plain"),
+        Alias("Nn", "RenderMan"),
+        Alias("normal", "RenderMan denoise set, Blender Normal pass, plain"),
+        Alias("sh_normal", "Mitsuba"),
+        Alias("VRayNormals", "V-Ray"),
+    ),
+    "depth": (
+        Alias("Denoising Depth", "Blender Cycles"),
+        Alias("depth", "Blender Depth pass (<ViewLayer>.Depth.Z), Mitsuba, plain"),
+        Alias("Z", "Arnold, RenderMan (z), plain", bare=True),
+        Alias("depth", "plain single channel", bare=True),
+        Alias("zfiltered", "RenderMan denoise set"),
+    ),
+    "motion": (
+        Alias("motion", "quietframe convention"),
+        # Cycles: Vector.XY = raster position in t-1 minus position in t (our direction), raster
+        # y pointing up; EXR rows go down, so y flips. Vector.ZW (to t+1) is not used.
+        Alias("Vector", "Blender Cycles", motion_scale=(1.0, -1.0)),
+        # RenderMan: backward = raster offset to the previous frame (raster y down).
+        Alias("backward", "RenderMan"),
+        # Arnold: raw screen-space motion from shutter open to close (forward in time, y up),
+        # taken as one frame of motion: negate x for backward; y: -(-y) = y.
+        Alias("motionvector", "Arnold", motion_scale=(-1.0, 1.0)),
+        # RenderMan forward (to t+1), negated: the constant-velocity estimate of backward.
+        Alias("forward", "RenderMan (constant-velocity estimate)", motion_scale=(-1.0, -1.0)),
+    ),
+}
+
+CUT_ATTRIBUTE = "quietframe.cut"  # EXR header attribute: nonzero int or "1"/"true" = camera cut
+
+_MAGIC = b"\x76\x2f\x31\x01"
+_TILED, _LONG_NAMES, _NON_IMAGE, _MULTIPART = 0x200, 0x400, 0x800, 0x1000
+_MAX_ATTRIBUTES = 4096  # a header with more is not a render's
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    name: str
+    pixel_type: int  # 0 uint, 1 half, 2 float
+    x_sampling: int
+    y_sampling: int
+
+
+@dataclass
+class ExrHeader:
+    """What the service needs from an EXR header, parsed without decoding pixels."""
+
+    width: int
+    height: int
+    channels: dict[str, ChannelInfo]
+    parts: int
+    header_bytes: int  # where the offset tables and pixels start
+    cut: bool = False
+    attributes: dict[str, tuple[str, bytes]] = field(default_factory=dict)  # first part
+
+
+class _Reader:
+    def __init__(self, data: bytes, pos: int) -> None:
+        self.data, self.pos = data, pos
+
+    def take(self, n: int) -> bytes:
+        if n < 0 or self.pos + n > len(self.data):
+            raise BadExr("EXR header is truncated")
+        chunk = self.data[self.pos : self.pos + n]
+        self.pos += n
+        return chunk
+
+    def cstring(self, limit: int) -> str:
+        end = self.data.find(b"\0", self.pos, self.pos + limit + 1)
+        if end < 0:
+            raise BadExr("EXR header is truncated or has an over-long name")
+        raw = self.data[self.pos : end]
+        self.pos = end + 1
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise BadExr("EXR header has a name that is not UTF-8") from exc
+
+
+def _parse_chlist(value: bytes, limit: int) -> dict[str, ChannelInfo]:
+    reader, channels = _Reader(value, 0), {}
+    while True:
+        if reader.pos >= len(value):
+            raise BadExr("EXR channel list is not terminated")
+        if value[reader.pos] == 0:
+            return channels
+        name = reader.cstring(limit)
+        pixel_type, _, x_sampling, y_sampling = struct.unpack("<iB3xii", reader.take(16))
+        if pixel_type not in (0, 1, 2) or x_sampling < 1 or y_sampling < 1:
+            raise BadExr(f"EXR channel {name!r} has an invalid type or sampling")
+        channels[name] = ChannelInfo(name, pixel_type, x_sampling, y_sampling)
+
+
+def _parse_part(reader: _Reader, limit: int) -> dict[str, tuple[str, bytes]]:
+    attributes: dict[str, tuple[str, bytes]] = {}
+    while True:
+        if reader.pos >= len(reader.data):
+            raise BadExr("EXR header is truncated")
+        if reader.data[reader.pos] == 0:
+            reader.pos += 1
+            return attributes
+        if len(attributes) >= _MAX_ATTRIBUTES:
+            raise BadExr("EXR header has too many attributes")
+        name = reader.cstring(limit)
+        kind = reader.cstring(limit)
+        (size,) = struct.unpack("<i", reader.take(4))
+        attributes[name] = (kind, reader.take(size))
+
+
+def read_header(data: bytes, max_width: int, max_height: int) -> ExrHeader:
+    """Parse and check the header; raises BadExr (400), ResolutionTooLarge (413), UnsupportedExr."""
+    if len(data) < 8 or data[:4] != _MAGIC:
+        raise BadExr("body is not an OpenEXR file (bad magic number)")
+    (version,) = struct.unpack("<I", data[4:8])
+    if version & 0xFF != 2:
+        raise BadExr(f"unsupported OpenEXR file version {version & 0xFF}")
+    if version & _NON_IMAGE:
+        raise UnsupportedExr("deep (non-image) EXR data is not supported; send flat images")
+    limit = 255 if version & _LONG_NAMES else 31
+    reader = _Reader(data, 8)
+    parts = [_parse_part(reader, limit)]
+    while version & _MULTIPART and reader.pos < len(data) and data[reader.pos] != 0:
+        parts.append(_parse_part(reader, limit))
+    channels: dict[str, ChannelInfo] = {}
+    size = None
+    for attributes in parts:
+        if "dataWindow" not in attributes or "channels" not in attributes:
+            raise BadExr("EXR header lacks its dataWindow or channels attribute")
+        kind, value = attributes["dataWindow"]
+        if kind != "box2i" or len(value) != 16:
+            raise BadExr("EXR dataWindow attribute is malformed")
+        x0, y0, x1, y1 = struct.unpack("<iiii", value)
+        part_size = (x1 - x0 + 1, y1 - y0 + 1)
+        if part_size[0] < 1 or part_size[1] < 1:
+            raise BadExr(f"EXR dataWindow is empty ({x0},{y0})-({x1},{y1})")
+        if size is not None and part_size != size:
+            raise UnsupportedExr("EXR parts have different data windows; send one size")
+        size = part_size
+        for name, info in _parse_chlist(attributes["channels"][1], limit).items():
+            channels.setdefault(name, info)  # a name in several parts: the first part's
+    width, height = size  # type: ignore[misc]
+    if width > max_width or height > max_height:
+        raise ResolutionTooLarge(
+            f"frame is {width}x{height}; this server accepts at most {max_width}x{max_height}"
+        )
+    subsampled = [c.name for c in channels.values() if (c.x_sampling, c.y_sampling) != (1, 1)]
+    if subsampled:
+        raise UnsupportedExr(f"subsampled channels are not supported: {subsampled}")
+    return ExrHeader(width, height, channels, len(parts), reader.pos, _cut_flag(parts[0]), parts[0])
+
+
+def _cut_flag(attributes: Mapping[str, tuple[str, bytes]]) -> bool:
+    if CUT_ATTRIBUTE not in attributes:
+        return False
+    kind, value = attributes[CUT_ATTRIBUTE]
+    if kind == "int" and len(value) == 4:
+        return struct.unpack("<i", value)[0] != 0
+    if kind == "string":
+        return value.decode("utf-8", "replace").strip().lower() in ("1", "true", "yes", "cut")
+    return False
+
+
+# --------------------------------------------------------------------------------------------
+# Channel resolution
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where one canonical buffer comes from in the file."""
+
+    channels: tuple[str, ...]
+    alias: str  # the alias or mapping that matched, for messages and the status
+    motion_scale: tuple[float, float] = (1.0, 1.0)
+
+
+def _split(name: str) -> tuple[str, str]:
+    layer, _, component = name.rpartition(".")
+    return layer, component
+
+
+def _layer_matches(layer: str, alias: str) -> bool:
+    layer, alias = layer.lower(), alias.lower()
+    return layer == alias or layer.endswith("." + alias)
+
+
+def _components(
+    layers: Mapping[str, dict[str, str]], layer: str, buffer: str
+) -> tuple[str, ...] | None:
+    """Channel names of `layer` for `buffer`, in canonical order, or None if incomplete."""
+    present = layers.get(layer, {})
+    for spelling in COMPONENTS[buffer]:
+        wanted = spelling[: BUFFER_CHANNELS[buffer]]
+        found = [present.get(c.lower()) for c in wanted]
+        if all(found):
+            return tuple(found)  # type: ignore[arg-type]
+    return None
+
+
+def _layers(names: Iterable[str]) -> dict[str, dict[str, str]]:
+    layers: dict[str, dict[str, str]] = {}
+    for name in names:
+        layer, component = _split(name)
+        layers.setdefault(layer, {})[component.lower()] = name
+    return layers
+
+
+def _find_alias(buffer: str, names: Sequence[str], layers) -> Source | None:
+    for alias in ALIASES[buffer]:
+        if alias.bare:
+            hits = [(n,) for n in names if n.lower() == alias.layer.lower()]  # "Z" and "z"
+        else:
+            matching = [layer for layer in layers if _layer_matches(layer, alias.layer)]
+            if alias.layer == "":
+                matching = [""] if "" in layers else []
+            hits = [c for layer in matching if (c := _components(layers, layer, buffer))]
+        if len(hits) > 1:
+            raise AmbiguousChannels(
+                f"buffer {buffer!r} matches several layers {[h[0] for h in hits]}; "
+                "pass a channel mapping when creating the session"
+            )
+        if hits:
+            return Source(hits[0], f"{alias.layer or 'R,G,B'} ({alias.source})", alias.motion_scale)
+    return None
+
+
+def _mapped_source(buffer: str, spec: str | Sequence[str], names, layers, scale) -> Source | None:
+    if not isinstance(spec, str):
+        channels = tuple(spec)
+        return Source(channels, "mapping", scale) if all(c in names for c in channels) else None
+    if buffer == "depth" and spec in names:
+        return Source((spec,), "mapping", scale)
+    exact = _components(layers, spec, buffer)
+    if exact is None:  # case-insensitive layer name
+        layer = next((name for name in layers if name.lower() == spec.lower()), None)
+        exact = _components(layers, layer, buffer) if layer is not None else None
+    return Source(exact, "mapping", scale) if exact else None
+
+
+def resolve(
+    channel_names: Iterable[str],
+    required: Sequence[str],
+    optional: Sequence[str],
+    mapping: Mapping[str, str | Sequence[str]] | None = None,
+    mapped_motion_scale: tuple[float, float] = (1.0, 1.0),
+) -> dict[str, Source]:
+    """Canonical buffer -> Source for the model's buffers; MissingChannels if a required one is
+    absent (optional ones are simply left out: the runtime fills them and says so)."""
+    names = sorted(channel_names)
+    layers = _layers(names)
+    sources: dict[str, Source] = {}
+    for buffer in (*required, *optional):
+        if mapping and buffer in mapping:
+            source = _mapped_source(buffer, mapping[buffer], names, layers, mapped_motion_scale)
+            if source is None:
+                raise MissingChannels(
+                    f"session mapping {buffer}={mapping[buffer]!r} names channels that are not in "
+                    f"the file; found {names}"
+                )
+        else:
+            source = _find_alias(buffer, names, layers)
+        if source is not None:
+            sources[buffer] = source
+        elif buffer in required:
+            expected = [a.layer or "R,G,B" for a in ALIASES[buffer]]
+            raise MissingChannels(
+                f"no channels for required buffer {buffer!r}; expected one of the layers "
+                f"{expected} (components {'/'.join(c for c in COMPONENTS[buffer] if c)}) or a "
+                f"session channel mapping; found {names}"
+            )
+    return sources
+
+
+def validate_mapping(mapping: Mapping[str, str | Sequence[str]]) -> None:
+    """Raise ValueError for a session mapping that could never match (unknown buffer, count)."""
+    for buffer, spec in mapping.items():
+        if buffer not in BUFFER_CHANNELS:
+            raise ValueError(f"unknown buffer {buffer!r}; buffers are {list(BUFFER_CHANNELS)}")
+        if not isinstance(spec, str) and len(spec) != BUFFER_CHANNELS[buffer]:
+            raise ValueError(
+                f"{buffer} needs {BUFFER_CHANNELS[buffer]} channel names, got {len(spec)}"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# Pixels
+
+
+@dataclass
+class DecodedFrame:
+    buffers: dict[str, np.ndarray]  # canonical name -> (H, W, C) float32 (depth (H, W))
+    header: dict  # OpenEXR header attributes of the first part, for the output
+
+
+def decode(data: bytes, sources: Mapping[str, Source], threads: int = 1) -> DecodedFrame:
+    """Decode the pixels; BadExr for anything the decoder rejects (truncated, corrupt chunks)."""
+    try:
+        exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, num_threads=threads)
+        planes: dict[str, np.ndarray] = {}
+        for part in exr.parts:
+            for name, channel in part.channels.items():
+                planes.setdefault(name, channel.pixels)
+        header = dict(exr.parts[0].header)
+    except Exception as exc:  # the binding raises RuntimeError/ValueError/UnicodeDecodeError
+        raise BadExr(f"EXR pixel data could not be decoded: {exc}") from exc
+    buffers: dict[str, np.ndarray] = {}
+    for buffer, source in sources.items():
+        try:
+            stack = [planes[c] for c in source.channels]
+        except KeyError as exc:
+            raise BadExr(f"EXR channel {exc} is listed in the header but has no data") from exc
+        if buffer == "depth":
+            buffers[buffer] = np.asarray(stack[0], np.float32)
+            continue
+        array = np.stack(stack, axis=-1).astype(np.float32, copy=False)  # (H, W, C)
+        if buffer == "motion" and source.motion_scale != (1.0, 1.0):
+            array = array * np.asarray(source.motion_scale, np.float32)
+        buffers[buffer] = array
+    return DecodedFrame(buffers, header)
+
+
+# Attributes that describe the layout of the input file, not the image; the writer sets them.
+_LAYOUT_ATTRIBUTES = frozenset({"channels", "chunkCount", "name", "type", "tiles", "version"})
+
+
+def encode(
+    color: np.ndarray,
+    header: Mapping,
+    names: Sequence[str],
+    precision: str,
+    extra: Mapping[str, str] | None = None,
+    threads: int = 1,
+) -> bytes:
+    """(H, W, 3) float32 -> single-part scanline EXR bytes with the input's header attributes."""
+    dtype = np.float16 if precision == "half" else np.float32
+    attributes = {k: v for k, v in header.items() if k not in _LAYOUT_ATTRIBUTES}
+    attributes["type"] = OpenEXR.scanlineimage
+    attributes.update(extra or {})
+    channels = {
+        name: np.ascontiguousarray(color[:, :, i], dtype=dtype) for i, name in enumerate(names)
+    }
+    out = io.BytesIO()
+    OpenEXR.File(attributes, channels, num_threads=threads).write(out)
+    return out.getvalue()

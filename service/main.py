@@ -1,0 +1,94 @@
+"""Build the app: lifespan loads the models and holds the registries; routers do the rest.
+
+Run with `quietframe serve`, or `uvicorn --factory quietframe.service.main:create_app`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+
+from fastapi import Depends, FastAPI
+
+from quietframe.service import logs
+from quietframe.service.deps import require_auth
+from quietframe.service.errors import install_handlers
+from quietframe.service.metrics import Metrics
+from quietframe.service.model_registry import ModelRegistry
+from quietframe.service.routers import health, models, sessions
+from quietframe.service.sessions import SessionRegistry
+from quietframe.service.settings import Settings
+
+log = logging.getLogger("quietframe.service")
+
+DESCRIPTION = """Frame-sequence denoising for path-traced renders.
+
+One **session** per camera sequence keeps the model's temporal history on the server. Create
+it with the frame size, then POST each frame (one multi-layer EXR with colour and AOVs) in
+order; each response is the denoised EXR. Renderer channel names of Blender Cycles, Arnold,
+RenderMan, V-Ray and plain `R,G,B` + `albedo.*`, `N.*`, `Z` are recognised; a session may pass its
+own mapping. Errors are JSON `{"error": code, "detail": message}`."""
+
+
+async def _expire_loop(registry: SessionRegistry, period_s: float) -> None:
+    while True:
+        await asyncio.sleep(period_s)
+        registry.expire()
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        registry_models = await asyncio.to_thread(ModelRegistry, settings)
+        await asyncio.to_thread(registry_models.warm_up)
+        pool = ThreadPoolExecutor(settings.worker_count, thread_name_prefix="quietframe-frame")
+        registry = SessionRegistry(settings, registry_models, app.state.metrics)
+        app.state.models, app.state.sessions, app.state.pool = registry_models, registry, pool
+        period = min(30.0, settings.session_ttl_s / 4)
+        reaper = asyncio.create_task(_expire_loop(registry, period))
+        log.info(
+            "ready",
+            extra={
+                "models": sorted(registry_models.models),
+                "default": registry_models.default,
+                "workers": settings.worker_count,
+                "threads": settings.model_threads,
+                "state_dir": str(settings.state_dir) if settings.state_dir else None,
+            },
+        )
+        try:
+            yield
+        finally:
+            reaper.cancel()
+            pool.shutdown(wait=True)
+
+    app = FastAPI(
+        title="quietframe",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = Metrics()
+    install_handlers(app, app.state.metrics.count_error)
+    auth = [Depends(require_auth)]
+    app.include_router(sessions.router, prefix="/v1", dependencies=auth)
+    app.include_router(models.router, prefix="/v1", dependencies=auth)
+    app.include_router(health.router)
+    return app
+
+
+def run(host: str, port: int, settings: Settings | None = None) -> None:
+    """Serve until interrupted (the `quietframe serve` command)."""
+    import uvicorn
+
+    settings = settings or Settings()
+    logs.configure(settings.log_level, settings.log_json)
+    uvicorn.run(
+        create_app(settings), host=host, port=port, log_config=None, timeout_graceful_shutdown=30
+    )

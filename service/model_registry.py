@@ -1,0 +1,92 @@
+"""The loaded models: one shared onnxruntime session (Denoiser) per installed model."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.runtime import Denoiser, default_model_path, installed_models
+from quietframe.service.errors import UnknownModel
+from quietframe.service.schemas import BufferSpec, ModelPublic
+from quietframe.service.settings import Settings
+
+log = logging.getLogger("quietframe.service")
+
+
+def _json_or_text(value: str | None) -> dict | str | None:
+    try:
+        return json.loads(value) if value else None
+    except ValueError:
+        return value
+
+
+class ModelRegistry:
+    def __init__(self, settings: Settings) -> None:
+        paths = list(installed_models())
+        if settings.models_dir is not None:
+            paths += sorted(Path(settings.models_dir).glob("*.onnx"))
+        if not paths:
+            raise LookupError("no models installed (quietframe.models) and none in models_dir")
+        self.models: dict[str, Denoiser] = {}
+        self._aliases: dict[str, str] = {}  # file stem -> model name
+        for path in paths:
+            denoiser = Denoiser(path, threads=settings.model_threads)
+            name = denoiser.info.name
+            if name in self.models:
+                log.warning("model %s at %s shadows an earlier one with that name", name, path)
+            self.models[name] = denoiser
+            self._aliases[path.stem] = name
+        wanted = settings.default_model
+        self.default = self.resolve(wanted) if wanted else self._runtime_default(paths)
+        self.ready = False
+
+    def _runtime_default(self, paths: list[Path]) -> str:
+        try:
+            default = default_model_path()
+        except LookupError:
+            default = paths[0]
+        return self._aliases.get(default.stem, next(iter(self.models)))
+
+    def resolve(self, name: str) -> str:
+        """Model name for a request's `model` ('auto', a name or a file stem)."""
+        if name == "auto":
+            return self.default
+        if name in self.models:
+            return name
+        if name in self._aliases:
+            return self._aliases[name]
+        raise UnknownModel(f"unknown model {name!r}; installed: {sorted(self.models)} or 'auto'")
+
+    def get(self, name: str) -> Denoiser:
+        return self.models[self.resolve(name)]
+
+    def warm_up(self) -> None:
+        """Run one tiny frame through every model: loads the custom ops, allocates kernels."""
+        for denoiser in self.models.values():
+            size = (16, 16)
+            buffers = {
+                b: np.zeros((*size, 1 if b == "depth" else 2 if b == "motion" else 3), np.float32)
+                for b in (*denoiser.info.required_buffers, *denoiser.info.optional_buffers)
+            }
+            denoiser.denoise(buffers, None, reset=True)
+        self.ready = True
+
+    def public(self) -> list[ModelPublic]:
+        return [
+            ModelPublic(
+                name=name,
+                version=d.info.version,
+                file=d.info.path.name,
+                default=name == self.default,
+                architecture=_json_or_text(d.info.metadata.get("quietframe.architecture")),
+                required_buffers=list(d.info.required_buffers),
+                optional_buffers=list(d.info.optional_buffers),
+                state=[BufferSpec(name=s.name, channels=s.channels) for s in d.info.state_specs],
+                metrics=d.info.metrics,
+                training=d.info.training,
+            )
+            for name, d in self.models.items()
+        ]

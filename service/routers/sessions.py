@@ -1,0 +1,209 @@
+"""/v1/sessions: create a camera sequence, send its frames in order, read its status, end it."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query, Request, Response, status
+
+from quietframe.service import frames
+from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
+from quietframe.service.errors import (
+    ERROR_EXAMPLES,
+    BodyTooLarge,
+    InvalidRequest,
+    SessionNotFound,
+    SizeMismatch,
+    UnsupportedMediaType,
+)
+from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
+from quietframe.service.sessions import Reply, run_frame
+
+router = APIRouter(prefix="/sessions", tags=["sessions"])
+log = logging.getLogger("quietframe.service")
+
+EXR = "image/x-exr"
+_ACCEPTED_TYPES = {EXR, "application/octet-stream", ""}
+
+
+def _errors(*codes: int) -> dict:
+    return {
+        code: {
+            "model": ErrorBody,
+            "content": {
+                "application/json": {
+                    "example": {"error": ERROR_EXAMPLES[code][0], "detail": ERROR_EXAMPLES[code][1]}
+                }
+            },
+        }
+        for code in codes
+    }
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=SessionPublic,
+    responses=_errors(401, 422, 429),
+    summary="Start a camera sequence",
+)
+async def create_session(
+    spec: SessionCreate, response: Response, sessions: SessionsDep, settings: SettingsDep
+) -> SessionPublic:
+    """Returns the session id, the model chosen for it and the buffers each frame must carry.
+    Every frame of the sequence must have this width and height."""
+    if spec.width > settings.max_width or spec.height > settings.max_height:
+        raise InvalidRequest(
+            f"{spec.width}x{spec.height} exceeds this server's maximum frame size "
+            f"{settings.max_width}x{settings.max_height}"
+        )
+    session = sessions.create(spec)
+    response.headers["Location"] = f"/v1/sessions/{session.id}"
+    log.info(
+        "session created",
+        extra={
+            "session": session.id,
+            "model": session.model,
+            "size": f"{spec.width}x{spec.height}",
+        },
+    )
+    return session.public(settings.session_ttl_s)
+
+
+@router.get(
+    "/{session_id}",
+    response_model=SessionPublic,
+    responses=_errors(401, 404),
+    summary="Session status",
+)
+async def get_session(
+    session_id: str, sessions: SessionsDep, settings: SettingsDep
+) -> SessionPublic:
+    """Frames done, last index, mean and last timings per stage, memory held, time to expiry.
+    Reading the status does not keep the session alive."""
+    return sessions.get(session_id, touch=False).public(settings.session_ttl_s)
+
+
+@router.delete(
+    "/{session_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses=_errors(401, 404),
+    summary="End a session and free its history",
+)
+async def delete_session(session_id: str, sessions: SessionsDep) -> Response:
+    await sessions.delete(session_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise BodyTooLarge(f"body is {int(declared)} bytes; the limit is {limit} bytes")
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise BodyTooLarge(f"body exceeds the limit of {limit} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _exr_response(reply: Reply, replayed: bool, metrics) -> Response:
+    metrics.bytes_out.inc(len(reply.body))
+    headers = {**reply.headers, "X-Quietframe-Replayed": "true" if replayed else "false"}
+    return Response(reply.body, media_type=EXR, headers=headers)
+
+
+_FRAME_DOC = """Denoise frame `index` of the sequence. Body: one EXR (`image/x-exr`) with colour and
+AOVs under any of the recognised renderer names (or the session's mapping). Response: the denoised
+EXR, same size and header attributes, colour channels named as in the input.
+
+Order: `index` must increase. The same index as the last frame is an idempotent retry (the same
+bytes come back, history is not advanced twice); a lower index is refused (409). A gap in the
+indices, `?cut=true`, or a header attribute `quietframe.cut` = 1 starts from a fresh history.
+
+Response headers: `X-Quietframe-Reset` (`none`, `first-frame`, `cut`, `gap`),
+`X-Quietframe-Sanitized` (input values replaced: NaN/Inf, negative colour/albedo/depth) with
+`X-Quietframe-Sanitized-Buffers`, `X-Quietframe-Missing` (optional buffers that were absent and
+filled: motion -> static camera), `X-Quietframe-Replayed`, `Server-Timing` (ms per stage)."""
+
+
+@router.post(
+    "/{session_id}/frames/{index}",
+    response_class=Response,
+    summary="Denoise one frame",
+    description=_FRAME_DOC,
+    responses={
+        200: {
+            "content": {EXR: {"schema": {"type": "string", "format": "binary"}}},
+            "description": "the denoised EXR",
+        },
+        **_errors(400, 401, 404, 409, 413, 422),
+    },
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {EXR: {"schema": {"type": "string", "format": "binary"}}},
+        }
+    },
+)
+async def post_frame(
+    session_id: str,
+    index: Annotated[int, Path(ge=0, description="frame number; must increase")],
+    request: Request,
+    sessions: SessionsDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    cut: Annotated[bool, Query(description="camera cut: start from a fresh history")] = False,
+) -> Response:
+    session = sessions.get(session_id)
+    media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media_type not in _ACCEPTED_TYPES:
+        raise UnsupportedMediaType(f"send the EXR as {EXR} (got {media_type})")
+    body = await _read_body(request, settings.max_body_bytes)
+    metrics.bytes_in.inc(len(body))
+    # Everything that can be checked from the header is checked before taking the lock.
+    header = frames.read_header(body, settings.max_width, settings.max_height)
+    if (header.width, header.height) != (session.width, session.height):
+        raise SizeMismatch(
+            f"frame is {header.width}x{header.height}; this session is "
+            f"{session.width}x{session.height} (create a session per resolution)"
+        )
+    sources = frames.resolve(
+        header.channels,
+        session.required,
+        session.optional,
+        session.channels,
+        session.motion_scale,
+    )
+    loop = asyncio.get_running_loop()
+    pool = request.app.state.pool
+    async with session.lock:
+        if session.closed:
+            raise SessionNotFound(f"session {session_id!r} was closed while this frame waited")
+        await sessions.ensure_resident(session, loop, pool)  # a retry needs the stored reply
+        plan = session.plan(index, body, cut or header.cut)
+        if isinstance(plan, Reply):
+            metrics.replays.inc()
+            return _exr_response(plan, True, metrics)
+        state = session.state if plan == "none" else None
+        denoiser = sessions.models.models[session.model]
+        outcome = await loop.run_in_executor(
+            pool, run_frame, denoiser, session, index, body, sources, plan, state
+        )
+        if session.durable:
+            await loop.run_in_executor(pool, sessions.persist, session, outcome)
+        sessions.committed(session, outcome)
+    log.info(
+        "frame",
+        extra={
+            "session": session.id,
+            "index": index,
+            "reset": plan,
+            "ms": round(outcome.timings_ms["total"], 1),
+            "sanitized": outcome.sanitized,
+        },
+    )
+    return _exr_response(outcome.reply, False, metrics)

@@ -1,0 +1,123 @@
+"""Request and response bodies of the /v1 API (separate create / public shapes)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from quietframe.service.frames import validate_mapping
+
+Precision = Literal["half", "float"]
+
+
+class SessionCreate(BaseModel):
+    """One camera sequence: frames of one size, denoised in order with temporal history."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"width": 1920, "height": 1080},
+                {
+                    "width": 1280,
+                    "height": 720,
+                    "model": "auto",
+                    "precision": "half",
+                    "channels": {"color": "beauty", "albedo": ["alb.R", "alb.G", "alb.B"]},
+                },
+            ]
+        },
+    )
+
+    width: int = Field(ge=1, description="frame width in pixels (EXR data window)")
+    height: int = Field(ge=1, description="frame height in pixels")
+    model: str = Field("auto", description="installed model name, or 'auto' for the default")
+    channels: dict[str, str | list[str]] | None = Field(
+        None,
+        description="own AOV mapping, buffer -> layer name or list of channel names; buffers "
+        "not listed use the built-in alias table (Blender, Arnold, RenderMan, V-Ray, plain)",
+    )
+    motion_scale: tuple[float, float] = Field(
+        (1.0, 1.0),
+        description="factors for (x, y) of a mapped motion layer, to reach quietframe's "
+        "convention: backward motion in pixels, y down",
+    )
+    precision: Precision = Field("float", description="pixel type of the denoised EXR")
+
+    @field_validator("channels")
+    @classmethod
+    def _known_buffers(cls, value: dict | None) -> dict | None:
+        if value:
+            validate_mapping(value)
+        return value
+
+
+class ModelRef(BaseModel):
+    name: str
+    version: str
+
+
+class StageTimings(BaseModel):
+    decode: float = 0.0
+    denoise: float = 0.0
+    encode: float = 0.0
+    total: float = 0.0
+
+
+class SessionPublic(BaseModel):
+    id: str = Field(description="unguessable session id (the capability to use the session)")
+    model: ModelRef
+    width: int
+    height: int
+    precision: Precision
+    required_buffers: list[str] = Field(description="buffers every frame must carry")
+    optional_buffers: list[str] = Field(description="buffers used when present (else defaults)")
+    channels: dict[str, str | list[str]] | None = None
+    created_at: str
+    frames_done: int = 0
+    last_index: int | None = None
+    resets: int = Field(0, description="frames that started from a zero history")
+    sources: dict[str, list[str]] = Field(
+        default_factory=dict, description="EXR channels used for each buffer in the last frame"
+    )
+    missing: list[str] = Field(default_factory=list, description="absent in the last frame")
+    mean_ms: StageTimings = Field(default_factory=StageTimings)
+    last_ms: StageTimings = Field(default_factory=StageTimings)
+    memory_bytes: int = Field(0, description="history state + last reply held in memory")
+    reserved_bytes: int = Field(0, description="what the session counts against the budget")
+    expires_in_s: float = Field(description="deleted after this much more idle time")
+    durable: bool = Field(False, description="state is written to the state directory")
+
+
+class BufferSpec(BaseModel):
+    name: str
+    channels: int
+
+
+class ModelPublic(BaseModel):
+    name: str
+    version: str
+    file: str
+    default: bool
+    architecture: dict | str | None = None
+    required_buffers: list[str]
+    optional_buffers: list[str]
+    state: list[BufferSpec]
+    metrics: dict = Field(description="validation error and speed figures from the model card")
+    training: dict = Field(description="training data and settings from the model card")
+
+
+class ModelList(BaseModel):
+    models: list[ModelPublic]
+    default: str
+
+
+class ErrorBody(BaseModel):
+    error: str = Field(description="machine-readable code", examples=["missing_channels"])
+    detail: str = Field(description="what went wrong and what to do about it")
+
+
+class Health(BaseModel):
+    status: str
+    detail: dict = Field(default_factory=dict)

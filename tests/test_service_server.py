@@ -1,0 +1,174 @@
+"""Against a real uvicorn server on 127.0.0.1: round trips, concurrent sessions, state isolation,
+retry races, and a killed-and-restarted server with durable state."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import httpx
+import numpy as np
+import pytest
+from conftest import LAYOUTS, make_buffers, read_exr, shot, write_exr
+
+from quietframe.client import Client
+
+SIZE = (64, 48)
+
+
+def colour(data: bytes) -> np.ndarray:
+    _, channels = read_exr(data)
+    names = sorted(channels, key=lambda n: "RGB".index(n[-1].upper()))
+    return np.stack([channels[n] for n in names], -1)
+
+
+def run_sequence(url: str, frames: list[bytes], first: int = 0) -> list[bytes]:
+    with Client(url) as client:
+        sid = client.create_session(*SIZE)["id"]
+        return [client.send_frame(sid, first + i, f).exr for i, f in enumerate(frames)]
+
+
+def test_sequence_round_trip(live_server):
+    frames = shot(6, "blender")
+    with Client(live_server.url) as client:
+        session = client.create_session(*SIZE, precision="half")
+        results = [client.send_frame(session["id"], i, f) for i, f in enumerate(frames)]
+        status = client.session(session["id"])
+        client.delete_session(session["id"])
+    assert [r.reset for r in results] == ["first-frame"] + ["none"] * 5
+    assert all(r.timings_ms["denoise"] > 0 and not r.missing for r in results)
+    header, channels = read_exr(results[-1].exr)
+    assert sorted(channels) == [
+        "ViewLayer.Combined.B",
+        "ViewLayer.Combined.G",
+        "ViewLayer.Combined.R",
+    ]
+    assert all(c.dtype == np.float16 and c.shape == (48, 64) for c in channels.values())
+    assert header["quietframe.frame"] == "5"
+    assert np.isfinite(colour(results[-1].exr)).all()
+    assert status["frames_done"] == 6 and status["last_index"] == 5
+    # Temporal history is used: the last frame differs from the same frame denoised alone.
+    alone = run_sequence(live_server.url, frames[-1:])[0]
+    assert not np.allclose(colour(results[-1].exr), colour(alone), rtol=1e-3, atol=1e-4)
+
+
+def test_concurrent_sessions_are_isolated(live_server):
+    shots = [
+        shot(4, layout, seed=k)
+        for k, layout in enumerate(["plain-normal", "arnold", "renderman-ci", "blender"])
+    ]
+    references = [run_sequence(live_server.url, s) for s in shots]
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(lambda s: run_sequence(live_server.url, s), shots))
+    for got, expected in zip(results, references, strict=True):
+        for a, b in zip(got, expected, strict=True):
+            np.testing.assert_allclose(colour(a), colour(b), rtol=1e-5, atol=1e-6)
+
+
+def test_same_frame_sent_twice_at_once_is_denoised_once(live_server):
+    frames = shot(2)
+    with Client(live_server.url) as client:
+        sid = client.create_session(*SIZE)["id"]
+        client.send_frame(sid, 0, frames[0])
+        with ThreadPoolExecutor(3) as pool:
+            results = list(pool.map(lambda _: client.send_frame(sid, 1, frames[1]), range(3)))
+        assert len({r.exr for r in results}) == 1
+        assert sorted(r.replayed for r in results) == [False, True, True]
+        assert client.session(sid)["frames_done"] == 2
+
+
+def test_async_client_streams_sessions_in_parallel(live_server):
+    import asyncio
+
+    from quietframe.client import AsyncClient
+
+    shots = [shot(3, seed=k) for k in range(3)]
+
+    async def one(client, frames):
+        sid = (await client.create_session(*SIZE))["id"]
+        out = [await client.send_frame(sid, i, f) for i, f in enumerate(frames)]
+        await client.delete_session(sid)
+        return out
+
+    async def main():
+        async with AsyncClient(live_server.url) as client:
+            return await asyncio.gather(*(one(client, s) for s in shots))
+
+    results = asyncio.run(main())
+    assert [[r.reset for r in seq] for seq in results] == [["first-frame", "none", "none"]] * 3
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start_cli_server(port: int, state_dir) -> subprocess.Popen:
+    """`quietframe serve` in its own process (the README command), durable state on."""
+    env = {**os.environ, "QUIETFRAME_THREADS": "1", "QUIETFRAME_LOG_JSON": "true"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "quietframe.client.cli",
+        "serve",
+        "--port",
+        str(port),
+        "--state-dir",
+        str(state_dir),
+    ]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"server exited: {proc.stderr.read().decode()[-2000:]}")
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
+                return proc
+        except httpx.TransportError:
+            pass
+        time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError("server did not become ready")
+
+
+def test_killed_server_continues_sequence_from_durable_state(tmp_path, live_server):
+    frames = shot(5, "arnold")
+    reference = run_sequence(live_server.url, frames)
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    server = _start_cli_server(port, tmp_path)
+    try:
+        with Client(url) as client:
+            sid = client.create_session(*SIZE)["id"]
+            first = [client.send_frame(sid, i, frames[i]) for i in range(3)]
+        server.send_signal(signal.SIGKILL)  # no shutdown hook: only what was on disk survives
+        server.wait(timeout=30)
+        assert [p.name for p in tmp_path.iterdir()] == [f"{sid}.npz"]
+        server = _start_cli_server(port, tmp_path)
+        with Client(url) as client:
+            assert client.session(sid)["last_index"] == 2
+            retry = client.send_frame(sid, 2, frames[2])  # the lost-response retry, after restart
+            rest = [client.send_frame(sid, i, frames[i]) for i in (3, 4)]
+            client.delete_session(sid)
+        assert retry.replayed and retry.exr == first[2].exr
+        assert [r.reset for r in rest] == ["none", "none"]  # no visible reset
+        for got, expected in zip(first + rest, reference, strict=True):
+            np.testing.assert_allclose(colour(got.exr), colour(expected), rtol=1e-5, atol=1e-6)
+        assert not list(tmp_path.iterdir())  # deleted sessions leave no state behind
+    finally:
+        server.kill()
+        server.wait(timeout=30)
+
+
+@pytest.mark.parametrize("layout", ["blender", "renderman-rgb"])
+def test_missing_motion_over_http(live_server, layout):
+    data = write_exr(LAYOUTS[layout](make_buffers(motion=False)))
+    with Client(live_server.url) as client:
+        sid = client.create_session(*SIZE)["id"]
+        assert client.send_frame(sid, 0, data).missing == ("motion",)
