@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from quietframe.export import OPS_DOMAIN
 from quietframe.model.grid import range_cells
-from quietframe.model.nbg import NBGDenoiser
+from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
 
 OPSET = 18
 BUFFERS = ("color", "albedo", "normal", "depth", "motion")
@@ -77,7 +77,7 @@ def _slice_to_onnx(grid, weight, guide, sigma_s: int, sigma_r: float):
 class _ExportWrapper(nn.Module):
     """Positional signature in the order of the graph inputs."""
 
-    def __init__(self, model: NBGDenoiser) -> None:
+    def __init__(self, model: NBGDenoiser | AccumulationDenoiser) -> None:
         super().__init__()
         self.model = model
 
@@ -103,14 +103,15 @@ def example_inputs(height: int = 48, width: int = 64, seed: int = 0) -> tuple[Te
 
 
 def export_nbg(
-    model: NBGDenoiser,
+    model: NBGDenoiser | AccumulationDenoiser,
     path: Path,
     *,
     version: str = "0",
     training: Mapping | None = None,
     metrics: Mapping | None = None,
 ) -> Path:
-    """Write `model` as a self-describing ONNX file at `path` and return the path."""
+    """Write `model` (an NBG variant or the accumulation-only pre-stage) as a self-describing
+    ONNX file at `path` and return the path."""
     model = model.eval()
     height = torch.export.Dim("height", min=1, max=8192)
     width = torch.export.Dim("width", min=1, max=8192)

@@ -69,6 +69,25 @@ def suppress_outliers(radiance: Tensor, kernel: int = 5) -> Tensor:
     return radiance * scale
 
 
+def prestage(
+    color: Tensor,
+    albedo: Tensor,
+    normal: Tensor,
+    depth: Tensor,
+    motion: Tensor,
+    reset: Tensor,
+    state: Tensor,
+    temporal: bool = True,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Demodulate, suppress outliers, accumulate over time -> (irradiance, safe albedo, state)."""
+    safe_albedo = albedo.clamp_min(0) + ALBEDO_EPSILON
+    irradiance = suppress_outliers(color / safe_albedo)
+    if not temporal:
+        return irradiance, safe_albedo, state
+    irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state)
+    return irradiance, safe_albedo, new_state
+
+
 class GuideNet(nn.Module):
     """2-layer CNN, or 7 layers with a five-layer dense block (paper Fig. 2), 5×5 convolutions.
 
@@ -143,12 +162,9 @@ class NBGDenoiser(nn.Module):
         reset: Tensor,
         state: Tensor,
     ) -> tuple[Tensor, Tensor]:
-        safe_albedo = albedo.clamp_min(0) + ALBEDO_EPSILON
-        irradiance = suppress_outliers(color / safe_albedo)
-        if self.config.temporal:
-            irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state)
-        else:
-            new_state = state
+        irradiance, safe_albedo, new_state = prestage(
+            color, albedo, normal, depth, motion, reset, state, self.config.temporal
+        )
         guides, weights = self.guide_net(
             guide_features(irradiance * safe_albedo, albedo, normal, depth)
         )
@@ -159,6 +175,27 @@ class NBGDenoiser(nn.Module):
             sliced = bilateral_slice(grid, weight, guide, sigma_s, sigma_r)
             result = result + (sliced if weights is None else weights[:, s : s + 1] * sliced)
         return result * safe_albedo, new_state
+
+    def initial_state(self, batch: int, height: int, width: int) -> Tensor:
+        return torch.zeros(batch, STATE_CHANNELS, height, width)
+
+
+class AccumulationDenoiser(nn.Module):
+    """The NBG pre-stage alone (reprojection + accumulation, no network): a baseline, and a
+    cheap preview model. Same call signature and state as NBGDenoiser."""
+
+    state_channels = STATE_CHANNELS
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.config = NBGConfig(name="accumulation", layers=0, width=0, grids=0)
+
+    def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
+        irradiance, safe_albedo, new_state = prestage(
+            color, albedo, normal, depth, motion, reset, state
+        )
+        return irradiance * safe_albedo, new_state
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)

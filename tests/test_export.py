@@ -91,3 +91,22 @@ def test_dynamic_sizes_and_missing_motion(exported):
         assert result.color.shape == (height, width, 3)
         assert np.isfinite(result.color).all()
         assert result.missing == ("motion",)
+
+
+def test_accumulation_only_graph_matches_pytorch(tmp_path):
+    from quietframe.model.nbg import AccumulationDenoiser
+
+    model = AccumulationDenoiser()
+    runtime = Denoiser(export_nbg(model, tmp_path / "accumulation.onnx"), threads=1)
+    state, ort_state = model.initial_state(1, HEIGHT, WIDTH), None
+    for index in range(FRAMES):
+        color, albedo, normal, depth, motion = frame_inputs(index)
+        with torch.no_grad():
+            expected, state = model(color, albedo, normal, depth, motion,
+                                    torch.tensor([float(index == 0)]), state)
+        buffers = {"color": to_hwc(color), "albedo": to_hwc(albedo), "normal": to_hwc(normal),
+                   "depth": to_hwc(depth), "motion": to_hwc(motion)}
+        result = runtime.denoise(buffers, ort_state, reset=index == 0)
+        ort_state = result.state
+        np.testing.assert_allclose(result.color, to_hwc(expected), rtol=1e-5, atol=1e-5)
+    assert runtime.info.name == "accumulation"
