@@ -95,8 +95,10 @@ def _frame_result(index: int, response: httpx.Response) -> FrameResult:
     )
 
 
-def _session_body(width, height, model, channels, precision, motion_scale) -> dict:
+def _session_body(width, height, model, channels, precision, motion_scale, compression) -> dict:
     body: dict = {"width": width, "height": height, "model": model, "precision": precision}
+    if compression != "input":
+        body["compression"] = compression
     if channels:
         body["channels"] = dict(channels)
     if motion_scale is not None:
@@ -172,8 +174,10 @@ class Client:
         channels: Mapping[str, str | Sequence[str]] | None = None,
         precision: str = "float",
         motion_scale: tuple[float, float] | None = None,
+        compression: str = "input",
     ) -> dict:
-        body = _session_body(width, height, model, channels, precision, motion_scale)
+        """Start a sequence; see the API's SessionCreate for the fields."""
+        body = _session_body(width, height, model, channels, precision, motion_scale, compression)
         return self._request("POST", "/v1/sessions", json=body, create=True).json()
 
     def session(self, session_id: str) -> dict:
@@ -256,8 +260,10 @@ class AsyncClient:
         channels: Mapping[str, str | Sequence[str]] | None = None,
         precision: str = "float",
         motion_scale: tuple[float, float] | None = None,
+        compression: str = "input",
     ) -> dict:
-        body = _session_body(width, height, model, channels, precision, motion_scale)
+        """Start a sequence; see the API's SessionCreate for the fields."""
+        body = _session_body(width, height, model, channels, precision, motion_scale, compression)
         return (await self._request("POST", "/v1/sessions", json=body, create=True)).json()
 
     async def session(self, session_id: str) -> dict:

@@ -69,7 +69,14 @@ def _denoise(args: argparse.Namespace) -> int:
         retry = RetryPolicy(retries=args.retries)
         with Client(args.server, token=token, timeout_s=args.timeout, retry=retry) as client:
             run_sequence(
-                client, job, args.server, args.model, args.precision, args.warmup, progress
+                client,
+                job,
+                args.server,
+                model=args.model,
+                precision=args.precision,
+                warmup=args.warmup,
+                compression=args.compression,
+                on_progress=progress,
             )
     except (QuietframeError, SequenceError, OSError) as exc:
         bar.close()
@@ -146,6 +153,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     denoise.add_argument("--model", default="auto")
     denoise.add_argument("--precision", choices=("half", "float"), default="float")
+    denoise.add_argument(
+        "--compression",
+        default="input",
+        help="output EXR compression: input (keep), none, zip, piz, dwaa, ...",
+    )
     denoise.add_argument("--token", help="bearer token (env QUIETFRAME_TOKEN)")
     denoise.add_argument(
         "--warmup",

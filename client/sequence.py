@@ -143,6 +143,7 @@ def run_sequence(
     model: str = "auto",
     precision: str = "float",
     warmup: int = 4,
+    compression: str = "input",
     on_progress: Callable[[Progress], None] | None = None,
 ) -> str | None:
     """Denoise every pending frame of `job`; returns the session id (None if nothing to do)."""
@@ -152,7 +153,9 @@ def run_sequence(
     session = _reusable_session(client, job, server, pending)
     session_id, warm = _resume_plan(pending, session, warmup)
     if session_id is None:
-        session_id = client.create_session(job.width, job.height, model, precision=precision)["id"]
+        session_id = client.create_session(
+            job.width, job.height, model, precision=precision, compression=compression
+        )["id"]
     for i in warm:
         client.send_frame(session_id, job.indices[i], _check_size(job, i))
         _notify(on_progress, Progress(i, job.files[i], None))
@@ -172,6 +175,7 @@ async def arun_sequence(
     model: str = "auto",
     precision: str = "float",
     warmup: int = 4,
+    compression: str = "input",
     on_progress: Callable[[Progress], None] | None = None,
 ) -> str | None:
     """`run_sequence` for AsyncClient (one task per sequence)."""
@@ -181,7 +185,9 @@ async def arun_sequence(
     session = await _areusable_session(client, job, server, pending)
     session_id, warm = _resume_plan(pending, session, warmup)
     if session_id is None:
-        created = await client.create_session(job.width, job.height, model, precision=precision)
+        created = await client.create_session(
+            job.width, job.height, model, precision=precision, compression=compression
+        )
         session_id = created["id"]
     for i in warm:
         await client.send_frame(session_id, job.indices[i], _check_size(job, i))

@@ -404,16 +404,20 @@ def encode(
     names: Sequence[str],
     precision: str,
     extra: Mapping[str, str] | None = None,
-    threads: int = 1,
+    compression: str = "input",
 ) -> bytes:
-    """(H, W, 3) float32 -> single-part scanline EXR bytes with the input's header attributes."""
+    """(H, W, 3) float32 -> single-part scanline EXR bytes with the input's header attributes
+    (its compression too, unless `compression` names another)."""
     dtype = np.float16 if precision == "half" else np.float32
     attributes = {k: v for k, v in header.items() if k not in _LAYOUT_ATTRIBUTES}
     attributes["type"] = OpenEXR.scanlineimage
+    if compression != "input":
+        name = "NO" if compression == "none" else compression.upper()
+        attributes["compression"] = getattr(OpenEXR, f"{name}_COMPRESSION")
     attributes.update(extra or {})
     channels = {
         name: np.ascontiguousarray(color[:, :, i], dtype=dtype) for i, name in enumerate(names)
     }
     out = io.BytesIO()
-    OpenEXR.File(attributes, channels, num_threads=threads).write(out)
+    OpenEXR.File(attributes, channels).write(out)
     return out.getvalue()

@@ -9,6 +9,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from quietframe.service.frames import validate_mapping
 
 Precision = Literal["half", "float"]
+Compression = Literal[
+    "input", "none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab"
+]
 
 
 class SessionCreate(BaseModel):
@@ -44,6 +47,11 @@ class SessionCreate(BaseModel):
         "convention: backward motion in pixels, y down",
     )
     precision: Precision = Field("float", description="pixel type of the denoised EXR")
+    compression: Compression = Field(
+        "input",
+        description="compression of the denoised EXR; 'input' keeps the input's (a header "
+        "attribute), 'none' is the fastest to write",
+    )
 
     @field_validator("channels")
     @classmethod
@@ -71,6 +79,7 @@ class SessionPublic(BaseModel):
     width: int
     height: int
     precision: Precision
+    compression: Compression
     required_buffers: list[str] = Field(description="buffers every frame must carry")
     optional_buffers: list[str] = Field(description="buffers used when present (else defaults)")
     channels: dict[str, str | list[str]] | None = None

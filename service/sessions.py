@@ -75,6 +75,7 @@ class Session:
     width: int
     height: int
     precision: str
+    compression: str
     channels: dict | None
     motion_scale: tuple[float, float]
     required: tuple[str, ...]
@@ -142,6 +143,7 @@ class Session:
             width=self.width,
             height=self.height,
             precision=self.precision,  # type: ignore[arg-type]
+            compression=self.compression,  # type: ignore[arg-type]
             required_buffers=list(self.required),
             optional_buffers=list(self.optional),
             channels=self.channels,
@@ -178,7 +180,12 @@ def run_frame(
     info = denoiser.info
     extra = {"quietframe.model": f"{info.name} {info.version}", "quietframe.frame": str(index)}
     body_out = frames.encode(
-        result.color, frame.header, sources["color"].channels, session.precision, extra
+        result.color,
+        frame.header,
+        sources["color"].channels,
+        session.precision,
+        extra,
+        session.compression,
     )
     done = time.perf_counter()
     timings = {
@@ -297,6 +304,7 @@ class SessionRegistry:
             width=spec.width,
             height=spec.height,
             precision=spec.precision,
+            compression=spec.compression,
             channels=spec.channels,
             motion_scale=tuple(spec.motion_scale),  # type: ignore[arg-type]
             required=info.required_buffers,
@@ -367,6 +375,7 @@ class SessionRegistry:
             "width": session.width,
             "height": session.height,
             "precision": session.precision,
+            "compression": session.compression,
             "channels": session.channels,
             "motion_scale": list(session.motion_scale),
             "created_at": session.created_at,
@@ -430,6 +439,7 @@ class SessionRegistry:
                 width=width,
                 height=height,
                 precision=meta["precision"],
+                compression=meta["compression"],
                 channels=meta["channels"],
                 motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
                 required=info.required_buffers,

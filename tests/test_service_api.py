@@ -266,10 +266,11 @@ def test_session_channel_mapping(client):
         "normal": "nrm",
         "depth": "dist",
     }
-    sid = new_session(client, channels=mapping, precision="half")
+    sid = new_session(client, channels=mapping, precision="half", compression="none")
     r = send(client, sid, 0, write_exr(channels))
     assert r.status_code == 200, r.text
-    _, out = read_exr(r.content)
+    header, out = read_exr(r.content)
+    assert str(header["compression"]) == "Compression.NO_COMPRESSION"
     assert sorted(out) == ["beauty.B", "beauty.G", "beauty.R"]
     assert out["beauty.R"].dtype == np.float16
     assert client.get(f"/v1/sessions/{sid}").json()["sources"]["depth"] == ["dist"]

@@ -1,0 +1,258 @@
+"""HTTP end-to-end cost of the service vs the runtime alone, throughput, memory per session.
+
+    python -m quietframe.bench.http_overhead [--width 1280 --height 720] [--frames 8]
+
+1. runtime alone: `Denoiser.denoise` on decoded numpy buffers, state carried (ms/frame);
+2. end to end: a `quietframe serve` process on 127.0.0.1, one session, frames sent one after
+   the other with the sync client (EXR upload, decode, denoise, encode, EXR download);
+   overhead ratio = end-to-end ms / runtime ms (target <= 1.15);
+3. throughput with 1, 2 and 4 sessions streaming concurrently (frames/s over all sessions);
+4. the server's resident memory: after start-up, and the increase per open session holding
+   history (peak RSS, VmHWM from /proc).
+
+Frames are synthetic but render-like, so that EXR compression costs what it would on a real
+render: piecewise-constant albedo, smooth normals and depth, a constant camera pan, and colour
+= albedo x shading with 4-spp-like multiplicative noise; Blender multilayer channel names.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def synthetic_buffers(width: int, height: int, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    x += 2.0 * seed  # the camera pans 2 px per frame
+    tiles = ((x // 97).astype(int) * 7 + (y // 61).astype(int) * 13) % 17
+    palette = np.random.default_rng(0).uniform(0.05, 0.9, size=(17, 3)).astype(np.float32)
+    albedo = palette[tiles]
+    normal = np.stack([np.sin(x / 300), np.cos(y / 200), np.ones_like(x)], -1)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    depth = 4.0 + 2.0 * np.sin(x / 400) * np.cos(y / 300)
+    shading = 0.3 + 0.7 * np.clip(normal[..., 2:3], 0, 1)
+    noise = rng.gamma(4.0, 1 / 4.0, size=(height, width, 3))  # mean 1, like 4 spp
+    color = albedo * shading * noise
+    motion = np.stack([np.full_like(x, 2.0), np.zeros_like(x)], -1)  # to t-1: 2 px right
+    return {"color": color, "albedo": albedo, "normal": normal, "depth": depth, "motion": motion}
+
+
+def blender_exr(buffers: dict[str, np.ndarray], compression: str, half: bool) -> bytes:
+    import OpenEXR
+
+    dtype = np.float16 if half else np.float32
+    layer = "ViewLayer"
+    channels = {}
+    for name, pass_name, comps in (
+        ("color", "Combined", "RGB"),
+        ("albedo", "Denoising Albedo", "RGB"),
+        ("normal", "Denoising Normal", "XYZ"),
+    ):
+        for i, c in enumerate(comps):
+            channels[f"{layer}.{pass_name}.{c}"] = buffers[name][..., i]
+    channels[f"{layer}.Combined.A"] = np.ones_like(buffers["depth"])
+    channels[f"{layer}.Denoising Depth.Z"] = buffers["depth"]
+    m = buffers["motion"]  # Cycles Vector: y up
+    channels.update(
+        {
+            f"{layer}.Vector.X": m[..., 0],
+            f"{layer}.Vector.Y": -m[..., 1],
+            f"{layer}.Vector.Z": -m[..., 0],
+            f"{layer}.Vector.W": m[..., 1],
+        }
+    )
+    header = {
+        "compression": getattr(OpenEXR, f"{compression.upper()}_COMPRESSION"),
+        "type": OpenEXR.scanlineimage,
+    }
+    arrays = {k: np.ascontiguousarray(v, dtype=dtype) for k, v in channels.items()}
+    out = io.BytesIO()
+    OpenEXR.File(header, arrays).write(out)
+    return out.getvalue()
+
+
+def rss_mib(pid: int, field: str = "VmRSS") -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def runtime_alone(model: Path, threads: int, frames: list[dict], repeats: int) -> list[float]:
+    from quietframe.runtime import Denoiser
+
+    denoiser = Denoiser(model, threads=threads)
+    result = denoiser.denoise(frames[0], None, reset=True)  # warm-up
+    times = []
+    for i in range(repeats):
+        start = time.perf_counter()
+        result = denoiser.denoise(frames[i % len(frames)], result.state, reset=False)
+        times.append(1e3 * (time.perf_counter() - start))
+    return times
+
+
+def start_server(port: int, env: dict[str, str]) -> subprocess.Popen:
+    import httpx
+
+    cmd = [sys.executable, "-m", "quietframe.client.cli", "serve", "--port", str(port)]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
+                return proc
+        except httpx.TransportError:
+            time.sleep(0.2)
+    proc.kill()
+    raise RuntimeError("server did not start")
+
+
+def stream(url: str, size, body: dict, exrs: list[bytes], count: int, log: list) -> None:
+    from quietframe.client import Client
+
+    with Client(url, timeout_s=600) as client:
+        sid = client.create_session(*size, **body)["id"]
+        for i in range(count):
+            start = time.perf_counter()
+            result = client.send_frame(sid, i, exrs[i % len(exrs)])
+            log.append((1e3 * (time.perf_counter() - start), result.timings_ms))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--width", type=int, default=1280)
+    parser.add_argument("--height", type=int, default=720)
+    parser.add_argument("--frames", type=int, default=8, help="timed frames per measurement")
+    parser.add_argument("--model", type=Path, help=".onnx file (default: the installed default)")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--workers", type=int, default=0, help="server worker pool (0: CPUs)")
+    parser.add_argument("--compression", default="zip", help="input EXR compression")
+    parser.add_argument("--float", action="store_true", help="float32 input (default half)")
+    parser.add_argument(
+        "--output-compression",
+        default="input",
+        help="session 'compression' (input keeps the input's)",
+    )
+    parser.add_argument("--precision", default="half", choices=("half", "float"))
+    parser.add_argument("--sessions", default="1,2,4", help="concurrency levels")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args(argv)
+
+    from quietframe.runtime import default_model_path
+    from quietframe.service import frames as exr
+
+    model = args.model or default_model_path()
+    size = (args.width, args.height)
+    buffers = [synthetic_buffers(*size, seed) for seed in range(4)]
+    exrs = [blender_exr(b, args.compression, not args.float) for b in buffers]
+    # The runtime gets exactly what the service would hand it (decoded, converted buffers).
+    header = exr.read_header(exrs[0], 1 << 16, 1 << 16)
+    sources = exr.resolve(header.channels, ("color", "albedo", "normal", "depth"), ("motion",))
+    decoded = [exr.decode(data, sources).buffers for data in exrs]
+    results: dict = {
+        "size": f"{args.width}x{args.height}",
+        "model": model.name,
+        "input": f"{args.compression} {'float' if args.float else 'half'}, "
+        f"{len(exrs[0]) / 2**20:.1f} MiB/frame",
+        "output": f"{args.precision}, compression {args.output_compression}",
+        "threads": args.threads,
+        "cpus": os.cpu_count(),
+    }
+
+    alone = runtime_alone(model, args.threads, decoded, args.frames)
+    results["runtime_ms"] = round(statistics.median(alone), 1)
+
+    env = {
+        **os.environ,
+        "QUIETFRAME_THREADS": str(args.threads),
+        "QUIETFRAME_WORKERS": str(args.workers),
+        "QUIETFRAME_LOG_LEVEL": "warning",
+    }
+    if args.model:
+        env["QUIETFRAME_MODELS_DIR"] = str(args.model.parent)
+        env["QUIETFRAME_DEFAULT_MODEL"] = args.model.stem
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    server = start_server(port, env)
+    body = {"precision": args.precision}
+    if args.output_compression != "input":
+        body["compression"] = args.output_compression
+    try:
+        results["server_rss_idle_mib"] = round(rss_mib(server.pid), 1)
+        log: list = []
+        stream(url, size, body, exrs, args.frames + 2, log)
+        timed = log[2:]  # first frames: allocation, reset
+        e2e = statistics.median(t for t, _ in timed)
+        stages = {
+            k: round(statistics.median(s[k] for _, s in timed), 1)
+            for k in ("decode", "denoise", "encode", "total")
+        }
+        results["http_ms"] = round(e2e, 1)
+        results["server_stages_ms"] = stages
+        results["transfer_and_http_ms"] = round(e2e - stages["total"], 1)
+        results["overhead_ratio"] = round(e2e / results["runtime_ms"], 3)
+
+        throughput = {}
+        for n in (int(s) for s in args.sessions.split(",")):
+            logs: list[list] = [[] for _ in range(n)]
+            threads = [
+                threading.Thread(target=stream, args=(url, size, body, exrs, args.frames, logs[k]))
+                for k in range(n)
+            ]
+            start = time.perf_counter()
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            wall = time.perf_counter() - start
+            done = sum(len(entries) for entries in logs)
+            throughput[n] = {
+                "frames_per_s": round(done / wall, 3),
+                "ms_per_frame_per_session": round(
+                    statistics.median(t for e in logs for t, _ in e), 1
+                ),
+                "peak_rss_mib": round(rss_mib(server.pid, "VmHWM"), 1),
+            }
+        results["throughput"] = throughput
+        # Memory held per open session: state + last reply stay after the frames.
+        before = rss_mib(server.pid)
+        keep: list = []
+        n_hold = 4
+        for _ in range(n_hold):
+            stream(url, size, body, exrs, 2, keep)
+        after = rss_mib(server.pid)
+        results["rss_per_held_session_mib"] = round((after - before) / n_hold, 1)
+        from quietframe.runtime import Denoiser
+
+        state = Denoiser(model, threads=1).state_nbytes(args.height, args.width)
+        results["state_mib_per_session"] = round(state / 2**20, 1)
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+    print(json.dumps(results, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
