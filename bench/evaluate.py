@@ -1,0 +1,262 @@
+"""quietframe-eval: every method on the validation sequences through the same loader.
+
+    quietframe-eval [--split validation] [--spp 1,2,4,8] [--threads 2] [--out docs]
+
+Methods: the noisy input, temporal accumulation alone (models/accumulation.onnx: the NBG
+pre-stage), an SVGF-style à-trous filter, Open Image Denoise (fast/balanced/high, high with
+prefiltered aux), and every shipped NBG model through the runtime (onnxruntime + custom ops).
+Per method and spp: PSNR, SSIM, SMAPE, relMSE (mean over frames), TRMAE (mean over sequences),
+ms/frame at the evaluation resolution and at 1280×720 — one run, same machine, same threads.
+Writes <out>/benchmarks.md, <out>/psnr_vs_ms.png and <out>/crops.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.bench.timing import time_ms
+from quietframe.model import metrics
+from quietframe.runtime import Denoiser, installed_models
+
+AUX = ("albedo", "normal", "depth", "motion")
+
+
+class RuntimeMethod:
+    """A shipped model as a per-sequence method: keeps the state between frames."""
+
+    def __init__(self, path: Path, threads: int) -> None:
+        self.denoiser = Denoiser(path, threads=threads)
+        self.state: dict | None = None
+
+    def reset(self) -> None:
+        self.state = None
+
+    def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
+        result = self.denoiser.denoise(buffers, self.state, reset=self.state is None)
+        self.state = result.state
+        return result.color
+
+
+class Noisy:
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
+        return buffers["color"]
+
+
+def build_methods(threads: int) -> dict[str, Callable[[], object]]:
+    """Method name -> factory (each sequence gets fresh state through reset())."""
+    from quietframe.bench import baselines
+
+    models = {p.stem: p for p in installed_models()}
+    methods: dict[str, Callable[[], object]] = {"noisy": Noisy}
+    if "accumulation" in models:
+        methods["accumulation"] = lambda: RuntimeMethod(models["accumulation"], threads)
+    methods["svgf"] = baselines.SVGFStyleFilter
+    for quality in ("fast", "balanced", "high"):
+        methods[f"oidn-{quality}"] = (
+            lambda q=quality: baselines.OIDNDenoiser(q, num_threads=threads))
+    methods["oidn-high-cleanaux"] = lambda: baselines.OIDNDenoiser(
+        "high", prefilter_aux=True, num_threads=threads)
+    for name, path in models.items():
+        if name != "accumulation":
+            methods[name] = lambda p=path: RuntimeMethod(p, threads)
+    return methods
+
+
+def sequence_dirs(data: Path, split: str) -> list[Path]:
+    from quietframe.scenes.cli import split_dir
+
+    root = split_dir(data, split)
+    return sorted(p.parent for p in root.glob("*/manifest.json"))
+
+
+def load_sequence(folder: Path, spp: int) -> list[tuple[dict, np.ndarray, bool]]:
+    """[(buffers, reference, reset)] for every frame of a sequence at `spp`."""
+    from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
+
+    frames = []
+    for path in sorted(folder.glob("frame_*.exr")):
+        layers = load_frame(path, [color_layer(spp), "reference", *AUX])
+        buffers = {"color": layers[color_layer(spp)], **{k: layers[k] for k in AUX}}
+        frames.append((buffers, layers["reference"], bool(read_meta(path).get("reset"))))
+    return frames
+
+
+@dataclass
+class Scores:
+    per_frame: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    trmae: list[float] = field(default_factory=list)
+    ms: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, float]:
+        out = {k: float(np.mean(v)) for k, v in self.per_frame.items()}
+        out["trmae"] = float(np.mean(self.trmae)) if self.trmae else float("nan")
+        out["ms"] = float(np.median(self.ms))
+        return out
+
+
+def run_sequence(method, frames, scores: Scores, keep: list | None = None) -> None:
+    method.reset()
+    preds, refs = [], []
+    for buffers, reference, reset in frames:
+        if reset:
+            method.reset()
+        start = time.perf_counter()
+        pred = np.asarray(method(buffers), np.float32)
+        scores.ms.append(1e3 * (time.perf_counter() - start))
+        for name, fn in (("psnr", metrics.psnr), ("ssim", metrics.ssim),
+                         ("smape", metrics.smape), ("relmse", metrics.relmse)):
+            scores.per_frame[name].append(fn(pred, reference))
+        preds.append(pred)
+        refs.append(reference)
+    scores.trmae.append(metrics.trmae(np.stack(preds), np.stack(refs)))
+    if keep is not None:
+        keep.append(preds[-1])
+
+
+def time_720p(factory, threads: int) -> float:
+    """ms/frame at 1280×720 on synthetic buffers, state carried like a real sequence."""
+    from quietframe.bench.foundation import frame_buffers
+
+    method = factory()
+    buffers = frame_buffers()
+    method.reset()
+    method(buffers)
+    return time_ms(lambda: method(buffers), warmup=1, repeats=5).median_ms
+
+
+def scatter_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    markers = "os^vD<>pP*hX"
+    for i, name in enumerate(sorted({r["method"] for r in rows})):
+        mine = [r for r in rows if r["method"] == name]
+        ax.scatter([r["ms_720p"] for r in mine], [r["psnr"] for r in mine],
+                   marker=markers[i % len(markers)], label=name)
+        for r in mine:
+            ax.annotate(f"{r['spp']}", (r["ms_720p"], r["psnr"]), fontsize=7,
+                        xytext=(3, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("ms per 1280×720 frame (log scale; this machine)")
+    ax.set_ylabel("PSNR dB on τ-mapped images (validation)")
+    ax.set_title("Speed vs error (label = spp)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def crop_sheet(crops: dict[str, list[np.ndarray]], columns: list[str], path: Path,
+               size: int = 96) -> None:
+    """One row per sequence: the centre crop of the last frame of each method (τ-mapped)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = len(crops[columns[0]])
+    fig, axes = plt.subplots(rows, len(columns), figsize=(1.8 * len(columns), 1.9 * rows),
+                             squeeze=False)
+    for r in range(rows):
+        for c, name in enumerate(columns):
+            image = crops[name][r]
+            h, w = image.shape[:2]
+            y, x = max(0, h // 2 - size // 2), max(0, w // 2 - size // 2)
+            axes[r][c].imshow(np.clip(metrics.tonemap_tau(image[y:y + size, x:x + size]), 0, 1))
+            axes[r][c].set_xticks([])
+            axes[r][c].set_yticks([])
+            if r == 0:
+                axes[r][c].set_title(name, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_report(rows: list[dict], meta: dict, path: Path) -> None:
+    lines = ["# quietframe evaluation", "",
+             f"Data: {meta['sequences']} {meta['split']} sequences ({meta['resolution']}), "
+             f"{meta['frames']} frames each spp level; machine: {meta['machine']}, "
+             f"{meta['threads']} threads. Command: `{meta['command']}`.",
+             "PSNR on τ(x) = (x/(1+x))^(1/2.4); TRMAE per Işık et al. eq. 16; ms = median "
+             "per frame.", "",
+             "| method | spp | PSNR | SSIM | SMAPE | relMSE | TRMAE | ms/frame (eval) | "
+             "ms/frame 720p |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['method']} | {r['spp']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+                     f"{r['smape']:.4f} | {r['relmse']:.4f} | {r['trmae']:.4f} | "
+                     f"{r['ms']:.1f} | {r['ms_720p']:.0f} |")
+    lines += ["", "![PSNR vs ms](psnr_vs_ms.png)", "", "![crops](crops.png)", ""]
+    path.write_text("\n".join(lines))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="quietframe-eval", description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=Path("~/.cache/quietframe/data"))
+    parser.add_argument("--split", default="validation")
+    parser.add_argument("--spp", default="1,2,4,8")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
+    parser.add_argument("--methods", default="", help="comma list (default: all)")
+    parser.add_argument("--out", type=Path, default=Path("docs"))
+    args = parser.parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    folders = sequence_dirs(args.data.expanduser(), args.split)
+    if args.sequences:
+        folders = folders[: args.sequences]
+    if not folders:
+        raise SystemExit(f"no {args.split} sequences under {args.data} (run quietframe-render)")
+    methods = build_methods(args.threads)
+    if args.methods:
+        methods = {k: v for k, v in methods.items() if k in args.methods.split(",")}
+    rows, crops = [], defaultdict(list)
+    crop_spp = int(args.spp.split(",")[0])
+    for spp in (int(s) for s in args.spp.split(",")):
+        sequences = [load_sequence(f, spp) for f in folders]
+        for name, factory in methods.items():
+            method, scores = factory(), Scores()
+            for i, frames in enumerate(sequences):
+                keep = crops[name] if spp == crop_spp and i < 3 else None
+                run_sequence(method, frames, scores, keep)
+            if spp == crop_spp:
+                crops["reference"] = [s[-1][1] for s in sequences[:3]]
+            row = {"method": name, "spp": spp, **scores.summary()}
+            row["ms_720p"] = time_720p(factory, args.threads)
+            rows.append(row)
+            print(json.dumps({k: round(v, 4) if isinstance(v, float) else v
+                              for k, v in row.items()}), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    from quietframe.bench.foundation import cpu_peak_gflops
+
+    first = sequences[0][0][1]
+    meta = {"sequences": len(folders), "split": args.split, "threads": args.threads,
+            "resolution": f"{first.shape[1]}×{first.shape[0]}",
+            "frames": sum(len(s) for s in sequences), "machine": cpu_peak_gflops(2)[1],
+            "command": "quietframe-eval " + " ".join(argv or [])}
+    (args.out / "benchmarks.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    write_report(rows, meta, args.out / "benchmarks.md")
+    scatter_plot(rows, args.out / "psnr_vs_ms.png")
+    columns = [c for c in ("noisy", "accumulation", "svgf", "oidn-high", *sorted(
+        m for m in methods if m.startswith("nbg")), "reference") if c in crops]
+    crop_sheet(crops, columns, args.out / "crops.png")
+    print(f"wrote {args.out / 'benchmarks.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
