@@ -1,0 +1,41 @@
+"""One way to time things, shared by every benchmark, so all reported figures are comparable.
+
+Rule: `warmup` untimed calls (first-call allocations, OIDN/ORT plan building, caches), then
+`repeats` timed calls with `time.perf_counter_ns`; the figure is the median in milliseconds
+(robust to the odd scheduler hiccup, unlike the mean).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Timing:
+    median_ms: float
+    min_ms: float
+    max_ms: float
+    samples_ms: tuple[float, ...]
+
+    def __str__(self) -> str:
+        return (
+            f"{self.median_ms:.1f} ms (median of {len(self.samples_ms)}, "
+            f"min {self.min_ms:.1f}, max {self.max_ms:.1f})"
+        )
+
+
+def time_ms(fn: Callable[[], object], *, warmup: int = 2, repeats: int = 10) -> Timing:
+    """Time `fn()` (no arguments: bind inputs with a lambda or functools.partial)."""
+    if repeats < 1 or warmup < 0:
+        raise ValueError(f"time_ms: need repeats >= 1 and warmup >= 0, got {repeats}, {warmup}")
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter_ns()
+        fn()
+        samples.append((time.perf_counter_ns() - start) / 1e6)
+    return Timing(statistics.median(samples), min(samples), max(samples), tuple(samples))

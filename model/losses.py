@@ -1,0 +1,40 @@
+"""Training losses (torch). Same definitions as the numpy metrics in `metrics.py` where they share
+a name, so a training curve and an evaluation table measure the same thing."""
+
+from __future__ import annotations
+
+import torch
+
+from .metrics import EPS_RELATIVE
+
+# NBG §5: for the BMFR data, S is gamma correction with exponent 1/2.2 onto the displayable range.
+NBG_GAMMA = 2.2
+# x^(1/2.2) has an infinite slope at 0; flooring the clamp keeps gradients finite (0 below it).
+# The mapped floor, 1e-8^(1/2.2) ≈ 2e-4, is far below one 8-bit LDR step.
+_GAMMA_FLOOR = 1e-8
+
+
+def smape_loss(pred: torch.Tensor, ref: torch.Tensor, eps: float = EPS_RELATIVE) -> torch.Tensor:
+    # Işık eq. 11 (as metrics.smape): mean |p - r| / (|p| + |r| + ε), per element
+    return ((pred - ref).abs() / (pred.abs() + ref.abs() + eps)).mean()
+
+
+def temporal_loss(
+    preds: torch.Tensor, refs: torch.Tensor, dim: int = 1, eps: float = EPS_RELATIVE
+) -> torch.Tensor:
+    # Işık eq. 12: SMAPE(∂t O, ∂t O*), ∂t plain finite difference along `dim` of (N, T, C, H, W)
+    if preds.shape[dim] < 2:
+        raise ValueError(f"temporal_loss: need >= 2 frames along dim {dim}, got {preds.shape}")
+    return smape_loss(torch.diff(preds, dim=dim), torch.diff(refs, dim=dim), eps)
+
+
+def ldr_gamma(x: torch.Tensor, gamma: float = NBG_GAMMA) -> torch.Tensor:
+    """NBG's S (§4.4 eq. 14, §5): clamp to [0, 1], then gamma correction x^(1/γ)."""
+    return x.clamp(_GAMMA_FLOOR, 1.0).pow(1.0 / gamma)
+
+
+def l1_tonemapped_loss(
+    pred: torch.Tensor, ref: torch.Tensor, gamma: float = NBG_GAMMA
+) -> torch.Tensor:
+    # NBG eq. 14: mean |S(R) - S(I)| on the LDR-mapped output and ground truth
+    return (ldr_gamma(pred, gamma) - ldr_gamma(ref, gamma)).abs().mean()
