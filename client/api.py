@@ -172,7 +172,7 @@ class Client:
         height: int,
         model: str = "auto",
         channels: Mapping[str, str | Sequence[str]] | None = None,
-        precision: str = "float",
+        precision: str = "input",
         motion_scale: tuple[float, float] | None = None,
         compression: str = "input",
     ) -> dict:
@@ -258,7 +258,7 @@ class AsyncClient:
         height: int,
         model: str = "auto",
         channels: Mapping[str, str | Sequence[str]] | None = None,
-        precision: str = "float",
+        precision: str = "input",
         motion_scale: tuple[float, float] | None = None,
         compression: str = "input",
     ) -> dict:

@@ -152,7 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="server URL (env QUIETFRAME_SERVER)",
     )
     denoise.add_argument("--model", default="auto")
-    denoise.add_argument("--precision", choices=("half", "float"), default="float")
+    denoise.add_argument(
+        "--precision",
+        choices=("input", "half", "float"),
+        default="input",
+        help="output pixel type; input: that of the input colour",
+    )
     denoise.add_argument(
         "--compression",
         default="input",

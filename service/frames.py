@@ -365,6 +365,7 @@ def validate_mapping(mapping: Mapping[str, str | Sequence[str]]) -> None:
 class DecodedFrame:
     buffers: dict[str, np.ndarray]  # canonical name -> (H, W, C) float32 (depth (H, W))
     header: dict  # OpenEXR header attributes of the first part, for the output
+    color_half: bool  # the input colour is half float (precision "input" keeps it)
 
 
 def decode(data: bytes, sources: Mapping[str, Source], threads: int = 1) -> DecodedFrame:
@@ -391,7 +392,8 @@ def decode(data: bytes, sources: Mapping[str, Source], threads: int = 1) -> Deco
         if buffer == "motion" and source.motion_scale != (1.0, 1.0):
             array = array * np.asarray(source.motion_scale, np.float32)
         buffers[buffer] = array
-    return DecodedFrame(buffers, header)
+    color_half = "color" in sources and planes[sources["color"].channels[0]].dtype == np.float16
+    return DecodedFrame(buffers, header, color_half)
 
 
 # Attributes that describe the layout of the input file, not the image; the writer sets them.

@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from quietframe.service.frames import validate_mapping
 
-Precision = Literal["half", "float"]
+Precision = Literal["input", "half", "float"]
 Compression = Literal[
     "input", "none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab"
 ]
@@ -46,7 +46,10 @@ class SessionCreate(BaseModel):
         description="factors for (x, y) of a mapped motion layer, to reach quietframe's "
         "convention: backward motion in pixels, y down",
     )
-    precision: Precision = Field("float", description="pixel type of the denoised EXR")
+    precision: Precision = Field(
+        "input",
+        description="pixel type of the denoised EXR; 'input' is that of the input's colour",
+    )
     compression: Compression = Field(
         "input",
         description="compression of the denoised EXR; 'input' keeps the input's (a header "

@@ -179,13 +179,11 @@ def run_frame(
     denoised = time.perf_counter()
     info = denoiser.info
     extra = {"quietframe.model": f"{info.name} {info.version}", "quietframe.frame": str(index)}
+    precision = session.precision
+    if precision == "input":
+        precision = "half" if frame.color_half else "float"
     body_out = frames.encode(
-        result.color,
-        frame.header,
-        sources["color"].channels,
-        session.precision,
-        extra,
-        session.compression,
+        result.color, frame.header, sources["color"].channels, precision, extra, session.compression
     )
     done = time.perf_counter()
     timings = {

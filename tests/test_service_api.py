@@ -59,7 +59,7 @@ def test_create_session(client):
     assert body["model"]["name"] and "color" in body["required_buffers"]
     assert body["frames_done"] == 0 and body["last_index"] is None and body["reserved_bytes"] > 0
     other = client.post("/v1/sessions", json=SIZE).json()
-    assert other["id"] != body["id"] and other["precision"] == "float"
+    assert other["id"] != body["id"] and other["precision"] == "input"
 
 
 @pytest.mark.parametrize(
@@ -252,6 +252,14 @@ def test_nan_inf_negative_are_sanitised_and_counted(client):
     assert r.headers["x-quietframe-sanitized"] == "4"
     assert r.headers["x-quietframe-sanitized-buffers"] == "albedo=1, color=3"
     assert np.isfinite(pixels(r)).all()
+
+
+def test_output_precision_follows_the_input_by_default(client):
+    for dtype in (np.float16, np.float32):
+        r = send(client, new_session(client), 0, frame_bytes(dtype=dtype))
+        assert all(c.dtype == dtype for c in read_exr(r.content)[1].values())
+    r = send(client, new_session(client, precision="float"), 0, frame_bytes(dtype=np.float16))
+    assert all(c.dtype == np.float32 for c in read_exr(r.content)[1].values())
 
 
 def test_session_channel_mapping(client):

@@ -216,3 +216,32 @@ def test_encode_keeps_header_attributes_and_colour_names():
         assert header["dataWindow"][0].tolist() == [4, 2]
         np.testing.assert_array_equal(header["worldToCamera"], np.eye(4))
         np.testing.assert_allclose(channels["ViewLayer.Combined.R"], color[..., 0], rtol=1e-3)
+
+
+def test_every_alias_is_documented():
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "service.md").read_text()
+    table = doc[doc.index("| buffer | aliases") :]
+    for buffer, aliases in frames.ALIASES.items():
+        for alias in aliases:
+            if alias.layer:
+                assert f"`{alias.layer}`" in table, (buffer, alias.layer)
+
+
+def test_json_logs_carry_extra_fields(capsys):
+    import json
+    import logging
+
+    from quietframe.service import logs
+
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level
+    try:
+        logs.configure("info", as_json=True)
+        logging.getLogger("quietframe.service").info("frame", extra={"session": "abc", "ms": 1.5})
+        entry = json.loads(capsys.readouterr().err.strip().splitlines()[-1])
+    finally:
+        root.handlers[:], _ = saved[0], root.setLevel(saved[1])
+    assert entry["msg"] == "frame" and entry["session"] == "abc" and entry["ms"] == 1.5
+    assert entry["level"] == "info" and entry["ts"].endswith("Z")
