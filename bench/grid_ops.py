@@ -1,0 +1,171 @@
+"""Micro-benchmark: bilateral splat + slice at 1280×720, custom ops vs PyTorch.
+
+python -m quietframe.bench.grid_ops [--threads 2] [--guide smooth|random] [--repeats 15]
+
+Times splat followed by slice (same guide) for each grid scale (σs, σr) of the NBG denoiser and
+for all three grids, on a 3-channel HDR image with one guide per grid:
+- onnxruntime: one graph of BilateralSplat -> BilateralSlice nodes per case (the grid stays inside
+  onnxruntime, as in an exported model), inputs and outputs bound once (no copies in the loop),
+  intra_op_num_threads = threads;
+- PyTorch: quietframe.model.grid.splat_forward / slice_forward with torch.set_num_threads(threads).
+Figures are medians (bench/timing.py). The functions return plain dicts so that bigger benchmarks
+can reuse them.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from quietframe.bench.timing import Timing, time_ms
+from quietframe.export import OPS_DOMAIN, ops_library_path
+
+HEIGHT, WIDTH = 720, 1280
+SCALES = ((4, 4.0), (8, 8.0), (16, 16.0))  # (σs, σr) of the three grids
+
+
+def range_cells(sigma_r: float) -> int:
+    """D = floor(255/σr - 0.5) + 3 (docs/grid-math.md); here to keep the bench torch-free."""
+    return int(np.floor(255.0 / sigma_r - 0.5)) + 3
+
+
+def make_inputs(height: int = HEIGHT, width: int = WIDTH, guide: str = "smooth", seed: int = 0
+                ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """An HDR image (1, 3, H, W) and one guide (1, 1, H, W) per grid scale.
+
+    "smooth": guides vary slowly across the frame with a little noise, like a GuideNet output;
+    "random": uniform noise, every pixel in a random range cell (the cache-unfriendly worst case).
+    """
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width] / max(height, width)
+    base = 0.5 + 0.3 * np.sin(6 * xx + 2 * yy)[None]
+    image = base * rng.lognormal(0.0, 0.7, (3, height, width))  # noisy radiance, ≥ 0
+    guides = []
+    for k in range(len(SCALES)):
+        if guide == "random":
+            g = rng.random((height, width))
+        elif guide == "smooth":
+            g = 0.5 + 0.35 * np.sin((k + 2) * xx - 3 * yy) + 0.03 * rng.standard_normal(xx.shape)
+        else:
+            raise ValueError(f"guide must be 'smooth' or 'random', got {guide!r}")
+        guides.append(np.clip(g, 0, 1)[None, None].astype(np.float32))
+    return image[None].astype(np.float32), guides
+
+
+def grid_graph(scales) -> bytes:
+    """ONNX model: image, guide_i -> splat -> slice -> out_i for each (σs, σr) in `scales`."""
+    from onnx import TensorProto, helper
+
+    def value(name, channels):
+        return helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, channels, "H", "W"])
+
+    nodes, guides, outputs = [], [], []
+    for i, (sigma_s, sigma_r) in enumerate(scales):
+        attrs = {"sigma_s": sigma_s, "sigma_r": float(sigma_r), "grid_depth": range_cells(sigma_r)}
+        nodes.append(helper.make_node("BilateralSplat", ["image", f"guide_{i}"],
+                                      [f"grid_{i}", f"weight_{i}"], domain=OPS_DOMAIN, **attrs))
+        nodes.append(helper.make_node("BilateralSlice", [f"grid_{i}", f"weight_{i}", f"guide_{i}"],
+                                      [f"out_{i}"], domain=OPS_DOMAIN, **attrs))
+        guides.append(value(f"guide_{i}", 1))
+        outputs.append(value(f"out_{i}", 3))
+    graph = helper.make_graph(nodes, "grid_ops", [value("image", 3), *guides], outputs)
+    opsets = [helper.make_opsetid("", 17), helper.make_opsetid(OPS_DOMAIN, 1)]
+    # IR 9 = onnx 1.15, which every supported onnxruntime (>= 1.16) reads.
+    return helper.make_model(graph, opset_imports=opsets, ir_version=9).SerializeToString()
+
+
+def ort_runner(scales, image: np.ndarray, guides: list[np.ndarray], threads: int):
+    """A no-argument callable that runs the splat/slice graph of `scales` once."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.register_custom_ops_library(str(ops_library_path()))
+    session = ort.InferenceSession(grid_graph(scales), options,
+                                   providers=["CPUExecutionProvider"])
+    binding = session.io_binding()
+    values = {"image": ort.OrtValue.ortvalue_from_numpy(image)}  # kept alive with the runner
+    for i in range(len(scales)):
+        values[f"guide_{i}"] = ort.OrtValue.ortvalue_from_numpy(guides[i])
+        values[f"out_{i}"] = ort.OrtValue.ortvalue_from_numpy(np.empty_like(image))
+    for name, value in values.items():
+        if name.startswith("out_"):
+            binding.bind_ortvalue_output(name, value)
+        else:
+            binding.bind_ortvalue_input(name, value)
+    return lambda: (values, session.run_with_iobinding(binding))
+
+
+def torch_runner(scales, image: np.ndarray, guides: list[np.ndarray], threads: int):
+    """The same work through quietframe.model.grid (no autograd)."""
+    import torch
+
+    from quietframe.model import grid
+
+    torch.set_num_threads(threads)
+    x = torch.from_numpy(image)
+    gs = [torch.from_numpy(g) for g in guides]
+
+    def run():
+        with torch.no_grad():
+            for i, (sigma_s, sigma_r) in enumerate(scales):
+                g, w = grid.splat_forward(x, gs[i], sigma_s, sigma_r)
+                grid.slice_forward(g, w, gs[i], sigma_s, sigma_r)
+
+    return run
+
+
+def measure(threads: int = 2, guide: str = "smooth", repeats: int = 15, warmup: int = 3,
+            height: int = HEIGHT, width: int = WIDTH, backends=("onnxruntime", "torch")
+            ) -> dict[str, dict[str, Timing]]:
+    """{case: {backend: Timing}} for cases "sigma_s=4", "sigma_s=8", "sigma_s=16", "all".
+
+    A backend that cannot be imported (torch on a serving install) is left out.
+    """
+    image, guides = make_inputs(height, width, guide)
+    cases = {f"sigma_s={s}": [(s, r)] for s, r in SCALES} | {"all": list(SCALES)}
+    runners = {"onnxruntime": ort_runner, "torch": torch_runner}
+    results: dict[str, dict[str, Timing]] = {case: {} for case in cases}
+    for backend in backends:
+        for case, scales in cases.items():
+            index = [SCALES.index(s) for s in scales]
+            try:
+                run = runners[backend](scales, image, [guides[i] for i in index], threads)
+            except ImportError:
+                break
+            results[case][backend] = time_ms(run, warmup=warmup, repeats=repeats)
+    return results
+
+
+def report(threads: int = 2, guide: str = "smooth", repeats: int = 15) -> str:
+    """Markdown table of `measure`: ms per splat+slice call, median."""
+    results = measure(threads=threads, guide=guide, repeats=repeats)
+    backends = sorted({b for r in results.values() for b in r}, key=["onnxruntime", "torch"].index)
+    lines = [
+        f"splat + slice, {WIDTH}x{HEIGHT}, 3 channels, {guide} guides, {threads} threads, "
+        f"ms per call (median of {repeats})",
+        "",
+        "| grid (σs, σr) | " + " | ".join(backends) + " |",
+        "|---|" + "---:|" * len(backends),
+    ]
+    labels = {f"sigma_s={s}": f"({s}, {r:g})" for s, r in SCALES} | {"all": "all three"}
+    for case, timings in results.items():
+        cells = [f"{timings[b].median_ms:.1f}" if b in timings else "–" for b in backends]
+        lines.append(f"| {labels[case]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--guide", choices=["smooth", "random"], default="smooth")
+    parser.add_argument("--repeats", type=int, default=15)
+    args = parser.parse_args(argv)
+    print(report(threads=args.threads, guide=args.guide, repeats=args.repeats))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,373 @@
+// BilateralSlice(grid (N,C,D,GH,GW), weight (N,1,D,GH,GW), guide (N,1,H,W)) -> image (N,C,H,W)
+//
+// Supplement §5.2, eq. 20–23 with the [qf] mask: m(cell) = 1[weight(cell) > 0],
+// μ = Σ t·grid·m, η = Σ t·m over the 8 cells of a pixel, out = μ/η where η > 0 else 0
+// (docs/grid-math.md).
+//
+// Parallel over bands of pixel rows (cut where the first y-cell changes). A task copies the
+// cells its pixels read into [z][gx][P] scratch holding (grid·m, m) for two grid rows, so that a
+// pixel reads its two x-neighbour cells with one load per (y, z) corner. Cells are copied in
+// blocks of 8 columns, and only the blocks some pixel reads: with a smooth guide most range
+// cells of a column are never read, and most of the grid is never brought in from memory.
+#include <algorithm>
+#include <climits>
+#include <cstdint>
+#include <cstring>
+#include <utility>
+#include <vector>
+
+#include "grid_common.h"
+#include "kernel_support.h"
+
+namespace qf {
+namespace {
+
+using grid::AxisTaps;
+
+// Grid rows per task (see bilateral_splat.cc); a task copies one extra grid row.
+constexpr int64_t kRowsPerBand = 8;
+constexpr int64_t kBlock = 8;  // grid columns per copied block
+
+struct SliceJob {
+  const float* grid;    // (N, C, D, GH, GW)
+  const float* weight;  // (N, 1, D, GH, GW)
+  const float* guide;   // (N, 1, H, W)
+  float* out;           // (N, C, H, W)
+  int64_t C, H, W, D, GH, GW;
+  const grid::RangeAxis* range;
+  const AxisTaps* xs;
+  const AxisTaps* ys;
+  const int64_t* readers;  // block b of columns is read by pixels [readers[2b], readers[2b+1])
+  int64_t bands;
+  bool fast;  // C == 3 on an AVX2 build
+
+  int64_t cell_values() const { return fast ? 4 : C + 1; }  // P: C values·m, then m
+  int64_t blocks() const { return (GW + kBlock - 1) / kBlock; }
+};
+
+// A grid row in scratch. For each block of columns, the range cells [low, high] have been
+// copied (none when low > high).
+struct RowBuffer {
+  float* cells;  // [z][gx][P]
+  int32_t* low;  // [block]
+  int32_t* high;
+  int64_t row = -1;  // the grid row held, -1 for none
+};
+
+struct SliceScratch {
+  RowBuffer rows[2];
+  int32_t* low;       // [block]: range cells read by the current pixel row
+  int32_t* high;
+  int32_t* new_low;   // [block]: working space of ensure_row
+  int32_t* new_high;
+  grid::RowTaps taps;  // of the current pixel row
+  float* sums;        // [x][P]: μ then η
+  float* corner;      // 2P floats: the generic path's per-pixel accumulator
+
+  SliceScratch(grid::Carver& carver, const SliceJob& j) {
+    const int64_t P = j.cell_values();
+    const auto W = static_cast<size_t>(j.W), B = static_cast<size_t>(j.blocks());
+    for (RowBuffer& r : rows) {
+      r.cells = carver.take<float>(static_cast<size_t>(j.D * j.GW * P));
+      r.low = carver.take<int32_t>(B);
+      r.high = carver.take<int32_t>(B);
+    }
+    low = carver.take<int32_t>(B);
+    high = carver.take<int32_t>(B);
+    new_low = carver.take<int32_t>(B);
+    new_high = carver.take<int32_t>(B);
+    taps.zfirst = carver.take<int32_t>(W);
+    taps.offset = carver.take<int32_t>(W);
+    for (float*& w : taps.w) w = carver.take<float>(W);
+    sums = carver.take<float>(W * P);
+    corner = carver.take<float>(static_cast<size_t>(2 * P));
+  }
+};
+
+// Copies blocks [b0, b1) of range cell z of grid row v (image n) into `row` as (grid·m, m)
+// with m = 1[weight > 0]. A cell that is masked out, or holds a non-finite value, contributes 0
+// (never NaN from 0·Inf).
+void copy_blocks(const SliceJob& j, int64_t n, int64_t v, int64_t z, int64_t b0, int64_t b1,
+                 float* row) {
+  const int64_t P = j.cell_values();
+  const int64_t channel = j.D * j.GH * j.GW;  // from one grid channel to the next
+  const int64_t start = b0 * kBlock, end = std::min(b1 * kBlock, j.GW);
+  const float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
+  const float* weight = j.weight + ((n * j.D + z) * j.GH + v) * j.GW;
+  float* cells = row + z * j.GW * P;
+  int64_t gx = start;
+#if QF_HAVE_AVX2
+  if (j.fast) {
+    const __m256 one = _mm256_set1_ps(1.0f);
+    for (; gx + kBlock <= end; gx += kBlock) {
+      const __m256 m = _mm256_cmp_ps(_mm256_loadu_ps(weight + gx), _mm256_setzero_ps(),
+                                     _CMP_GT_OQ);
+      __m256 t[4];
+      for (int c = 0; c < 3; ++c) {
+        t[c] = _mm256_and_ps(m, grid::finite_or_zero(_mm256_loadu_ps(grid + c * channel + gx)));
+      }
+      t[3] = _mm256_and_ps(m, one);
+      grid::store_cells_4x8(cells + 4 * gx, t);
+    }
+  }
+#endif
+  for (; gx < end; ++gx) {
+    float* cell = cells + gx * P;
+    const bool m = weight[gx] > 0.0f;  // false for NaN
+    for (int64_t c = 0; c < j.C; ++c) {
+      cell[c] = m ? grid::finite_or_zero(grid[c * channel + gx]) : 0.0f;
+    }
+    for (int64_t k = j.C; k < P; ++k) cell[k] = m ? 1.0f : 0.0f;
+  }
+}
+
+// Makes `buffer` hold grid row v with at least the range cells the current pixel row reads
+// (s.low/s.high). The copied range of a block only grows, as one interval, and becomes the whole
+// column once more than half of it is read (a noisy guide reads everything anyway). A new row is
+// copied range cell by range cell, along the rows of the grid planes: the order memory streams
+// best in; later rows of pixels usually add a few cells to a few blocks.
+void ensure_row(const SliceJob& j, SliceScratch& s, int64_t n, int64_t v, RowBuffer& buffer) {
+  const int64_t B = j.blocks();
+  const bool fresh = buffer.row != v;
+  if (fresh) {
+    for (int64_t b = 0; b < B; ++b) {
+      buffer.low[b] = INT32_MAX;
+      buffer.high[b] = -1;
+    }
+    buffer.row = v;
+  }
+  const auto top = static_cast<int32_t>(j.D - 1);
+  int32_t first = INT32_MAX, last = -1;
+  for (int64_t b = 0; b < B; ++b) {
+    int32_t low = buffer.low[b], high = buffer.high[b];
+    if (s.low[b] <= s.high[b] && (s.low[b] < low || s.high[b] > high)) {
+      low = std::min(low, s.low[b]);
+      high = std::max(high, s.high[b]);
+      if (2 * (high - low + 1) > j.D) low = 0, high = top;
+      first = std::min(first, low);
+      last = std::max(last, high);
+    }
+    s.new_low[b] = low;
+    s.new_high[b] = high;
+  }
+  if (first > last) return;  // nothing missing
+  if (fresh) {
+    for (int64_t z = first; z <= last; ++z) {
+      for (int64_t b = 0; b < B;) {  // runs of blocks that need range cell z
+        if (z < s.new_low[b] || z > s.new_high[b]) {
+          ++b;
+          continue;
+        }
+        int64_t e = b + 1;
+        while (e < B && z >= s.new_low[e] && z <= s.new_high[e]) ++e;
+        copy_blocks(j, n, v, z, b, e, buffer.cells);
+        b = e;
+      }
+    }
+  } else {
+    for (int64_t b = 0; b < B; ++b) {
+      const bool had = buffer.low[b] <= buffer.high[b];
+      const int64_t below = had ? buffer.low[b] - 1 : s.new_high[b];  // copy [new_low, below]
+      for (int64_t z = s.new_low[b]; z <= below; ++z) {
+        copy_blocks(j, n, v, z, b, b + 1, buffer.cells);
+      }
+      for (int64_t z = had ? buffer.high[b] + 1 : s.new_high[b] + 1; z <= s.new_high[b]; ++z) {
+        copy_blocks(j, n, v, z, b, b + 1, buffer.cells);
+      }
+    }
+  }
+  std::swap(buffer.low, s.new_low);
+  std::swap(buffer.high, s.new_high);
+}
+
+// The range cells each block of columns is read at by the pixel row of `taps`: a pixel with first
+// range cell z reads z and z + 1 (vectorised min/max over the pixels reading the block).
+void read_ranges(const SliceJob& j, const SliceScratch& s) {
+  const int32_t* zfirst = s.taps.zfirst;
+  const auto top = static_cast<int32_t>(j.D - 1);
+  for (int64_t b = 0; b < j.blocks(); ++b) {
+    int32_t low = INT32_MAX, high = -1;
+    for (int64_t x = j.readers[2 * b]; x < j.readers[2 * b + 1]; ++x) {
+      low = std::min(low, zfirst[x]);
+      high = std::max(high, zfirst[x]);
+    }
+    s.low[b] = low;
+    s.high[b] = std::min(high + 1, top);
+  }
+}
+
+// μ and η of one pixel row from grid rows `lo` (its first y-cell) and `hi`, into s.sums.
+void gather_row(const SliceJob& j, const SliceScratch& s, const float* lo, const float* hi) {
+  const grid::RowTaps& taps = s.taps;
+  const AxisTaps& xs = *j.xs;
+  const int64_t P = j.cell_values();
+  const int64_t zstride = j.GW * P;
+  const int32_t* offset = taps.offset;
+  const float* const* w = taps.w;
+#if QF_HAVE_AVX2
+  if (j.fast) {
+    for (int64_t x = 0; x < j.W; ++x) {
+      const float* a = lo + offset[x];
+      const float* b = hi + offset[x];
+      // Both x-neighbour cells at once: lanes 0–3 the first, 4–7 the second.
+      __m256 acc = _mm256_mul_ps(_mm256_broadcast_ss(w[0] + x), _mm256_loadu_ps(a));
+      acc = _mm256_fmadd_ps(_mm256_broadcast_ss(w[1] + x), _mm256_loadu_ps(a + zstride), acc);
+      acc = _mm256_fmadd_ps(_mm256_broadcast_ss(w[2] + x), _mm256_loadu_ps(b), acc);
+      acc = _mm256_fmadd_ps(_mm256_broadcast_ss(w[3] + x), _mm256_loadu_ps(b + zstride), acc);
+      acc = _mm256_mul_ps(acc, _mm256_loadu_ps(xs.pair.data() + 8 * x));  // · (tx0, tx1)
+      _mm_store_ps(s.sums + 4 * x,
+                   _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1)));
+    }
+    return;
+  }
+#endif
+  float* acc = s.corner;
+  for (int64_t x = 0; x < j.W; ++x) {
+    const float* corners[4] = {lo + offset[x], lo + offset[x] + zstride, hi + offset[x],
+                               hi + offset[x] + zstride};
+    for (int64_t k = 0; k < 2 * P; ++k) acc[k] = 0.0f;
+    for (int i = 0; i < 4; ++i) {
+      for (int64_t k = 0; k < 2 * P; ++k) acc[k] += w[i][x] * corners[i][k];
+    }
+    float* sums = s.sums + x * P;
+    for (int64_t k = 0; k < P; ++k) sums[k] = xs.w0[x] * acc[k] + xs.w1[x] * acc[P + k];
+  }
+}
+
+// out = μ/η where η > 0 else 0, for pixel row y.
+void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
+  const int64_t P = j.cell_values();
+  const int64_t plane = j.H * j.W;
+  float* out = j.out + n * j.C * plane + y * j.W;  // channel 0
+  int64_t x = 0;
+#if QF_HAVE_AVX2
+  if (j.fast) {
+    const __m256 zero = _mm256_setzero_ps();
+    for (; x + 8 <= j.W; x += 8) {
+      __m256 t[4];
+      grid::transpose_cells_4x8(s.sums + 4 * x, t);
+      const __m256 covered = _mm256_cmp_ps(t[3], zero, _CMP_GT_OQ);
+      for (int c = 0; c < 3; ++c) {
+        _mm256_storeu_ps(out + c * plane + x, _mm256_and_ps(covered, _mm256_div_ps(t[c], t[3])));
+      }
+    }
+  }
+#endif
+  for (; x < j.W; ++x) {
+    const float* sums = s.sums + x * P;
+    const float eta = sums[j.C];
+    for (int64_t c = 0; c < j.C; ++c) out[c * plane + x] = eta > 0.0f ? sums[c] / eta : 0.0f;
+  }
+}
+
+// Task: the pixel rows of image n whose first y-cell is in [va, vb).
+void slice_band(const SliceJob& j, int64_t task) {
+  const int64_t n = task / j.bands, band = task % j.bands;
+  const int64_t va = grid::band_start(band, j.bands, j.GH);
+  const int64_t vb = grid::band_start(band + 1, j.bands, j.GH);
+  grid::Carver measure(nullptr);
+  SliceScratch{measure, j};
+  grid::Carver carver(grid::thread_scratch().get(measure.used()));
+  SliceScratch s(carver, j);
+  const AxisTaps& xs = *j.xs;
+  const AxisTaps& ys = *j.ys;
+  for (int64_t v = va; v < vb; ++v) {
+    RowBuffer* lo = &s.rows[0];
+    RowBuffer* hi = &s.rows[1];
+    if (lo->row != v && hi->row == v) std::swap(lo, hi);
+    for (int64_t y = ys.begin[v]; y < ys.begin[v + 1]; ++y) {
+      grid::row_taps(j.guide + (n * j.H + y) * j.W, j.W, *j.range, xs.first.data(), j.GW,
+                     j.cell_values(), ys.w0[y], ys.w1[y], s.taps);
+      read_ranges(j, s);
+      ensure_row(j, s, n, v, *lo);
+      ensure_row(j, s, n, v + 1, *hi);  // exists: a first y-cell is at most GH - 2
+      gather_row(j, s, lo->cells, hi->cells);
+      write_row(j, s, n, y);
+    }
+  }
+}
+
+class BilateralSlice {
+ public:
+  static constexpr const char* kName = "BilateralSlice";
+  static constexpr size_t kInputs = 3;
+  static constexpr size_t kOutputs = 1;
+
+  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, BilateralSlice** out) {
+    grid::Attributes attributes;
+    if (OrtStatus* s = grid::read_attributes(api, kName, info, &attributes)) return s;
+    *out = new BilateralSlice(attributes);
+    return nullptr;
+  }
+
+  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
+    const float* grid = nullptr;
+    const float* weight = nullptr;
+    const float* guide = nullptr;
+    Shape gs, ws, us;
+    if (OrtStatus* s = get_float_input(api, kName, ctx, 0, "grid", &grid, &gs)) return s;
+    if (OrtStatus* s = get_float_input(api, kName, ctx, 1, "weight", &weight, &ws)) return s;
+    if (OrtStatus* s = get_float_input(api, kName, ctx, 2, "guide", &guide, &us)) return s;
+    if (us.rank != 4 || us[0] < 1 || us[1] != 1 || us[2] < 1 || us[3] < 1) {
+      return op_error(api, kName, "guide must be (N, 1, H, W) with N, H, W >= 1, got " +
+                                      us.str());
+    }
+    const int64_t N = us[0], H = us[2], W = us[3];
+    const int64_t D = attributes_.depth;
+    const int64_t GH = grid::spatial_cells(H, attributes_.sigma_s);
+    const int64_t GW = grid::spatial_cells(W, attributes_.sigma_s);
+    const std::string cells = std::to_string(D) + ", " + std::to_string(GH) + ", " +
+                              std::to_string(GW) + ")";
+    const std::string because = " for a " + std::to_string(H) + "x" + std::to_string(W) +
+                                " guide with sigma_s=" + std::to_string(attributes_.sigma_s) +
+                                ", grid_depth=" + std::to_string(D);
+    if (gs.rank != 5 || gs[0] != N || gs[1] < 1 || gs[2] != D || gs[3] != GH || gs[4] != GW) {
+      return op_error(api, kName, "grid must be (" + std::to_string(N) + ", C, " + cells +
+                                      because + ", got " + gs.str());
+    }
+    const int64_t C = gs[1];
+    if (ws.rank != 5 || ws[0] != N || ws[1] != 1 || ws[2] != D || ws[3] != GH || ws[4] != GW) {
+      return op_error(api, kName, "weight must be (" + std::to_string(N) + ", 1, " + cells +
+                                      because + ", got " + ws.str());
+    }
+    const bool fast = QF_HAVE_AVX2 && C == 3;
+    if (D * GW * (fast ? 4 : C + 1) > INT32_MAX) {
+      return op_error(api, kName, "a grid row of " + gs.str() + " is too large");
+    }
+    Shape out_shape;
+    out_shape.rank = 4;
+    out_shape.dims = {N, C, H, W};
+    float* out = nullptr;
+    if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "image", out_shape, &out)) return s;
+
+    AxisTaps xs, ys;
+    xs.build(W, attributes_.sigma_s, GW);
+    ys.build(H, attributes_.sigma_s, GH);
+    const grid::RangeAxis range(attributes_.sigma_r, D);
+    // Block b (columns [8b, 8b + 8)) is read by the pixels whose first column is in
+    // [8b - 1, 8b + 7].
+    const int64_t B = (GW + kBlock - 1) / kBlock;
+    std::vector<int64_t> readers(2 * B);
+    for (int64_t b = 0; b < B; ++b) {
+      readers[2 * b] = xs.begin[std::max<int64_t>(b * kBlock - 1, 0)];
+      readers[2 * b + 1] = xs.begin[std::min((b + 1) * kBlock, GW)];
+    }
+    const SliceJob job{grid, weight, guide, out, C, H, W, D, GH, GW, &range, &xs, &ys,
+                       readers.data(), grid::band_count(GH, kRowsPerBand), fast};
+    auto task = [&job](size_t i) { slice_band(job, static_cast<int64_t>(i)); };
+    if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
+      return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);
+    }
+    return nullptr;
+  }
+
+ private:
+  explicit BilateralSlice(const grid::Attributes& attributes) : attributes_(attributes) {}
+  grid::Attributes attributes_;
+};
+
+}  // namespace
+
+const OrtCustomOp* bilateral_slice_op() { return CustomOp<BilateralSlice>::get(); }
+
+}  // namespace qf

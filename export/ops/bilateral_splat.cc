@@ -1,0 +1,289 @@
+// BilateralSplat(image (N,C,H,W), guide (N,1,H,W)) -> grid (N,C,D,GH,GW), weight (N,1,D,GH,GW)
+//
+// Supplement §5.1, eq. 2, 6–8: α[c, cell] = Σ_p t(p, cell)·image[c, p],
+// β[cell] = Σ_p t(p, cell), grid = α/β where β > 0 else 0, weight = β (docs/grid-math.md).
+//
+// Parallel over bands of grid rows: a task owns its rows outright and gathers every pixel row
+// that touches them, so no two tasks write the same cell. It walks its pixel rows in order while
+// holding only two grid rows (the current row and the next) in [z][gx][P] scratch, which stays in
+// L2; a finished row is normalised straight into the output tensors.
+#include <cstdint>
+#include <cstring>
+#include <utility>
+
+#include "grid_common.h"
+#include "kernel_support.h"
+
+namespace qf {
+namespace {
+
+using grid::AxisTaps;
+
+// Grid rows per task: small enough for a few tasks per thread, large enough that the pixel rows
+// a task reads twice at its top edge (σs of them) stay a small fraction.
+constexpr int64_t kRowsPerBand = 8;
+// Independent stretches of a pixel row scattered in lockstep (see scatter_row).
+constexpr int64_t kStreams = 4;
+
+struct SplatJob {
+  const float* image;  // (N, C, H, W)
+  const float* guide;  // (N, 1, H, W)
+  float* grid;         // (N, C, D, GH, GW)
+  float* weight;       // (N, 1, D, GH, GW)
+  int64_t C, H, W, D, GH, GW;
+  const grid::RangeAxis* range;
+  const AxisTaps* xs;
+  const AxisTaps* ys;
+  int64_t bands;
+  bool fast;  // C == 3 on an AVX2 build: 4-value cells, one register per cell pair
+
+  int64_t cell_values() const { return fast ? 4 : C + 1; }  // P: C values, then β
+};
+
+// One task's working memory.
+struct SplatScratch {
+  float* rows[2];       // grid rows [z][gx][P]
+  float* values;        // one pixel row [x][P]: sanitised values, then 1
+  grid::RowTaps taps;   // and its taps
+
+  SplatScratch(grid::Carver& carver, const SplatJob& j) {
+    const size_t row = static_cast<size_t>(j.D * j.GW * j.cell_values());
+    const auto W = static_cast<size_t>(j.W);
+    rows[0] = carver.take<float>(row);
+    rows[1] = carver.take<float>(row);
+    values = carver.take<float>(W * j.cell_values());
+    taps.zfirst = carver.take<int32_t>(W);
+    taps.offset = carver.take<int32_t>(W);
+    for (float*& w : taps.w) w = carver.take<float>(W);
+  }
+};
+
+// Pixel row y of image n as [x][P] (non-finite values count as 0), and its taps.
+void prepare_row(const SplatJob& j, int64_t n, int64_t y, const SplatScratch& s) {
+  const int64_t plane = j.H * j.W;
+  const float* image = j.image + n * j.C * plane + y * j.W;
+  const int64_t P = j.cell_values();
+  int64_t x = 0;
+#if QF_HAVE_AVX2
+  if (j.fast) {
+    const __m256 one = _mm256_set1_ps(1.0f);
+    for (; x + 8 <= j.W; x += 8) {
+      const __m256 v[4] = {grid::finite_or_zero(_mm256_loadu_ps(image + x)),
+                           grid::finite_or_zero(_mm256_loadu_ps(image + plane + x)),
+                           grid::finite_or_zero(_mm256_loadu_ps(image + 2 * plane + x)), one};
+      grid::store_cells_4x8(s.values + 4 * x, v);
+    }
+  }
+#endif
+  for (; x < j.W; ++x) {
+    float* cell = s.values + x * P;
+    for (int64_t c = 0; c < j.C; ++c) cell[c] = grid::finite_or_zero(image[c * plane + x]);
+    for (int64_t k = j.C; k < P; ++k) cell[k] = 1.0f;
+  }
+  grid::row_taps(j.guide + n * plane + y * j.W, j.W, *j.range, j.xs->first.data(), j.GW, P,
+                 j.ys->w0[y], j.ys->w1[y], s.taps);
+}
+
+// Adds the prepared pixel row to grid row `lo` (its first y-cell) and/or `hi` (the second); a
+// null row belongs to another task.
+template <bool kLo, bool kHi>
+void scatter_row(const SplatJob& j, const SplatScratch& s, float* lo, float* hi) {
+  const AxisTaps& xs = *j.xs;
+  const int64_t P = j.cell_values();
+  const int64_t zstride = j.GW * P;  // from a cell to the next range cell
+  const int32_t* offset = s.taps.offset;
+  const float* const* w = s.taps.w;
+#if QF_HAVE_AVX2
+  if (j.fast) {
+    auto add_pixel = [&](int64_t x) {
+      // (tx0·v, tx1·v) for the two x-neighbour cells, v = (c0, c1, c2, 1)
+      const __m256 pair =
+          _mm256_mul_ps(_mm256_broadcast_ps(reinterpret_cast<const __m128*>(s.values + 4 * x)),
+                        _mm256_loadu_ps(xs.pair.data() + 8 * x));
+      if (kLo) {
+        float* a = lo + offset[x];
+        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_broadcast_ss(w[0] + x), pair,
+                                            _mm256_loadu_ps(a)));
+        _mm256_storeu_ps(a + zstride, _mm256_fmadd_ps(_mm256_broadcast_ss(w[1] + x), pair,
+                                                      _mm256_loadu_ps(a + zstride)));
+      }
+      if (kHi) {
+        float* a = hi + offset[x];
+        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_broadcast_ss(w[2] + x), pair,
+                                            _mm256_loadu_ps(a)));
+        _mm256_storeu_ps(a + zstride, _mm256_fmadd_ps(_mm256_broadcast_ss(w[3] + x), pair,
+                                                      _mm256_loadu_ps(a + zstride)));
+      }
+    };
+    // Neighbouring pixels mostly hit the same cells, and each add must wait for the previous
+    // one's store: walk kStreams far-apart stretches of the row in lockstep so that that
+    // many independent chains overlap.
+    const int64_t stretch = j.W / kStreams;
+    for (int64_t i = 0; i < stretch; ++i) {
+      for (int64_t k = 0; k < kStreams; ++k) add_pixel(k * stretch + i);
+    }
+    for (int64_t x = kStreams * stretch; x < j.W; ++x) add_pixel(x);
+    return;
+  }
+#endif
+  for (int64_t x = 0; x < j.W; ++x) {
+    const float* v = s.values + x * P;
+    const float tx0 = xs.w0[x], tx1 = xs.w1[x];
+    for (int corner = 0; corner < 4; ++corner) {  // corner = 2·dy + dz
+      float* row = corner < 2 ? lo : hi;
+      if ((corner < 2 && !kLo) || (corner >= 2 && !kHi)) continue;
+      float* cell = row + offset[x] + (corner & 1) * zstride;
+      const float a = w[corner][x] * tx0, b = w[corner][x] * tx1;
+      for (int64_t k = 0; k < P; ++k) {
+        cell[k] += a * v[k];
+        cell[P + k] += b * v[k];
+      }
+    }
+  }
+}
+
+// grid = α/β where β > 0 else 0, weight = β for grid row v; leaves the scratch row zeroed.
+void finish_row(const SplatJob& j, int64_t n, int64_t v, float* row) {
+  const int64_t P = j.cell_values();
+  const int64_t channel = j.D * j.GH * j.GW;  // from one channel of the grid to the next
+  for (int64_t z = 0; z < j.D; ++z) {
+    float* cells = row + z * j.GW * P;
+    float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
+    float* weight = j.weight + ((n * j.D + z) * j.GH + v) * j.GW;
+    int64_t gx = 0;
+#if QF_HAVE_AVX2
+    if (j.fast) {
+      const __m256 zero = _mm256_setzero_ps();
+      for (; gx + 8 <= j.GW; gx += 8) {
+        __m256 t[4];
+        grid::transpose_cells_4x8(cells + 4 * gx, t);
+        const __m256 filled = _mm256_cmp_ps(t[3], zero, _CMP_GT_OQ);
+        for (int c = 0; c < 3; ++c) {
+          _mm256_storeu_ps(grid + c * channel + gx,
+                           _mm256_and_ps(filled, _mm256_div_ps(t[c], t[3])));
+        }
+        _mm256_storeu_ps(weight + gx, t[3]);
+        for (int k = 0; k < 4; ++k) _mm256_storeu_ps(cells + 4 * gx + 8 * k, zero);
+      }
+    }
+#endif
+    for (; gx < j.GW; ++gx) {
+      float* cell = cells + gx * P;
+      const float beta = cell[j.C];
+      for (int64_t c = 0; c < j.C; ++c) {
+        grid[c * channel + gx] = beta > 0.0f ? cell[c] / beta : 0.0f;
+      }
+      weight[gx] = beta;
+      std::memset(cell, 0, sizeof(float) * P);
+    }
+  }
+}
+
+// Task: grid rows [va, vb) of image n.
+void splat_band(const SplatJob& j, int64_t task) {
+  const int64_t n = task / j.bands, band = task % j.bands;
+  const int64_t va = grid::band_start(band, j.bands, j.GH);
+  const int64_t vb = grid::band_start(band + 1, j.bands, j.GH);
+  grid::Carver measure(nullptr);
+  SplatScratch{measure, j};
+  grid::Carver carver(grid::thread_scratch().get(measure.used()));
+  const SplatScratch s(carver, j);
+  const size_t row_bytes = sizeof(float) * j.D * j.GW * j.cell_values();
+  std::memset(s.rows[0], 0, row_bytes);
+  std::memset(s.rows[1], 0, row_bytes);
+  const AxisTaps& ys = *j.ys;
+  float* cur = s.rows[0];   // grid row v
+  float* next = s.rows[1];  // grid row v + 1
+  if (va > 0) {  // pixel rows whose second y-cell is va
+    for (int64_t y = ys.begin[va - 1]; y < ys.begin[va]; ++y) {
+      prepare_row(j, n, y, s);
+      scatter_row<false, true>(j, s, nullptr, cur);
+    }
+  }
+  for (int64_t v = va; v < vb; ++v) {
+    for (int64_t y = ys.begin[v]; y < ys.begin[v + 1]; ++y) {
+      prepare_row(j, n, y, s);
+      if (v + 1 < vb) {
+        scatter_row<true, true>(j, s, cur, next);
+      } else {  // row v + 1 belongs to the next band
+        scatter_row<true, false>(j, s, cur, nullptr);
+      }
+    }
+    finish_row(j, n, v, cur);
+    std::swap(cur, next);
+  }
+}
+
+class BilateralSplat {
+ public:
+  static constexpr const char* kName = "BilateralSplat";
+  static constexpr size_t kInputs = 2;
+  static constexpr size_t kOutputs = 2;
+
+  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, BilateralSplat** out) {
+    grid::Attributes attributes;
+    if (OrtStatus* s = grid::read_attributes(api, kName, info, &attributes)) return s;
+    *out = new BilateralSplat(attributes);
+    return nullptr;
+  }
+
+  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
+    const float* image = nullptr;
+    const float* guide = nullptr;
+    Shape is, gs;
+    if (OrtStatus* s = get_float_input(api, kName, ctx, 0, "image", &image, &is)) return s;
+    if (OrtStatus* s = get_float_input(api, kName, ctx, 1, "guide", &guide, &gs)) return s;
+    if (is.rank != 4 || is[0] < 1 || is[1] < 1 || is[2] < 1 || is[3] < 1) {
+      return op_error(api, kName, "image must be (N, C, H, W) with every size >= 1, got " +
+                                      is.str());
+    }
+    const int64_t N = is[0], C = is[1], H = is[2], W = is[3];
+    if (gs.rank != 4 || gs[0] != N || gs[1] != 1 || gs[2] != H || gs[3] != W) {
+      return op_error(api, kName, "guide must be (N, 1, H, W) = (" + std::to_string(N) + ", 1, " +
+                                      std::to_string(H) + ", " + std::to_string(W) +
+                                      ") like the image, got " + gs.str());
+    }
+    const int64_t D = attributes_.depth;
+    const int64_t GH = grid::spatial_cells(H, attributes_.sigma_s);
+    const int64_t GW = grid::spatial_cells(W, attributes_.sigma_s);
+    Shape grid_shape, weight_shape;
+    grid_shape.rank = weight_shape.rank = 5;
+    grid_shape.dims = {N, C, D, GH, GW};
+    weight_shape.dims = {N, 1, D, GH, GW};
+    float* grid_data = nullptr;
+    float* weight_data = nullptr;
+    if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "grid", grid_shape, &grid_data)) {
+      return s;
+    }
+    if (OrtStatus* s =
+            get_float_output(api, kName, ctx, 1, "weight", weight_shape, &weight_data)) {
+      return s;
+    }
+
+    const bool fast = QF_HAVE_AVX2 && C == 3;
+    if (D * GW * (fast ? 4 : C + 1) > INT32_MAX) {
+      return op_error(api, kName, "a grid row of " + grid_shape.str() + " is too large");
+    }
+    AxisTaps xs, ys;
+    xs.build(W, attributes_.sigma_s, GW);
+    ys.build(H, attributes_.sigma_s, GH);
+    const grid::RangeAxis range(attributes_.sigma_r, D);
+    const SplatJob job{image, guide, grid_data, weight_data, C, H, W, D, GH, GW, &range,
+                       &xs, &ys, grid::band_count(GH, kRowsPerBand), fast};
+    auto task = [&job](size_t i) { splat_band(job, static_cast<int64_t>(i)); };
+    if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
+      return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);
+    }
+    return nullptr;
+  }
+
+ private:
+  explicit BilateralSplat(const grid::Attributes& attributes) : attributes_(attributes) {}
+  grid::Attributes attributes_;
+};
+
+}  // namespace
+
+const OrtCustomOp* bilateral_splat_op() { return CustomOp<BilateralSplat>::get(); }
+
+}  // namespace qf

@@ -1,0 +1,47 @@
+"""Helpers shared by the tests of the custom-op library (test_ops_library, test_ops_parity)."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnxruntime as ort
+from onnx import TensorProto, helper
+
+from quietframe.export import OPS_DOMAIN
+
+SCALES = [(4, 4.0), (8, 8.0), (16, 16.0)]
+
+
+def range_cells(sigma_r: float) -> int:
+    return int(np.floor(255.0 / sigma_r - 0.5)) + 3
+
+
+def spatial_cells(n: int, sigma_s: int) -> int:
+    return (2 * n - 1 - sigma_s) // (2 * sigma_s) + 3
+
+
+def op_model(op: str, **attributes) -> bytes:
+    """One-node model of our op; attributes given as None are left out."""
+    names = {
+        "BilateralSplat": (["image", "guide"], ["grid", "weight"]),
+        "BilateralSlice": (["grid", "weight", "guide"], ["image"]),
+    }[op]
+    inputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names[0]]
+    outputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names[1]]
+    attrs = {k: v for k, v in attributes.items() if v is not None}
+    node = helper.make_node(op, names[0], names[1], domain=OPS_DOMAIN, **attrs)
+    graph = helper.make_graph([node], op, inputs, outputs)
+    opsets = [helper.make_opsetid("", 17), helper.make_opsetid(OPS_DOMAIN, 1)]
+    # IR 9: readable by every supported onnxruntime (>= 1.16).
+    return helper.make_model(graph, opset_imports=opsets, ir_version=9).SerializeToString()
+
+
+def attrs_for(sigma_s: int, sigma_r: float) -> dict:
+    return {"sigma_s": sigma_s, "sigma_r": sigma_r, "grid_depth": range_cells(sigma_r)}
+
+
+def make_session(library: str, model: bytes, threads: int = 2) -> ort.InferenceSession:
+    """An onnxruntime session of `model` with the custom-op library at `library` registered."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.register_custom_ops_library(library)
+    return ort.InferenceSession(model, options, providers=["CPUExecutionProvider"])
