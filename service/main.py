@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from fastapi import Depends, FastAPI
 
-from quietframe.service import logs
+from quietframe.service import frames, logs
 from quietframe.service.deps import require_auth
 from quietframe.service.errors import install_handlers
 from quietframe.service.metrics import Metrics
@@ -44,6 +44,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        frames.configure_io(settings.model_threads)  # decoding runs when the model does not
         registry_models = await asyncio.to_thread(ModelRegistry, settings)
         await asyncio.to_thread(registry_models.warm_up)
         pool = ThreadPoolExecutor(settings.worker_count, thread_name_prefix="quietframe-frame")

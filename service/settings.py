@@ -20,7 +20,7 @@ class Settings(BaseSettings):
     threads: int = Field(
         0, ge=0, description="onnxruntime intra-op threads per model; 0: CPU count"
     )
-    workers: int = Field(0, ge=0, description="frames decoded/denoised at once; 0: CPU count")
+    workers: int = Field(0, ge=0, description="frames in flight at once; 0: CPUs / threads")
 
     # Limits. Sizes carry their unit in the name.
     max_body_mb: float = Field(1024.0, gt=0)
@@ -52,4 +52,6 @@ class Settings(BaseSettings):
 
     @property
     def worker_count(self) -> int:
-        return self.workers or os.cpu_count() or 1
+        # Each frame already runs on `threads` cores; more frames at once than cores / threads
+        # only oversubscribe the CPU (onnxruntime's spinning threads then slow every frame).
+        return self.workers or max(1, (os.cpu_count() or 1) // self.model_threads)

@@ -225,3 +225,18 @@ def test_cli_models(live_server, capsys):
     out = capsys.readouterr().out
     assert "(default)" in out and "needs: color, albedo" in out
     assert main(["models"]) == 0 and "(default)" in capsys.readouterr().out
+
+
+def test_imports_stay_in_their_extra():
+    """The client needs neither the server nor onnxruntime; the server never imports torch."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys, quietframe.client.cli, quietframe.client.sequence;"
+        "assert not {'onnxruntime', 'fastapi', 'torch'} & set(sys.modules), sys.modules.keys();"
+        "import quietframe.service.main;"
+        "assert 'torch' not in sys.modules"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-2000:]
