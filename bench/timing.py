@@ -1,8 +1,10 @@
 """One way to time things, shared by every benchmark, so all reported figures are comparable.
 
 Rule: `warmup` untimed calls (first-call allocations, OIDN/ORT plan building, caches), then
-`repeats` timed calls with `time.perf_counter_ns`; the figure is the median in milliseconds
-(robust to the odd scheduler hiccup, unlike the mean).
+`repeats` timed calls with `time.perf_counter_ns`; the figure is the median wall time in
+milliseconds (robust to the odd scheduler hiccup, unlike the mean). The median process CPU time
+per call (all threads) comes with it: on a shared machine, wall time far above CPU time / threads
+means the run waited for a core, not that the code got slower.
 """
 
 from __future__ import annotations
@@ -19,11 +21,12 @@ class Timing:
     min_ms: float
     max_ms: float
     samples_ms: tuple[float, ...]
+    cpu_ms: float = float("nan")  # median process CPU time per call, all threads
 
     def __str__(self) -> str:
         return (
             f"{self.median_ms:.1f} ms (median of {len(self.samples_ms)}, "
-            f"min {self.min_ms:.1f}, max {self.max_ms:.1f})"
+            f"min {self.min_ms:.1f}, max {self.max_ms:.1f}; CPU {self.cpu_ms:.1f} ms)"
         )
 
 
@@ -33,9 +36,13 @@ def time_ms(fn: Callable[[], object], *, warmup: int = 2, repeats: int = 10) -> 
         raise ValueError(f"time_ms: need repeats >= 1 and warmup >= 0, got {repeats}, {warmup}")
     for _ in range(warmup):
         fn()
-    samples = []
+    samples, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter_ns()
+        cpu_start, start = time.process_time_ns(), time.perf_counter_ns()
         fn()
         samples.append((time.perf_counter_ns() - start) / 1e6)
-    return Timing(statistics.median(samples), min(samples), max(samples), tuple(samples))
+        cpu.append((time.process_time_ns() - cpu_start) / 1e6)
+    return Timing(
+        statistics.median(samples), min(samples), max(samples), tuple(samples),
+        statistics.median(cpu),
+    )

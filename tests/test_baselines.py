@@ -254,4 +254,4 @@ def test_time_ms_counts_and_orders():
     calls = []
     t = time_ms(lambda: calls.append(1), warmup=2, repeats=5)
     assert len(calls) == 7 and len(t.samples_ms) == 5
-    assert t.min_ms <= t.median_ms <= t.max_ms
+    assert t.min_ms <= t.median_ms <= t.max_ms and t.cpu_ms >= 0
