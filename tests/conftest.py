@@ -145,12 +145,6 @@ def shot(n: int, layout="plain-normal", **kw) -> list[bytes]:
     return frames
 
 
-@pytest.fixture
-def exr_frame():
-    """Factory: bytes of an EXR frame, `exr_frame(layout="blender", seed=3)`."""
-    return frame_bytes
-
-
 # ---- service fixtures -----------------------------------------------------------------------
 
 
@@ -170,24 +164,28 @@ def service_settings(**overrides):
     return Settings(**base)
 
 
-@pytest.fixture
-def make_client():
-    """Factory: a started TestClient for an app with the given settings overrides."""
-    from fastapi.testclient import TestClient
+def serve(kind: str, **overrides):
+    """(started client, server or None): TestClient in-process, or a LiveServer + httpx."""
+    if kind == "testclient":
+        from fastapi.testclient import TestClient
 
-    from quietframe.service.main import create_app
+        from quietframe.service.main import create_app
 
-    clients = []
-
-    def make(**overrides):
         client = TestClient(create_app(service_settings(**overrides)))
         client.__enter__()
-        clients.append(client)
-        return client
+        return client, None
+    import httpx
 
-    yield make
-    for client in clients:
+    server = LiveServer(**overrides).__enter__()
+    return httpx.Client(base_url=server.url, timeout=60), server
+
+
+def close(client, server) -> None:
+    if server is None:
         client.__exit__(None, None, None)
+    else:
+        client.close()
+        server.__exit__()
 
 
 class LiveServer:

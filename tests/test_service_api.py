@@ -1,5 +1,6 @@
-"""The /v1 API through TestClient: each route with passing and rejecting cases, frame order,
-retries, resets, limits, auth. Real runtime and the installed model; 64x48 frames."""
+"""The /v1 API: each route with passing and rejecting cases, frame order, retries, resets,
+limits, auth. Every test runs twice: through TestClient, and over HTTP against a real uvicorn
+server on 127.0.0.1. Real runtime and the installed model; 64x48 frames."""
 
 from __future__ import annotations
 
@@ -12,17 +13,33 @@ from conftest import LAYOUTS, frame_bytes, make_buffers, read_exr, shot, write_e
 
 SIZE = {"width": 64, "height": 48}
 EXR = {"content-type": "image/x-exr"}
+KINDS = ["testclient", "uvicorn"]
 
 
-@pytest.fixture(scope="module")
-def client():
-    from conftest import service_settings
-    from fastapi.testclient import TestClient
+@pytest.fixture(scope="module", params=KINDS)
+def client(request):
+    from conftest import close, serve
 
-    from quietframe.service.main import create_app
+    c, server = serve(request.param)
+    yield c
+    close(c, server)
 
-    with TestClient(create_app(service_settings())) as c:
-        yield c
+
+@pytest.fixture(params=KINDS)
+def make_client(request):
+    """conftest's factory, once per kind of server."""
+    from conftest import close, serve
+
+    opened = []
+
+    def make(**overrides):
+        c, server = serve(request.param, **overrides)
+        opened.append((c, server))
+        return c
+
+    yield make
+    for c, server in opened:
+        close(c, server)
 
 
 def new_session(c, **body) -> str:
