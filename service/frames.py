@@ -15,6 +15,7 @@ backward, in pixels, x right and y down: pixel p of frame t was at p + motion in
 from __future__ import annotations
 
 import io
+import logging
 import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -29,6 +30,8 @@ from quietframe.service.errors import (
     ResolutionTooLarge,
     UnsupportedExr,
 )
+
+log = logging.getLogger("quietframe.service")
 
 BUFFER_CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}
 # Component spellings tried for each buffer, in order (matched case-insensitively).
@@ -439,6 +442,46 @@ def encode(
     channels = {
         name: np.ascontiguousarray(color[:, :, i], dtype=dtype) for i, name in enumerate(names)
     }
+    try:
+        return _write(attributes, channels)
+    except Exception as exc:  # an attribute the binding reads but cannot write back
+        probe = {"R": np.zeros((1, 1), np.float16)}
+        kept = {k: v for k, v in attributes.items() if k in _STANDARD_ATTRIBUTES}
+        for key, value in attributes.items():
+            if key not in kept and _writable({key: value}, probe):
+                kept[key] = value
+        dropped = sorted(set(attributes) - set(kept))
+        log.warning("dropped EXR attributes that could not be written: %s (%s)", dropped, exc)
+        kept["quietframe.dropped_attributes"] = ", ".join(dropped)
+        return _write(kept, channels)
+
+
+# Attributes of every EXR; the rest are kept one by one if they can be written back.
+_STANDARD_ATTRIBUTES = frozenset(
+    {
+        "compression",
+        "dataWindow",
+        "displayWindow",
+        "lineOrder",
+        "pixelAspectRatio",
+        "screenWindowCenter",
+        "screenWindowWidth",
+        "type",
+        "quietframe.model",
+        "quietframe.frame",
+    }
+)
+
+
+def _writable(attributes: Mapping, channels: Mapping[str, np.ndarray]) -> bool:
+    try:
+        _write({**attributes, "type": OpenEXR.scanlineimage}, channels)
+        return True
+    except Exception:
+        return False
+
+
+def _write(attributes: Mapping, channels: Mapping[str, np.ndarray]) -> bytes:
     out = io.BytesIO()
-    OpenEXR.File(attributes, channels).write(out)
+    OpenEXR.File(dict(attributes), dict(channels)).write(out)
     return out.getvalue()

@@ -397,12 +397,16 @@ class SessionRegistry:
             arrays["reply"] = np.frombuffer(reply.body, np.uint8)
         path = self._path(session.id)
         temp = path.with_name(f".{path.name}.tmp")
-        with open(temp, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            if self.settings.state_fsync:
-                os.fsync(f.fileno())
-        os.replace(temp, path)
+        try:
+            with open(temp, "wb") as f:
+                np.savez(f, **arrays)
+                f.flush()
+                if self.settings.state_fsync:
+                    os.fsync(f.fileno())
+            os.replace(temp, path)
+        except BaseException:
+            temp.unlink(missing_ok=True)  # the previous state file stays as it was
+            raise
 
     def _read_state(self, session_id: str) -> tuple[dict[str, np.ndarray] | None, Reply | None]:
         with np.load(self._path(session_id)) as z:

@@ -245,3 +245,12 @@ def test_json_logs_carry_extra_fields(capsys):
         root.handlers[:], _ = saved[0], root.setLevel(saved[1])
     assert entry["msg"] == "frame" and entry["session"] == "abc" and entry["ms"] == 1.5
     assert entry["level"] == "info" and entry["ts"].endswith("Z")
+
+
+def test_attribute_that_cannot_be_written_back_is_dropped_not_fatal():
+    color = np.ones((4, 4, 3), np.float32)
+    header = {"comment": "kept", "odd": object()}
+    out = frames.encode(color, header, ["R", "G", "B"], "half")
+    attributes, channels = read_exr(out)
+    assert attributes["comment"] == "kept" and attributes["quietframe.dropped_attributes"] == "odd"
+    assert sorted(channels) == ["B", "G", "R"]
