@@ -201,6 +201,15 @@ class Client:
         )
         return _frame_result(index, response)
 
+    def denoise_sequence(self, source, out_dir, **options) -> str | None:
+        """Stream a folder or glob of EXR frames through one session into `out_dir` (same
+        names), resuming an earlier run; options of `sequence.run_sequence` (model, precision,
+        compression, warmup, on_progress). Returns the session id, None if nothing was left."""
+        from quietframe.client.sequence import Job, run_sequence
+
+        job = Job.plan(source, out_dir)
+        return run_sequence(self, job, str(self._http.base_url), **options)
+
 
 class AsyncClient:
     """The same API for asyncio (several sequences from one process, one task per sequence)."""
@@ -288,3 +297,10 @@ class AsyncClient:
             params=params,
         )
         return _frame_result(index, response)
+
+    async def denoise_sequence(self, source, out_dir, **options) -> str | None:
+        """`Client.denoise_sequence` for asyncio (one task per sequence)."""
+        from quietframe.client.sequence import Job, arun_sequence
+
+        job = Job.plan(source, out_dir)
+        return await arun_sequence(self, job, str(self._http.base_url), **options)

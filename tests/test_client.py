@@ -240,3 +240,23 @@ def test_imports_stay_in_their_extra():
     )
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_clients_stream_a_directory(tmp_path, live_server):
+    src = tmp_path / "in"
+    write_shot(src, n=3, layout="arnold")
+    with Client(live_server.url) as client:
+        seen = []
+        assert client.denoise_sequence(src, tmp_path / "sync", on_progress=seen.append)
+    assert [p.result.reset for p in seen] == ["first-frame", "none", "none"]
+
+    async def go():
+        async with AsyncClient(live_server.url) as client:
+            return await client.denoise_sequence(str(src / "*.exr"), tmp_path / "async")
+
+    assert asyncio.run(go())
+    for name in ("shot_1001.exr", "shot_1003.exr"):
+        sync, other = (tmp_path / d / name for d in ("sync", "async"))
+        np.testing.assert_allclose(
+            colour(sync.read_bytes()), colour(other.read_bytes()), rtol=1e-5, atol=1e-6
+        )
