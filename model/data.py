@@ -1,0 +1,279 @@
+"""Dataset reader for the rendered sequences (format: docs/data.md, scenes/exr_io.py).
+
+Two torch datasets over a split directory (<data>/<generator>/<split>/<seed>/):
+- `CropDataset`: item = a window of `history + 1` consecutive frames of one sequence, the same
+  random crop (default 128x128) in each, one dihedral augmentation (flip, rot90) applied
+  consistently to images, motion vectors and normals, and a random spp level per item.
+- `SequenceDataset`: item = a whole sequence, uncropped, unaugmented (validation).
+Both return dicts of float32 tensors shaped (T, C, H, W) (T frames, oldest first) plus `reset`
+(T,) = 1 on a sequence's first frame and after a camera cut, and `spp` (). Frames are read
+lazily through a small per-process LRU cache, so memory stays bounded for any dataset size.
+`load_window` and `augment` are numpy-only and usable without torch.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.scenes.exr_io import color_layer, load_frame, pass_layer
+
+# Buffers returned by default: the model inputs (DESIGN.md names), the target, the motion mask.
+DEFAULT_BUFFERS = ("color", "albedo", "normal", "depth", "motion", "motion_valid", "reference")
+
+
+@dataclass
+class Sequence:
+    path: Path
+    seed: int
+    files: list[str]  # frame files, index order
+    resets: list[bool]
+    to_world: list[np.ndarray]  # per frame 4x4 camera-to-world (columns left, up, fwd, origin)
+    spp_levels: list[int]
+    passes: int
+
+
+def list_sequences(root: str | Path) -> list[Sequence]:
+    """Finished sequences under a split directory, sorted by seed."""
+    out = []
+    for mpath in sorted(Path(root).glob("*/manifest.json")):
+        m = json.loads(mpath.read_text())
+        frames = sorted(m["frames"], key=lambda f: f["index"])
+        if len(frames) != m["frame_count"] or not all(
+            (mpath.parent / f["file"]).exists() for f in frames
+        ):
+            continue  # still rendering
+        out.append(
+            Sequence(
+                path=mpath.parent,
+                seed=m["seed"],
+                files=[f["file"] for f in frames],
+                resets=[bool(f["reset"]) for f in frames],
+                to_world=[np.asarray(f["to_world"]) for f in frames],
+                spp_levels=list(m["config"]["spp_levels"]),
+                passes=max(m["config"]["spp_levels"]),
+            )
+        )
+    return sorted(out, key=lambda s: s.seed)
+
+
+class FrameCache:
+    """LRU of decoded frames (layer dicts) keyed by file path; bounded by frame count."""
+
+    def __init__(self, max_frames: int = 16) -> None:
+        self.max_frames = max_frames
+        self._items: OrderedDict[tuple[str, tuple[str, ...]], dict] = OrderedDict()
+
+    def get(self, path: Path, layers: tuple[str, ...]) -> dict[str, np.ndarray]:
+        key = (str(path), layers)
+        if key in self._items:
+            self._items.move_to_end(key)
+            return self._items[key]
+        frame = load_frame(path, list(layers))
+        self._items[key] = frame
+        if len(self._items) > self.max_frames:
+            self._items.popitem(last=False)
+        return frame
+
+
+def _disk_layers(buffers: tuple[str, ...], spp: int, with_passes: bool, passes: int) -> tuple:
+    names = [color_layer(spp) if b == "color" else b for b in buffers]
+    if with_passes:
+        names += [pass_layer(k) for k in range(passes)]
+    return tuple(dict.fromkeys(names))
+
+
+def load_window(
+    seq: Sequence,
+    t: int,
+    history: int,
+    spp: int,
+    buffers: tuple[str, ...] = DEFAULT_BUFFERS,
+    with_passes: bool = False,
+    normal_space: str = "world",
+    cache: FrameCache | None = None,
+) -> dict[str, np.ndarray]:
+    """Frames t-history..t as numpy arrays (T, H, W, C); `color` is the `spp`-sample mean.
+    Frames before the sequence start repeat frame 0 (and are flagged as resets)."""
+    cache = cache or FrameCache(history + 1)
+    idx = [max(i, 0) for i in range(t - history, t + 1)]
+    names = _disk_layers(buffers, spp, with_passes, seq.passes)
+    frames = [cache.get(seq.path / seq.files[i], names) for i in idx]
+    out = {}
+    for b in buffers:
+        name = color_layer(spp) if b == "color" else b
+        out[b] = np.stack([f[name] for f in frames])
+    if with_passes:  # (T, S, H, W, 3)
+        out["passes"] = np.stack(
+            [np.stack([f[pass_layer(k)] for k in range(seq.passes)]) for f in frames]
+        )
+    if "normal" in out and normal_space == "camera":
+        out["normal"] = np.stack(
+            [_to_camera(n, seq.to_world[i]) for n, i in zip(out["normal"], idx, strict=True)]
+        )
+    out["reset"] = np.array(
+        [seq.resets[i] or j < history - t for j, i in enumerate(idx)], np.float32
+    )
+    return out
+
+
+def _to_camera(normal: np.ndarray, to_world: np.ndarray) -> np.ndarray:
+    """World normals -> camera space with x right, y up, z towards the viewer."""
+    left, up, fwd = to_world[:3, 0], to_world[:3, 1], to_world[:3, 2]
+    basis = np.stack([-left, up, -fwd], 1)  # (3, 3): columns are the camera axes in world
+    return (normal @ basis).astype(np.float32)
+
+
+def augment(
+    window: dict[str, np.ndarray], flip: bool, rot90: int, normal_space: str = "world"
+) -> dict[str, np.ndarray]:
+    """Horizontal flip then `rot90` counter-clockwise quarter turns, on arrays (T, H, W, C).
+
+    Motion (image coordinates, y down): a flip negates x; a CCW quarter turn maps (x, y) to
+    (y, -x). World-space normals and positions: a flip is a reflection of the whole scene and all
+    cameras (we reflect world X, which is consistent over frames); a rotation only rolls the
+    cameras, so world vectors stay. Camera-space normals (x right, y up) flip and turn with the
+    image: a flip negates x, a CCW turn maps (x, y) to (-y, x).
+    """
+    out = {}
+    for name, a in window.items():
+        if a.ndim < 4:
+            out[name] = a
+            continue
+        # Spatial axes are the two before the channel axis: (..., H, W, C).
+        sp = (a.ndim - 3, a.ndim - 2)
+        if flip:
+            a = np.flip(a, axis=sp[1])
+        a = np.rot90(a, rot90 % 4, axes=sp)
+        a = np.ascontiguousarray(a)
+        if name == "motion":
+            if flip:
+                a[..., 0] *= -1
+            for _ in range(rot90 % 4):
+                a = np.stack([a[..., 1], -a[..., 0]], -1)
+        elif name in ("normal", "position") and normal_space == "world":
+            if flip:
+                a[..., 0] *= -1
+        elif name == "normal":
+            if flip:
+                a[..., 0] *= -1
+            for _ in range(rot90 % 4):
+                a = np.stack([-a[..., 1], a[..., 0], a[..., 2]], -1)
+        out[name] = a
+    return out
+
+
+def _to_tensors(window: dict[str, np.ndarray]):
+    import torch
+
+    out = {}
+    for name, a in window.items():
+        if a.ndim >= 4:  # (..., H, W, C) -> (..., C, H, W)
+            a = np.moveaxis(a, -1, -3)
+        out[name] = torch.from_numpy(np.ascontiguousarray(a, np.float32))
+    return out
+
+
+def _torch_dataset_base():
+    import torch.utils.data
+
+    return torch.utils.data.Dataset
+
+
+class CropDataset(_torch_dataset_base()):
+    """Random crops of frame windows with consistent augmentation and a random spp level.
+
+    spp: None draws from the stored levels per item, an int fixes it. An epoch visits every
+    (sequence, frame) once; randomness comes from torch's RNG, so DataLoader worker seeding
+    and `torch.manual_seed` make it reproducible.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        crop: int = 128,
+        history: int = 1,
+        spp: int | None = None,
+        buffers: tuple[str, ...] = DEFAULT_BUFFERS,
+        with_passes: bool = False,
+        augment: bool = True,
+        normal_space: str = "world",
+        cache_frames: int = 16,
+    ) -> None:
+        self.sequences = list_sequences(root)
+        if not self.sequences:
+            raise FileNotFoundError(f"no finished sequences under {root}")
+        self.items = [(s, t) for s, seq in enumerate(self.sequences) for t in range(len(seq.files))]
+        self.crop, self.history, self.spp = crop, history, spp
+        self.buffers, self.with_passes = tuple(buffers), with_passes
+        self.augment, self.normal_space = augment, normal_space
+        self.cache = FrameCache(cache_frames)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int):
+        import torch
+
+        s, t = self.items[i]
+        seq = self.sequences[s]
+        rng = np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
+        spp = self.spp or int(rng.choice(seq.spp_levels))
+        win = load_window(
+            seq, t, self.history, spp, self.buffers, self.with_passes, self.normal_space, self.cache
+        )
+        h, w = win[self.buffers[0]].shape[1:3]
+        ch, cw = min(self.crop, h), min(self.crop, w)
+        y0, x0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+        win = {
+            k: (v[..., y0 : y0 + ch, x0 : x0 + cw, :] if v.ndim >= 4 else v) for k, v in win.items()
+        }
+        if self.augment:
+            rot = int(rng.integers(4)) if ch == cw else 2 * int(rng.integers(2))
+            win = augment(win, bool(rng.random() < 0.5), rot, self.normal_space)
+        out = _to_tensors(win)
+        out["spp"] = torch.tensor(float(spp))
+        return out
+
+
+class SequenceDataset(_torch_dataset_base()):
+    """Whole sequences (T = all frames), uncropped and unaugmented, at a fixed spp."""
+
+    def __init__(
+        self,
+        root: str | Path,
+        spp: int = 4,
+        buffers: tuple[str, ...] = DEFAULT_BUFFERS,
+        with_passes: bool = False,
+        normal_space: str = "world",
+    ) -> None:
+        self.sequences = list_sequences(root)
+        self.spp, self.buffers = spp, tuple(buffers)
+        self.with_passes, self.normal_space = with_passes, normal_space
+
+    def __len__(self) -> int:
+        return len(self.sequences)
+
+    def __getitem__(self, i: int):
+        import torch
+
+        seq = self.sequences[i]
+        n = len(seq.files)
+        win = load_window(
+            seq,
+            n - 1,
+            n - 1,
+            self.spp,
+            self.buffers,
+            self.with_passes,
+            self.normal_space,
+            FrameCache(n),
+        )
+        out = _to_tensors(win)
+        out["spp"] = torch.tensor(float(self.spp))
+        out["seed"] = torch.tensor(seq.seed)
+        return out

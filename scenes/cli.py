@@ -1,0 +1,266 @@
+"""`quietframe-render`: render dataset splits, measure throughput, draw a contact sheet.
+
+    quietframe-render render --split train --sequences 72 --frames 8 --size 128x128 \\
+        --spp 1,2,4,8 --reference-spp 64 --jobs 2
+    quietframe-render bench --size 128x128 --seeds 3
+    quietframe-render sheet --split train --output docs/contact_sheet.png
+
+Data lands in <out>/<generator version>/<split>/<sequence seed>/ (default out:
+~/.cache/quietframe/data). Sequence seeds come from disjoint ranges per split, so train,
+validation and test never share a scene. Re-running skips finished frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_OUT = Path.home() / ".cache" / "quietframe" / "data"
+SPLIT_BASE = {"train": 1_000_000, "validation": 2_000_000, "test": 3_000_000}
+
+
+def split_seeds(split: str, count: int, start: int = 0) -> list[int]:
+    """Scene seeds of a split: disjoint ranges, so no scene is in two splits."""
+    return [SPLIT_BASE[split] + i for i in range(start, start + count)]
+
+
+def split_dir(out: Path, split: str) -> Path:
+    from .generator import GENERATOR_VERSION
+
+    return Path(out).expanduser() / GENERATOR_VERSION / split
+
+
+def _size(text: str) -> tuple[int, int]:
+    w, h = text.lower().split("x")
+    return int(w), int(h)
+
+
+def _frames(text: str) -> tuple[int, int]:
+    lo, _, hi = text.partition("-")
+    return int(lo), int(hi or lo)
+
+
+def _config(args: argparse.Namespace):
+    from .render import RenderConfig
+
+    w, h = _size(args.size)
+    return RenderConfig(
+        width=w,
+        height=h,
+        frames=_frames(args.frames),
+        spp_levels=tuple(int(s) for s in args.spp.split(",")),
+        reference_spp=args.reference_spp,
+        max_depth=args.max_depth,
+        variant=args.variant,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# render
+
+
+_queue = None
+
+
+def _init_worker(variant: str, threads: int, queue) -> None:
+    global _queue
+    _queue = queue
+    from .render import set_variant
+
+    set_variant(variant)
+    if threads > 0:
+        import drjit as dr
+
+        dr.set_thread_count(threads)
+
+
+def _render_one(job: tuple[int, str, object]) -> tuple[int, str]:
+    from .render import render_sequence
+
+    seed, out, cfg = job
+    try:
+        t0 = time.perf_counter()
+        render_sequence(seed, out, cfg, on_frame=lambda t, rec: _queue.put((seed, t, rec)))
+        return seed, f"ok {time.perf_counter() - t0:.1f}s"
+    except Exception:  # noqa: BLE001 - one bad scene must not stop a night-long render
+        return seed, "failed\n" + traceback.format_exc()
+
+
+def _done_frames(seq_dir: Path) -> int:
+    m = seq_dir / "manifest.json"
+    if not m.exists():
+        return 0
+    frames = json.loads(m.read_text())["frames"]
+    return sum((seq_dir / f["file"]).exists() for f in frames)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .render import _frame_count
+
+    cfg = _config(args)
+    root = split_dir(args.out, args.split)
+    seeds = split_seeds(args.split, args.sequences, args.start)
+    total = sum(_frame_count(s, cfg) for s in seeds)
+    done = sum(_done_frames(root / str(s)) for s in seeds)
+    jobs = [
+        (s, str(root / str(s)), cfg)
+        for s in seeds
+        if _done_frames(root / str(s)) < _frame_count(s, cfg)
+    ]
+    print(
+        f"{args.split}: {len(seeds)} sequences, {total} frames ({done} done) -> {root}", flush=True
+    )
+    print(f"config: {json.dumps(cfg.key())} jobs={args.jobs}", flush=True)
+    ctx = mp.get_context("spawn")  # fresh interpreters: Mitsuba variants are per process
+    queue = ctx.Manager().Queue()
+    threads = args.threads if args.threads is not None else (1 if args.jobs > 1 else 0)
+    bar = tqdm(
+        total=total,
+        initial=done,
+        unit="frame",
+        mininterval=1 if sys.stderr.isatty() else 60,
+        smoothing=0.05,
+    )
+    results: list[tuple[int, str]] = []
+    with ctx.Pool(args.jobs, _init_worker, (args.variant, threads, queue)) as pool:
+        for job in jobs:
+            pool.apply_async(_render_one, (job,), callback=results.append)
+        reported = 0
+        while reported < len(jobs):
+            time.sleep(0.5)
+            while not queue.empty():
+                seed, t, rec = queue.get()
+                bar.update(1)
+                bar.set_postfix_str(
+                    f"seq {seed} frame {t}: passes {rec['passes_s']:.1f}s "
+                    f"reference {rec['reference_s']:.1f}s"
+                )
+            for seed, status in results[reported:]:
+                tqdm.write(f"sequence {seed}: {status}")
+                reported += 1
+    while not queue.empty():
+        queue.get()
+        bar.update(1)
+    bar.close()
+    failed = sum(status.startswith("failed") for _, status in results)
+    print(f"finished: {len(jobs) - failed} sequences rendered, {failed} failed", flush=True)
+    return 1 if failed else 0
+
+
+# ---------------------------------------------------------------------------------------------
+# bench
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Throughput per scene: seconds for the S one-sample passes and for the reference of a
+    frame (after the scene's kernels are compiled), and samples per second."""
+    import mitsuba as mi
+
+    from .camera import Camera
+    from .generator import generate, summary
+    from .render import load_scene, render_passes, set_camera, set_variant
+
+    variant = set_variant(args.variant)
+    cfg = _config(args)
+    rows = []
+    for seed in split_seeds("test", args.seeds, 500):  # bench scenes: not in train/validation
+        desc = generate(seed, 4)
+        t0 = time.perf_counter()
+        scene, ref, table = load_scene(desc, cfg)
+        load_s = time.perf_counter() - t0
+        set_camera(scene, Camera(**desc["cameras"][0]))
+        t0 = time.perf_counter()
+        render_passes(scene, ref, 1, cfg.passes, table)
+        np.array(mi.render(scene, integrator=ref, seed=2, spp=1))
+        compile_s = time.perf_counter() - t0
+        for f in (1, 2):
+            set_camera(scene, Camera(**desc["cameras"][f]))
+            t0 = time.perf_counter()
+            render_passes(scene, ref, 10 + f, cfg.passes, table)
+            pass_s = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            np.array(mi.render(scene, integrator=ref, seed=20 + f, spp=cfg.reference_spp))
+            ref_s = time.perf_counter() - t0
+            rows.append((seed, summary(desc)["environment"], load_s, compile_s, pass_s, ref_s))
+    px = cfg.width * cfg.height
+    print(
+        f"variant {variant}, {cfg.width}x{cfg.height}, {cfg.passes} passes, reference "
+        f"{cfg.reference_spp} spp, max_depth {cfg.max_depth}"
+    )
+    print("seed     env       load_s compile_s passes_s pass_Msps ref_s ref_Msps")
+    for seed, env, load_s, compile_s, pass_s, ref_s in rows:
+        print(
+            f"{seed} {env:9s} {load_s:6.2f} {compile_s:9.2f} {pass_s:8.2f} "
+            f"{px * cfg.passes / pass_s / 1e6:9.3f} {ref_s:5.2f} "
+            f"{px * cfg.reference_spp / ref_s / 1e6:8.3f}"
+        )
+    a = np.array([r[2:] for r in rows])
+    print(
+        f"mean: load {a[:, 0].mean():.2f}s compile {a[:, 1].mean():.2f}s passes "
+        f"{a[:, 2].mean():.2f}s reference {a[:, 3].mean():.2f}s; "
+        f"{px * (cfg.passes + cfg.reference_spp) / (a[:, 2] + a[:, 3]).mean() / 1e6:.3f} "
+        f"Msamples/s overall"
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# sheet
+
+
+def cmd_sheet(args: argparse.Namespace) -> int:
+    from .sheet import contact_sheet
+
+    root = split_dir(args.out, args.split)
+    path = contact_sheet(root, Path(args.output), rows=args.rows)
+    print(f"wrote {path}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="quietframe-render",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--size", default="256x256", help="WxH (default 256x256)")
+        p.add_argument("--frames", default="8-16", help="frames per sequence, N or MIN-MAX")
+        p.add_argument("--spp", default="1,2,4,8", help="stored noisy spp levels; passes = max")
+        p.add_argument("--reference-spp", type=int, default=1024)
+        p.add_argument("--max-depth", type=int, default=8)
+        p.add_argument("--variant", default="auto", help="auto | llvm_ad_rgb | scalar_rgb")
+        p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+
+    r = sub.add_parser("render", help="render (or finish) sequences of a split")
+    common(r)
+    r.add_argument("--split", choices=list(SPLIT_BASE), required=True)
+    r.add_argument("--sequences", type=int, required=True)
+    r.add_argument("--start", type=int, default=0, help="index of the first sequence")
+    r.add_argument("--jobs", type=int, default=1)
+    r.add_argument("--threads", type=int, default=None, help="render threads per job")
+    b = sub.add_parser("bench", help="measure render throughput on this machine")
+    common(b)
+    b.add_argument("--seeds", type=int, default=3)
+    s = sub.add_parser("sheet", help="contact sheet PNG of rendered sequences")
+    s.add_argument("--split", default="train")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    s.add_argument("--output", default="docs/contact_sheet.png")
+    s.add_argument("--rows", type=int, default=6)
+    args = ap.parse_args(argv)
+    return {"render": cmd_render, "bench": cmd_bench, "sheet": cmd_sheet}[args.command](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,178 @@
+"""Random material descriptions (plain JSON-able dicts) and their Mitsuba plugin dicts.
+
+A description is all that is stored; textures are rebuilt from their seeds, so a scene seed
+reproduces every bitmap. The albedo buffer follows the OIDN convention for surfaces whose
+Mitsuba `albedo` AOV is not a reflectance (delta and rough conductors, glass): `albedo_of`
+gives the value the renderer writes there instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import textures
+
+KINDS = (
+    "diffuse",
+    "roughplastic",
+    "plastic",
+    "roughconductor",
+    "conductor",
+    "dielectric",
+    "thindielectric",
+    "roughdielectric",
+)
+# Object material mix: mostly glossy and textured, because real interiors are.
+OBJECT_WEIGHTS = (0.22, 0.22, 0.1, 0.14, 0.08, 0.1, 0.04, 0.1)
+
+# Named Mitsuba conductors with approximate normal-incidence reflectance (linear sRGB); the
+# latter only feeds the albedo buffer, Mitsuba renders the spectral eta/k itself.
+METALS = {
+    "Au": (1.0, 0.78, 0.34),
+    "Ag": (0.97, 0.96, 0.91),
+    "Cu": (0.96, 0.64, 0.54),
+    "Al": (0.91, 0.92, 0.92),
+    "Cr": (0.55, 0.56, 0.55),
+    "Ni_palik": (0.66, 0.61, 0.53),
+}
+SPECULAR_KINDS = {"roughconductor", "conductor", "dielectric", "thindielectric", "roughdielectric"}
+
+
+def _texture_spec(rng: np.random.Generator, patterns: tuple[str, ...] | None = None) -> dict:
+    kinds = patterns or tuple(textures.PATTERNS)
+    return {
+        "pattern": str(rng.choice(kinds)),
+        "seed": int(rng.integers(2**31)),
+        "color_seed": int(rng.integers(2**31)),
+        "tiling": float(np.exp(rng.uniform(np.log(0.5), np.log(12.0)))),
+    }
+
+
+def random_material(
+    rng: np.random.Generator,
+    kind: str | None = None,
+    patterns: tuple[str, ...] | None = None,
+    texture_prob: float = 0.6,
+) -> dict:
+    """Draw a material description; `kind` forces the BSDF type (walls, floors)."""
+    if kind is None:
+        kind = str(rng.choice(KINDS, p=np.asarray(OBJECT_WEIGHTS) / sum(OBJECT_WEIGHTS)))
+    mat: dict = {"kind": kind}
+    # Rough lobes from nearly mirror (alpha 0.02) to very rough, log-uniform.
+    alpha = float(np.exp(rng.uniform(np.log(0.02), np.log(0.6))))
+    if kind in ("diffuse", "roughplastic", "plastic"):
+        mat["color"] = textures.random_color(rng).tolist()
+        if rng.random() < texture_prob:
+            mat["texture"] = _texture_spec(rng, patterns)
+        if kind == "roughplastic":
+            mat["alpha"] = alpha  # Mitsuba's roughplastic takes a scalar alpha only
+    elif kind in ("roughconductor", "conductor"):
+        mat["metal"] = str(rng.choice(list(METALS)))
+        if kind == "roughconductor":
+            mat["alpha"] = alpha
+            if rng.random() < 0.3:  # spatially varying gloss
+                mat["alpha_texture"] = _texture_spec(rng, ("noise", "stripes", "text"))
+    else:
+        mat["ior"] = float(rng.uniform(1.33, 1.8))
+        tint = 1.0 - 0.5 * rng.random(3) if rng.random() < 0.4 else np.ones(3)
+        mat["tint"] = tint.tolist()
+        if kind == "roughdielectric":
+            mat["alpha"] = float(np.exp(rng.uniform(np.log(0.02), np.log(0.3))))
+    if kind not in ("dielectric", "thindielectric", "roughdielectric") and rng.random() < 0.25:
+        mat["bump"] = {
+            **_texture_spec(rng, ("noise", "bricks", "stripes", "text")),
+            "scale": float(rng.uniform(0.1, 1.0)),
+        }
+    return mat
+
+
+def _bitmap(spec: dict, colored: bool) -> dict:
+    import mitsuba as mi
+
+    field = textures.make(spec["pattern"], spec["seed"])
+    data = textures.colorize(field, np.random.default_rng(spec["color_seed"])) if colored else field
+    t = spec["tiling"]
+    return {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(data, np.float32)),
+        "raw": not colored,
+        "to_uv": mi.ScalarTransform3f().scale([t, t]),
+    }
+
+
+def _reflectance(mat: dict) -> dict:
+    if "texture" in mat:
+        return _bitmap(mat["texture"], colored=True)
+    return {"type": "rgb", "value": mat["color"]}
+
+
+def _alpha(mat: dict) -> dict | float:
+    if "alpha_texture" not in mat:
+        return mat["alpha"]
+    # Roughness map between alpha/4 and alpha: gloss varies, never turns into a mirror.
+    tex = _bitmap(mat["alpha_texture"], colored=False)
+    field = textures.make(mat["alpha_texture"]["pattern"], mat["alpha_texture"]["seed"])
+    import mitsuba as mi
+
+    tex["bitmap"] = mi.Bitmap(np.ascontiguousarray(mat["alpha"] * (0.25 + 0.75 * field)))
+    return tex
+
+
+def bsdf_dict(mat: dict) -> dict:
+    """Mitsuba BSDF plugin dict for a description (an active variant is required)."""
+    kind = mat["kind"]
+    if kind == "diffuse":
+        bsdf: dict = {"type": "diffuse", "reflectance": _reflectance(mat)}
+    elif kind in ("plastic", "roughplastic"):
+        bsdf = {"type": kind, "diffuse_reflectance": _reflectance(mat)}
+        if kind == "roughplastic":
+            bsdf["alpha"] = _alpha(mat)
+    elif kind == "conductor":
+        bsdf = {"type": "conductor", "material": mat["metal"]}
+    elif kind == "roughconductor":
+        bsdf = {"type": "roughconductor", "material": mat["metal"], "alpha": _alpha(mat)}
+    else:
+        bsdf = {"type": kind, "int_ior": mat["ior"], "ext_ior": 1.0}
+        bsdf["specular_transmittance"] = {"type": "rgb", "value": mat["tint"]}
+        if kind == "roughdielectric":
+            bsdf["alpha"] = mat["alpha"]
+        return bsdf  # dielectrics are two-sided by nature and must not be wrapped
+    if "bump" in mat:
+        bsdf = {
+            "type": "bumpmap",
+            "arbitrary": _bitmap(mat["bump"], colored=False),
+            "scale": mat["bump"]["scale"] * 0.02,
+            "bsdf": bsdf,
+        }
+    return {"type": "twosided", "bsdf": bsdf}
+
+
+def albedo_of(mat: dict) -> list[float] | None:
+    """Albedo-buffer value for surfaces where Mitsuba's AOV is not a reflectance, else None."""
+    if mat["kind"] in ("conductor", "roughconductor"):
+        return list(METALS[mat["metal"]])
+    if mat["kind"] in ("dielectric", "thindielectric", "roughdielectric"):
+        return list(mat["tint"])
+    return None
+
+
+def blackbody_rgb(kelvin: float) -> np.ndarray:
+    """Linear sRGB colour of a black body, normalised to luminance 1 (light colours)."""
+    lam = np.linspace(380e-9, 780e-9, 81)
+    h, c, k = 6.626e-34, 2.998e8, 1.381e-23
+    spd = 1.0 / (lam**5 * (np.exp(h * c / (lam * k * kelvin)) - 1.0))
+    nm = lam * 1e9
+
+    def g(mu: float, s1: float, s2: float) -> np.ndarray:
+        s = np.where(nm < mu, s1, s2)
+        return np.exp(-0.5 * ((nm - mu) / s) ** 2)
+
+    # CIE 1931 matching functions, multi-lobe Gaussian fit (Wyman, Sloan, Shirley 2013).
+    x = 1.056 * g(599.8, 37.9, 31.0) + 0.362 * g(442.0, 16.0, 26.7) - 0.065 * g(501.1, 20.4, 26.2)
+    y = 0.821 * g(568.8, 46.9, 40.5) + 0.286 * g(530.9, 16.3, 31.1)
+    z = 1.217 * g(437.0, 11.8, 36.0) + 0.681 * g(459.0, 26.0, 13.8)
+    xyz = np.array([np.sum(spd * x), np.sum(spd * y), np.sum(spd * z)])
+    m = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
+    rgb = np.clip(m @ xyz, 0, None)
+    lum = 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
+    return (rgb / lum).astype(np.float32)

@@ -1,0 +1,436 @@
+"""Sequence renderer: one scene load per sequence, the camera moved per frame through
+`mi.traverse`, S one-sample passes per frame (radiance + AOVs, independent seeds), an
+independent-seed reference, motion vectors, one EXR per frame and a JSON manifest.
+
+Resumable: a frame counts as done when its EXR exists and the manifest lists it; EXRs are
+written atomically. Deterministic: every seed derives from (sequence seed, frame, pass), and the
+previous frame's AOVs used for the visibility test are the half-precision values on disk.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import exr_io
+from .camera import Camera, motion_for_pass
+from .generator import GENERATOR_VERSION, build, generate, summary
+
+MANIFEST = "manifest.json"
+LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+@dataclass
+class RenderConfig:
+    width: int = 256
+    height: int = 256
+    frames: tuple[int, int] = (8, 16)  # inclusive range; the count per sequence is seeded
+    spp_levels: tuple[int, ...] = (1, 2, 4, 8)  # stored noisy means; passes = max level
+    reference_spp: int = 1024
+    max_depth: int = 8  # path length for passes and reference alike
+    variant: str = "auto"
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def passes(self) -> int:
+        return max(self.spp_levels)
+
+    def key(self) -> dict:
+        """What must match for a resumed sequence to continue the same data."""
+        d = asdict(self)
+        d.pop("variant")
+        d.pop("extra")
+        d["frames"] = list(d["frames"])
+        d["spp_levels"] = list(d["spp_levels"])
+        return d
+
+
+# ---------------------------------------------------------------------------------------------
+# Mitsuba set-up
+
+
+def _find_llvm() -> str | None:
+    # drjit needs LLVM >= 16 here (14/15 fail); prefer the newest found.
+    cands = glob.glob("/usr/lib/x86_64-linux-gnu/libLLVM-*.so") + glob.glob(
+        "/usr/lib/llvm-*/lib/libLLVM*.so*"
+    )
+
+    def version(p: str) -> int:
+        digits = "".join(ch if ch.isdigit() else " " for ch in Path(p).name).split()
+        return int(digits[0]) if digits else 0
+
+    good = [p for p in cands if version(p) >= 16]
+    return max(good, key=version) if good else None
+
+
+def set_variant(name: str = "auto") -> str:
+    """Activate `llvm_ad_rgb` when a usable LLVM exists (about 2x faster here), else
+    `scalar_rgb`. Returns the active variant."""
+    if name in ("auto", "llvm_ad_rgb") and "DRJIT_LIBLLVM_PATH" not in os.environ:
+        lib = _find_llvm()
+        if lib:
+            os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    import mitsuba as mi
+
+    if name != "auto":
+        mi.set_variant(name)
+        return name
+    try:
+        mi.set_variant("llvm_ad_rgb")
+        import drjit as dr
+
+        dr.eval(dr.llvm.Float(1.0) + 1.0)  # fails here when the LLVM library is unusable
+        return "llvm_ad_rgb"
+    except Exception:  # noqa: BLE001 - any backend failure means: use the CPU scalar variant
+        mi.set_variant("scalar_rgb")
+        return "scalar_rgb"
+
+
+def _seed(*parts: int) -> int:
+    """A 31-bit Mitsuba sampler seed from a tuple of ints (stable across runs and machines)."""
+    return int(np.random.SeedSequence(list(parts)).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+AOVS = "albedo:albedo,normal:sh_normal,depth:depth,position:position,shape:shape_index"
+
+
+def load_scene(desc: dict, cfg: RenderConfig):
+    """Mitsuba scene with the AOV integrator; also the reference integrator and overrides."""
+    import mitsuba as mi
+
+    scene_dict, overrides = build(desc)
+    cam = Camera(**desc["cameras"][0])
+    scene_dict["sensor"] = {
+        "type": "perspective",
+        "fov_axis": "x",
+        "fov": cam.fov_x,
+        "near_clip": 0.01,
+        "to_world": mi.ScalarTransform4f(cam.to_world()),
+        "sampler": {"type": "independent", "sample_count": 1},
+        # Box filter: each one-sample pass is a pixel-integral sample, AOVs align with radiance.
+        "film": {
+            "type": "hdrfilm",
+            "width": cfg.width,
+            "height": cfg.height,
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgb",
+        },
+    }
+    path = {"type": "path", "max_depth": cfg.max_depth, "rr_depth": 5}
+    scene_dict["integrator"] = {"type": "aov", "aovs": AOVS, "radiance": path}
+    scene = mi.load_dict(scene_dict)
+    reference = mi.load_dict(path)
+    # shape_index AOV = registry id (JIT variants) or 1-based position (scalar): map to ids.
+    shapes = scene.shapes()
+    if mi.variant().startswith("scalar"):
+        index = {i + 1: s.id() for i, s in enumerate(shapes)}
+    else:
+        import drjit as dr
+
+        ids = np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)))
+        index = {int(i): s.id() for i, s in zip(ids, shapes, strict=True)}
+    table = {k: overrides[name] for k, name in index.items() if name in overrides}
+    return scene, reference, table
+
+
+def set_camera(scene, cam: Camera) -> None:
+    import mitsuba as mi
+
+    params = mi.traverse(scene)
+    params["sensor.to_world"] = mi.Transform4f(cam.to_world())
+    params["sensor.x_fov"] = cam.fov_x
+    params.update()
+
+
+def render_passes(
+    scene, path, seed: int, passes: int, albedo_table: dict[int, list[float]]
+) -> list[dict[str, np.ndarray]]:
+    """`passes` one-sample passes: radiance and AOVs per pass, (H, W, C) float32 each.
+
+    JIT variants trace all passes as one wavefront (one lane per pixel and pass) with the path
+    integrator and a primary-ray intersection for the AOVs: per-`mi.render` overhead (tracing,
+    two launches in the `aov` integrator) made separate renders ~4x slower here. The scalar
+    variant (CI) renders pass by pass with the scene's `aov` integrator; both define the AOVs
+    the same way (albedo = BSDF diffuse reflectance, depth = ray distance t, 0 on a miss).
+    """
+    import mitsuba as mi
+
+    if mi.variant().startswith("scalar"):
+        imgs = [
+            np.array(mi.render(scene, seed=_seed(seed, k), spp=1), np.float32)
+            for k in range(passes)
+        ]
+    else:
+        imgs = list(_trace_passes(scene, path, seed, passes))
+    out = []
+    for img in imgs:
+        p = {
+            "radiance": img[..., 0:3],
+            "albedo": img[..., 3:6].copy(),
+            "normal": img[..., 6:9],
+            "depth": img[..., 9],
+            "position": img[..., 10:13],
+        }
+        shape = np.rint(img[..., 13]).astype(np.int64)
+        for sid, rgb in albedo_table.items():
+            p["albedo"][shape == sid] = rgb
+        p["hit"] = p["depth"] > 0
+        p["dropped"] = int(img[..., 14].sum()) if img.shape[-1] > 14 else 0
+        out.append(p)
+    return out
+
+
+def _trace_passes(scene, path, seed: int, passes: int) -> np.ndarray:
+    """(passes, H, W, 14) per-sample channels, the same layout the `aov` integrator writes.
+    Non-finite radiance samples (rare; e.g. degenerate shading frames) become 0, and the number
+    of them is counted by the caller from the returned mask channel."""
+    import drjit as dr
+    import mitsuba as mi
+
+    sensor = scene.sensors()[0]
+    w, h = sensor.film().crop_size()
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, w * h * passes)
+    pix = dr.arange(mi.UInt32, w * h * passes) % (w * h)  # lane = pass * W*H + pixel
+    film_pos = mi.Vector2f(mi.Float(pix % w), mi.Float(pix // w)) + sampler.next_2d()
+    ray, _ = sensor.sample_ray_differential(
+        0.0, sampler.next_1d(), film_pos / mi.ScalarVector2f(w, h), sampler.next_2d()
+    )
+    si = scene.ray_intersect(ray)
+    albedo = si.bsdf(ray).eval_diffuse_reflectance(si)
+    radiance, _, _ = path.sample(scene, sampler, ray, None, True)
+    finite = dr.isfinite(radiance.x) & dr.isfinite(radiance.y) & dr.isfinite(radiance.z)
+    hit = si.is_valid()
+    n, p = si.sh_frame.n, si.p
+    chans = [
+        *(dr.select(finite, c, 0.0) for c in (radiance.x, radiance.y, radiance.z)),
+        *(dr.select(hit, c, 0.0) for c in (albedo.x, albedo.y, albedo.z, n.x, n.y, n.z)),
+        dr.select(hit, si.t, 0.0),
+        *(dr.select(hit, c, 0.0) for c in (p.x, p.y, p.z)),
+        dr.select(hit, mi.Float(dr.reinterpret_array(mi.UInt32, si.shape)), 0.0),
+        dr.select(finite, 0.0, 1.0),
+    ]
+    dr.eval(*chans)
+    return np.stack([np.array(c, np.float32) for c in chans], -1).reshape(passes, h, w, -1)
+
+
+def render_reference(scene, path, seed: int, spp: int) -> tuple[np.ndarray, int]:
+    """(H, W, 3) mean of `spp` samples and the count of dropped non-finite samples. JIT
+    variants reuse the pass kernel in batches (no second kernel compile per scene, per-sample
+    NaN handling identical to the passes); scalar uses mi.render."""
+    import mitsuba as mi
+
+    if mi.variant().startswith("scalar"):
+        img = np.array(mi.render(scene, integrator=path, seed=seed, spp=spp), np.float32)[..., :3]
+        bad = ~np.isfinite(img).all(-1)
+        img[bad] = 0.0
+        return img, int(bad.sum())
+    w, h = scene.sensors()[0].film().crop_size()
+    batch = max(1, (1 << 21) // (w * h))  # ~2M lanes per launch bounds memory
+    total, dropped, done, b = np.zeros((h, w, 3), np.float64), 0, 0, 0
+    while done < spp:
+        n = min(batch, spp - done)
+        img = _trace_passes(scene, path, _seed(seed, b), n)
+        total += img[..., :3].sum(0)
+        dropped += int(img[..., 14].sum())
+        done, b = done + n, b + 1
+    return (total / spp).astype(np.float32), dropped
+
+
+# ---------------------------------------------------------------------------------------------
+# One sequence
+
+
+def _frame_count(seed: int, cfg: RenderConfig) -> int:
+    lo, hi = cfg.frames
+    return int(np.random.default_rng([seed, 1]).integers(lo, hi + 1))
+
+
+def _hit_mean(values: list[np.ndarray], hits: list[np.ndarray]) -> np.ndarray:
+    """Mean over the passes whose sample hit geometry (0 where none did)."""
+    w = np.stack(hits).astype(np.float32)
+    v = np.stack(values)
+    w = w[..., None] if v.ndim == w.ndim + 1 else w
+    return (np.sum(v * w, 0) / np.maximum(np.sum(w, 0), 1)).astype(np.float32)
+
+
+def _half(a: np.ndarray) -> np.ndarray:
+    return a.astype(np.float16).astype(np.float32)
+
+
+def choose_scene(
+    seed: int, n_frames: int, cfg: RenderConfig, tries: int = 8, scene_fn: Callable = generate
+):
+    """Generate and load the scene, rejecting seeds whose shots start blocked or almost black
+    (a cheap 2-spp preview of each shot's first frame). Also fixes the exposure."""
+    for attempt in range(tries):
+        desc = scene_fn(seed, n_frames, attempt)
+        scene, reference, table = load_scene(desc, cfg)
+        lum, ok = [], True
+        for shot in desc["shots"]:
+            set_camera(scene, Camera(**desc["cameras"][shot["first_frame"]]))
+            passes = render_passes(scene, reference, _seed(seed, attempt, 99), 2, table)
+            rad = np.mean([p["radiance"] for p in passes], 0) @ LUMA
+            depth = np.where(passes[0]["hit"], passes[0]["depth"], np.inf)
+            if np.mean(depth < 0.25) > 0.2 or np.mean(rad > 0) < 0.3:
+                ok = False
+                break
+            lum.append(rad)
+        if ok:
+            break
+    lum_all = np.concatenate([x.ravel() for x in lum])
+    robust = float(np.mean(np.minimum(lum_all, np.percentile(lum_all, 99))))
+    target = float(np.exp(np.random.default_rng([seed, 2]).uniform(np.log(0.15), np.log(0.6))))
+    exposure = target / max(robust, 1e-12)
+    return desc, scene, reference, table, attempt, exposure
+
+
+def render_sequence(
+    seed: int,
+    out_dir: str | Path,
+    cfg: RenderConfig,
+    on_frame: Callable[[int, dict], None] | None = None,
+    scene_fn: Callable[[int, int, int], dict] = generate,
+) -> dict:
+    """Render (or finish) sequence `seed` into out_dir; returns the manifest. `scene_fn`
+    (seed, frames, attempt) -> description replaces the generator (tests pin cameras)."""
+    import mitsuba as mi
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mpath = out / MANIFEST
+    manifest = json.loads(mpath.read_text()) if mpath.exists() else None
+    if manifest and manifest["config"] != cfg.key():
+        raise ValueError(f"{out}: rendered with {manifest['config']}, asked for {cfg.key()}")
+    n_frames = _frame_count(seed, cfg)
+    done = {f["index"] for f in (manifest or {}).get("frames", []) if (out / f["file"]).exists()}
+    if manifest and len(done) == n_frames:
+        return manifest
+
+    t0 = time.perf_counter()
+    desc, scene, reference, table, attempt, exposure = choose_scene(
+        seed, n_frames, cfg, scene_fn=scene_fn
+    )
+    if manifest is None or manifest.get("attempt") != attempt:
+        manifest = {
+            "generator": GENERATOR_VERSION,
+            "seed": seed,
+            "attempt": attempt,
+            "variant": mi.variant(),
+            "config": cfg.key(),
+            "frame_count": n_frames,
+            "exposure": exposure,  # radiance scale applied to passes and reference
+            "summary": summary(desc),
+            "cuts": desc["cuts"],
+            "scene_setup_s": time.perf_counter() - t0,
+            "frames": [],
+            "scene": desc,
+        }
+    exposure = manifest["exposure"]
+    cams = [Camera(**c) for c in desc["cameras"]]
+    resets = {0, *desc["cuts"]}
+    prev = None
+    for t in range(n_frames):
+        fname = f"frame_{t:04d}.exr"
+        if t in done:
+            prev = None
+            continue
+        if t not in resets and prev is None:  # resuming: t-1 from disk, exactly as written
+            prev = exr_io.load_frame(
+                out / f"frame_{t - 1:04d}.exr", ["position", "normal", "depth"]
+            )
+        record, prev = _render_frame(
+            scene, reference, table, cams, t, t in resets, prev, seed, exposure, cfg, out / fname
+        )
+        manifest["frames"] = [f for f in manifest["frames"] if f["index"] != t] + [record]
+        manifest["frames"].sort(key=lambda f: f["index"])
+        tmp = mpath.with_name(MANIFEST + ".tmp")
+        tmp.write_text(json.dumps(manifest, indent=1))
+        os.replace(tmp, mpath)
+        if on_frame:
+            on_frame(t, record)
+    return manifest
+
+
+def _render_frame(scene, reference, table, cams, t, reset, prev, seed, exposure, cfg, path):
+    cam = cams[t]
+    tp = time.perf_counter()
+    set_camera(scene, cam)
+    passes = render_passes(scene, reference, _seed(seed, t), cfg.passes, table)
+    t_passes = time.perf_counter() - tp
+    tr = time.perf_counter()
+    ref, ref_dropped = render_reference(
+        scene, reference, _seed(seed, t, 1_000_003), cfg.reference_spp
+    )
+    t_ref = time.perf_counter() - tr
+
+    tw = time.perf_counter()
+    hits = [p["hit"] for p in passes]
+    layers = {exr_io.pass_layer(k): p["radiance"] * exposure for k, p in enumerate(passes)}
+    for n in cfg.spp_levels:
+        layers[exr_io.color_layer(n)] = (
+            np.mean([p["radiance"] for p in passes[:n]], 0, dtype=np.float64).astype(np.float32)
+            * exposure
+        )
+    layers["reference"] = ref * exposure
+    layers["albedo"] = np.mean([p["albedo"] for p in passes], 0)
+    for name in ("normal", "depth", "position"):
+        layers[name] = _hit_mean([p[name] for p in passes], hits)
+    h, w = cfg.height, cfg.width
+    if reset or prev is None:
+        motion, valid = np.zeros((h, w, 2), np.float32), np.zeros((h, w), np.float32)
+    else:
+        per_pass = [
+            motion_for_pass(
+                p["position"],
+                p["hit"],
+                p["normal"],
+                cam,
+                cams[t - 1],
+                prev["position"],
+                prev["normal"],
+                prev["depth"][..., 0] > 0,
+            )
+            for p in passes
+        ]
+        motion = np.mean([m for m, _ in per_pass], 0).astype(np.float32)
+        valid = np.mean([v for _, v in per_pass], 0).astype(np.float32)
+    layers["motion"], layers["motion_valid"] = motion, valid
+    meta = {
+        "generator": GENERATOR_VERSION,
+        "seed": seed,
+        "frame": t,
+        "reset": bool(reset),
+        "spp_levels": list(cfg.spp_levels),
+        "passes": cfg.passes,
+        "reference_spp": cfg.reference_spp,
+        "camera": cam.as_dict(),
+        "world_to_pixel": cam.world_to_pixel(w, h).tolist(),
+        "to_world": cam.to_world().tolist(),
+    }
+    exr_io.write_frame(path, layers, meta)
+    t_write = time.perf_counter() - tw
+    record = {
+        "index": t,
+        "file": path.name,
+        "reset": bool(reset),
+        "camera": cam.as_dict(),
+        "to_world": cam.to_world().tolist(),
+        "world_to_pixel": meta["world_to_pixel"],
+        "passes_s": round(t_passes, 3),
+        "reference_s": round(t_ref, 3),
+        "write_s": round(t_write, 3),
+        "motion_valid_mean": float(valid.mean()),
+        # Non-finite samples replaced by 0 (passes, reference); should stay ~0.
+        "dropped_samples": [sum(p["dropped"] for p in passes), ref_dropped],
+    }
+    prev_next = {k: _half(layers[k]) for k in ("position", "normal")}
+    prev_next["depth"] = _half(layers["depth"])[..., None]
+    return record, prev_next

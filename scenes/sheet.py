@@ -1,0 +1,78 @@
+"""Contact sheet: one row per sequence (first frame): 1 spp, max spp, reference, albedo,
+normal, motion magnitude of a later frame, and that frame's reference."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .exr_io import color_layer, load_frame
+
+
+def _tonemap(x: np.ndarray) -> np.ndarray:
+    x = np.maximum(x, 0)
+    return np.clip(x / (1 + x), 0, 1) ** (1 / 2.2)
+
+
+def contact_sheet(split_root: Path, output: Path, rows: int = 6) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    seqs = sorted(p.parent for p in Path(split_root).glob("*/manifest.json"))
+    manifests = [json.loads((d / "manifest.json").read_text()) for d in seqs]
+    picked = [
+        (d, m) for d, m in zip(seqs, manifests, strict=True) if len(m["frames"]) == m["frame_count"]
+    ]
+    # Spread the rows over the rendered sequences rather than showing the first few.
+    picked = [
+        picked[i] for i in np.linspace(0, len(picked) - 1, min(rows, len(picked))).astype(int)
+    ]
+    if not picked:
+        raise FileNotFoundError(f"no finished sequences under {split_root}")
+    cols = [
+        "1 spp",
+        "max spp",
+        "reference",
+        "albedo",
+        "normal",
+        "|motion| (last frame)",
+        "last frame",
+    ]
+    fig, axes = plt.subplots(len(picked), len(cols), figsize=(2.2 * len(cols), 2.3 * len(picked)))
+    axes = np.atleast_2d(axes)
+    for r, (d, m) in enumerate(picked):
+        levels = m["config"]["spp_levels"]
+        f0 = load_frame(d / m["frames"][0]["file"])
+        last = load_frame(d / m["frames"][-1]["file"], ["motion", "reference"])
+        s = m["summary"]
+        mag = np.linalg.norm(last["motion"], axis=-1)
+        panels = [
+            _tonemap(f0[color_layer(min(levels))]),
+            _tonemap(f0[color_layer(max(levels))]),
+            _tonemap(f0["reference"]),
+            np.clip(f0["albedo"], 0, 1),
+            np.clip(f0["normal"] * 0.5 + 0.5, 0, 1),
+            mag / max(float(mag.max()), 1e-6),
+            _tonemap(last["reference"]),
+        ]
+        for c, img in enumerate(panels):
+            ax = axes[r, c]
+            ax.imshow(img, cmap="magma" if img.ndim == 2 else None, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(cols[c], fontsize=9)
+        sun = "+sun" if s["sun"] else ""
+        moves = "/".join(sh["move"] for sh in s["shots"])
+        axes[r, 0].set_ylabel(
+            f"{m['seed']}\n{s['room']} {s['environment']}{sun}\n{moves}", fontsize=8
+        )
+    fig.tight_layout()
+    output.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(output, dpi=72)
+    plt.close(fig)
+    return output
