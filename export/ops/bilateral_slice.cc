@@ -24,9 +24,8 @@ namespace {
 
 using grid::AxisTaps;
 
-// Grid rows per task (see bilateral_splat.cc); a task copies one extra grid row.
-constexpr int64_t kRowsPerBand = 8;
 constexpr int64_t kBlock = 8;  // grid columns per copied block
+constexpr int64_t kPrefetchLevels = 2;  // range cells ahead that copy_blocks prefetches
 
 struct SliceJob {
   const float* grid;    // (N, C, D, GH, GW)
@@ -78,7 +77,7 @@ struct SliceScratch {
     new_high = carver.take<int32_t>(B);
     taps.zfirst = carver.take<int32_t>(W);
     taps.offset = carver.take<int32_t>(W);
-    for (float*& w : taps.w) w = carver.take<float>(W);
+    taps.w = carver.take<float>(4 * W);
     sums = carver.take<float>(W * P);
     corner = carver.take<float>(static_cast<size_t>(2 * P));
   }
@@ -99,7 +98,14 @@ void copy_blocks(const SliceJob& j, int64_t n, int64_t v, int64_t z, int64_t b0,
 #if QF_HAVE_AVX2
   if (j.fast) {
     const __m256 one = _mm256_set1_ps(1.0f);
+    // A new row is copied range cell after range cell: ask for the same columns of the next
+    // but one now (one core alone does not keep enough reads in flight to fill the memory bus).
+    const int64_t ahead = z + kPrefetchLevels < j.D ? kPrefetchLevels * j.GH * j.GW : 0;
     for (; gx + kBlock <= end; gx += kBlock) {
+      if (ahead != 0) {
+        for (int c = 0; c < 3; ++c) grid::prefetch(grid + c * channel + ahead + gx);
+        grid::prefetch(weight + ahead + gx);
+      }
       const __m256 m = _mm256_cmp_ps(_mm256_loadu_ps(weight + gx), _mm256_setzero_ps(),
                                      _CMP_GT_OQ);
       __m256 t[4];
@@ -203,17 +209,18 @@ void gather_row(const SliceJob& j, const SliceScratch& s, const float* lo, const
   const int64_t P = j.cell_values();
   const int64_t zstride = j.GW * P;
   const int32_t* offset = taps.offset;
-  const float* const* w = taps.w;
+  const float* w = taps.w;
 #if QF_HAVE_AVX2
   if (j.fast) {
     for (int64_t x = 0; x < j.W; ++x) {
       const float* a = lo + offset[x];
       const float* b = hi + offset[x];
       // Both x-neighbour cells at once: lanes 0–3 the first, 4–7 the second.
-      __m256 acc = _mm256_mul_ps(_mm256_broadcast_ss(w[0] + x), _mm256_loadu_ps(a));
-      acc = _mm256_fmadd_ps(_mm256_broadcast_ss(w[1] + x), _mm256_loadu_ps(a + zstride), acc);
-      acc = _mm256_fmadd_ps(_mm256_broadcast_ss(w[2] + x), _mm256_loadu_ps(b), acc);
-      acc = _mm256_fmadd_ps(_mm256_broadcast_ss(w[3] + x), _mm256_loadu_ps(b + zstride), acc);
+      const __m256 corners = _mm256_broadcast_ps(reinterpret_cast<const __m128*>(w + 4 * x));
+      __m256 acc = _mm256_mul_ps(_mm256_permute_ps(corners, 0x00), _mm256_loadu_ps(a));
+      acc = _mm256_fmadd_ps(_mm256_permute_ps(corners, 0x55), _mm256_loadu_ps(a + zstride), acc);
+      acc = _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xAA), _mm256_loadu_ps(b), acc);
+      acc = _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xFF), _mm256_loadu_ps(b + zstride), acc);
       acc = _mm256_mul_ps(acc, _mm256_loadu_ps(xs.pair.data() + 8 * x));  // · (tx0, tx1)
       _mm_store_ps(s.sums + 4 * x,
                    _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1)));
@@ -227,14 +234,14 @@ void gather_row(const SliceJob& j, const SliceScratch& s, const float* lo, const
                                hi + offset[x] + zstride};
     for (int64_t k = 0; k < 2 * P; ++k) acc[k] = 0.0f;
     for (int i = 0; i < 4; ++i) {
-      for (int64_t k = 0; k < 2 * P; ++k) acc[k] += w[i][x] * corners[i][k];
+      for (int64_t k = 0; k < 2 * P; ++k) acc[k] += w[4 * x + i] * corners[i][k];
     }
     float* sums = s.sums + x * P;
     for (int64_t k = 0; k < P; ++k) sums[k] = xs.w0[x] * acc[k] + xs.w1[x] * acc[P + k];
   }
 }
 
-// out = μ/η where η > 0 else 0, for pixel row y.
+// out = μ/η where η > 0 else 0 (as μ · (1/η), like the reference), for pixel row y.
 void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
   const int64_t P = j.cell_values();
   const int64_t plane = j.H * j.W;
@@ -246,9 +253,11 @@ void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
     for (; x + 8 <= j.W; x += 8) {
       __m256 t[4];
       grid::transpose_cells_4x8(s.sums + 4 * x, t);
-      const __m256 covered = _mm256_cmp_ps(t[3], zero, _CMP_GT_OQ);
+      // 1/η where η > 0, else 0 (the division's Inf/NaN lanes are masked away)
+      const __m256 inverse = _mm256_and_ps(_mm256_cmp_ps(t[3], zero, _CMP_GT_OQ),
+                                           _mm256_div_ps(_mm256_set1_ps(1.0f), t[3]));
       for (int c = 0; c < 3; ++c) {
-        _mm256_storeu_ps(out + c * plane + x, _mm256_and_ps(covered, _mm256_div_ps(t[c], t[3])));
+        _mm256_storeu_ps(out + c * plane + x, _mm256_mul_ps(t[c], inverse));
       }
     }
   }
@@ -256,7 +265,8 @@ void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
   for (; x < j.W; ++x) {
     const float* sums = s.sums + x * P;
     const float eta = sums[j.C];
-    for (int64_t c = 0; c < j.C; ++c) out[c * plane + x] = eta > 0.0f ? sums[c] / eta : 0.0f;
+    const float inverse = eta > 0.0f ? 1.0f / eta : 0.0f;
+    for (int64_t c = 0; c < j.C; ++c) out[c * plane + x] = sums[c] * inverse;
   }
 }
 
@@ -353,7 +363,7 @@ class BilateralSlice {
       readers[2 * b + 1] = xs.begin[std::min((b + 1) * kBlock, GW)];
     }
     const SliceJob job{grid, weight, guide, out, C, H, W, D, GH, GW, &range, &xs, &ys,
-                       readers.data(), grid::band_count(GH, kRowsPerBand), fast};
+                       readers.data(), grid::band_count(GH, N), fast};
     auto task = [&job](size_t i) { slice_band(job, static_cast<int64_t>(i)); };
     if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
       return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);

@@ -19,9 +19,6 @@ namespace {
 
 using grid::AxisTaps;
 
-// Grid rows per task: small enough for a few tasks per thread, large enough that the pixel rows
-// a task reads twice at its top edge (σs of them) stay a small fraction.
-constexpr int64_t kRowsPerBand = 8;
 // Independent stretches of a pixel row scattered in lockstep (see scatter_row).
 constexpr int64_t kStreams = 4;
 
@@ -45,6 +42,8 @@ struct SplatScratch {
   float* rows[2];       // grid rows [z][gx][P]
   float* values;        // one pixel row [x][P]: sanitised values, then 1
   grid::RowTaps taps;   // and its taps
+  float* staging;       // one range cell of a finished grid row, [C + 1][GW]
+  grid::LineWriter::Pending* pending;  // one per output plane
 
   SplatScratch(grid::Carver& carver, const SplatJob& j) {
     const size_t row = static_cast<size_t>(j.D * j.GW * j.cell_values());
@@ -54,7 +53,9 @@ struct SplatScratch {
     values = carver.take<float>(W * j.cell_values());
     taps.zfirst = carver.take<int32_t>(W);
     taps.offset = carver.take<int32_t>(W);
-    for (float*& w : taps.w) w = carver.take<float>(W);
+    taps.w = carver.take<float>(4 * W);
+    staging = carver.take<float>(static_cast<size_t>((j.C + 1) * j.GW));
+    pending = carver.take<grid::LineWriter::Pending>(static_cast<size_t>((j.C + 1) * j.D));
   }
 };
 
@@ -92,7 +93,7 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float* lo, float* hi)
   const int64_t P = j.cell_values();
   const int64_t zstride = j.GW * P;  // from a cell to the next range cell
   const int32_t* offset = s.taps.offset;
-  const float* const* w = s.taps.w;
+  const float* w = s.taps.w;
 #if QF_HAVE_AVX2
   if (j.fast) {
     auto add_pixel = [&](int64_t x) {
@@ -100,19 +101,23 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float* lo, float* hi)
       const __m256 pair =
           _mm256_mul_ps(_mm256_broadcast_ps(reinterpret_cast<const __m128*>(s.values + 4 * x)),
                         _mm256_loadu_ps(xs.pair.data() + 8 * x));
+      // (w00, w01, w10, w11) in both halves; lane k of the corner spread to all lanes below
+      const __m256 corners = _mm256_broadcast_ps(reinterpret_cast<const __m128*>(w + 4 * x));
       if (kLo) {
         float* a = lo + offset[x];
-        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_broadcast_ss(w[0] + x), pair,
+        float* b = a + zstride;
+        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0x00), pair,
                                             _mm256_loadu_ps(a)));
-        _mm256_storeu_ps(a + zstride, _mm256_fmadd_ps(_mm256_broadcast_ss(w[1] + x), pair,
-                                                      _mm256_loadu_ps(a + zstride)));
+        _mm256_storeu_ps(b, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0x55), pair,
+                                            _mm256_loadu_ps(b)));
       }
       if (kHi) {
         float* a = hi + offset[x];
-        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_broadcast_ss(w[2] + x), pair,
+        float* b = a + zstride;
+        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xAA), pair,
                                             _mm256_loadu_ps(a)));
-        _mm256_storeu_ps(a + zstride, _mm256_fmadd_ps(_mm256_broadcast_ss(w[3] + x), pair,
-                                                      _mm256_loadu_ps(a + zstride)));
+        _mm256_storeu_ps(b, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xFF), pair,
+                                            _mm256_loadu_ps(b)));
       }
     };
     // Neighbouring pixels mostly hit the same cells, and each add must wait for the previous
@@ -133,7 +138,7 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float* lo, float* hi)
       float* row = corner < 2 ? lo : hi;
       if ((corner < 2 && !kLo) || (corner >= 2 && !kHi)) continue;
       float* cell = row + offset[x] + (corner & 1) * zstride;
-      const float a = w[corner][x] * tx0, b = w[corner][x] * tx1;
+      const float a = w[4 * x + corner] * tx0, b = w[4 * x + corner] * tx1;
       for (int64_t k = 0; k < P; ++k) {
         cell[k] += a * v[k];
         cell[P + k] += b * v[k];
@@ -142,40 +147,53 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float* lo, float* hi)
   }
 }
 
-// grid = α/β where β > 0 else 0, weight = β for grid row v; leaves the scratch row zeroed.
-void finish_row(const SplatJob& j, int64_t n, int64_t v, float* row) {
+// grid = α/β where β > 0 else 0 (as α · (1/β), like the reference), weight = β, for grid row
+// v; leaves the scratch row zeroed. Each range cell's values go through `staging` ([C + 1][GW]:
+// the C grid channels, then β) to `out`, whose streams are the (C + 1)·D planes.
+void finish_row(const SplatJob& j, int64_t n, int64_t v, float* row, float* staging,
+                grid::LineWriter& out) {
   const int64_t P = j.cell_values();
   const int64_t channel = j.D * j.GH * j.GW;  // from one channel of the grid to the next
+  float* beta_row = staging + j.C * j.GW;
   for (int64_t z = 0; z < j.D; ++z) {
     float* cells = row + z * j.GW * P;
-    float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
-    float* weight = j.weight + ((n * j.D + z) * j.GH + v) * j.GW;
     int64_t gx = 0;
 #if QF_HAVE_AVX2
     if (j.fast) {
       const __m256 zero = _mm256_setzero_ps();
-      for (; gx + 8 <= j.GW; gx += 8) {
+      const int64_t GW = j.GW;
+      for (; gx + 8 <= GW; gx += 8) {
         __m256 t[4];
         grid::transpose_cells_4x8(cells + 4 * gx, t);
         const __m256 filled = _mm256_cmp_ps(t[3], zero, _CMP_GT_OQ);
-        for (int c = 0; c < 3; ++c) {
-          _mm256_storeu_ps(grid + c * channel + gx,
-                           _mm256_and_ps(filled, _mm256_div_ps(t[c], t[3])));
-        }
-        _mm256_storeu_ps(weight + gx, t[3]);
         for (int k = 0; k < 4; ++k) _mm256_storeu_ps(cells + 4 * gx + 8 * k, zero);
+        if (_mm256_movemask_ps(filled) == 0) {  // 8 empty cells, the usual case: no division
+          for (int c = 0; c < 4; ++c) _mm256_storeu_ps(staging + c * GW + gx, zero);
+          continue;
+        }
+        // 1/β where β > 0, else 0 (the division's Inf/NaN lanes are masked away)
+        const __m256 inverse =
+            _mm256_and_ps(filled, _mm256_div_ps(_mm256_set1_ps(1.0f), t[3]));
+        for (int c = 0; c < 3; ++c) {
+          _mm256_storeu_ps(staging + c * GW + gx, _mm256_mul_ps(t[c], inverse));
+        }
+        _mm256_storeu_ps(beta_row + gx, t[3]);
       }
     }
 #endif
     for (; gx < j.GW; ++gx) {
       float* cell = cells + gx * P;
       const float beta = cell[j.C];
-      for (int64_t c = 0; c < j.C; ++c) {
-        grid[c * channel + gx] = beta > 0.0f ? cell[c] / beta : 0.0f;
-      }
-      weight[gx] = beta;
+      const float inverse = beta > 0.0f ? 1.0f / beta : 0.0f;
+      for (int64_t c = 0; c < j.C; ++c) staging[c * j.GW + gx] = cell[c] * inverse;
+      beta_row[gx] = beta;
       std::memset(cell, 0, sizeof(float) * P);
     }
+    float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
+    for (int64_t c = 0; c < j.C; ++c) {
+      out.write(c * j.D + z, grid + c * channel, staging + c * j.GW, j.GW);
+    }
+    out.write(j.C * j.D + z, j.weight + ((n * j.D + z) * j.GH + v) * j.GW, beta_row, j.GW);
   }
 }
 
@@ -192,6 +210,7 @@ void splat_band(const SplatJob& j, int64_t task) {
   std::memset(s.rows[0], 0, row_bytes);
   std::memset(s.rows[1], 0, row_bytes);
   const AxisTaps& ys = *j.ys;
+  grid::LineWriter out(s.pending, (j.C + 1) * j.D);
   float* cur = s.rows[0];   // grid row v
   float* next = s.rows[1];  // grid row v + 1
   if (va > 0) {  // pixel rows whose second y-cell is va
@@ -209,9 +228,10 @@ void splat_band(const SplatJob& j, int64_t task) {
         scatter_row<true, false>(j, s, cur, nullptr);
       }
     }
-    finish_row(j, n, v, cur);
+    finish_row(j, n, v, cur, s.staging, out);
     std::swap(cur, next);
   }
+  out.finish();
 }
 
 class BilateralSplat {
@@ -269,7 +289,7 @@ class BilateralSplat {
     ys.build(H, attributes_.sigma_s, GH);
     const grid::RangeAxis range(attributes_.sigma_r, D);
     const SplatJob job{image, guide, grid_data, weight_data, C, H, W, D, GH, GW, &range,
-                       &xs, &ys, grid::band_count(GH, kRowsPerBand), fast};
+                       &xs, &ys, grid::band_count(GH, N), fast};
     auto task = [&job](size_t i) { splat_band(job, static_cast<int64_t>(i)); };
     if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
       return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);

@@ -91,47 +91,195 @@ struct RangeAxis {
   }
 };
 
-// Taps of one pixel row: for pixel x, `offset` = (first range cell · GW + first column) · P, the
-// index of its first cell in a [z][gx][P] grid row, and w[2·dy + dz] = ty_dy · tz_dz, the weights
-// of its four (y, z) corners (the x weights are applied per cell pair).
+// Writes output streams piece by piece, each piece continuing the previous one of its stream
+// (here: the rows of one grid plane, one after the other), with streaming stores of whole cache
+// lines. Output that is read again only much later then skips the cache and the read of every
+// line before it is written; the part line at the end of a piece waits in `pending` until the
+// next piece completes it, because a line written in parts by streaming stores is slow.
+class LineWriter {
+ public:
+  static constexpr int64_t kLine = 16;  // floats per 64-byte cache line
+
+  struct Pending {
+    alignas(64) float data[kLine];
+    float* line = nullptr;  // where the line starts, null for none
+    int64_t count = 0;      // floats of it in data
+  };
+
+  explicit LineWriter(Pending* pending, int64_t streams) : pending_(pending), streams_(streams) {
+    for (int64_t i = 0; i < streams_; ++i) pending_[i] = Pending{};
+  }
+
+  void write(int64_t stream, float* dst, const float* src, int64_t count) {
+    Pending& p = pending_[stream];
+    int64_t i = 0;
+    if (p.line != nullptr && p.line + p.count == dst) {
+      for (; i < count && p.count < kLine; ++i) p.data[p.count++] = src[i];
+      if (p.count < kLine) return;
+      store_line(p.line, p.data);
+      p.line = nullptr;
+    } else {
+      flush(p);  // (not a continuation: never the case for rows written in order)
+      for (; i < count && (reinterpret_cast<uintptr_t>(dst + i) & 63) != 0; ++i) dst[i] = src[i];
+    }
+    for (; i + kLine <= count; i += kLine) store_line(dst + i, src + i);
+    if (i < count) {
+      p.line = dst + i;
+      p.count = count - i;
+      std::memcpy(p.data, src + i, sizeof(float) * p.count);
+    }
+  }
+
+  // Writes the part lines still pending with ordinary stores, and orders the streaming stores
+  // before whatever this thread does next (such as reporting the task done).
+  void finish() {
+    for (int64_t i = 0; i < streams_; ++i) flush(pending_[i]);
+#if QF_HAVE_AVX2
+    _mm_sfence();
+#endif
+  }
+
+ private:
+  static void flush(Pending& p) {
+    if (p.line != nullptr) std::memcpy(p.line, p.data, sizeof(float) * p.count);
+    p.line = nullptr;
+  }
+
+  static void store_line(float* dst, const float* src) {  // dst: 64-byte aligned
+#if QF_HAVE_AVX2
+    _mm256_stream_ps(dst, _mm256_loadu_ps(src));
+    _mm256_stream_ps(dst + 8, _mm256_loadu_ps(src + 8));
+#else
+    std::memcpy(dst, src, sizeof(float) * kLine);
+#endif
+  }
+
+  Pending* pending_;
+  int64_t streams_;
+};
+
+// A hint to bring the line of `address` into the cache (never faults, any address).
+inline void prefetch(const void* address) {
+#if defined(__GNUC__)
+  __builtin_prefetch(address, 0, 3);
+#else
+  (void)address;
+#endif
+}
+
+#if QF_HAVE_AVX2
+// 8 cells of 4 values (32 contiguous floats) -> 4 vectors, value k of cells 0..7 in out[k].
+inline void transpose_cells_4x8(const float* cells, __m256 out[4]) {
+  const __m256 r0 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 0)),
+                                         _mm_loadu_ps(cells + 16), 1);
+  const __m256 r1 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 4)),
+                                         _mm_loadu_ps(cells + 20), 1);
+  const __m256 r2 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 8)),
+                                         _mm_loadu_ps(cells + 24), 1);
+  const __m256 r3 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 12)),
+                                         _mm_loadu_ps(cells + 28), 1);
+  const __m256 t0 = _mm256_unpacklo_ps(r0, r1);  // a0 a1 b0 b1 | a4 a5 b4 b5
+  const __m256 t1 = _mm256_unpackhi_ps(r0, r1);  // c0 c1 d0 d1 | c4 c5 d4 d5
+  const __m256 t2 = _mm256_unpacklo_ps(r2, r3);  // a2 a3 b2 b3 | a6 a7 b6 b7
+  const __m256 t3 = _mm256_unpackhi_ps(r2, r3);  // c2 c3 d2 d3 | c6 c7 d6 d7
+  out[0] = _mm256_shuffle_ps(t0, t2, 0x44);      // a0 a1 a2 a3 | a4 a5 a6 a7
+  out[1] = _mm256_shuffle_ps(t0, t2, 0xEE);
+  out[2] = _mm256_shuffle_ps(t1, t3, 0x44);
+  out[3] = _mm256_shuffle_ps(t1, t3, 0xEE);
+}
+
+// The inverse: 4 vectors (value k of cells 0..7) -> 8 cells of 4 values.
+inline void store_cells_4x8(float* cells, const __m256 in[4]) {
+  const __m256 t0 = _mm256_unpacklo_ps(in[0], in[1]);  // a0 b0 a1 b1 | a4 b4 a5 b5
+  const __m256 t1 = _mm256_unpackhi_ps(in[0], in[1]);  // a2 b2 a3 b3 | a6 b6 a7 b7
+  const __m256 t2 = _mm256_unpacklo_ps(in[2], in[3]);  // c0 d0 c1 d1 | ...
+  const __m256 t3 = _mm256_unpackhi_ps(in[2], in[3]);
+  const __m256 c04 = _mm256_shuffle_ps(t0, t2, 0x44);  // cell 0 | cell 4
+  const __m256 c15 = _mm256_shuffle_ps(t0, t2, 0xEE);  // cell 1 | cell 5
+  const __m256 c26 = _mm256_shuffle_ps(t1, t3, 0x44);  // cell 2 | cell 6
+  const __m256 c37 = _mm256_shuffle_ps(t1, t3, 0xEE);  // cell 3 | cell 7
+  _mm256_storeu_ps(cells + 0, _mm256_permute2f128_ps(c04, c15, 0x20));
+  _mm256_storeu_ps(cells + 8, _mm256_permute2f128_ps(c26, c37, 0x20));
+  _mm256_storeu_ps(cells + 16, _mm256_permute2f128_ps(c04, c15, 0x31));
+  _mm256_storeu_ps(cells + 24, _mm256_permute2f128_ps(c26, c37, 0x31));
+}
+
+// Lanes that are NaN or ±Inf set to 0.
+inline __m256 finite_or_zero(__m256 v) {
+  const __m256 exponent = _mm256_castsi256_ps(_mm256_set1_epi32(0x7f800000));
+  const __m256 inf_or_nan = _mm256_cmp_ps(_mm256_and_ps(v, exponent), exponent, _CMP_EQ_OQ);
+  return _mm256_andnot_ps(inf_or_nan, v);
+}
+#endif
+
+// Taps of one pixel row: for pixel x, zfirst[x] = its first range cell, offset[x] = (zfirst ·
+// GW + first column) · P, the index of its first cell in a [z][gx][P] grid row, and
+// w[4x + 2·dy + dz] = ty_dy · tz_dz, the weights of its four (y, z) corners (the x weights are
+// applied per cell pair).
 struct RowTaps {
   int32_t* zfirst;
   int32_t* offset;
-  float* w[4];
+  float* w;
 };
 
-template <bool kExactInverse>
-void row_taps_impl(const float* __restrict guide, int64_t count, const RangeAxis& range,
-                   const int32_t* __restrict xfirst, int32_t columns, int32_t cell_values,
-                   float ty0, float ty1, int32_t* __restrict zfirst, int32_t* __restrict offset,
-                   float* __restrict w00, float* __restrict w01, float* __restrict w10,
-                   float* __restrict w11) {
-  const float sigma_r = range.sigma_r, inverse = range.inverse;
-  const int32_t last_first = range.last_first;
-  for (int64_t x = 0; x < count; ++x) {
-    // [qf] NaN counts as 0 (it fails `g > 0`), then clamp to [0, 1]; the guide is not biased.
-    const float g = guide[x] > 0.0f ? (guide[x] < 1.0f ? guide[x] : 1.0f) : 0.0f;
-    const float c = kExactInverse ? (kGuideLevels * g) * inverse : (kGuideLevels * g) / sigma_r;
-    int32_t first;
-    float tz0, tz1;
-    taps(c, last_first, &first, &tz0, &tz1);
-    zfirst[x] = first;
-    offset[x] = (first * columns + xfirst[x]) * cell_values;
-    w00[x] = ty0 * tz0;
-    w01[x] = ty0 * tz1;
-    w10[x] = ty1 * tz0;
-    w11[x] = ty1 * tz1;
-  }
+#if QF_HAVE_AVX2
+// tent() of 8 lanes with the same operations, so the same floats.
+inline __m256 tent8(__m256 d) {
+  const __m256 root = _mm256_sqrt_ps(
+      _mm256_add_ps(_mm256_mul_ps(d, d), _mm256_set1_ps(static_cast<float>(kTentEpsilon))));
+  return _mm256_max_ps(_mm256_sub_ps(_mm256_set1_ps(1.0f), root), _mm256_setzero_ps());
 }
+#endif
 
-// Fills `out` for a pixel row with guide values `guide` and y weights ty0, ty1 (vectorises).
+// Fills `out` for a pixel row with guide values `guide` and y weights ty0, ty1.
 inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
                      const int32_t* xfirst, int64_t columns, int64_t cell_values, float ty0,
                      float ty1, const RowTaps& out) {
-  auto run = range.exact_inverse ? &row_taps_impl<true> : &row_taps_impl<false>;
-  run(guide, count, range, xfirst, static_cast<int32_t>(columns),
-      static_cast<int32_t>(cell_values), ty0, ty1, out.zfirst, out.offset, out.w[0], out.w[1],
-      out.w[2], out.w[3]);
+  int64_t x = 0;
+#if QF_HAVE_AVX2
+  const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
+  const __m256 levels = _mm256_set1_ps(kGuideLevels), half = _mm256_set1_ps(0.5f);
+  const __m256 one_half = _mm256_set1_ps(1.5f);
+  const __m256 sigma_r = _mm256_set1_ps(range.sigma_r), inverse = _mm256_set1_ps(range.inverse);
+  const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
+  const __m256i last = _mm256_set1_epi32(range.last_first);
+  const __m256i cols = _mm256_set1_epi32(static_cast<int32_t>(columns));
+  const __m256i values = _mm256_set1_epi32(static_cast<int32_t>(cell_values));
+  for (; x + 8 <= count; x += 8) {
+    // [qf] NaN counts as 0 (max returns its second operand), then clamp to [0, 1].
+    const __m256 g = _mm256_min_ps(_mm256_max_ps(_mm256_loadu_ps(guide + x), zero), one);
+    const __m256 scaled = _mm256_mul_ps(levels, g);
+    const __m256 c = range.exact_inverse ? _mm256_mul_ps(scaled, inverse)
+                                         : _mm256_div_ps(scaled, sigma_r);
+    __m256i i = _mm256_add_epi32(
+        _mm256_cvttps_epi32(_mm256_floor_ps(_mm256_sub_ps(c, half))), _mm256_set1_epi32(1));
+    i = _mm256_min_epi32(_mm256_max_epi32(i, _mm256_setzero_si256()), last);
+    const __m256 u = _mm256_cvtepi32_ps(_mm256_sub_epi32(i, _mm256_set1_epi32(1)));
+    const __m256 tz0 = tent8(_mm256_sub_ps(c, _mm256_add_ps(u, half)));
+    const __m256 tz1 = tent8(_mm256_sub_ps(c, _mm256_add_ps(u, one_half)));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out.zfirst + x), i);
+    const __m256i first_x = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(xfirst + x));
+    _mm256_storeu_si256(
+        reinterpret_cast<__m256i*>(out.offset + x),
+        _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(i, cols), first_x), values));
+    const __m256 w[4] = {_mm256_mul_ps(y0, tz0), _mm256_mul_ps(y0, tz1), _mm256_mul_ps(y1, tz0),
+                         _mm256_mul_ps(y1, tz1)};
+    store_cells_4x8(out.w + 4 * x, w);
+  }
+#endif
+  for (; x < count; ++x) {
+    // [qf] NaN counts as 0 (it fails `g > 0`), then clamp to [0, 1]; the guide is not biased.
+    const float g = guide[x] > 0.0f ? (guide[x] < 1.0f ? guide[x] : 1.0f) : 0.0f;
+    const float c = range.exact_inverse ? (kGuideLevels * g) * range.inverse
+                                        : (kGuideLevels * g) / range.sigma_r;
+    float tz0, tz1;
+    taps(c, range.last_first, &out.zfirst[x], &tz0, &tz1);
+    out.offset[x] = static_cast<int32_t>((out.zfirst[x] * columns + xfirst[x]) * cell_values);
+    out.w[4 * x + 0] = ty0 * tz0;
+    out.w[4 * x + 1] = ty0 * tz1;
+    out.w[4 * x + 2] = ty1 * tz0;
+    out.w[4 * x + 3] = ty1 * tz1;
+  }
 }
 
 // Taps of every pixel along one spatial axis (computed once per call). `pair` holds
@@ -169,11 +317,15 @@ struct AxisTaps {
   }
 };
 
-// Cuts `cells` rows into bands of about `rows_per_band` (at least one band): the parallel tasks.
-// Depends only on the shape, so results do not depend on the number of threads.
-inline int64_t band_count(int64_t cells, int64_t rows_per_band) {
-  const int64_t bands = (cells + rows_per_band - 1) / rows_per_band;
-  return bands < 1 ? 1 : bands;
+// Cuts the `cells` grid rows of each of `images` images into bands, the parallel tasks: a few
+// per CPU for balance, but bands of at least kMinRowsPerBand rows (a band re-reads the pixel rows
+// or grid row at its edge). The results do not depend on the cut: every cell sums its pixels
+// in the same order, every pixel reads the same cells.
+constexpr int64_t kMinRowsPerBand = 4;
+constexpr int64_t kBandsPerCpu = 3;
+inline int64_t band_count(int64_t cells, int64_t images) {
+  const int64_t wanted = (kBandsPerCpu * cpu_count() + images - 1) / images;
+  return std::clamp<int64_t>(wanted, 1, std::max<int64_t>(cells / kMinRowsPerBand, 1));
 }
 inline int64_t band_start(int64_t band, int64_t bands, int64_t cells) {
   return band * cells / bands;
@@ -233,50 +385,6 @@ class Carver {
   size_t used_ = 0;
 };
 
-#if QF_HAVE_AVX2
-// 8 cells of 4 values (32 contiguous floats) -> 4 vectors, value k of cells 0..7 in out[k].
-inline void transpose_cells_4x8(const float* cells, __m256 out[4]) {
-  const __m256 r0 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 0)),
-                                         _mm_loadu_ps(cells + 16), 1);
-  const __m256 r1 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 4)),
-                                         _mm_loadu_ps(cells + 20), 1);
-  const __m256 r2 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 8)),
-                                         _mm_loadu_ps(cells + 24), 1);
-  const __m256 r3 = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(cells + 12)),
-                                         _mm_loadu_ps(cells + 28), 1);
-  const __m256 t0 = _mm256_unpacklo_ps(r0, r1);  // a0 a1 b0 b1 | a4 a5 b4 b5
-  const __m256 t1 = _mm256_unpackhi_ps(r0, r1);  // c0 c1 d0 d1 | c4 c5 d4 d5
-  const __m256 t2 = _mm256_unpacklo_ps(r2, r3);  // a2 a3 b2 b3 | a6 a7 b6 b7
-  const __m256 t3 = _mm256_unpackhi_ps(r2, r3);  // c2 c3 d2 d3 | c6 c7 d6 d7
-  out[0] = _mm256_shuffle_ps(t0, t2, 0x44);      // a0 a1 a2 a3 | a4 a5 a6 a7
-  out[1] = _mm256_shuffle_ps(t0, t2, 0xEE);
-  out[2] = _mm256_shuffle_ps(t1, t3, 0x44);
-  out[3] = _mm256_shuffle_ps(t1, t3, 0xEE);
-}
-
-// The inverse: 4 vectors (value k of cells 0..7) -> 8 cells of 4 values.
-inline void store_cells_4x8(float* cells, const __m256 in[4]) {
-  const __m256 t0 = _mm256_unpacklo_ps(in[0], in[1]);  // a0 b0 a1 b1 | a4 b4 a5 b5
-  const __m256 t1 = _mm256_unpackhi_ps(in[0], in[1]);  // a2 b2 a3 b3 | a6 b6 a7 b7
-  const __m256 t2 = _mm256_unpacklo_ps(in[2], in[3]);  // c0 d0 c1 d1 | ...
-  const __m256 t3 = _mm256_unpackhi_ps(in[2], in[3]);
-  const __m256 c04 = _mm256_shuffle_ps(t0, t2, 0x44);  // cell 0 | cell 4
-  const __m256 c15 = _mm256_shuffle_ps(t0, t2, 0xEE);  // cell 1 | cell 5
-  const __m256 c26 = _mm256_shuffle_ps(t1, t3, 0x44);  // cell 2 | cell 6
-  const __m256 c37 = _mm256_shuffle_ps(t1, t3, 0xEE);  // cell 3 | cell 7
-  _mm256_storeu_ps(cells + 0, _mm256_permute2f128_ps(c04, c15, 0x20));
-  _mm256_storeu_ps(cells + 8, _mm256_permute2f128_ps(c26, c37, 0x20));
-  _mm256_storeu_ps(cells + 16, _mm256_permute2f128_ps(c04, c15, 0x31));
-  _mm256_storeu_ps(cells + 24, _mm256_permute2f128_ps(c26, c37, 0x31));
-}
-
-// Lanes that are NaN or ±Inf set to 0.
-inline __m256 finite_or_zero(__m256 v) {
-  const __m256 exponent = _mm256_castsi256_ps(_mm256_set1_epi32(0x7f800000));
-  const __m256 inf_or_nan = _mm256_cmp_ps(_mm256_and_ps(v, exponent), exponent, _CMP_EQ_OQ);
-  return _mm256_andnot_ps(inf_or_nan, v);
-}
-#endif
 
 }  // namespace qf::grid
 

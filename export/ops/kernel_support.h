@@ -27,9 +27,9 @@ struct RuntimeInfo {
 const RuntimeInfo& runtime_info();
 void init_runtime_info(const OrtApiBase* base);
 
-// Number of threads the std::thread fallback uses (onnxruntime < 1.17 only): the CPUs this
-// process may run on, or QUIETFRAME_OPS_NUM_THREADS.
-int fallback_thread_count();
+// The CPUs this process may run on, or QUIETFRAME_OPS_NUM_THREADS: how finely work is cut, and
+// the threads of the std::thread fallback (onnxruntime < 1.17 only).
+int cpu_count();
 
 // ---- errors -----------------------------------------------------------------------------------
 

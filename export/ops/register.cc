@@ -3,6 +3,8 @@
 #include <sched.h>
 
 #include <algorithm>
+#include <atomic>
+#include <cstdio>
 #include <cstdlib>
 #include <mutex>
 #include <string>
@@ -17,7 +19,7 @@ namespace qf {
 namespace {
 
 constexpr const char* kDomain = "ai.quietframe";
-constexpr int kMaxFallbackThreads = 64;
+constexpr int kMaxThreads = 64;
 
 RuntimeInfo g_runtime;
 std::once_flag g_runtime_once;
@@ -42,17 +44,27 @@ class DomainRegistry {
 
 DomainRegistry g_domains;
 
-int detect_thread_count() {
+int detect_cpu_count() {
   if (const char* text = std::getenv("QUIETFRAME_OPS_NUM_THREADS")) {
     const int requested = std::atoi(text);
-    if (requested > 0) return std::min(requested, kMaxFallbackThreads);
+    if (requested > 0) return std::min(requested, kMaxThreads);
   }
   int cpus = static_cast<int>(std::thread::hardware_concurrency());
 #ifdef CPU_COUNT
   cpu_set_t set;
   if (sched_getaffinity(0, sizeof set, &set) == 0) cpus = CPU_COUNT(&set);
 #endif
-  return std::clamp(cpus, 1, kMaxFallbackThreads);
+  return std::clamp(cpus, 1, kMaxThreads);
+}
+
+// onnxruntime "1.16.3" -> 16, the newest C API version it serves (asking GetApi for a newer one
+// also answers NULL, but logs an error first).
+int api_version_of(const char* version) {
+  int major = 0, minor = 0;
+  if (version == nullptr || std::sscanf(version, "%d.%d", &major, &minor) != 2 || major != 1) {
+    return 0;
+  }
+  return minor;
 }
 
 }  // namespace
@@ -62,19 +74,22 @@ const RuntimeInfo& runtime_info() { return g_runtime; }
 void init_runtime_info(const OrtApiBase* base) {
   std::call_once(g_runtime_once, [base] {
     g_runtime.api = ort::Api(base->GetApi(ort::kApiVersion));
-    if (const OrtApi* newer = base->GetApi(ort::kParallelForApiVersion)) {
-      g_runtime.parallel_for = ort::Api(newer).KernelContext_ParallelFor();
+    const int served = api_version_of(base->GetVersionString());
+    if (served >= static_cast<int>(ort::kParallelForApiVersion)) {
+      if (const OrtApi* newer = base->GetApi(ort::kParallelForApiVersion)) {
+        g_runtime.parallel_for = ort::Api(newer).KernelContext_ParallelFor();
+      }
     }
   });
 }
 
-int fallback_thread_count() {
-  static const int count = detect_thread_count();
+int cpu_count() {
+  static const int count = detect_cpu_count();
   return count;
 }
 
 void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user) {
-  const size_t threads = std::min(count, static_cast<size_t>(fallback_thread_count()));
+  const size_t threads = std::min(count, static_cast<size_t>(cpu_count()));
   std::atomic<size_t> next{0};
   auto work = [&] {
     for (size_t i = next.fetch_add(1); i < count; i = next.fetch_add(1)) fn(user, i);
@@ -99,7 +114,7 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* RegisterCustomOps(
   using qf::ort::Api;
   const OrtApi* table = base->GetApi(qf::ort::kApiVersion);
   if (table == nullptr) {
-    // Too old for us; version 1 of the table still creates a status.
+    // Too old for us; version 1 of the table still creates a status (and nothing older exists).
     const OrtApi* oldest = base->GetApi(1);
     const std::string message = std::string("quietframe ops need onnxruntime >= 1.16.3 (C API ") +
                                 std::to_string(qf::ort::kApiVersion) + "), this is " +
