@@ -178,13 +178,13 @@ def _to_tensors(window: dict[str, np.ndarray]):
     return out
 
 
-def _torch_dataset_base():
-    import torch.utils.data
+try:
+    from torch.utils.data import Dataset as _Dataset
+except ImportError:  # numpy-only use (evaluation without torch): the loaders still work
+    _Dataset = object
 
-    return torch.utils.data.Dataset
 
-
-class CropDataset(_torch_dataset_base()):
+class CropDataset(_Dataset):
     """Random crops of frame windows with consistent augmentation and a random spp level.
 
     spp: None draws from the stored levels per item, an int fixes it. An epoch visits every
@@ -240,7 +240,7 @@ class CropDataset(_torch_dataset_base()):
         return out
 
 
-class SequenceDataset(_torch_dataset_base()):
+class SequenceDataset(_Dataset):
     """Whole sequences (T = all frames), uncropped and unaugmented, at a fixed spp."""
 
     def __init__(

@@ -285,6 +285,8 @@ def choose_scene(
             lum.append(rad)
         if ok:
             break
+    else:
+        raise RuntimeError(f"seed {seed}: {tries} generated scenes were all blocked or black")
     lum_all = np.concatenate([x.ravel() for x in lum])
     robust = float(np.mean(np.minimum(lum_all, np.percentile(lum_all, 99))))
     target = float(np.exp(np.random.default_rng([seed, 2]).uniform(np.log(0.15), np.log(0.6))))
