@@ -62,7 +62,7 @@ def build_methods(threads: int) -> dict[str, Callable[[], object]]:
     methods: dict[str, Callable[[], object]] = {"noisy": Noisy}
     if "accumulation" in models:
         methods["accumulation"] = lambda: RuntimeMethod(models["accumulation"], threads)
-    methods["svgf"] = baselines.SVGFStyleFilter
+    methods["svgf"] = lambda: baselines.SVGFStyleFilter(num_threads=threads)
     for quality in ("fast", "balanced", "high"):
         methods[f"oidn-{quality}"] = (
             lambda q=quality: baselines.OIDNDenoiser(q, num_threads=threads))
