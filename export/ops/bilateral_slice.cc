@@ -61,7 +61,6 @@ struct SliceScratch {
   int32_t* new_high;
   grid::RowTaps taps;  // of the current pixel row
   float* sums;        // [x][P]: μ then η
-  float* corner;      // 2P floats: the generic path's per-pixel accumulator
 
   SliceScratch(grid::Carver& carver, const SliceJob& j) {
     const int64_t P = j.cell_values();
@@ -77,9 +76,9 @@ struct SliceScratch {
     new_high = carver.take<int32_t>(B);
     taps.zfirst = carver.take<int32_t>(W);
     taps.offset = carver.take<int32_t>(W);
-    taps.w = carver.take<float>(4 * W);
+    taps.tz0 = carver.take<float>(W);
+    taps.tz1 = carver.take<float>(W);
     sums = carver.take<float>(W * P);
-    corner = carver.take<float>(static_cast<size_t>(2 * P));
   }
 };
 
@@ -202,25 +201,29 @@ void read_ranges(const SliceJob& j, const SliceScratch& s) {
   }
 }
 
-// μ and η of one pixel row from grid rows `lo` (its first y-cell) and `hi`, into s.sums.
-void gather_row(const SliceJob& j, const SliceScratch& s, const float* lo, const float* hi) {
-  const grid::RowTaps& taps = s.taps;
+// μ and η of one pixel row from grid rows `lo` (its first y-cell, weight ty0) and `hi` (ty1),
+// into s.sums.
+void gather_row(const SliceJob& j, const SliceScratch& s, float ty0, float ty1, const float* lo,
+                const float* hi) {
   const AxisTaps& xs = *j.xs;
   const int64_t P = j.cell_values();
   const int64_t zstride = j.GW * P;
-  const int32_t* offset = taps.offset;
-  const float* w = taps.w;
+  const int32_t* offset = s.taps.offset;
+  const float* tz0 = s.taps.tz0;
+  const float* tz1 = s.taps.tz1;
 #if QF_HAVE_AVX2
   if (j.fast) {
+    const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
     for (int64_t x = 0; x < j.W; ++x) {
       const float* a = lo + offset[x];
       const float* b = hi + offset[x];
+      const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
       // Both x-neighbour cells at once: lanes 0–3 the first, 4–7 the second.
-      const __m256 corners = _mm256_broadcast_ps(reinterpret_cast<const __m128*>(w + 4 * x));
-      __m256 acc = _mm256_mul_ps(_mm256_permute_ps(corners, 0x00), _mm256_loadu_ps(a));
-      acc = _mm256_fmadd_ps(_mm256_permute_ps(corners, 0x55), _mm256_loadu_ps(a + zstride), acc);
-      acc = _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xAA), _mm256_loadu_ps(b), acc);
-      acc = _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xFF), _mm256_loadu_ps(b + zstride), acc);
+      const __m256 near = _mm256_fmadd_ps(z1, _mm256_loadu_ps(a + zstride),
+                                          _mm256_mul_ps(z0, _mm256_loadu_ps(a)));
+      const __m256 far = _mm256_fmadd_ps(z1, _mm256_loadu_ps(b + zstride),
+                                         _mm256_mul_ps(z0, _mm256_loadu_ps(b)));
+      __m256 acc = _mm256_fmadd_ps(y1, far, _mm256_mul_ps(y0, near));
       acc = _mm256_mul_ps(acc, _mm256_loadu_ps(xs.pair.data() + 8 * x));  // · (tx0, tx1)
       _mm_store_ps(s.sums + 4 * x,
                    _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1)));
@@ -228,16 +231,21 @@ void gather_row(const SliceJob& j, const SliceScratch& s, const float* lo, const
     return;
   }
 #endif
-  float* acc = s.corner;
   for (int64_t x = 0; x < j.W; ++x) {
-    const float* corners[4] = {lo + offset[x], lo + offset[x] + zstride, hi + offset[x],
-                               hi + offset[x] + zstride};
-    for (int64_t k = 0; k < 2 * P; ++k) acc[k] = 0.0f;
-    for (int i = 0; i < 4; ++i) {
-      for (int64_t k = 0; k < 2 * P; ++k) acc[k] += w[4 * x + i] * corners[i][k];
-    }
     float* sums = s.sums + x * P;
-    for (int64_t k = 0; k < P; ++k) sums[k] = xs.w0[x] * acc[k] + xs.w1[x] * acc[P + k];
+    for (int64_t k = 0; k < P; ++k) sums[k] = 0.0f;
+    const float tx[2] = {xs.w0[x], xs.w1[x]};
+    const float ty[2] = {ty0, ty1};
+    const float tz[2] = {tz0[x], tz1[x]};
+    for (int dy = 0; dy < 2; ++dy) {
+      for (int dz = 0; dz < 2; ++dz) {
+        const float* cell = (dy == 0 ? lo : hi) + offset[x] + dz * zstride;
+        for (int dx = 0; dx < 2; ++dx, cell += P) {
+          const float t = tz[dz] * (ty[dy] * tx[dx]);  // t(p, cell) = tent_x · tent_y · tent_z
+          for (int64_t k = 0; k < P; ++k) sums[k] += t * cell[k];
+        }
+      }
+    }
   }
 }
 
@@ -287,11 +295,11 @@ void slice_band(const SliceJob& j, int64_t task) {
     if (lo->row != v && hi->row == v) std::swap(lo, hi);
     for (int64_t y = ys.begin[v]; y < ys.begin[v + 1]; ++y) {
       grid::row_taps(j.guide + (n * j.H + y) * j.W, j.W, *j.range, xs.first.data(), j.GW,
-                     j.cell_values(), ys.w0[y], ys.w1[y], s.taps);
+                     j.cell_values(), s.taps);
       read_ranges(j, s);
       ensure_row(j, s, n, v, *lo);
       ensure_row(j, s, n, v + 1, *hi);  // exists: a first y-cell is at most GH - 2
-      gather_row(j, s, lo->cells, hi->cells);
+      gather_row(j, s, ys.w0[y], ys.w1[y], lo->cells, hi->cells);
       write_row(j, s, n, y);
     }
   }

@@ -7,6 +7,8 @@
 // that touches them, so no two tasks write the same cell. It walks its pixel rows in order while
 // holding only two grid rows (the current row and the next) in [z][gx][P] scratch, which stays in
 // L2; a finished row is normalised straight into the output tensors.
+#include <algorithm>
+#include <climits>
 #include <cstdint>
 #include <cstring>
 #include <utility>
@@ -43,6 +45,7 @@ struct SplatScratch {
   float* values;        // one pixel row [x][P]: sanitised values, then 1
   grid::RowTaps taps;   // and its taps
   float* staging;       // one range cell of a finished grid row, [C + 1][GW]
+  float* zeros;         // GW zeros
   grid::LineWriter::Pending* pending;  // one per output plane
 
   SplatScratch(grid::Carver& carver, const SplatJob& j) {
@@ -53,8 +56,10 @@ struct SplatScratch {
     values = carver.take<float>(W * j.cell_values());
     taps.zfirst = carver.take<int32_t>(W);
     taps.offset = carver.take<int32_t>(W);
-    taps.w = carver.take<float>(4 * W);
+    taps.tz0 = carver.take<float>(W);
+    taps.tz1 = carver.take<float>(W);
     staging = carver.take<float>(static_cast<size_t>((j.C + 1) * j.GW));
+    zeros = carver.take<float>(static_cast<size_t>(j.GW));
     pending = carver.take<grid::LineWriter::Pending>(static_cast<size_t>((j.C + 1) * j.D));
   }
 };
@@ -82,42 +87,42 @@ void prepare_row(const SplatJob& j, int64_t n, int64_t y, const SplatScratch& s)
     for (int64_t k = j.C; k < P; ++k) cell[k] = 1.0f;
   }
   grid::row_taps(j.guide + n * plane + y * j.W, j.W, *j.range, j.xs->first.data(), j.GW, P,
-                 j.ys->w0[y], j.ys->w1[y], s.taps);
+                 s.taps);
 }
 
 // Adds the prepared pixel row to grid row `lo` (its first y-cell) and/or `hi` (the second); a
 // null row belongs to another task.
 template <bool kLo, bool kHi>
-void scatter_row(const SplatJob& j, const SplatScratch& s, float* lo, float* hi) {
+void scatter_row(const SplatJob& j, const SplatScratch& s, float ty0, float ty1, float* lo,
+                 float* hi) {
   const AxisTaps& xs = *j.xs;
   const int64_t P = j.cell_values();
   const int64_t zstride = j.GW * P;  // from a cell to the next range cell
   const int32_t* offset = s.taps.offset;
-  const float* w = s.taps.w;
+  const float* tz0 = s.taps.tz0;
+  const float* tz1 = s.taps.tz1;
 #if QF_HAVE_AVX2
   if (j.fast) {
+    const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
     auto add_pixel = [&](int64_t x) {
       // (tx0·v, tx1·v) for the two x-neighbour cells, v = (c0, c1, c2, 1)
       const __m256 pair =
           _mm256_mul_ps(_mm256_broadcast_ps(reinterpret_cast<const __m128*>(s.values + 4 * x)),
                         _mm256_loadu_ps(xs.pair.data() + 8 * x));
-      // (w00, w01, w10, w11) in both halves; lane k of the corner spread to all lanes below
-      const __m256 corners = _mm256_broadcast_ps(reinterpret_cast<const __m128*>(w + 4 * x));
+      const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
       if (kLo) {
+        const __m256 p = _mm256_mul_ps(y0, pair);
         float* a = lo + offset[x];
         float* b = a + zstride;
-        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0x00), pair,
-                                            _mm256_loadu_ps(a)));
-        _mm256_storeu_ps(b, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0x55), pair,
-                                            _mm256_loadu_ps(b)));
+        _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
+        _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
       }
       if (kHi) {
+        const __m256 p = _mm256_mul_ps(y1, pair);
         float* a = hi + offset[x];
         float* b = a + zstride;
-        _mm256_storeu_ps(a, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xAA), pair,
-                                            _mm256_loadu_ps(a)));
-        _mm256_storeu_ps(b, _mm256_fmadd_ps(_mm256_permute_ps(corners, 0xFF), pair,
-                                            _mm256_loadu_ps(b)));
+        _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
+        _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
       }
     };
     // Neighbouring pixels mostly hit the same cells, and each add must wait for the previous
@@ -133,30 +138,57 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float* lo, float* hi)
 #endif
   for (int64_t x = 0; x < j.W; ++x) {
     const float* v = s.values + x * P;
-    const float tx0 = xs.w0[x], tx1 = xs.w1[x];
-    for (int corner = 0; corner < 4; ++corner) {  // corner = 2·dy + dz
-      float* row = corner < 2 ? lo : hi;
-      if ((corner < 2 && !kLo) || (corner >= 2 && !kHi)) continue;
-      float* cell = row + offset[x] + (corner & 1) * zstride;
-      const float a = w[4 * x + corner] * tx0, b = w[4 * x + corner] * tx1;
-      for (int64_t k = 0; k < P; ++k) {
-        cell[k] += a * v[k];
-        cell[P + k] += b * v[k];
+    const float tx[2] = {xs.w0[x], xs.w1[x]};
+    const float ty[2] = {ty0, ty1};
+    const float tz[2] = {tz0[x], tz1[x]};
+    for (int dy = 0; dy < 2; ++dy) {
+      if ((dy == 0 && !kLo) || (dy == 1 && !kHi)) continue;
+      for (int dz = 0; dz < 2; ++dz) {
+        float* cell = (dy == 0 ? lo : hi) + offset[x] + dz * zstride;
+        for (int dx = 0; dx < 2; ++dx, cell += P) {
+          const float t = tz[dz] * (ty[dy] * tx[dx]);  // t(p, cell) = tent_x · tent_y · tent_z
+          for (int64_t k = 0; k < P; ++k) cell[k] += t * v[k];
+        }
       }
     }
   }
 }
 
+// A grid row in scratch, [z][gx][P], and the range cells [low, high] that pixels have touched
+// (all others are still 0).
+struct RowBuffer {
+  float* cells;
+  int32_t low = INT32_MAX;
+  int32_t high = -1;
+
+  void touch(int32_t first, int32_t last) {
+    low = std::min(low, first);
+    high = std::max(high, last + 1);  // a pixel touches its first range cell and the next
+  }
+  void clear() {
+    low = INT32_MAX;
+    high = -1;
+  }
+};
+
 // grid = α/β where β > 0 else 0 (as α · (1/β), like the reference), weight = β, for grid row
 // v; leaves the scratch row zeroed. Each range cell's values go through `staging` ([C + 1][GW]:
-// the C grid channels, then β) to `out`, whose streams are the (C + 1)·D planes.
-void finish_row(const SplatJob& j, int64_t n, int64_t v, float* row, float* staging,
-                grid::LineWriter& out) {
+// the C grid channels, then β) to `out`, whose streams are the (C + 1)·D planes; untouched range
+// cells are written from `zeros` (GW floats).
+void finish_row(const SplatJob& j, int64_t n, int64_t v, RowBuffer& row, float* staging,
+                const float* zeros, grid::LineWriter& out) {
   const int64_t P = j.cell_values();
   const int64_t channel = j.D * j.GH * j.GW;  // from one channel of the grid to the next
   float* beta_row = staging + j.C * j.GW;
   for (int64_t z = 0; z < j.D; ++z) {
-    float* cells = row + z * j.GW * P;
+    float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
+    float* weight = j.weight + ((n * j.D + z) * j.GH + v) * j.GW;
+    if (z < row.low || z > row.high) {
+      for (int64_t c = 0; c < j.C; ++c) out.write(c * j.D + z, grid + c * channel, zeros, j.GW);
+      out.write(j.C * j.D + z, weight, zeros, j.GW);
+      continue;
+    }
+    float* cells = row.cells + z * j.GW * P;
     int64_t gx = 0;
 #if QF_HAVE_AVX2
     if (j.fast) {
@@ -189,12 +221,12 @@ void finish_row(const SplatJob& j, int64_t n, int64_t v, float* row, float* stag
       beta_row[gx] = beta;
       std::memset(cell, 0, sizeof(float) * P);
     }
-    float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
     for (int64_t c = 0; c < j.C; ++c) {
       out.write(c * j.D + z, grid + c * channel, staging + c * j.GW, j.GW);
     }
-    out.write(j.C * j.D + z, j.weight + ((n * j.D + z) * j.GH + v) * j.GW, beta_row, j.GW);
+    out.write(j.C * j.D + z, weight, beta_row, j.GW);
   }
+  row.clear();
 }
 
 // Task: grid rows [va, vb) of image n.
@@ -209,26 +241,42 @@ void splat_band(const SplatJob& j, int64_t task) {
   const size_t row_bytes = sizeof(float) * j.D * j.GW * j.cell_values();
   std::memset(s.rows[0], 0, row_bytes);
   std::memset(s.rows[1], 0, row_bytes);
+  std::memset(s.zeros, 0, sizeof(float) * j.GW);
   const AxisTaps& ys = *j.ys;
   grid::LineWriter out(s.pending, (j.C + 1) * j.D);
-  float* cur = s.rows[0];   // grid row v
-  float* next = s.rows[1];  // grid row v + 1
+  RowBuffer cur, next;  // grid rows v and v + 1
+  cur.cells = s.rows[0];
+  next.cells = s.rows[1];
+  auto row_range = [&](int32_t* first, int32_t* last) {  // range cells of the prepared row
+    *first = INT32_MAX;
+    *last = -1;
+    for (int64_t x = 0; x < j.W; ++x) {
+      *first = std::min(*first, s.taps.zfirst[x]);
+      *last = std::max(*last, s.taps.zfirst[x]);
+    }
+  };
+  int32_t first, last;
   if (va > 0) {  // pixel rows whose second y-cell is va
     for (int64_t y = ys.begin[va - 1]; y < ys.begin[va]; ++y) {
       prepare_row(j, n, y, s);
-      scatter_row<false, true>(j, s, nullptr, cur);
+      row_range(&first, &last);
+      cur.touch(first, last);
+      scatter_row<false, true>(j, s, ys.w0[y], ys.w1[y], nullptr, cur.cells);
     }
   }
   for (int64_t v = va; v < vb; ++v) {
     for (int64_t y = ys.begin[v]; y < ys.begin[v + 1]; ++y) {
       prepare_row(j, n, y, s);
+      row_range(&first, &last);
+      cur.touch(first, last);
       if (v + 1 < vb) {
-        scatter_row<true, true>(j, s, cur, next);
+        next.touch(first, last);
+        scatter_row<true, true>(j, s, ys.w0[y], ys.w1[y], cur.cells, next.cells);
       } else {  // row v + 1 belongs to the next band
-        scatter_row<true, false>(j, s, cur, nullptr);
+        scatter_row<true, false>(j, s, ys.w0[y], ys.w1[y], cur.cells, nullptr);
       }
     }
-    finish_row(j, n, v, cur, s.staging, out);
+    finish_row(j, n, v, cur, s.staging, s.zeros, out);
     std::swap(cur, next);
   }
   out.finish();

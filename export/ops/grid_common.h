@@ -212,14 +212,14 @@ inline __m256 finite_or_zero(__m256 v) {
 }
 #endif
 
-// Taps of one pixel row: for pixel x, zfirst[x] = its first range cell, offset[x] = (zfirst ·
-// GW + first column) · P, the index of its first cell in a [z][gx][P] grid row, and
-// w[4x + 2·dy + dz] = ty_dy · tz_dz, the weights of its four (y, z) corners (the x weights are
-// applied per cell pair).
+// Range taps of one pixel row: for pixel x, zfirst[x] = its first range cell, tz0[x] and tz1[x]
+// the tents of it and the next, and offset[x] = (zfirst · GW + first column) · P, the index of
+// its first cell in a [z][gx][P] grid row.
 struct RowTaps {
   int32_t* zfirst;
   int32_t* offset;
-  float* w;
+  float* tz0;
+  float* tz1;
 };
 
 #if QF_HAVE_AVX2
@@ -231,17 +231,17 @@ inline __m256 tent8(__m256 d) {
 }
 #endif
 
-// Fills `out` for a pixel row with guide values `guide` and y weights ty0, ty1.
+// Fills `out` for a pixel row with guide values `guide`.
 inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
-                     const int32_t* xfirst, int64_t columns, int64_t cell_values, float ty0,
-                     float ty1, const RowTaps& out) {
+                     const int32_t* xfirst, int64_t columns, int64_t cell_values,
+                     const RowTaps& out) {
   int64_t x = 0;
+  const bool exact_inverse = range.exact_inverse;
 #if QF_HAVE_AVX2
   const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
   const __m256 levels = _mm256_set1_ps(kGuideLevels), half = _mm256_set1_ps(0.5f);
   const __m256 one_half = _mm256_set1_ps(1.5f);
   const __m256 sigma_r = _mm256_set1_ps(range.sigma_r), inverse = _mm256_set1_ps(range.inverse);
-  const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
   const __m256i last = _mm256_set1_epi32(range.last_first);
   const __m256i cols = _mm256_set1_epi32(static_cast<int32_t>(columns));
   const __m256i values = _mm256_set1_epi32(static_cast<int32_t>(cell_values));
@@ -249,36 +249,28 @@ inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
     // [qf] NaN counts as 0 (max returns its second operand), then clamp to [0, 1].
     const __m256 g = _mm256_min_ps(_mm256_max_ps(_mm256_loadu_ps(guide + x), zero), one);
     const __m256 scaled = _mm256_mul_ps(levels, g);
-    const __m256 c = range.exact_inverse ? _mm256_mul_ps(scaled, inverse)
-                                         : _mm256_div_ps(scaled, sigma_r);
+    const __m256 c = exact_inverse ? _mm256_mul_ps(scaled, inverse)
+                                   : _mm256_div_ps(scaled, sigma_r);
     __m256i i = _mm256_add_epi32(
         _mm256_cvttps_epi32(_mm256_floor_ps(_mm256_sub_ps(c, half))), _mm256_set1_epi32(1));
     i = _mm256_min_epi32(_mm256_max_epi32(i, _mm256_setzero_si256()), last);
     const __m256 u = _mm256_cvtepi32_ps(_mm256_sub_epi32(i, _mm256_set1_epi32(1)));
-    const __m256 tz0 = tent8(_mm256_sub_ps(c, _mm256_add_ps(u, half)));
-    const __m256 tz1 = tent8(_mm256_sub_ps(c, _mm256_add_ps(u, one_half)));
+    _mm256_storeu_ps(out.tz0 + x, tent8(_mm256_sub_ps(c, _mm256_add_ps(u, half))));
+    _mm256_storeu_ps(out.tz1 + x, tent8(_mm256_sub_ps(c, _mm256_add_ps(u, one_half))));
     _mm256_storeu_si256(reinterpret_cast<__m256i*>(out.zfirst + x), i);
     const __m256i first_x = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(xfirst + x));
     _mm256_storeu_si256(
         reinterpret_cast<__m256i*>(out.offset + x),
         _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(i, cols), first_x), values));
-    const __m256 w[4] = {_mm256_mul_ps(y0, tz0), _mm256_mul_ps(y0, tz1), _mm256_mul_ps(y1, tz0),
-                         _mm256_mul_ps(y1, tz1)};
-    store_cells_4x8(out.w + 4 * x, w);
   }
 #endif
   for (; x < count; ++x) {
     // [qf] NaN counts as 0 (it fails `g > 0`), then clamp to [0, 1]; the guide is not biased.
     const float g = guide[x] > 0.0f ? (guide[x] < 1.0f ? guide[x] : 1.0f) : 0.0f;
-    const float c = range.exact_inverse ? (kGuideLevels * g) * range.inverse
-                                        : (kGuideLevels * g) / range.sigma_r;
-    float tz0, tz1;
-    taps(c, range.last_first, &out.zfirst[x], &tz0, &tz1);
+    const float c = exact_inverse ? (kGuideLevels * g) * range.inverse
+                                  : (kGuideLevels * g) / range.sigma_r;
+    taps(c, range.last_first, &out.zfirst[x], &out.tz0[x], &out.tz1[x]);
     out.offset[x] = static_cast<int32_t>((out.zfirst[x] * columns + xfirst[x]) * cell_values);
-    out.w[4 * x + 0] = ty0 * tz0;
-    out.w[4 * x + 1] = ty0 * tz1;
-    out.w[4 * x + 2] = ty1 * tz0;
-    out.w[4 * x + 3] = ty1 * tz1;
   }
 }
 
