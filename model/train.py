@@ -97,14 +97,35 @@ def save(path: Path, model: NBGDenoiser, optimizer, step: int, cfg: TrainConfig,
     tmp.replace(path)  # atomic: a killed run never leaves a torn checkpoint
 
 
-def make_loaders(cfg: TrainConfig) -> tuple[Iterator[dict[str, Tensor]], list[dict[str, Tensor]]]:
-    from quietframe.model.data import training_batches, validation_batches
+def split_root(cfg: TrainConfig, split: str) -> Path:
+    from quietframe.scenes.cli import split_dir
 
-    root = Path(cfg.data).expanduser()
-    train = training_batches(root, crop=cfg.crop, frames=cfg.frames, batch=cfg.batch,
-                             seed=cfg.seed)
-    val = validation_batches(root, crop=cfg.crop, frames=cfg.frames, batch=cfg.batch)
-    return train, val
+    return split_dir(Path(cfg.data).expanduser(), split)
+
+
+def training_batches(cfg: TrainConfig) -> Iterator[dict[str, Tensor]]:
+    """Endless shuffled batches of augmented crop windows, reproducible from the seed."""
+    from torch.utils.data import DataLoader
+
+    from quietframe.model.data import CropDataset
+
+    dataset = CropDataset(split_root(cfg, "train"), crop=cfg.crop, history=cfg.frames - 1)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    while True:
+        loader = DataLoader(dataset, batch_size=cfg.batch, shuffle=True, drop_last=True,
+                            generator=generator)
+        yield from loader
+
+
+def validation_batches(cfg: TrainConfig, spp: int = 1) -> list[dict[str, Tensor]]:
+    """Whole validation sequences (batch of one each); empty until that split is rendered."""
+    from quietframe.model.data import SequenceDataset
+
+    root = split_root(cfg, "validation")
+    if not root.exists():
+        return []
+    dataset = SequenceDataset(root, spp=spp)
+    return [{k: v.unsqueeze(0) for k, v in dataset[i].items()} for i in range(len(dataset))]
 
 
 def train(cfg: TrainConfig, run: Path) -> Path:
@@ -127,7 +148,7 @@ def train(cfg: TrainConfig, run: Path) -> Path:
         step, best_psnr, metrics = ckpt["step"], ckpt["best_psnr"], ckpt["metrics"]
         torch.set_rng_state(ckpt["rng"]["torch"])
         random.setstate(ckpt["rng"]["python"])
-    train_batches, val_batches = make_loaders(cfg)
+    train_batches = training_batches(cfg)
     log = (run / "log.txt").open("a")
     bar = tqdm(total=cfg.steps, initial=step, desc=cfg.variant, dynamic_ncols=True)
     started, running = time.time(), None
@@ -149,12 +170,15 @@ def train(cfg: TrainConfig, run: Path) -> Path:
                                   "seconds": round(time.time() - started, 1)}) + "\n")
             log.flush()
         if step % cfg.eval_every == 0 or step == cfg.steps:
-            val_psnr = validate(model, val_batches)
-            log.write(json.dumps({"step": step, "val_psnr": val_psnr}) + "\n")
+            # Re-listed each time: the validation split may still be rendering.
+            val_batches = validation_batches(cfg)
+            val_psnr = validate(model, val_batches) if val_batches else -math.inf
+            log.write(json.dumps({"step": step, "val_psnr": val_psnr,
+                                  "val_sequences": len(val_batches)}) + "\n")
             log.flush()
-            if val_psnr > best_psnr:
+            if val_psnr > best_psnr or not val_batches:
                 best_psnr = val_psnr
-                metrics = {"val_psnr_crops": round(val_psnr, 3), "step": step}
+                metrics = {"val_psnr_1spp_last_frame": round(val_psnr, 3), "step": step}
                 save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
             save(latest, model, optimizer, step, cfg, best_psnr, metrics)
     bar.close()
