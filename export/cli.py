@@ -14,6 +14,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
     parser.add_argument("--version", default="0")
     parser.add_argument("--out", type=Path, required=True, help="output .onnx path")
+    parser.add_argument("--card", action="store_true",
+                        help="also write the model card (<out>.md, measures 720p speed)")
+    parser.add_argument("--evaluation", type=Path,
+                        help="benchmarks.json of quietframe-eval: rows for the card")
     args = parser.parse_args(argv)
 
     import dataclasses
@@ -35,6 +39,16 @@ def main(argv: list[str] | None = None) -> int:
         training, metrics = {"trained": False, "seed": args.seed}, {}
     path = export_nbg(model, args.out, version=args.version, training=training, metrics=metrics)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
+    if args.card:
+        import json
+
+        from quietframe.export.model_card import write_model_card
+
+        rows = []
+        if args.evaluation:
+            rows = [r for r in json.loads(args.evaluation.read_text())["rows"]
+                    if r["method"] == path.stem]
+        print(f"wrote {write_model_card(path, rows)}")
     return 0
 
 

@@ -1,0 +1,55 @@
+"""Model cards: a markdown file next to each shipped .onnx, written from its metadata.
+
+The card repeats what the graph's metadata_props say (architecture, training, validation
+metrics) and adds the speed measured on this machine through the shipped runtime, so the card
+and the file can never disagree about what was trained.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from quietframe.bench.foundation import cpu_peak_gflops, frame_buffers
+from quietframe.bench.timing import time_ms
+from quietframe.runtime import Denoiser
+
+
+def measure_720p_ms(path: Path, threads: int = 2) -> float:
+    """Median ms per 1280×720 frame through the runtime, history carried (bench/timing.py)."""
+    runtime = Denoiser(path, threads=threads)
+    buffers = frame_buffers()
+    state = runtime.denoise(buffers, None, reset=True).state
+    return time_ms(lambda: runtime.denoise(buffers, state, reset=False),
+                   warmup=1, repeats=5).median_ms
+
+
+def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 2) -> Path:
+    """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model."""
+    runtime = Denoiser(path, threads=threads)
+    info = runtime.info
+    ms = measure_720p_ms(path, threads)
+    lines = [
+        f"# {info.name} (version {info.version})", "",
+        f"File: `{path.name}` ({path.stat().st_size / 1024:.0f} KiB). "
+        f"Needs buffers {list(info.required_buffers)}; optional {list(info.optional_buffers)}"
+        " (missing motion = static camera).", "",
+        "## Architecture", "", "```json",
+        json.dumps(json.loads(info.metadata.get("quietframe.architecture", "{}")), indent=1),
+        "```", "", "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
+        "## Speed", "",
+        f"{ms:.0f} ms per 1280×720 frame through quietframe.runtime with {threads} threads on "
+        f"{cpu_peak_gflops(threads)[1]}, median of 5 (bench/timing.py).", "",
+        "## Validation metrics", "",
+    ]
+    rows = evaluation or []
+    if rows:
+        lines += ["| spp | PSNR | SSIM | SMAPE | relMSE | TRMAE |", "|---|---|---|---|---|---|"]
+        lines += [f"| {r['spp']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['smape']:.4f} | "
+                  f"{r['relmse']:.4f} | {r['trmae']:.4f} |" for r in rows]
+        lines += ["", "From `quietframe-eval` (docs/benchmarks.md)."]
+    else:
+        lines.append(f"Metadata metrics: `{json.dumps(info.metrics)}` (no evaluation run given).")
+    card = path.with_suffix(".md")
+    card.write_text("\n".join(lines) + "\n")
+    return card
