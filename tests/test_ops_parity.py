@@ -190,17 +190,24 @@ def test_nothing_to_read_gives_zero(ops):
 
 
 def test_slice_of_empty_or_broken_cells_is_finite(ops):
-    """Cells with weight <= 0 or NaN are empty, whatever their value (even Inf/NaN)."""
-    guide = np.full((1, 1, 8, 8), 0.5, np.float32)
+    """Cells with weight <= 0 or NaN are empty, whatever value they hold (even Inf/NaN).
+
+    (quietframe.model.grid computes grid·m as a product, so there Inf·0 = NaN leaks out.)
+    """
+    guide = np.full((1, 1, 8, 8), 0.5, np.float32)  # fills range cells 32 and 33 (cz = 31.875)
     grid, weight = ops.splat(np.ones((1, 3, 8, 8), np.float32), guide, 4, 4.0)
-    grid = grid.copy()
-    weight = weight.copy()
+    reads = np.full((1, 1, 8, 8), 32.6 * 4 / 255, np.float32)  # reads 33 and the empty 34
+    assert (weight[0, 0, 33] > 0).all() and not weight[0, 0, 34].any()
+    clean = ops.slice(grid, weight, reads, 4, 4.0)
+    np.testing.assert_allclose(clean, 1.0, rtol=1e-6)
+    broken = grid.copy()
     empty = weight[:, 0] == 0
-    grid[:, 0][empty] = np.inf
-    grid[:, 1][empty] = np.nan
-    weight[weight == 0] = -1.0
-    out = ops.slice(grid, weight, guide, 4, 4.0)
-    np.testing.assert_allclose(out, 1.0, rtol=1e-6)
+    broken[:, 0][empty] = np.inf
+    broken[:, 1][empty] = np.nan
+    np.testing.assert_array_equal(ops.slice(broken, weight, reads, 4, 4.0), clean)
+    for mark in (-1.0, np.nan):
+        marked = np.where(weight == 0, np.float32(mark), weight).astype(np.float32)
+        np.testing.assert_array_equal(ops.slice(broken, marked, reads, 4, 4.0), clean)
 
 
 # ---- an independent transcription of docs/grid-math.md (numpy, tiny sizes) ----------------------

@@ -5,6 +5,8 @@
 // Storage order inside the ops (not the tensors'): a grid row `v` is kept as [z][gx][P] with the
 // P = C + 1 values of one cell (C channels, then β or the mask) next to each other, so that the
 // two x-neighbour cells a pixel touches are 2P contiguous floats: for C = 3 one AVX register.
+// Everything is float32 and computed operation by operation like quietframe.model.grid, so the
+// tent weights are the same floats on both sides (the spatial ones come from double there).
 #pragma once
 
 #include <algorithm>
@@ -377,12 +379,7 @@ class Carver {
   size_t used_ = 0;
 };
 
-
-}  // namespace qf::grid
-
 // ---- attributes shared by both ops --------------------------------------------------------------
-
-namespace qf::grid {
 
 constexpr int64_t kMaxSigmaS = 65536;
 constexpr int64_t kMaxRangeCells = 65536;
@@ -393,9 +390,9 @@ struct Attributes {
   int64_t depth = 0;    // D, range cells
 };
 
-inline std::string format_float(float v) {
+inline std::string format_float(double v) {
   char text[32];
-  std::snprintf(text, sizeof text, "%.9g", static_cast<double>(v));
+  std::snprintf(text, sizeof text, "%.9g", v);
   return text;
 }
 
