@@ -294,8 +294,8 @@ void slice_band(const SliceJob& j, int64_t task) {
     RowBuffer* hi = &s.rows[1];
     if (lo->row != v && hi->row == v) std::swap(lo, hi);
     for (int64_t y = ys.begin[v]; y < ys.begin[v + 1]; ++y) {
-      grid::row_taps(j.guide + (n * j.H + y) * j.W, j.W, *j.range, xs.first.data(), j.GW,
-                     j.cell_values(), s.taps);
+      grid::row_taps(j.guide + (n * j.H + y) * j.W, j.W, *j.range, xs.offset.data(),
+                     j.GW * j.cell_values(), s.taps);
       read_ranges(j, s);
       ensure_row(j, s, n, v, *lo);
       ensure_row(j, s, n, v + 1, *hi);  // exists: a first y-cell is at most GH - 2
@@ -359,7 +359,7 @@ class BilateralSlice {
     if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "image", out_shape, &out)) return s;
 
     AxisTaps xs, ys;
-    xs.build(W, attributes_.sigma_s, GW);
+    xs.build(W, attributes_.sigma_s, GW, fast ? 4 : C + 1);
     ys.build(H, attributes_.sigma_s, GH);
     const grid::RangeAxis range(attributes_.sigma_r, D);
     // Block b (columns [8b, 8b + 8)) is read by the pixels whose first column is in

@@ -86,7 +86,7 @@ void prepare_row(const SplatJob& j, int64_t n, int64_t y, const SplatScratch& s)
     for (int64_t c = 0; c < j.C; ++c) cell[c] = grid::finite_or_zero(image[c * plane + x]);
     for (int64_t k = j.C; k < P; ++k) cell[k] = 1.0f;
   }
-  grid::row_taps(j.guide + n * plane + y * j.W, j.W, *j.range, j.xs->first.data(), j.GW, P,
+  grid::row_taps(j.guide + n * plane + y * j.W, j.W, *j.range, j.xs->offset.data(), j.GW * P,
                  s.taps);
 }
 
@@ -333,7 +333,7 @@ class BilateralSplat {
       return op_error(api, kName, "a grid row of " + grid_shape.str() + " is too large");
     }
     AxisTaps xs, ys;
-    xs.build(W, attributes_.sigma_s, GW);
+    xs.build(W, attributes_.sigma_s, GW, fast ? 4 : C + 1);
     ys.build(H, attributes_.sigma_s, GH);
     const grid::RangeAxis range(attributes_.sigma_r, D);
     const SplatJob job{image, guide, grid_data, weight_data, C, H, W, D, GH, GW, &range,

@@ -233,37 +233,37 @@ inline __m256 tent8(__m256 d) {
 }
 #endif
 
-// Fills `out` for a pixel row with guide values `guide`.
+// Fills `out` for a pixel row with guide values `guide`; `xoffset[x]` = first column of pixel x
+// times P, `plane` = GW·P (the offset from one range cell to the next).
 inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
-                     const int32_t* xfirst, int64_t columns, int64_t cell_values,
-                     const RowTaps& out) {
+                     const int32_t* xoffset, int64_t plane, const RowTaps& out) {
   int64_t x = 0;
   const bool exact_inverse = range.exact_inverse;
 #if QF_HAVE_AVX2
   const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
   const __m256 levels = _mm256_set1_ps(kGuideLevels), half = _mm256_set1_ps(0.5f);
-  const __m256 one_half = _mm256_set1_ps(1.5f);
   const __m256 sigma_r = _mm256_set1_ps(range.sigma_r), inverse = _mm256_set1_ps(range.inverse);
   const __m256i last = _mm256_set1_epi32(range.last_first);
-  const __m256i cols = _mm256_set1_epi32(static_cast<int32_t>(columns));
-  const __m256i values = _mm256_set1_epi32(static_cast<int32_t>(cell_values));
+  const __m256i stride = _mm256_set1_epi32(static_cast<int32_t>(plane));
   for (; x + 8 <= count; x += 8) {
     // [qf] NaN counts as 0 (max returns its second operand), then clamp to [0, 1].
     const __m256 g = _mm256_min_ps(_mm256_max_ps(_mm256_loadu_ps(guide + x), zero), one);
     const __m256 scaled = _mm256_mul_ps(levels, g);
     const __m256 c = exact_inverse ? _mm256_mul_ps(scaled, inverse)
                                    : _mm256_div_ps(scaled, sigma_r);
-    __m256i i = _mm256_add_epi32(
-        _mm256_cvttps_epi32(_mm256_floor_ps(_mm256_sub_ps(c, half))), _mm256_set1_epi32(1));
-    i = _mm256_min_epi32(_mm256_max_epi32(i, _mm256_setzero_si256()), last);
-    const __m256 u = _mm256_cvtepi32_ps(_mm256_sub_epi32(i, _mm256_set1_epi32(1)));
-    _mm256_storeu_ps(out.tz0 + x, tent8(_mm256_sub_ps(c, _mm256_add_ps(u, half))));
-    _mm256_storeu_ps(out.tz1 + x, tent8(_mm256_sub_ps(c, _mm256_add_ps(u, one_half))));
-    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out.zfirst + x), i);
-    const __m256i first_x = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(xfirst + x));
-    _mm256_storeu_si256(
-        reinterpret_cast<__m256i*>(out.offset + x),
-        _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(i, cols), first_x), values));
+    // first = floor(c - 0.5) + 1, at least 0 as c >= 0; u + 0.5 and u + 1.5 of the scalar
+    // taps() are the same floats as first - 0.5 and first + 0.5.
+    const __m256i first = _mm256_min_epi32(
+        _mm256_add_epi32(_mm256_cvttps_epi32(_mm256_floor_ps(_mm256_sub_ps(c, half))),
+                         _mm256_set1_epi32(1)),
+        last);
+    const __m256 f = _mm256_cvtepi32_ps(first);
+    _mm256_storeu_ps(out.tz0 + x, tent8(_mm256_sub_ps(c, _mm256_sub_ps(f, half))));
+    _mm256_storeu_ps(out.tz1 + x, tent8(_mm256_sub_ps(c, _mm256_add_ps(f, half))));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out.zfirst + x), first);
+    const __m256i columns = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(xoffset + x));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out.offset + x),
+                        _mm256_add_epi32(_mm256_mullo_epi32(first, stride), columns));
   }
 #endif
   for (; x < count; ++x) {
@@ -272,21 +272,22 @@ inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
     const float c = exact_inverse ? (kGuideLevels * g) * range.inverse
                                   : (kGuideLevels * g) / range.sigma_r;
     taps(c, range.last_first, &out.zfirst[x], &out.tz0[x], &out.tz1[x]);
-    out.offset[x] = static_cast<int32_t>((out.zfirst[x] * columns + xfirst[x]) * cell_values);
+    out.offset[x] = static_cast<int32_t>(out.zfirst[x] * plane + xoffset[x]);
   }
 }
 
 // Taps of every pixel along one spatial axis (computed once per call). `pair` holds
 // (w0, w0, w0, w0, w1, w1, w1, w1) per pixel for the 4-value cells of the AVX2 path.
 struct AxisTaps {
-  std::vector<int32_t> first;
+  std::vector<int32_t> first, offset;  // offset = first · P, the index of the cell in its row
   std::vector<float> w0, w1, pair;
   // begin[u]..begin[u+1]: the pixels whose first cell is u (u in [0, cells)); pixels are sorted
   // by first cell because the coordinate grows with the pixel index.
   std::vector<int64_t> begin;
 
-  void build(int64_t pixels, int64_t sigma_s, int64_t cells) {
+  void build(int64_t pixels, int64_t sigma_s, int64_t cells, int64_t cell_values = 1) {
     first.resize(pixels);
+    offset.resize(pixels);
     w0.resize(pixels);
     w1.resize(pixels);
     pair.resize(pixels * 8);
@@ -305,6 +306,7 @@ struct AxisTaps {
         pair[p * 8 + k] = w0[p];
         pair[p * 8 + 4 + k] = w1[p];
       }
+      offset[p] = static_cast<int32_t>(first[p] * cell_values);
       begin[first[p]] = p;
     }
     for (int64_t u = cells - 1; u >= 0; --u) begin[u] = std::min(begin[u], begin[u + 1]);
