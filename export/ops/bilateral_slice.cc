@@ -214,7 +214,10 @@ void gather_row(const SliceJob& j, const SliceScratch& s, float ty0, float ty1, 
 #if QF_HAVE_AVX2
   if (j.fast) {
     const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
-    for (int64_t x = 0; x < j.W; ++x) {
+    const float* xpair = xs.pair.data();
+    float* sums = s.sums;
+    const int64_t W = j.W;
+    for (int64_t x = 0; x < W; ++x) {
       const float* a = lo + offset[x];
       const float* b = hi + offset[x];
       const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
@@ -224,8 +227,8 @@ void gather_row(const SliceJob& j, const SliceScratch& s, float ty0, float ty1, 
       const __m256 far = _mm256_fmadd_ps(z1, _mm256_loadu_ps(b + zstride),
                                          _mm256_mul_ps(z0, _mm256_loadu_ps(b)));
       __m256 acc = _mm256_fmadd_ps(y1, far, _mm256_mul_ps(y0, near));
-      acc = _mm256_mul_ps(acc, _mm256_loadu_ps(xs.pair.data() + 8 * x));  // · (tx0, tx1)
-      _mm_store_ps(s.sums + 4 * x,
+      acc = _mm256_mul_ps(acc, _mm256_loadu_ps(xpair + 8 * x));  // · (tx0, tx1)
+      _mm_store_ps(sums + 4 * x,
                    _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1)));
     }
     return;

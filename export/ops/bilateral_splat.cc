@@ -104,22 +104,25 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float ty0, float ty1,
 #if QF_HAVE_AVX2
   if (j.fast) {
     const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
-    auto add_pixel = [&](int64_t x) {
+    const float* values = s.values;
+    const float* xpair = xs.pair.data();
+    auto add_pixel = [=](int64_t x) {
       // (tx0·v, tx1·v) for the two x-neighbour cells, v = (c0, c1, c2, 1)
       const __m256 pair =
-          _mm256_mul_ps(_mm256_broadcast_ps(reinterpret_cast<const __m128*>(s.values + 4 * x)),
-                        _mm256_loadu_ps(xs.pair.data() + 8 * x));
+          _mm256_mul_ps(_mm256_broadcast_ps(reinterpret_cast<const __m128*>(values + 4 * x)),
+                        _mm256_loadu_ps(xpair + 8 * x));
       const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
+      const int32_t first = offset[x];
       if (kLo) {
         const __m256 p = _mm256_mul_ps(y0, pair);
-        float* a = lo + offset[x];
+        float* a = lo + first;
         float* b = a + zstride;
         _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
         _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
       }
       if (kHi) {
         const __m256 p = _mm256_mul_ps(y1, pair);
-        float* a = hi + offset[x];
+        float* a = hi + first;
         float* b = a + zstride;
         _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
         _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
@@ -128,11 +131,11 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float ty0, float ty1,
     // Neighbouring pixels mostly hit the same cells, and each add must wait for the previous
     // one's store: walk kStreams far-apart stretches of the row in lockstep so that that
     // many independent chains overlap.
-    const int64_t stretch = j.W / kStreams;
+    const int64_t W = j.W, stretch = W / kStreams;
     for (int64_t i = 0; i < stretch; ++i) {
       for (int64_t k = 0; k < kStreams; ++k) add_pixel(k * stretch + i);
     }
-    for (int64_t x = kStreams * stretch; x < j.W; ++x) add_pixel(x);
+    for (int64_t x = kStreams * stretch; x < W; ++x) add_pixel(x);
     return;
   }
 #endif
