@@ -116,7 +116,11 @@ def _spatial_axis(
 
 
 def corners(
-    guide: Tensor, shape: tuple[int, int, int], sigma_s: int, sigma_r: float, dtype: torch.dtype,
+    guide: Tensor,
+    shape: tuple[int, int, int],
+    sigma_s: int,
+    sigma_r: float,
+    dtype: torch.dtype,
     slope: bool = False,
 ) -> Corners:
     """Cells and tent weights of every pixel of `guide` in a grid of `shape` = (D, GH, GW)."""
@@ -165,14 +169,20 @@ def _check(op: str, ok: bool, message: str) -> None:
 
 
 def _check_rates(op: str, sigma_s: int, sigma_r: float) -> None:
-    _check(op, isinstance(sigma_s, int) and sigma_s >= 1,
-           f"sigma_s must be an int >= 1, got {sigma_s!r}")
+    _check(
+        op,
+        isinstance(sigma_s, int) and sigma_s >= 1,
+        f"sigma_s must be an int >= 1, got {sigma_s!r}",
+    )
     _check(op, math.isfinite(sigma_r) and sigma_r > 0, f"sigma_r must be > 0, got {sigma_r!r}")
 
 
 def _check_guide(op: str, guide: Tensor, n: int) -> None:
-    _check(op, guide.dim() == 4 and guide.shape[:2] == (n, 1),
-           f"guide must be (N={n}, 1, H, W), got {tuple(guide.shape)}")
+    _check(
+        op,
+        guide.dim() == 4 and guide.shape[:2] == (n, 1),
+        f"guide must be (N={n}, 1, H, W), got {tuple(guide.shape)}",
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -214,12 +224,18 @@ def splat_forward(
 ) -> tuple[Tensor, Tensor]:
     """Splat `image` into a bilateral grid along `guide`: (grid, weight). No autograd."""
     op = "bilateral_splat"
-    _check(op, image.dim() == 4 and image.is_floating_point(),
-           f"image must be a float (N, C, H, W) tensor, got {image.dtype} {tuple(image.shape)}")
+    _check(
+        op,
+        image.dim() == 4 and image.is_floating_point(),
+        f"image must be a float (N, C, H, W) tensor, got {image.dtype} {tuple(image.shape)}",
+    )
     n, c, h, w = image.shape
     _check_guide(op, guide, n)
-    _check(op, guide.shape[2:] == image.shape[2:],
-           f"guide {tuple(guide.shape)} and image {tuple(image.shape)} differ in H, W")
+    _check(
+        op,
+        guide.shape[2:] == image.shape[2:],
+        f"guide {tuple(guide.shape)} and image {tuple(image.shape)} differ in H, W",
+    )
     _check_rates(op, sigma_s, sigma_r)
     shape = (range_cells(sigma_r), grid_cells(h, sigma_s), grid_cells(w, sigma_s))
     cells = math.prod(shape)
@@ -266,18 +282,27 @@ def slice_values(mu: Tensor, eta: Tensor) -> Tensor:
 
 def _check_slice(grid: Tensor, weight: Tensor, guide: Tensor, sigma_s: int, sigma_r: float):
     op = "bilateral_slice"
-    _check(op, grid.dim() == 5 and grid.is_floating_point(),
-           f"grid must be a float (N, C, D, GH, GW) tensor, got {grid.dtype} {tuple(grid.shape)}")
+    _check(
+        op,
+        grid.dim() == 5 and grid.is_floating_point(),
+        f"grid must be a float (N, C, D, GH, GW) tensor, got {grid.dtype} {tuple(grid.shape)}",
+    )
     n, _, depth, gh, gw = grid.shape
-    _check(op, weight.shape == (n, 1, depth, gh, gw),
-           f"weight must be (N, 1, D, GH, GW) = {(n, 1, depth, gh, gw)}, got {tuple(weight.shape)}")
+    _check(
+        op,
+        weight.shape == (n, 1, depth, gh, gw),
+        f"weight must be (N, 1, D, GH, GW) = {(n, 1, depth, gh, gw)}, got {tuple(weight.shape)}",
+    )
     _check_guide(op, guide, n)
     _check_rates(op, sigma_s, sigma_r)
     h, w = guide.shape[2:]
     expected = (range_cells(sigma_r), grid_cells(h, sigma_s), grid_cells(w, sigma_s))
-    _check(op, (depth, gh, gw) == expected,
-           f"grid (D, GH, GW) = {(depth, gh, gw)} does not fit a {h}x{w} guide at sigma_s="
-           f"{sigma_s}, sigma_r={sigma_r}: expected {expected}")
+    _check(
+        op,
+        (depth, gh, gw) == expected,
+        f"grid (D, GH, GW) = {(depth, gh, gw)} does not fit a {h}x{w} guide at sigma_s="
+        f"{sigma_s}, sigma_r={sigma_r}: expected {expected}",
+    )
 
 
 def slice_forward(
@@ -308,26 +333,32 @@ def splat_image_grad(grad_per_weight: Tensor, cs: Corners, image: Tensor) -> Ten
     return grad.view(n, c, h, w).masked_fill_(~torch.isfinite(image), 0)
 
 
-def splat_guide_grad(
-    grad_per_weight: Tensor, per_cell: Tensor, cs: Corners, image: Tensor
-) -> Tensor:
+def splat_guide_grad(grad_cells: Tensor, cs: Corners, image: Tensor) -> Tensor:
     # eq. 15–19: ∂L/∂g(p) = Σ_cells t' · (Σ_c (image[c,p] - grid[c,cell]) · ∂L/∂grid / β
     #                                      + ∂L/∂β[cell])
-    # `per_cell` holds the pixel-independent part ∂L/∂β - Σ_c grid · ∂L/∂grid / β, (N, 1, cells).
+    # grad_cells (N, C+1, cells) = [∂L/∂grid / β, ∂L/∂β - Σ_c grid · ∂L/∂grid / β]: the bracket
+    # is then Σ over those C+1 channels of grad_cells · [image, 1], one gather per corner.
     n, c, h, w = image.shape
-    clean = sanitize_image(image).view(n, c, h * w)
+    pixel = image.new_ones(n, c + 1, h * w)
+    pixel[:, :c] = sanitize_image(image).view(n, c, h * w)
     grad = image.new_zeros(n, 1, h * w)
     for k in range(8):
-        index = cs.index(k)
-        inner = (_gather(grad_per_weight, index) * clean).sum(1, keepdim=True)
-        grad.addcmul_(inner.add_(_gather(per_cell, index)), cs.slope(k))
+        bracket = (_gather(grad_cells, cs.index(k)) * pixel).sum(1, keepdim=True)
+        grad.addcmul_(bracket, cs.slope(k))
     return grad.view(n, 1, h, w)
 
 
 def splat_backward(
-    grad_grid: Tensor | None, grad_weight: Tensor | None, image: Tensor, guide: Tensor,
-    grid: Tensor, weight: Tensor, sigma_s: int = 4, sigma_r: float = 4.0,
-    need_image: bool = True, need_guide: bool = True,
+    grad_grid: Tensor | None,
+    grad_weight: Tensor | None,
+    image: Tensor,
+    guide: Tensor,
+    grid: Tensor,
+    weight: Tensor,
+    sigma_s: int = 4,
+    sigma_r: float = 4.0,
+    need_image: bool = True,
+    need_guide: bool = True,
 ) -> tuple[Tensor | None, Tensor | None]:
     """Gradients of a loss w.r.t. splat's image and guide, given those w.r.t. grid and weight.
 
@@ -337,17 +368,19 @@ def splat_backward(
     n, c, *shape = grid.shape
     cs = corners(guide, tuple(shape), sigma_s, sigma_r, grid.dtype, slope=need_guide)
     inv_beta = _reciprocal_where_positive(weight.flatten(2))
-    if grad_grid is None:
-        grad_per_weight = grid.new_zeros(n, c, inv_beta.shape[-1])
-    else:
-        grad_per_weight = grad_grid.flatten(2) * inv_beta  # ∂L/∂grid / β, 0 if empty
+    grad_cells = grid.new_zeros(n, c + 1, inv_beta.shape[-1])
+    grad_per_weight = grad_cells[:, :c]  # ∂L/∂grid / β, 0 in empty cells
+    if grad_grid is not None:
+        torch.mul(grad_grid.flatten(2), inv_beta, out=grad_per_weight)
     grad_image = splat_image_grad(grad_per_weight, cs, image) if need_image else None
     grad_guide = None
     if need_guide:
-        per_cell = -(grid.flatten(2) * grad_per_weight).sum(1, keepdim=True)
+        per_cell = grad_cells[:, c:]
+        torch.sum(grid.flatten(2) * grad_per_weight, 1, keepdim=True, out=per_cell)
+        per_cell.neg_()
         if grad_weight is not None:
             per_cell += grad_weight.flatten(2)
-        grad_guide = splat_guide_grad(grad_per_weight, per_cell, cs, image).to(guide.dtype)
+        grad_guide = splat_guide_grad(grad_cells, cs, image).to(guide.dtype)
     return grad_image, grad_guide
 
 
@@ -376,8 +409,14 @@ def slice_guide_grad(
 
 
 def slice_backward(
-    grad_out: Tensor, grid: Tensor, weight: Tensor, guide: Tensor, sigma_s: int = 4,
-    sigma_r: float = 4.0, out: Tensor | None = None, need_grid: bool = True,
+    grad_out: Tensor,
+    grid: Tensor,
+    weight: Tensor,
+    guide: Tensor,
+    sigma_s: int = 4,
+    sigma_r: float = 4.0,
+    out: Tensor | None = None,
+    need_grid: bool = True,
     need_guide: bool = True,
 ) -> tuple[Tensor | None, Tensor | None]:
     """Gradients of a loss w.r.t. slice's grid and guide, given those w.r.t. its output.
@@ -432,8 +471,17 @@ def _splat_setup_context(ctx, inputs, output) -> None:
 def _splat_autograd(ctx, grad_grid: Tensor | None, grad_weight: Tensor | None):
     image, guide, grid, weight = ctx.saved_tensors
     need_image, need_guide = ctx.needs_input_grad[:2]
-    grads = splat_backward(grad_grid, grad_weight, image, guide, grid, weight, *ctx.rates,
-                           need_image=need_image, need_guide=need_guide)
+    grads = splat_backward(
+        grad_grid,
+        grad_weight,
+        image,
+        guide,
+        grid,
+        weight,
+        *ctx.rates,
+        need_image=need_image,
+        need_guide=need_guide,
+    )
     return *grads, None, None
 
 
@@ -460,8 +508,16 @@ def _slice_setup_context(ctx, inputs, output) -> None:
 def _slice_autograd(ctx, grad_out: Tensor):
     grid, weight, guide, out = ctx.saved_tensors
     need_grid, need_guide = ctx.needs_input_grad[0], ctx.needs_input_grad[2]
-    grad_grid, grad_guide = slice_backward(grad_out, grid, weight, guide, *ctx.rates, out=out,
-                                           need_grid=need_grid, need_guide=need_guide)
+    grad_grid, grad_guide = slice_backward(
+        grad_out,
+        grid,
+        weight,
+        guide,
+        *ctx.rates,
+        out=out,
+        need_grid=need_grid,
+        need_guide=need_guide,
+    )
     return grad_grid, None, grad_guide, None, None
 
 

@@ -42,16 +42,20 @@ def ref_tent(d: torch.Tensor) -> torch.Tensor:
     return torch.clamp(1 - torch.sqrt(d * d + 1e-7), min=0)
 
 
+def ref_centres(count: int) -> torch.Tensor:
+    """Centres of all cells of an axis: cell u (from -1) is stored at u + 1, centred at u + 0.5."""
+    return torch.arange(count, dtype=F64) - 1 + 0.5
+
+
 def ref_weights(guide: torch.Tensor, sigma_s: int, sigma_r: float) -> torch.Tensor:
     """t(p, cell) for all pixels and all cells: (N, H, W, D, GH, GW)."""
     n, _, h, w = guide.shape
     depth, gh, gw = ref_depth(sigma_r), ref_cells(h, sigma_s), ref_cells(w, sigma_s)
-    # Cell u (from -1) is stored at u + 1 and centred at u + 0.5; pixel x sits at (x + 0.5)/σs.
-    centre = lambda count: torch.arange(count, dtype=F64) - 1 + 0.5  # noqa: E731
-    tx = ref_tent((torch.arange(w, dtype=F64) + 0.5)[:, None] / sigma_s - centre(gw))
-    ty = ref_tent((torch.arange(h, dtype=F64) + 0.5)[:, None] / sigma_s - centre(gh))
+    # Pixel x sits at (x + 0.5)/σs; the guide value is not biased.
+    tx = ref_tent((torch.arange(w, dtype=F64) + 0.5)[:, None] / sigma_s - ref_centres(gw))
+    ty = ref_tent((torch.arange(h, dtype=F64) + 0.5)[:, None] / sigma_s - ref_centres(gh))
     cz = 255 * guide[:, 0].clamp(0, 1) / sigma_r  # (N, H, W)
-    tz = ref_tent(cz[..., None] - centre(depth))  # (N, H, W, D)
+    tz = ref_tent(cz[..., None] - ref_centres(depth))  # (N, H, W, D)
     return torch.einsum("nhwd,hv,wu->nhwdvu", tz, ty, tx)
 
 
