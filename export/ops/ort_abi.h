@@ -172,7 +172,7 @@ using AnyFn = void (*)();
 // Typed access to the functions of one OrtApi table (a pointer, cheap to copy).
 class Api {
  public:
-  explicit Api(const OrtApi* api = nullptr) : api_(api) {}
+  constexpr explicit Api(const OrtApi* api = nullptr) : api_(api) {}
   const OrtApi* table() const { return api_; }
 
   OrtStatus* CreateStatus(OrtErrorCode code, const char* msg) const {

@@ -25,7 +25,8 @@ RuntimeInfo g_runtime;
 std::once_flag g_runtime_once;
 
 // Each RegisterCustomOps call creates one domain that its SessionOptions points to; they are
-// released when the library is unloaded.
+// released when the library is unloaded. (Created on first use: loading the library runs no
+// code compiled for the target CPU level, see RegisterCustomOps.)
 class DomainRegistry {
  public:
   ~DomainRegistry() {
@@ -42,7 +43,10 @@ class DomainRegistry {
   std::vector<std::pair<ort::Api, OrtCustomOpDomain*>> domains_;
 };
 
-DomainRegistry g_domains;
+DomainRegistry& domains() {
+  static DomainRegistry registry;
+  return registry;
+}
 
 int detect_cpu_count() {
   if (const char* text = std::getenv("QUIETFRAME_OPS_NUM_THREADS")) {
@@ -109,29 +113,58 @@ void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user) {
 
 }  // namespace qf
 
-extern "C" __attribute__((visibility("default"))) OrtStatus* RegisterCustomOps(
-    OrtSessionOptions* options, const OrtApiBase* base) {
-  using qf::ort::Api;
-  const OrtApi* table = base->GetApi(qf::ort::kApiVersion);
+namespace qf {
+namespace {
+
+OrtStatus* register_ops(OrtSessionOptions* options, const OrtApiBase* base) {
+  using ort::Api;
+  const OrtApi* table = base->GetApi(ort::kApiVersion);
   if (table == nullptr) {
     // Too old for us; version 1 of the table still creates a status (and nothing older exists).
     const OrtApi* oldest = base->GetApi(1);
     const std::string message = std::string("quietframe ops need onnxruntime >= 1.16.3 (C API ") +
-                                std::to_string(qf::ort::kApiVersion) + "), this is " +
+                                std::to_string(ort::kApiVersion) + "), this is " +
                                 base->GetVersionString();
     return oldest ? Api(oldest).CreateStatus(ORT_FAIL, message.c_str()) : nullptr;
   }
-  qf::init_runtime_info(base);
+  init_runtime_info(base);
   const Api api(table);
   OrtCustomOpDomain* domain = nullptr;
-  if (OrtStatus* s = api.CreateCustomOpDomain(qf::kDomain, &domain)) return s;
-  OrtStatus* status = api.CustomOpDomain_Add(domain, qf::bilateral_splat_op());
-  if (status == nullptr) status = api.CustomOpDomain_Add(domain, qf::bilateral_slice_op());
+  if (OrtStatus* s = api.CreateCustomOpDomain(kDomain, &domain)) return s;
+  OrtStatus* status = api.CustomOpDomain_Add(domain, bilateral_splat_op());
+  if (status == nullptr) status = api.CustomOpDomain_Add(domain, bilateral_slice_op());
   if (status == nullptr) status = api.AddCustomOpDomain(options, domain);
   if (status != nullptr) {
     api.ReleaseCustomOpDomain(domain);
     return status;
   }
-  qf::g_domains.keep(api, domain);
+  domains().keep(api, domain);
   return nullptr;
+}
+
+}  // namespace
+}  // namespace qf
+
+// The entry point is compiled for any x86-64 CPU: on one without the instructions this build
+// targets (AVX2 and FMA by default) it returns an error instead of crashing on the first one.
+#if QF_HAVE_AVX2 && defined(__x86_64__) && defined(__GNUC__)
+#define QF_ANY_X86_64 __attribute__((target("arch=x86-64")))
+#else
+#define QF_ANY_X86_64
+#endif
+
+extern "C" __attribute__((visibility("default"))) QF_ANY_X86_64 OrtStatus* RegisterCustomOps(
+    OrtSessionOptions* options, const OrtApiBase* base) {
+#if QF_HAVE_AVX2 && defined(__x86_64__) && defined(__GNUC__)
+  __builtin_cpu_init();
+  if (!__builtin_cpu_supports("avx2") || !__builtin_cpu_supports("fma")) {
+    const OrtApi* table = base->GetApi(1);
+    return table ? qf::ort::Api(table).CreateStatus(
+                       ORT_FAIL,
+                       "libquietframe_ops was built for CPUs with AVX2 and FMA (x86-64-v3), this "
+                       "one has not: rebuild it with -DQUIETFRAME_ARCH=x86-64")
+                 : nullptr;
+  }
+#endif
+  return qf::register_ops(options, base);
 }
