@@ -24,7 +24,7 @@ namespace {
 
 using grid::AxisTaps;
 
-constexpr int64_t kBlock = 8;  // grid columns per copied block
+using grid::kBlock;  // grid columns per copied block
 constexpr int64_t kPrefetchLevels = 2;  // range cells ahead that copy_blocks prefetches
 
 struct SliceJob {
@@ -36,7 +36,6 @@ struct SliceJob {
   const grid::RangeAxis* range;
   const AxisTaps* xs;
   const AxisTaps* ys;
-  const int64_t* readers;  // block b of columns is read by pixels [readers[2b], readers[2b+1])
   int64_t bands;
   bool fast;  // C == 3 on an AVX2 build
 
@@ -185,22 +184,6 @@ void ensure_row(const SliceJob& j, SliceScratch& s, int64_t n, int64_t v, RowBuf
   std::swap(buffer.high, s.new_high);
 }
 
-// The range cells each block of columns is read at by the pixel row of `taps`: a pixel with first
-// range cell z reads z and z + 1 (vectorised min/max over the pixels reading the block).
-void read_ranges(const SliceJob& j, const SliceScratch& s) {
-  const int32_t* zfirst = s.taps.zfirst;
-  const auto top = static_cast<int32_t>(j.D - 1);
-  for (int64_t b = 0; b < j.blocks(); ++b) {
-    int32_t low = INT32_MAX, high = -1;
-    for (int64_t x = j.readers[2 * b]; x < j.readers[2 * b + 1]; ++x) {
-      low = std::min(low, zfirst[x]);
-      high = std::max(high, zfirst[x]);
-    }
-    s.low[b] = low;
-    s.high[b] = std::min(high + 1, top);
-  }
-}
-
 // μ and η of one pixel row from grid rows `lo` (its first y-cell, weight ty0) and `hi` (ty1),
 // into s.sums.
 void gather_row(const SliceJob& j, const SliceScratch& s, float ty0, float ty1, const float* lo,
@@ -299,7 +282,7 @@ void slice_band(const SliceJob& j, int64_t task) {
     for (int64_t y = ys.begin[v]; y < ys.begin[v + 1]; ++y) {
       grid::row_taps(j.guide + (n * j.H + y) * j.W, j.W, *j.range, xs.offset.data(),
                      j.GW * j.cell_values(), s.taps);
-      read_ranges(j, s);
+      grid::block_ranges(xs, s.taps.zfirst, static_cast<int32_t>(j.D - 1), s.low, s.high);
       ensure_row(j, s, n, v, *lo);
       ensure_row(j, s, n, v + 1, *hi);  // exists: a first y-cell is at most GH - 2
       gather_row(j, s, ys.w0[y], ys.w1[y], lo->cells, hi->cells);
@@ -365,16 +348,8 @@ class BilateralSlice {
     xs.build(W, attributes_.sigma_s, GW, fast ? 4 : C + 1);
     ys.build(H, attributes_.sigma_s, GH);
     const grid::RangeAxis range(attributes_.sigma_r, D);
-    // Block b (columns [8b, 8b + 8)) is read by the pixels whose first column is in
-    // [8b - 1, 8b + 7].
-    const int64_t B = (GW + kBlock - 1) / kBlock;
-    std::vector<int64_t> readers(2 * B);
-    for (int64_t b = 0; b < B; ++b) {
-      readers[2 * b] = xs.begin[std::max<int64_t>(b * kBlock - 1, 0)];
-      readers[2 * b + 1] = xs.begin[std::min((b + 1) * kBlock, GW)];
-    }
     const SliceJob job{grid, weight, guide, out, C, H, W, D, GH, GW, &range, &xs, &ys,
-                       readers.data(), grid::band_count(GH, N), fast};
+                       grid::band_count(GH, N), fast};
     auto task = [&job](size_t i) { slice_band(job, static_cast<int64_t>(i)); };
     if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
       return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);

@@ -10,6 +10,7 @@
 #pragma once
 
 #include <algorithm>
+#include <climits>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -276,6 +277,8 @@ inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
   }
 }
 
+constexpr int64_t kBlock = 8;  // grid columns per block: 8 cells, one AVX register per value
+
 // Taps of every pixel along one spatial axis (computed once per call). `pair` holds
 // (w0, w0, w0, w0, w1, w1, w1, w1) per pixel for the 4-value cells of the AVX2 path.
 struct AxisTaps {
@@ -284,6 +287,9 @@ struct AxisTaps {
   // begin[u]..begin[u+1]: the pixels whose first cell is u (u in [0, cells)); pixels are sorted
   // by first cell because the coordinate grows with the pixel index.
   std::vector<int64_t> begin;
+  // Cells in blocks of kBlock: block b (cells [kBlock·b, kBlock·b + kBlock)) is touched by the
+  // pixels [touching[2b], touching[2b + 1]) (first cell in [kBlock·b - 1, kBlock·b + kBlock - 1]).
+  std::vector<int64_t> touching;
 
   void build(int64_t pixels, int64_t sigma_s, int64_t cells, int64_t cell_values = 1) {
     first.resize(pixels);
@@ -310,8 +316,30 @@ struct AxisTaps {
       begin[first[p]] = p;
     }
     for (int64_t u = cells - 1; u >= 0; --u) begin[u] = std::min(begin[u], begin[u + 1]);
+    const int64_t blocks = (cells + kBlock - 1) / kBlock;
+    touching.resize(2 * blocks);
+    for (int64_t b = 0; b < blocks; ++b) {
+      touching[2 * b] = begin[std::max<int64_t>(b * kBlock - 1, 0)];
+      touching[2 * b + 1] = begin[std::min((b + 1) * kBlock, cells)];
+    }
   }
 };
+
+// The range cells [low[b], high[b]] that one pixel row touches in each block b of columns: a
+// pixel touches its first range cell and the next (min/max over the block's pixels, vectorised).
+inline void block_ranges(const AxisTaps& xs, const int32_t* zfirst, int32_t top, int32_t* low,
+                         int32_t* high) {
+  const int64_t blocks = static_cast<int64_t>(xs.touching.size() / 2);
+  for (int64_t b = 0; b < blocks; ++b) {
+    int32_t lo = INT32_MAX, hi = -1;
+    for (int64_t x = xs.touching[2 * b]; x < xs.touching[2 * b + 1]; ++x) {
+      lo = std::min(lo, zfirst[x]);
+      hi = std::max(hi, zfirst[x]);
+    }
+    low[b] = lo;
+    high[b] = std::min(hi + 1, top);
+  }
+}
 
 // Cuts the `cells` grid rows of each of `images` images into bands, the parallel tasks: a few
 // per CPU for balance, but bands of at least kMinRowsPerBand rows (a band re-reads the pixel rows
