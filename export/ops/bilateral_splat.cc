@@ -6,7 +6,8 @@
 // Parallel over bands of grid rows: a task owns its rows outright and gathers every pixel row
 // that touches them, so no two tasks write the same cell. It walks its pixel rows in order while
 // holding only two grid rows (the current row and the next) in [z][gx][P] scratch, which stays in
-// L2; a finished row is normalised straight into the output tensors.
+// L2; a finished row is normalised and streamed to the output tensors in whole cache lines
+// (grid::LineWriter), range cells that no pixel of the row touched as plain zeros.
 #include <algorithm>
 #include <climits>
 #include <cstdint>
