@@ -250,34 +250,34 @@ def splat_forward(
 # ---------------------------------------------------------------------------------------------
 
 
-def masked_weights(weight: Tensor, cs: Corners) -> list[Tensor]:
-    # eq. 20 [qf]: t · m per corner, m = 1[weight > 0]; the supplement's 1[grid > 0] would
-    # drop black and negative radiance. 8 × (N, 1, P)
-    flat = weight.flatten(2)
-    return [cs.weight(k) * (_gather(flat, cs.index(k)) > 0) for k in range(8)]
-
-
-def slice_numerator(grid: Tensor, tms: list[Tensor], cs: Corners) -> Tensor:
-    # eq. 21: μ[c, p] = Σ_cells t · grid · m, (N, C, P)
+def occupied_cells(grid: Tensor, weight: Tensor) -> Tensor:
+    # eq. 20 [qf]: [grid · m, m] side by side, (N, C+1, cells), m = 1[weight > 0]: empty is
+    # decided by the splat weight (the supplement's 1[grid > 0] drops black and negative
+    # radiance), and an empty cell is skipped whatever it holds
     n, c = grid.shape[:2]
-    flat = grid.flatten(2)
-    mu = grid.new_zeros(n, c, tms[0].shape[-1])
-    for k, tm in enumerate(tms):
-        mu.addcmul_(_gather(flat, cs.index(k)), tm)
-    return mu
+    occupied = weight.flatten(2) > 0
+    cells = grid.new_empty(n, c + 1, occupied.shape[-1])
+    torch.where(occupied, grid.flatten(2), grid.new_zeros(()), out=cells[:, :c])
+    cells[:, c:] = occupied
+    return cells
 
 
-def slice_denominator(tms: list[Tensor]) -> Tensor:
-    # eq. 22: η[p] = Σ_cells t · m, (N, 1, P)
-    eta = tms[0].clone()
-    for tm in tms[1:]:
-        eta += tm
-    return eta
+def slice_sums(cells: Tensor, cs: Corners, slope: bool = False) -> tuple[Tensor, Tensor | None]:
+    # eq. 21–22: [μ, η] = Σ_cells t · [grid · m, m], (N, C+1, P); with `slope` also
+    # eq. 31–32: [∂μ/∂g, ∂η/∂g] = Σ_cells t' · [grid · m, m], from the same reads
+    sums = cells.new_zeros(*cells.shape[:2], cs.cell.shape[-1])
+    slopes = torch.zeros_like(sums) if slope else None
+    for k in range(8):
+        values = _gather(cells, cs.index(k))
+        sums.addcmul_(values, cs.weight(k))
+        if slopes is not None:
+            slopes.addcmul_(values, cs.slope(k))
+    return sums, slopes
 
 
-def slice_values(mu: Tensor, eta: Tensor) -> Tensor:
-    # eq. 23: out = μ / η where η > 0, else 0; in place on μ, which is ours
-    return mu.mul_(_reciprocal_where_positive(eta))
+def slice_values(sums: Tensor) -> Tensor:
+    # eq. 23: out = μ / η where η > 0, else 0, (N, C, P)
+    return sums[:, :-1] * _reciprocal_where_positive(sums[:, -1:])
 
 
 def _check_slice(grid: Tensor, weight: Tensor, guide: Tensor, sigma_s: int, sigma_r: float):
@@ -313,9 +313,8 @@ def slice_forward(
     n, c, *shape = grid.shape
     h, w = guide.shape[2:]
     cs = corners(guide, tuple(shape), sigma_s, sigma_r, grid.dtype)
-    tms = masked_weights(weight, cs)
-    out = slice_values(slice_numerator(grid, tms, cs), slice_denominator(tms))
-    return out.view(n, c, h, w)
+    sums, _ = slice_sums(occupied_cells(grid, weight), cs)
+    return slice_values(sums).view(n, c, h, w)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -384,28 +383,18 @@ def splat_backward(
     return grad_image, grad_guide
 
 
-def slice_grid_grad(grad_scaled: Tensor, tms: list[Tensor], cs: Corners, cells: int) -> Tensor:
-    # eq. 24–28: ∂L/∂grid[c,cell] = Σ_p t(p, cell) · m(cell) · ∂L/∂out[c,p] / η[p]
+def slice_grid_grad(grad_scaled: Tensor, occupied: Tensor, cs: Corners) -> Tensor:
+    # eq. 24–28: ∂L/∂grid[c,cell] = m(cell) · Σ_p t(p, cell) · ∂L/∂out[c,p] / η[p]
     n, c = grad_scaled.shape[:2]
-    grad = grad_scaled.new_zeros(n, c, cells)
-    for k, tm in enumerate(tms):
-        _scatter_add(grad, cs.index(k), grad_scaled * tm)
-    return grad
+    grad = grad_scaled.new_zeros(n, c, occupied.shape[-1])
+    for k in range(8):
+        _scatter_add(grad, cs.index(k), grad_scaled * cs.weight(k))
+    return grad.mul_(occupied)  # m depends on the cell only: applied once, after the sum
 
 
-def slice_guide_grad(
-    grad_scaled: Tensor, grid: Tensor, out: Tensor, occupied: list[Tensor], cs: Corners
-) -> Tensor:
-    # eq. 29–32: ∂L/∂g(p) = Σ_c ∂L/∂out / η · (Σ_cells t'·grid·m - out · Σ_cells t'·m)
-    n, c = grid.shape[:2]
-    flat = grid.flatten(2)
-    dmu = torch.zeros_like(grad_scaled)  # eq. 31, (N, C, P)
-    deta = grad_scaled.new_zeros(n, 1, grad_scaled.shape[-1])  # eq. 32, (N, 1, P)
-    for k, m in enumerate(occupied):
-        slope_m = cs.slope(k) * m
-        dmu.addcmul_(_gather(flat, cs.index(k)), slope_m)
-        deta += slope_m
-    return (grad_scaled * dmu.sub_(out * deta)).sum(1, keepdim=True)
+def slice_guide_grad(grad_scaled: Tensor, slopes: Tensor, out: Tensor) -> Tensor:
+    # eq. 29–30: ∂L/∂g(p) = Σ_c ∂L/∂out / η · (∂μ/∂g - out · ∂η/∂g), slopes from eq. 31–32
+    return (grad_scaled * (slopes[:, :-1] - out * slopes[:, -1:])).sum(1, keepdim=True)
 
 
 def slice_backward(
@@ -415,32 +404,25 @@ def slice_backward(
     guide: Tensor,
     sigma_s: int = 4,
     sigma_r: float = 4.0,
-    out: Tensor | None = None,
     need_grid: bool = True,
     need_guide: bool = True,
 ) -> tuple[Tensor | None, Tensor | None]:
     """Gradients of a loss w.r.t. slice's grid and guide, given those w.r.t. its output.
 
-    `out` is the forward's result (recomputed when not given). The weight only decides the
-    mask, which is piecewise constant: it gets no gradient.
+    The weight only decides the mask, which is piecewise constant: it gets no gradient.
     """
     n, c, *shape = grid.shape
     h, w = guide.shape[2:]
     cs = corners(guide, tuple(shape), sigma_s, sigma_r, grid.dtype, slope=need_guide)
-    flat_weight = weight.flatten(2)
-    occupied = [_gather(flat_weight, cs.index(k)) > 0 for k in range(8)]
-    tms = [cs.weight(k) * m for k, m in enumerate(occupied)]
-    eta = slice_denominator(tms)
+    cells = occupied_cells(grid, weight)
+    sums, slopes = slice_sums(cells, cs, slope=need_guide)
     # ∂L/∂out / η; 0 where nothing was read (the output there is the constant 0).
-    grad_scaled = grad_out.reshape(n, c, h * w) * _reciprocal_where_positive(eta)
+    grad_scaled = grad_out.reshape(n, c, h * w) * _reciprocal_where_positive(sums[:, c:])
     grad_grid = grad_guide = None
     if need_grid:
-        grad_grid = slice_grid_grad(grad_scaled, tms, cs, math.prod(shape)).view(grid.shape)
+        grad_grid = slice_grid_grad(grad_scaled, cells[:, c:], cs).view(grid.shape)
     if need_guide:
-        if out is None:
-            out = slice_values(slice_numerator(grid, tms, cs), eta)
-        out = out.reshape(n, c, h * w)
-        grad_guide = slice_guide_grad(grad_scaled, grid, out, occupied, cs)
+        grad_guide = slice_guide_grad(grad_scaled, slopes, slice_values(sums))
         grad_guide = grad_guide.view(n, 1, h, w).to(guide.dtype)
     return grad_grid, grad_guide
 
@@ -501,22 +483,15 @@ def _slice_fake(grid: Tensor, weight: Tensor, guide: Tensor, sigma_s: int, sigma
 
 def _slice_setup_context(ctx, inputs, output) -> None:
     grid, weight, guide, sigma_s, sigma_r = inputs
-    ctx.save_for_backward(grid, weight, guide, output)
+    ctx.save_for_backward(grid, weight, guide)
     ctx.rates = (sigma_s, sigma_r)
 
 
 def _slice_autograd(ctx, grad_out: Tensor):
-    grid, weight, guide, out = ctx.saved_tensors
+    grid, weight, guide = ctx.saved_tensors
     need_grid, need_guide = ctx.needs_input_grad[0], ctx.needs_input_grad[2]
     grad_grid, grad_guide = slice_backward(
-        grad_out,
-        grid,
-        weight,
-        guide,
-        *ctx.rates,
-        out=out,
-        need_grid=need_grid,
-        need_guide=need_guide,
+        grad_out, grid, weight, guide, *ctx.rates, need_grid=need_grid, need_guide=need_guide
     )
     return grad_grid, None, grad_guide, None, None
 

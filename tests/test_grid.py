@@ -239,12 +239,9 @@ def test_slice_backward_matches_dense_autograd(h, w, sigma_s, sigma_r):
     ref = ref_slice(grid, weight, guide, sigma_s, sigma_r)
     grad_out = rand(*ref.shape, g=g)
     expected = torch.autograd.grad((ref * grad_out).sum(), (grid, guide))
-    for out in (None, ref.detach()):
-        got = slice_backward(
-            grad_out, grid.detach(), weight, guide.detach(), sigma_s, sigma_r, out=out
-        )
-        torch.testing.assert_close(got[0], expected[0], rtol=1e-10, atol=1e-10)
-        torch.testing.assert_close(got[1], expected[1], rtol=1e-10, atol=1e-10)
+    got = slice_backward(grad_out, grid.detach(), weight, guide.detach(), sigma_s, sigma_r)
+    torch.testing.assert_close(got[0], expected[0], rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(got[1], expected[1], rtol=1e-10, atol=1e-10)
 
 
 # Full Jacobians on tiny grids; a random projection (fast_mode) on a larger, odd-rate one.
@@ -396,6 +393,23 @@ def test_non_finite_guide():
     bad.requires_grad_()
     (grad,) = torch.autograd.grad(bilateral_filter(image, bad, 2, 8.0).sum(), bad)
     assert torch.isfinite(grad).all() and grad[0, 0, 1, 1] == 0
+
+
+def test_empty_cells_are_skipped_whatever_they_hold():
+    g = gen(20)
+    guide = torch.rand(1, 1, 10, 10, generator=g, dtype=F64)
+    grid, weight = splat_forward(rand(1, 3, 10, 10, g=g), guide, 2, 8.0)
+    empty = (weight == 0).expand_as(grid)
+    assert empty.any()
+    dirty = grid.masked_fill(empty, math.nan)
+    dirty[:, 0].masked_fill_(empty[:, 0], math.inf)
+    dirty.requires_grad_()
+    read = torch.rand(1, 1, 10, 10, generator=g, dtype=F64).requires_grad_()
+    out = bilateral_slice(dirty, weight, read, 2, 8.0)
+    torch.testing.assert_close(out, bilateral_slice(grid, weight, read, 2, 8.0), rtol=0, atol=0)
+    grad_grid, grad_read = torch.autograd.grad(out.sum(), (dirty, read))
+    assert torch.isfinite(grad_grid).all() and torch.isfinite(grad_read).all()
+    assert (grad_grid[empty] == 0).all()
 
 
 def test_huge_values_stay_finite_in_float32():
