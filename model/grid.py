@@ -16,6 +16,7 @@ Tensors: image (N, C, H, W), guide (N, 1, H, W), grid (N, C, D, GH, GW), weight 
 
 import functools
 import math
+import operator
 from typing import NamedTuple
 
 import torch
@@ -190,22 +191,18 @@ def _check_guide(op: str, guide: Tensor, n: int) -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-def splat_numerator(image: Tensor, cs: Corners, cells: int) -> Tensor:
-    # eq. 6: α[c, cell] = Σ_p t(p, cell) · image[c, p], (N, C, cells)
+def splat_sums(image: Tensor, cs: Corners, cells: int) -> tuple[Tensor, Tensor]:
+    # eq. 6–7: α[c, cell] = Σ_p t(p, cell) · image[c, p], (N, C, cells);
+    #          β[cell] = Σ_p t(p, cell), (N, 1, cells)
     n, c = image.shape[:2]
     flat = image.flatten(2)
     alpha = image.new_zeros(n, c, cells)
+    beta = image.new_zeros(n, 1, cells)
     for k in range(8):
-        _scatter_add(alpha, cs.index(k), flat * cs.weight(k))
-    return alpha
-
-
-def splat_denominator(cs: Corners, cells: int) -> Tensor:
-    # eq. 7: β[cell] = Σ_p t(p, cell), (N, 1, cells)
-    beta = cs.z_weight.new_zeros(cs.z_weight.shape[0], 1, cells)
-    for k in range(8):
-        _scatter_add(beta, cs.index(k), cs.weight(k))
-    return beta
+        index, t = cs.index(k), cs.weight(k)
+        _scatter_add(alpha, index, flat * t)
+        _scatter_add(beta, index, t)
+    return alpha, beta
 
 
 def grid_values(alpha: Tensor, beta: Tensor) -> Tensor:
@@ -240,8 +237,7 @@ def splat_forward(
     shape = (range_cells(sigma_r), grid_cells(h, sigma_s), grid_cells(w, sigma_s))
     cells = math.prod(shape)
     cs = corners(guide, shape, sigma_s, sigma_r, image.dtype)
-    alpha = splat_numerator(sanitize_image(image), cs, cells)
-    beta = splat_denominator(cs, cells)
+    alpha, beta = splat_sums(sanitize_image(image), cs, cells)
     return grid_values(alpha, beta).view(n, c, *shape), beta.view(n, 1, *shape)
 
 
@@ -508,14 +504,14 @@ def bilateral_splat(
     image: Tensor, guide: Tensor, sigma_s: int = 4, sigma_r: float = 4.0
 ) -> tuple[Tensor, Tensor]:
     """(grid (N, C, D, GH, GW), weight (N, 1, D, GH, GW)) of `image` splatted along `guide`."""
-    return splat_op(image, guide, int(sigma_s), float(sigma_r))
+    return splat_op(image, guide, operator.index(sigma_s), float(sigma_r))
 
 
 def bilateral_slice(
     grid: Tensor, weight: Tensor, guide: Tensor, sigma_s: int = 4, sigma_r: float = 4.0
 ) -> Tensor:
     """(N, C, H, W) image read from `grid` along `guide`; empty cells (weight 0) are skipped."""
-    return slice_op(grid, weight, guide, int(sigma_s), float(sigma_r))
+    return slice_op(grid, weight, guide, operator.index(sigma_s), float(sigma_r))
 
 
 def bilateral_filter(
