@@ -146,21 +146,22 @@ def measure(threads: int = 2, guide: str = "smooth", repeats: int = 15, warmup: 
 
 def report(threads: int = 2, guide: str = "smooth", repeats: int = 15,
            backends=("onnxruntime", "torch")) -> str:
-    """Markdown table of `measure`: ms per splat+slice call, median (and minimum: on a busy
-    machine the fastest call is the better estimate of what the code costs)."""
+    """Markdown table of `measure`: ms per splat+slice call, median wall time (minimum; median
+    process CPU time, all threads). On a busy machine the fastest call, and CPU / threads, say
+    more about the code than the median does."""
     results = measure(threads=threads, guide=guide, repeats=repeats, backends=backends)
     backends = sorted({b for r in results.values() for b in r}, key=["onnxruntime", "torch"].index)
     lines = [
         f"splat + slice, {WIDTH}x{HEIGHT}, 3 channels, {guide} guides, {threads} threads, "
-        f"ms per call, median (min) of {repeats} calls (PyTorch: of 5)",
+        f"ms per call: median wall (min; CPU) of {repeats} calls (PyTorch: of 5)",
         "",
         "| grid (σs, σr) | " + " | ".join(backends) + " |",
         "|---|" + "---:|" * len(backends),
     ]
     labels = {f"sigma_s={s}": f"({s}, {r:g})" for s, r in SCALES} | {"all": "all three"}
     for case, timings in results.items():
-        cells = [f"{timings[b].median_ms:.1f} ({timings[b].min_ms:.1f})" if b in timings else "–"
-                 for b in backends]
+        cells = [f"{t.median_ms:.1f} ({t.min_ms:.1f}; {t.cpu_ms:.1f})" if (t := timings.get(b))
+                 else "–" for b in backends]
         lines.append(f"| {labels[case]} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

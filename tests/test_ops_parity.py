@@ -190,10 +190,7 @@ def test_nothing_to_read_gives_zero(ops):
 
 
 def test_slice_of_empty_or_broken_cells_is_finite(ops):
-    """Cells with weight <= 0 or NaN are empty, whatever value they hold (even Inf/NaN).
-
-    (quietframe.model.grid computes grid·m as a product, so there Inf·0 = NaN leaks out.)
-    """
+    """Cells with weight <= 0 or NaN are empty, whatever value they hold (even Inf/NaN)."""
     guide = np.full((1, 1, 8, 8), 0.5, np.float32)  # fills range cells 32 and 33 (cz = 31.875)
     grid, weight = ops.splat(np.ones((1, 3, 8, 8), np.float32), guide, 4, 4.0)
     reads = np.full((1, 1, 8, 8), 32.6 * 4 / 255, np.float32)  # reads 33 and the empty 34
@@ -205,6 +202,7 @@ def test_slice_of_empty_or_broken_cells_is_finite(ops):
     broken[:, 0][empty] = np.inf
     broken[:, 1][empty] = np.nan
     np.testing.assert_array_equal(ops.slice(broken, weight, reads, 4, 4.0), clean)
+    assert_parity(clean, torch_slice(broken, weight, reads, 4, 4.0), "empty cells holding Inf/NaN")
     for mark in (-1.0, np.nan):
         marked = np.where(weight == 0, np.float32(mark), weight).astype(np.float32)
         np.testing.assert_array_equal(ops.slice(broken, marked, reads, 4, 4.0), clean)
