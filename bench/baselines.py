@@ -97,6 +97,17 @@ def backward_warp(image: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np
     return warped, inside
 
 
+def nearest_warp(image: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """Planar (C, H, W) image(t-1) at the pixel nearest to p + motion(p), clamped to the frame
+    (grid_sample nearest with border padding: round half to even, as np.rint)."""
+    h, w = motion.shape[:2]
+    mx, my = _planar(motion)
+    qx = np.clip(np.rint(np.nan_to_num(np.arange(w, dtype=np.float32)[None, :] + mx)), 0, w - 1)
+    qy = np.clip(np.rint(np.nan_to_num(np.arange(h, dtype=np.float32)[:, None] + my)), 0, h - 1)
+    index = (qy * w + qx).astype(np.intp)
+    return np.stack([plane.take(index) for plane in image.reshape(len(image), -1)])
+
+
 def history_valid(
     warped_depth: np.ndarray, warped_normal: np.ndarray, depth: np.ndarray, normal: np.ndarray
 ) -> np.ndarray:
@@ -104,7 +115,8 @@ def history_valid(
     surface is the current one."""
     depth_ok = np.abs(warped_depth - depth) <= DEPTH_REL_TOLERANCE * np.maximum(depth, 1e-6)
     dot = warped_normal[0] * normal[0] + warped_normal[1] * normal[1] + warped_normal[2] * normal[2]
-    return depth_ok & (dot > NORMAL_MIN_DOT)
+    lengths = np.sqrt(np.sum(warped_normal**2, axis=0) * np.sum(normal**2, axis=0))
+    return depth_ok & (dot > NORMAL_MIN_DOT * lengths)  # cosine test, as model/temporal
 
 
 def _reproject(
@@ -116,7 +128,8 @@ def _reproject(
     if state is None or state.shape[1:] != depth.shape:
         return None, np.ones(depth.shape, np.float32)
     warped, inside = backward_warp(state, motion)
-    keep = inside & history_valid(warped[3], warped[4:7], depth, normal)
+    surface = nearest_warp(state[3:7], motion)  # as model/temporal: no blended silhouettes
+    keep = inside & history_valid(surface[0], surface[1:4], depth, normal)
     return warped, keep * np.clip(warped[7], 0, max_count) + 1
 
 

@@ -21,8 +21,8 @@ MIN_CURRENT_WEIGHT = 0.2
 STATE_CHANNELS = 8
 
 
-def backward_warp(image: Tensor, motion: Tensor) -> tuple[Tensor, Tensor]:
-    """Fetch image(t-1) at p + motion(p) with bilinear filtering; also return in-frame mask.
+def backward_warp(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
+    """Fetch image(t-1) at p + motion(p) (`mode`: bilinear or nearest); also the in-frame mask.
 
     image (N, C, H, W), motion (N, 2, H, W) in pixels -> ((N, C, H, W), (N, 1, H, W))
     """
@@ -33,7 +33,7 @@ def backward_warp(image: Tensor, motion: Tensor) -> tuple[Tensor, Tensor]:
     src_y = ys + motion[:, 1]
     # grid_sample with align_corners=False maps pixel centre i to (2i + 1) / size - 1.
     grid = torch.stack(((2 * src_x + 1) / w - 1, (2 * src_y + 1) / h - 1), dim=-1)
-    warped = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    warped = F.grid_sample(image, grid, mode=mode, padding_mode="border", align_corners=False)
     inside = (src_x > -0.5) & (src_x < w - 0.5) & (src_y > -0.5) & (src_y < h - 0.5)
     return warped, inside.unsqueeze(1).to(image.dtype)
 
@@ -43,7 +43,11 @@ def history_valid(
 ) -> Tensor:
     """Disocclusion test: 1 where the reprojected surface is the current one, else 0."""
     depth_ok = (warped_depth - depth).abs() <= DEPTH_REL_TOLERANCE * depth.clamp_min(1e-6)
-    normal_ok = (warped_normal * normal).sum(dim=1, keepdim=True) > NORMAL_MIN_DOT
+    # Cosine, not the raw dot: AOV normals averaged over a pixel's samples are shorter than 1 at
+    # edges, and their length changes with sub-pixel motion while their direction does not.
+    dot = (warped_normal * normal).sum(dim=1, keepdim=True)
+    lengths = warped_normal.norm(dim=1, keepdim=True) * normal.norm(dim=1, keepdim=True)
+    normal_ok = dot > NORMAL_MIN_DOT * lengths
     return (depth_ok & normal_ok).to(depth.dtype)
 
 
@@ -61,9 +65,12 @@ def accumulate(
     reset (N,) 1 = drop history, state (N, 8, H, W) -> (accumulated radiance, new state).
     """
     warped, inside = backward_warp(state, motion)
-    prev_radiance, prev_depth = warped[:, 0:3], warped[:, 3:4]
-    prev_normal, prev_count = warped[:, 4:7], warped[:, 7:8]
-    keep = inside * history_valid(prev_depth, prev_normal, depth, normal)
+    prev_radiance, prev_count = warped[:, 0:3], warped[:, 7:8]
+    # The surface test uses the nearest previous pixel: bilinear depth at a silhouette is a
+    # blend of foreground and background that matches neither, which rejected history along
+    # every moving edge.
+    surface, _ = backward_warp(state[:, 3:7], motion, mode="nearest")
+    keep = inside * history_valid(surface[:, 0:1], surface[:, 1:4], depth, normal)
     keep = keep * (1 - reset.view(-1, 1, 1, 1))
     count = keep * prev_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
     alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)  # (N, 1, H, W) weight of the current frame

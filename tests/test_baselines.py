@@ -121,8 +121,8 @@ def test_history_valid_thresholds():
     n[2] = 1
     n_prev = n.copy()
     n_prev[:, 0, 3] = [0.5, 0, 0.5]  # cos 0.707
-    n_prev[:, 0, 4] = [0, 0, 0.85]  # same direction, but a blend of normals: dot 0.85 < 0.9
-    assert bl.history_valid(z_prev, n_prev, z, n).tolist() == [[True, True, False, False, False]]
+    n_prev[:, 0, 4] = [0, 0, 0.85]  # a shorter (pixel-averaged) normal, same direction: cos 1
+    assert bl.history_valid(z_prev, n_prev, z, n).tolist() == [[True, True, False, False, True]]
 
 
 # --- TemporalAccumulation ---------------------------------------------------------------------
