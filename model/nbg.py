@@ -88,6 +88,13 @@ def prestage(
     return irradiance, safe_albedo, new_state
 
 
+def channel_softmax(logits: Tensor) -> Tensor:
+    """Softmax over dim 1 with element-wise ops: onnxruntime's Softmax on a non-last axis of
+    an NCHW tensor transposes the whole frame (45 ms at 720p); this form stays element-wise."""
+    exp = torch.exp(logits - logits.amax(dim=1, keepdim=True))
+    return exp / exp.sum(dim=1, keepdim=True)
+
+
 class GuideNet(nn.Module):
     """2-layer CNN, or 7 layers with a five-layer dense block (paper Fig. 2), 5×5 convolutions.
 
@@ -116,7 +123,7 @@ class GuideNet(nn.Module):
         out = self.last(x)
         guides = torch.sigmoid(out[:, : self.grids])  # (N, grids, H, W)
         # The paper's w2 = 1 - w0 - w1 can go negative; a softmax keeps a convex combination.
-        weights = torch.softmax(out[:, self.grids :], dim=1) if self.grids > 1 else None
+        weights = channel_softmax(out[:, self.grids :]) if self.grids > 1 else None
         return guides, weights
 
 
