@@ -1,7 +1,8 @@
 """The one rule for bad input values, applied before a frame reaches a model.
 
 - color, albedo: NaN, ±Inf and negative values become 0 (a failed or overflowed sample carries
-  no usable estimate; radiance and albedo cannot be negative).
+  no usable estimate; radiance and albedo cannot be negative); values above 1e30 become 1e30
+  (larger ones overflow the float32 grid sums; see docs/grid-math.md).
 - normal, motion: NaN and ±Inf become 0 (no orientation / no motion).
 - depth: NaN, ±Inf and negative values become the largest finite depth of the frame (renderers
   write Inf or garbage for the background, which is far away), or 0 if none is finite.
@@ -13,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 NON_NEGATIVE = frozenset({"color", "albedo"})
+MAX_VALUE = np.float32(1e30)
 
 
 def sanitize_buffer(name: str, values: np.ndarray) -> tuple[np.ndarray, int]:
@@ -21,9 +23,12 @@ def sanitize_buffer(name: str, values: np.ndarray) -> tuple[np.ndarray, int]:
     bad = ~np.isfinite(values)
     if name in NON_NEGATIVE or name == "depth":
         bad |= values < 0  # NaN compares False, already in `bad`
-    count = int(np.count_nonzero(bad))
+    huge = ((values > MAX_VALUE) & ~bad) if name in NON_NEGATIVE else None
+    count = int(np.count_nonzero(bad)) + (int(np.count_nonzero(huge)) if huge is not None else 0)
     if count == 0:
         return values, 0
+    if huge is not None:
+        values = np.minimum(values, MAX_VALUE)  # a copy: the caller's array is left alone
     fill = 0.0
     if name == "depth":
         finite = values[~bad]
