@@ -1,7 +1,8 @@
-"""Micro-benchmark: bilateral splat + slice at 1280×720, custom ops vs PyTorch.
+"""Micro-benchmark: bilateral splat + slice at 1280×720, custom ops vs PyTorch; and the temporal
+reprojection (BackwardWarp custom op vs onnxruntime's GridSample).
 
 python -m quietframe.bench.grid_ops [--threads 2] [--guide smooth|random|both] [--repeats 15]
-                                   [--no-torch]
+                                   [--no-torch] [--warp]
 
 Times splat followed by slice (same guide) for each grid scale (σs, σr) of the NBG denoiser and
 for all three grids, on a 3-channel HDR image with one guide per grid:
@@ -11,6 +12,11 @@ for all three grids, on a 3-channel HDR image with one guide per grid:
 - PyTorch: quietframe.model.grid.splat_forward / slice_forward with torch.set_num_threads(threads).
 Figures are medians (bench/timing.py). The functions return plain dicts so that bigger benchmarks
 can reuse them.
+
+--warp times the two warps of the NBG pre-stage (model/temporal.py: bilinear on the 8-channel
+state, nearest on 4 of its channels) as one graph, ai.quietframe::BackwardWarp against the
+standard GridSample nodes the model was exported with before, for a static camera, smooth motion
+and per-pixel random motion (the gather-bound worst case).
 """
 
 from __future__ import annotations
@@ -166,13 +172,128 @@ def report(threads: int = 2, guide: str = "smooth", repeats: int = 15,
     return "\n".join(lines)
 
 
+WARP_CHANNELS = ((8, "bilinear"), (4, "nearest"))  # the pre-stage's two warps
+
+
+def warp_motion(kind: str, height: int = HEIGHT, width: int = WIDTH, seed: int = 0) -> np.ndarray:
+    """Motion (1, 2, H, W) in pixels: "static", "smooth" (a slow pan with some zoom and swirl,
+    like a camera move) or "random" (independent per pixel, N(0, 3²): no two neighbours alike)."""
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    if kind == "static":
+        return np.zeros((1, 2, height, width), np.float32)
+    if kind == "smooth":
+        mx = 1.3 + 2.0 * np.sin(xx / 200) + 0.01 * (yy - height / 2)
+        my = -0.7 + 1.5 * np.cos(yy / 150) - 0.005 * (xx - width / 2)
+        return np.stack((mx, my))[None].astype(np.float32)
+    if kind == "random":
+        rng = np.random.default_rng(seed)
+        return (3 * rng.standard_normal((1, 2, height, width))).astype(np.float32)
+    raise ValueError(f"motion must be 'static', 'smooth' or 'random', got {kind!r}")
+
+
+def warp_graph(op: str) -> bytes:
+    """ONNX model of the pre-stage's warps: image_i (1, C_i, H, W) and motion -> warped_i.
+
+    op "BackwardWarp": our custom op (its inside masks are outputs too, as in the model);
+    op "GridSample": the standard op on a precomputed sampling grid (1, H, W, 2) in [-1, 1].
+    """
+    from onnx import TensorProto, helper
+
+    def value(name, shape):
+        return helper.make_tensor_value_info(name, TensorProto.FLOAT, shape)
+
+    nodes, inputs, outputs = [], [], []
+    for i, (channels, mode) in enumerate(WARP_CHANNELS):
+        inputs.append(value(f"image_{i}", [1, channels, "H", "W"]))
+        outputs.append(value(f"warped_{i}", [1, channels, "H", "W"]))
+        if op == "BackwardWarp":
+            outputs.append(value(f"inside_{i}", [1, 1, "H", "W"]))
+            nodes.append(helper.make_node(
+                "BackwardWarp", [f"image_{i}", "motion"], [f"warped_{i}", f"inside_{i}"],
+                domain=OPS_DOMAIN, mode=["bilinear", "nearest"].index(mode)))
+        else:
+            nodes.append(helper.make_node(
+                "GridSample", [f"image_{i}", "grid"], [f"warped_{i}"],
+                mode="linear" if mode == "bilinear" else mode, padding_mode="border",
+                align_corners=0))
+    inputs.append(value("motion", [1, 2, "H", "W"]) if op == "BackwardWarp"
+                  else value("grid", [1, "H", "W", 2]))
+    graph = helper.make_graph(nodes, "warp", inputs, outputs)
+    opsets = [helper.make_opsetid("", 20), helper.make_opsetid(OPS_DOMAIN, 1)]
+    return helper.make_model(graph, opset_imports=opsets, ir_version=9).SerializeToString()
+
+
+def warp_runner(op: str, motion: np.ndarray, threads: int, seed: int = 0):
+    """A no-argument callable that runs the warp graph of `op` once on a random state."""
+    import onnxruntime as ort
+
+    _, _, height, width = motion.shape
+    rng = np.random.default_rng(seed)
+    feeds = {f"image_{i}": rng.random((1, c, height, width), dtype=np.float32)
+             for i, (c, _) in enumerate(WARP_CHANNELS)}
+    if op == "BackwardWarp":
+        feeds["motion"] = motion
+    else:  # pixel centre p + motion -> (2(p + motion) + 1)/size - 1, as model/temporal.py
+        yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+        gx = (2 * (xx + motion[0, 0]) + 1) / width - 1
+        gy = (2 * (yy + motion[0, 1]) + 1) / height - 1
+        feeds["grid"] = np.stack((gx, gy), axis=-1)[None].astype(np.float32)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.register_custom_ops_library(str(ops_library_path()))
+    session = ort.InferenceSession(warp_graph(op), options, providers=["CPUExecutionProvider"])
+    binding = session.io_binding()
+    values = {name: ort.OrtValue.ortvalue_from_numpy(array) for name, array in feeds.items()}
+    for name, value in values.items():
+        binding.bind_ortvalue_input(name, value)
+    for output in session.get_outputs():
+        binding.bind_output(output.name)  # allocated by onnxruntime on the first run, then reused
+    return lambda: (values, session.run_with_iobinding(binding))
+
+
+def measure_warp(threads: int = 2, repeats: int = 15, warmup: int = 3,
+                 motions=("static", "smooth", "random"),
+                 ops=("BackwardWarp", "GridSample")) -> dict[str, dict[str, Timing]]:
+    """{motion: {op: Timing}} for both warps of one 720p frame."""
+    results: dict[str, dict[str, Timing]] = {}
+    for kind in motions:
+        motion = warp_motion(kind)
+        results[kind] = {op: time_ms(warp_runner(op, motion, threads), warmup=warmup,
+                                     repeats=repeats) for op in ops}
+    return results
+
+
+def warp_report(threads: int = 2, repeats: int = 15) -> str:
+    """Markdown table of `measure_warp`: ms per frame, median wall time (minimum; CPU)."""
+    results = measure_warp(threads=threads, repeats=repeats)
+    ops = ("BackwardWarp", "GridSample")
+    lines = [
+        f"temporal warps (8 channels bilinear + 4 nearest), {WIDTH}x{HEIGHT}, {threads} threads, "
+        f"ms per frame: median wall (min; CPU) of {repeats} calls",
+        "",
+        "| motion | " + " | ".join(ops) + " |",
+        "|---|" + "---:|" * len(ops),
+    ]
+    for kind, timings in results.items():
+        cells = [f"{timings[op].median_ms:.1f} ({timings[op].min_ms:.1f}; "
+                 f"{timings[op].cpu_ms:.1f})" for op in ops]
+        lines.append(f"| {kind} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--guide", choices=["smooth", "random", "both"], default="both")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--no-torch", action="store_true", help="time the custom ops only")
+    parser.add_argument("--warp", action="store_true",
+                        help="time the temporal warps instead of splat + slice")
     args = parser.parse_args(argv)
+    if args.warp:
+        print(warp_report(threads=args.threads, repeats=args.repeats))
+        return 0
     backends = ("onnxruntime",) if args.no_torch else ("onnxruntime", "torch")
     for guide in ["smooth", "random"] if args.guide == "both" else [args.guide]:
         print(report(threads=args.threads, guide=guide, repeats=args.repeats, backends=backends))

@@ -1,4 +1,4 @@
-"""torch -> ONNX export of the NBG denoiser with splat/slice as ai.quietframe custom ops.
+"""torch -> ONNX export of the NBG denoiser with splat/slice/warp as ai.quietframe custom ops.
 
 The graph follows docs/model-interface.md: named buffer inputs, a reset flag, state in/out,
 dynamic H and W, and metadata_props that make the file self-describing for the runtime.
@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from quietframe.export import OPS_DOMAIN
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
+from quietframe.model.temporal import WARP_MODES
 
 OPSET = 18
 BUFFERS = ("color", "albedo", "normal", "depth", "motion")
@@ -50,6 +51,16 @@ def _register_schemas() -> None:
             outputs=[param("image", "T")],
             type_constraints=float_t, attributes=attrs,
         ),
+        OpSchema(
+            "BackwardWarp", OPS_DOMAIN, 1,
+            doc="warped = image sampled at p + motion(p) (border padding), inside = 1 where "
+                "that position lies in the image; quietframe.model.temporal.backward_warp",
+            inputs=[param("image", "T"), param("motion", "T")],
+            outputs=[param("warped", "T"), param("inside", "T")],
+            type_constraints=float_t,
+            attributes=[OpSchema.Attribute("mode", OpSchema.AttrType.INT,
+                                           "0 = bilinear, 1 = nearest")],
+        ),
     ]
     for schema in schemas:
         try:
@@ -72,6 +83,10 @@ def _slice_to_onnx(grid, weight, guide, sigma_s: int, sigma_r: float):
     return _QF.BilateralSlice(
         grid, weight, guide, sigma_s=sigma_s, sigma_r=sigma_r, grid_depth=range_cells(sigma_r)
     )
+
+
+def _warp_to_onnx(image, motion, mode: str = "bilinear"):
+    return _QF.BackwardWarp(image, motion, mode=WARP_MODES.index(mode))
 
 
 class _ExportWrapper(nn.Module):
@@ -121,6 +136,7 @@ def export_nbg(
     table = {
         torch.ops.quietframe.bilateral_splat.default: _splat_to_onnx,
         torch.ops.quietframe.bilateral_slice.default: _slice_to_onnx,
+        torch.ops.quietframe.backward_warp.default: _warp_to_onnx,
     }
     with torch.no_grad():
         program = torch.onnx.export(

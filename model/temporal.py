@@ -21,11 +21,21 @@ MIN_CURRENT_WEIGHT = 0.2
 STATE_CHANNELS = 8
 
 
+WARP_MODES = ("bilinear", "nearest")  # ai.quietframe::BackwardWarp attribute mode = index
+
+
+@torch.library.custom_op("quietframe::backward_warp", mutates_args=())
 def backward_warp(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
     """Fetch image(t-1) at p + motion(p) (`mode`: bilinear or nearest); also the in-frame mask.
 
     image (N, C, H, W), motion (N, 2, H, W) in pixels -> ((N, C, H, W), (N, 1, H, W))
+
+    A custom op so that the ONNX export maps it to ai.quietframe::BackwardWarp (export/ops),
+    which computes exactly this with the same float32 coordinate arithmetic; this grid_sample
+    code is its reference. No gradient (see _warp_backward).
     """
+    if mode not in WARP_MODES:
+        raise ValueError(f"backward_warp: mode must be one of {WARP_MODES}, got {mode!r}")
     n, _, h, w = image.shape
     ys = torch.arange(h, dtype=image.dtype, device=image.device).view(1, h, 1)
     xs = torch.arange(w, dtype=image.dtype, device=image.device).view(1, 1, w)
@@ -36,6 +46,29 @@ def backward_warp(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tupl
     warped = F.grid_sample(image, grid, mode=mode, padding_mode="border", align_corners=False)
     inside = (src_x > -0.5) & (src_x < w - 0.5) & (src_y > -0.5) & (src_y < h - 0.5)
     return warped, inside.unsqueeze(1).to(image.dtype)
+
+
+@backward_warp.register_fake
+def _warp_fake(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
+    n, _, h, w = image.shape  # h, w may be symbolic
+    return torch.empty_like(image), image.new_empty((n, 1, h, w))
+
+
+def _warp_setup_context(ctx, inputs, output) -> None:
+    pass
+
+
+def _warp_backward(ctx, grad_warped: Tensor | None, grad_inside: Tensor | None):
+    # The warped tensor is the accumulation state (radiance, depth, normal, history length):
+    # nothing upstream of it has learned parameters, so training never needs this gradient.
+    # Raise rather than return None, which would silently cut a gradient path someone adds.
+    raise RuntimeError(
+        "backward_warp has no gradient: warp only tensors that do not require grad "
+        "(detach the state, or add a backward to quietframe.model.temporal.backward_warp)"
+    )
+
+
+backward_warp.register_autograd(_warp_backward, setup_context=_warp_setup_context)
 
 
 def history_valid(

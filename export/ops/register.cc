@@ -1,5 +1,5 @@
 // Library entry point: RegisterCustomOps adds the ai.quietframe domain (BilateralSplat,
-// BilateralSlice) to a SessionOptions. The only exported symbol (see exports.map).
+// BilateralSlice, BackwardWarp) to a SessionOptions. The only exported symbol (see exports.map).
 #include <sched.h>
 
 #include <algorithm>
@@ -16,6 +16,9 @@
 #include "kernel_support.h"
 
 namespace qf {
+
+const OrtCustomOp* backward_warp_op();  // backward_warp.cc
+
 namespace {
 
 constexpr const char* kDomain = "ai.quietframe";
@@ -133,6 +136,7 @@ OrtStatus* register_ops(OrtSessionOptions* options, const OrtApiBase* base) {
   if (OrtStatus* s = api.CreateCustomOpDomain(kDomain, &domain)) return s;
   OrtStatus* status = api.CustomOpDomain_Add(domain, bilateral_splat_op());
   if (status == nullptr) status = api.CustomOpDomain_Add(domain, bilateral_slice_op());
+  if (status == nullptr) status = api.CustomOpDomain_Add(domain, backward_warp_op());
   if (status == nullptr) status = api.AddCustomOpDomain(options, domain);
   if (status != nullptr) {
     api.ReleaseCustomOpDomain(domain);
