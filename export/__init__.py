@@ -15,7 +15,8 @@ _LIBRARY_NAMES = {"linux": "libquietframe_ops.so", "darwin": "libquietframe_ops.
 
 
 def ops_library_path() -> Path:
-    """Path of the built onnxruntime custom-op library (BilateralSplat, BilateralSlice).
+    """Path of the built onnxruntime custom-op library (BilateralSplat, BilateralSlice,
+    BackwardWarp).
 
     QUIETFRAME_OPS_LIBRARY overrides the installed copy (e.g. a debug build of export/ops).
     """

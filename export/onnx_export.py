@@ -140,7 +140,7 @@ def export_nbg(
     }
     with torch.no_grad():
         program = torch.onnx.export(
-            _ExportWrapper(model), example_inputs(), dynamo=True, opset_version=OPSET,
+            _ExportWrapper(model).eval(), example_inputs(), dynamo=True, opset_version=OPSET,
             custom_translation_table=table, dynamic_shapes=dynamic,
             input_names=[*BUFFERS, "reset", f"state_in.{STATE_NAME}"],
             output_names=["denoised", f"state_out.{STATE_NAME}"],
