@@ -176,9 +176,12 @@ def train(cfg: TrainConfig, run: Path) -> Path:
             log.write(json.dumps({"step": step, "val_psnr": val_psnr,
                                   "val_sequences": len(val_batches)}) + "\n")
             log.flush()
-            if val_psnr > best_psnr or not val_batches:
+            # Scores are comparable only on the same validation set, which grows while rendering.
+            same_set = metrics.get("val_sequences") == len(val_batches)
+            if val_psnr > best_psnr or not same_set or not val_batches:
                 best_psnr = val_psnr
-                metrics = {"val_psnr_1spp_last_frame": round(val_psnr, 3), "step": step}
+                metrics = {"val_psnr_1spp_last_frame": round(val_psnr, 3), "step": step,
+                           "val_sequences": len(val_batches)}
                 save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
             save(latest, model, optimizer, step, cfg, best_psnr, metrics)
     bar.close()
