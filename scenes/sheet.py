@@ -3,6 +3,7 @@ normal, motion magnitude of a later frame, and that frame's reference."""
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -73,6 +74,11 @@ def contact_sheet(split_root: Path, output: Path, rows: int = 6) -> Path:
         )
     fig.tight_layout()
     output.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(output, dpi=72)
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=72)
     plt.close(fig)
+    # Noisy renders compress badly as RGB PNG; a 256-colour palette keeps the file ~1/3 the size.
+    from PIL import Image
+
+    Image.open(buf).convert("RGB").quantize(256).save(output, optimize=True)
     return output
