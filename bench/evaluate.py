@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -191,8 +192,8 @@ def crop_sheet(crops: dict[str, list[np.ndarray]], columns: list[str], path: Pat
 def write_report(rows: list[dict], meta: dict, path: Path) -> None:
     lines = ["# quietframe evaluation", "",
              f"Data: {meta['sequences']} {meta['split']} sequences ({meta['resolution']}), "
-             f"{meta['frames']} frames each spp level; machine: {meta['machine']}, "
-             f"{meta['threads']} threads. Command: `{meta['command']}`.",
+             f"{meta['frames']} frames each spp level; machine: {meta['machine']}. "
+             f"Command: `{meta['command']}`.",
              "PSNR on τ(x) = (x/(1+x))^(1/2.4); TRMAE per Işık et al. eq. 16; ms = median "
              "per frame.", "",
              "| method | spp | PSNR | SSIM | SMAPE | relMSE | TRMAE | ms/frame (eval) | "
@@ -249,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     meta = {"sequences": len(folders), "split": args.split, "threads": args.threads,
             "resolution": f"{first.shape[1]}×{first.shape[0]}",
             "frames": sum(len(s) for s in sequences), "machine": cpu_peak_gflops(2)[1],
-            "command": "quietframe-eval " + " ".join(argv or [])}
+            "command": "quietframe-eval " + " ".join(sys.argv[1:] if argv is None else argv)}
     (args.out / "benchmarks.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     write_report(rows, meta, args.out / "benchmarks.md")
     scatter_plot(rows, args.out / "psnr_vs_ms.png")
