@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
@@ -128,8 +129,6 @@ def run_sequence(method, frames, scores: Scores, keep: list | None = None) -> No
 
 def time_720p(factory, threads: int) -> float:
     """ms/frame at 1280×720 on synthetic buffers, state carried like a real sequence."""
-    from quietframe.bench.foundation import frame_buffers
-
     method = factory()
     buffers = frame_buffers()
     method.reset()
@@ -244,8 +243,6 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps({k: round(v, 4) if isinstance(v, float) else v
                               for k, v in row.items()}), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    from quietframe.bench.foundation import cpu_peak_gflops
-
     first = sequences[0][0][1]
     meta = {"sequences": len(folders), "split": args.split, "threads": args.threads,
             "resolution": f"{first.shape[1]}×{first.shape[0]}",

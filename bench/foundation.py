@@ -16,13 +16,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import re
 import tempfile
 from pathlib import Path
 
-import numpy as np
 import torch
 
+from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.export.onnx_export import export_nbg
 from quietframe.model.nbg import GUIDE_INPUT_CHANNELS, VARIANTS, GuideNet, NBGDenoiser
@@ -30,15 +29,6 @@ from quietframe.runtime import Denoiser
 from quietframe.runtime.denoiser import make_session
 
 HEIGHT, WIDTH = 720, 1280
-FMA_PIPES, FLOAT_LANES = 2, 8  # AVX2: two 256-bit FMA units per core
-
-
-def cpu_peak_gflops(threads: int) -> tuple[float, str]:
-    text = Path("/proc/cpuinfo").read_text()
-    mhz = float(re.search(r"cpu MHz\s*:\s*([\d.]+)", text).group(1))
-    model = re.search(r"model name\s*:\s*(.+)", text).group(1).strip()
-    peak = threads * mhz / 1e3 * FMA_PIPES * FLOAT_LANES * 2
-    return peak, f"{model}, {mhz:.0f} MHz, {threads} threads"
 
 
 def conv_gflop(net: GuideNet, height: int, width: int) -> float:
@@ -49,19 +39,6 @@ def conv_gflop(net: GuideNet, height: int, width: int) -> float:
             k = conv.kernel_size[0] * conv.kernel_size[1]
             total += 2 * conv.in_channels * conv.out_channels * k * height * width
     return total / 1e9
-
-
-def frame_buffers(seed: int = 0) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    normal = rng.normal(size=(HEIGHT, WIDTH, 3)).astype(np.float32)
-    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-    return {
-        "color": rng.exponential(0.5, (HEIGHT, WIDTH, 3)).astype(np.float32),
-        "albedo": rng.uniform(0, 1, (HEIGHT, WIDTH, 3)).astype(np.float32),
-        "normal": normal,
-        "depth": rng.uniform(1, 5, (HEIGHT, WIDTH, 1)).astype(np.float32),
-        "motion": rng.normal(0, 1, (HEIGHT, WIDTH, 2)).astype(np.float32),
-    }
 
 
 def bench_guidenet(config, threads: int, workdir: Path) -> dict[str, float]:

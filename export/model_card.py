@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from quietframe.bench.foundation import cpu_peak_gflops, frame_buffers
+from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.runtime import Denoiser
 

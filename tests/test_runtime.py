@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from quietframe.bench.synthetic import frame_buffers
 from quietframe.runtime import BufferError, Denoiser, default_model_path, find_model
 from quietframe.runtime.sanitize import sanitize_buffer
 
@@ -12,16 +13,10 @@ H, W = 24, 32
 
 
 def frame(seed: int = 0) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    normal = rng.normal(size=(H, W, 3)).astype(np.float32)
-    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-    return {
-        "color": rng.exponential(0.5, (H, W, 3)).astype(np.float32),
-        "albedo": rng.uniform(0.1, 0.9, (H, W, 3)).astype(np.float32),
-        "normal": normal,
-        "depth": rng.uniform(1, 3, (H, W, 1)).astype(np.float32),
-        "motion": np.zeros((H, W, 2), np.float32),
-    }
+    buffers = frame_buffers(H, W, seed)
+    buffers["motion"][:] = 0  # a static camera: history lines up
+    buffers["albedo"] = 0.1 + 0.8 * buffers["albedo"]
+    return buffers
 
 
 @pytest.fixture(scope="module")
