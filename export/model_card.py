@@ -15,9 +15,8 @@ from quietframe.bench.timing import time_ms
 from quietframe.runtime import Denoiser
 
 
-def measure_720p_ms(path: Path, threads: int = 2) -> float:
+def measure_720p_ms(runtime: Denoiser) -> float:
     """Median ms per 1280×720 frame through the runtime, history carried (bench/timing.py)."""
-    runtime = Denoiser(path, threads=threads)
     buffers = frame_buffers()
     state = runtime.denoise(buffers, None, reset=True).state
     return time_ms(lambda: runtime.denoise(buffers, state, reset=False),
@@ -28,7 +27,7 @@ def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 
     """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model."""
     runtime = Denoiser(path, threads=threads)
     info = runtime.info
-    ms = measure_720p_ms(path, threads)
+    ms = measure_720p_ms(runtime)
     lines = [
         f"# {info.name} (version {info.version})", "",
         f"File: `{path.name}` ({path.stat().st_size / 1024:.0f} KiB). "

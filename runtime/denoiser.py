@@ -101,6 +101,7 @@ class Denoiser:
         self.session = make_session(path, threads)
         meta = self.session.get_modelmeta().custom_metadata_map
         self.info = read_model_info(path, meta)
+        self._output_names = [o.name for o in self.session.get_outputs()]
 
     def initial_state(self, height: int, width: int) -> dict[str, np.ndarray]:
         return {
@@ -165,8 +166,7 @@ class Denoiser:
         prepared = time.perf_counter()
         outputs = self.session.run(None, feeds)
         ran = time.perf_counter()
-        names = [o.name for o in self.session.get_outputs()]
-        result = dict(zip(names, outputs, strict=True))
+        result = dict(zip(self._output_names, outputs, strict=True))
         color, bad = sanitize_output(result["denoised"][0].transpose(1, 2, 0))
         if bad:
             sanitized["denoised"] = bad
