@@ -28,6 +28,7 @@ NORMAL_MIN_DOT = 0.9  # ... and n_prev · n > 0.9 (warped normal as is, not reno
 # holds >= 5 frames, a plain mean of the frames seen before that (after a reset/disocclusion).
 MIN_CURRENT_WEIGHT = 0.2
 ALBEDO_EPSILON = 1e-2  # demodulation divides by (max(albedo, 0) + ε); remodulation multiplies
+ALBEDO_DEMODULATION_FLOOR = 5e-2  # below this max-channel albedo the divisor fades to 1 (sky)
 # State planes, as the model's state tensor: radiance (3), depth, normal (3), history length.
 STATE_CHANNELS = 8
 
@@ -66,7 +67,9 @@ def _planar(x: np.ndarray) -> np.ndarray:
 
 
 def safe_albedo(albedo: np.ndarray) -> np.ndarray:
-    return np.maximum(albedo, 0) + ALBEDO_EPSILON
+    albedo = np.maximum(albedo, 0)
+    ramp = np.minimum(albedo.max(axis=-1, keepdims=True) / ALBEDO_DEMODULATION_FLOOR, 1)
+    return (1 + ramp * (albedo + ALBEDO_EPSILON - 1)).astype(np.float32)
 
 
 def backward_warp(image: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

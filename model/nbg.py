@@ -17,6 +17,10 @@ from quietframe.model.grid import bilateral_slice, bilateral_splat
 from quietframe.model.temporal import STATE_CHANNELS, accumulate
 
 ALBEDO_EPSILON = 1e-2  # demodulation divides by (albedo + eps): invertible, gain bounded by 100
+# Below this max-channel albedo (sky, emitters, black paint) demodulation fades out linearly to a
+# divisor of 1: dividing a bright sky by 0.01 made it 100× brighter than the surfaces next to it
+# and the grid blur bled it across silhouettes.
+ALBEDO_DEMODULATION_FLOOR = 5e-2
 OUTLIER_SIGMAS = 3.0  # luminance above neighbourhood mean + k·std is pulled back to that bound
 GUIDE_INPUT_CHANNELS = 10  # LDR radiance·albedo (3) + albedo (3) + normal (3) + depth (1)
 
@@ -69,6 +73,13 @@ def suppress_outliers(radiance: Tensor, kernel: int = 5) -> Tensor:
     return radiance * scale
 
 
+def demodulation_divisor(albedo: Tensor) -> Tensor:
+    """Per-pixel divisor for demodulation (and factor for remodulation), (N, 3, H, W)."""
+    albedo = albedo.clamp_min(0)
+    ramp = (albedo.amax(dim=1, keepdim=True) / ALBEDO_DEMODULATION_FLOOR).clamp(max=1)
+    return 1 + ramp * (albedo + ALBEDO_EPSILON - 1)
+
+
 def prestage(
     color: Tensor,
     albedo: Tensor,
@@ -80,7 +91,7 @@ def prestage(
     temporal: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Demodulate, suppress outliers, accumulate over time -> (irradiance, safe albedo, state)."""
-    safe_albedo = albedo.clamp_min(0) + ALBEDO_EPSILON
+    safe_albedo = demodulation_divisor(albedo)
     irradiance = suppress_outliers(color / safe_albedo)
     if not temporal:
         return irradiance, safe_albedo, state

@@ -14,9 +14,7 @@ import argparse
 import dataclasses
 import json
 import math
-import random
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -41,11 +39,17 @@ class TrainConfig:
     frames: int = 4  # unrolled sub-sequence length
     batch: int = 4
     lr: float = 1e-3
+    lr_final: float = 0.05  # cosine decay to lr·lr_final at `steps`: the last steps refine
     steps: int = 4000
     eval_every: int = 200
     log_every: int = 20
     seed: int = 0
     threads: int = 2
+
+
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    progress = min(step / max(cfg.steps, 1), 1.0)
+    return cfg.lr * (cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
 def sequence_loss(cfg: TrainConfig, outputs: list[Tensor], refs: list[Tensor]) -> Tensor:
@@ -92,7 +96,6 @@ def save(path: Path, model: NBGDenoiser, optimizer, step: int, cfg: TrainConfig,
         "config": model.config.to_dict(), "model": model.state_dict(),
         "optimizer": optimizer.state_dict(), "step": step, "best_psnr": best_psnr,
         "training": {**dataclasses.asdict(cfg), "steps_done": step}, "metrics": metrics,
-        "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
     }, tmp)
     tmp.replace(path)  # atomic: a killed run never leaves a torn checkpoint
 
@@ -103,18 +106,31 @@ def split_root(cfg: TrainConfig, split: str) -> Path:
     return split_dir(Path(cfg.data).expanduser(), split)
 
 
-def training_batches(cfg: TrainConfig) -> Iterator[dict[str, Tensor]]:
-    """Endless shuffled batches of augmented crop windows, reproducible from the seed."""
-    from torch.utils.data import DataLoader
+class TrainingBatches:
+    """Batch k is a pure function of (seed, k): epoch permutations and crop/augmentation draws
+    are seeded from them, so a resumed run sees exactly the batches an uninterrupted one would."""
 
-    from quietframe.model.data import CropDataset
+    def __init__(self, cfg: TrainConfig) -> None:
+        from quietframe.model.data import CropDataset
 
-    dataset = CropDataset(split_root(cfg, "train"), crop=cfg.crop, history=cfg.frames - 1)
-    generator = torch.Generator().manual_seed(cfg.seed)
-    while True:
-        loader = DataLoader(dataset, batch_size=cfg.batch, shuffle=True, drop_last=True,
-                            generator=generator)
-        yield from loader
+        self.dataset = CropDataset(split_root(cfg, "train"), crop=cfg.crop,
+                                   history=cfg.frames - 1)
+        self.batch, self.seed = cfg.batch, cfg.seed
+        self.per_epoch = max(len(self.dataset) // cfg.batch, 1)
+        self._epoch, self._order = -1, torch.empty(0, dtype=torch.long)
+
+    def __call__(self, step: int) -> dict[str, Tensor]:
+        from torch.utils.data import default_collate
+
+        epoch, k = divmod(step, self.per_epoch)
+        if epoch != self._epoch:
+            generator = torch.Generator().manual_seed(self.seed * 1_000_003 + epoch)
+            self._epoch = epoch
+            self._order = torch.randperm(len(self.dataset), generator=generator)
+        indices = self._order[k * self.batch : (k + 1) * self.batch].tolist()
+        indices += self._order[: self.batch - len(indices)].tolist()  # dataset < one batch
+        torch.manual_seed(self.seed * 1_000_003 + 7919 * step + 1)  # CropDataset draws here
+        return default_collate([self.dataset[i] for i in indices])
 
 
 def validation_batches(cfg: TrainConfig, spp: int = 1) -> list[dict[str, Tensor]]:
@@ -128,13 +144,14 @@ def validation_batches(cfg: TrainConfig, spp: int = 1) -> list[dict[str, Tensor]
     return [{k: v.unsqueeze(0) for k, v in dataset[i].items()} for i in range(len(dataset))]
 
 
-def train(cfg: TrainConfig, run: Path) -> Path:
+def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
+    """Train (resuming from run/checkpoint.pt) up to cfg.steps, or pause at `stop_at` with a
+    checkpoint: the schedule is the one of cfg.steps either way."""
     from tqdm import tqdm
 
     run.mkdir(parents=True, exist_ok=True)
     (run / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     torch.manual_seed(cfg.seed)
-    random.seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     config: NBGConfig = dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width)
     model = NBGDenoiser(config)
@@ -146,14 +163,15 @@ def train(cfg: TrainConfig, run: Path) -> Path:
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         step, best_psnr, metrics = ckpt["step"], ckpt["best_psnr"], ckpt["metrics"]
-        torch.set_rng_state(ckpt["rng"]["torch"])
-        random.setstate(ckpt["rng"]["python"])
-    train_batches = training_batches(cfg)
+    train_batches = TrainingBatches(cfg)
     log = (run / "log.txt").open("a")
     bar = tqdm(total=cfg.steps, initial=step, desc=cfg.variant, dynamic_ncols=True)
     started, running = time.time(), None
-    while step < cfg.steps:
-        batch = next(train_batches)
+    end = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
+    while step < end:
+        batch = train_batches(step)
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(cfg, step)
         outputs = unroll(model, batch)
         refs = [batch["reference"][:, i] for i in range(len(outputs))]
         loss = sequence_loss(cfg, outputs, refs)
@@ -184,6 +202,7 @@ def train(cfg: TrainConfig, run: Path) -> Path:
                            "val_sequences": len(val_batches)}
                 save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
             save(latest, model, optimizer, step, cfg, best_psnr, metrics)
+    save(latest, model, optimizer, step, cfg, best_psnr, metrics)
     bar.close()
     return run / "best.pt"
 
@@ -194,9 +213,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument(f"--{field.name.replace('_', '-')}", type=type(field.default),
                             default=field.default)
     parser.add_argument("--run", type=Path, required=True, help="run directory (resumes)")
+    parser.add_argument("--stop-at", type=int, help="pause at this step (resume later)")
     args = vars(parser.parse_args(argv))
-    run = args.pop("run")
-    best = train(TrainConfig(**args), run)
+    run, stop_at = args.pop("run"), args.pop("stop_at")
+    best = train(TrainConfig(**args), run, stop_at)
     print(f"best checkpoint: {best}")
     return 0
 

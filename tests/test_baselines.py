@@ -67,6 +67,7 @@ def test_constants_match_the_nbg_temporal_stage():
     assert bl.NORMAL_MIN_DOT == temporal.NORMAL_MIN_DOT == 0.9
     assert bl.STATE_CHANNELS == temporal.STATE_CHANNELS
     assert bl.ALBEDO_EPSILON == nbg.ALBEDO_EPSILON
+    assert bl.ALBEDO_DEMODULATION_FLOOR == nbg.ALBEDO_DEMODULATION_FLOOR
 
 
 def test_accumulation_is_a_twin_of_the_torch_prestage():
@@ -86,7 +87,7 @@ def test_accumulation_is_a_twin_of_the_torch_prestage():
         reset = t in (0, 4)
         if reset:
             acc.reset()
-        safe = np.maximum(buffers["albedo"], 0) + bl.ALBEDO_EPSILON
+        safe = bl.safe_albedo(buffers["albedo"])
         with torch.no_grad():
             radiance, state = accumulate(
                 nchw(buffers["color"] / safe),
