@@ -56,11 +56,12 @@ class Noisy:
         return buffers["color"]
 
 
-def build_methods(threads: int) -> dict[str, Callable[[], object]]:
-    """Method name -> factory (each sequence gets fresh state through reset())."""
+def build_methods(threads: int, extra: list[Path] = ()) -> dict[str, Callable[[], object]]:
+    """Method name -> factory (each sequence gets fresh state through reset()). `extra`: more
+    .onnx files (e.g. fresh training runs), named by file stem."""
     from quietframe.bench import baselines
 
-    models = {p.stem: p for p in installed_models()}
+    models = {p.stem: p for p in (*installed_models(), *extra)}
     methods: dict[str, Callable[[], object]] = {"noisy": Noisy}
     if "accumulation" in models:
         methods["accumulation"] = lambda: RuntimeMethod(models["accumulation"], threads)
@@ -213,15 +214,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
     parser.add_argument("--methods", default="", help="comma list (default: all)")
+    parser.add_argument("--model", type=Path, action="append", default=[],
+                        help="also evaluate this .onnx (named by its file stem); repeatable")
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args(argv)
+    missing = [str(p) for p in args.model if not p.is_file()]
+    if missing:
+        raise SystemExit(f"--model: no such file {missing}")
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     folders = sequence_dirs(args.data.expanduser(), args.split)
     if args.sequences:
         folders = folders[: args.sequences]
     if not folders:
         raise SystemExit(f"no {args.split} sequences under {args.data} (run quietframe-render)")
-    methods = build_methods(args.threads)
+    methods = build_methods(args.threads, args.model)
     if args.methods:
         methods = {k: v for k, v in methods.items() if k in args.methods.split(",")}
     rows, crops, ms_720p = [], defaultdict(list), {}

@@ -18,7 +18,9 @@ def _smooth(rng: np.random.Generator, c: int) -> np.ndarray:
     return img + np.roll(img, 1, 0) + np.roll(img, 1, 1)
 
 
-def write_sequence(root, seed: int, frames: int = 3, levels=(1, 2, 4)) -> None:
+def write_sequence(
+    root, seed: int, frames: int = 3, levels=(1, 2, 4), noise: float = 0.1
+) -> None:
     """A camera that slides: frame t at pixel p equals frame t-1 at p + SHIFT (backward
     motion = SHIFT everywhere). Frames are crops of one big image."""
     rng = np.random.default_rng(seed)
@@ -31,7 +33,7 @@ def write_sequence(root, seed: int, frames: int = 3, levels=(1, 2, 4)) -> None:
     for t in range(frames):
         x0, y0 = 2 + SHIFT[0] * t, 12 + SHIFT[1] * t
         layers = {k: v[y0 : y0 + H, x0 : x0 + W] for k, v in big.items()}
-        passes = [layers["reference"] + rng.normal(0, 0.1, (H, W, 3)) for _ in range(max(levels))]
+        passes = [layers["reference"] + rng.normal(0, noise, (H, W, 3)) for _ in range(max(levels))]
         for k, p in enumerate(passes):
             layers[exr_io.pass_layer(k)] = p
         for n in levels:

@@ -1,0 +1,55 @@
+"""quietframe-eval end to end on a tiny on-disk dataset: shipped models through the runtime,
+an extra --model file, the report files; and the metrics order a denoiser must produce."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+from dataset_support import write_sequence
+
+pytest.importorskip("matplotlib", reason="the evaluation plots need the train extra")
+
+from quietframe.bench import evaluate  # noqa: E402
+from quietframe.runtime import find_model  # noqa: E402
+from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data")
+    for seed in (31, 32):
+        write_sequence(root / GENERATOR_VERSION / "validation", seed, frames=4, noise=1.0)
+    return root
+
+
+def test_eval_writes_table_plot_and_crops(data, tmp_path):
+    extra = tmp_path / "my-run.onnx"
+    shutil.copy(find_model("nbg-2l-3g"), extra)
+    out = tmp_path / "report"
+    evaluate.main(["--data", str(data), "--spp", "1,4", "--threads", "1",
+                   "--methods", "noisy,accumulation,nbg-2l-3g,my-run",
+                   "--model", str(extra), "--out", str(out)])
+    report = json.loads((out / "benchmarks.json").read_text())
+    rows = {(r["method"], r["spp"]): r for r in report["rows"]}
+    assert set(rows) == {(m, s) for m in ("noisy", "accumulation", "nbg-2l-3g", "my-run")
+                         for s in (1, 4)}
+    assert report["meta"]["sequences"] == 2 and report["meta"]["frames"] == 8
+    for spp in (1, 4):
+        # the same file under two names gives the same scores: one pipeline, no hidden state
+        assert rows[("my-run", spp)]["psnr"] == pytest.approx(rows[("nbg-2l-3g", spp)]["psnr"])
+    # reference + strong white noise, exact integer motion: averaging 4 frames must help
+    assert rows[("accumulation", 1)]["psnr"] > rows[("noisy", 1)]["psnr"] + 1
+    assert rows[("nbg-2l-3g", 1)]["psnr"] > rows[("noisy", 1)]["psnr"] + 5
+    assert rows[("noisy", 4)]["psnr"] > rows[("noisy", 1)]["psnr"]
+    assert all(r["ms_720p"] > 0 for r in report["rows"] if r["method"] != "noisy")
+    table = (out / "benchmarks.md").read_text()
+    assert "| my-run | 4 |" in table
+    for image in ("psnr_vs_ms.png", "crops.png"):
+        assert (out / image).stat().st_size > 1000
+
+
+def test_eval_rejects_a_missing_model_file(data, tmp_path):
+    with pytest.raises(SystemExit, match="no such file"):
+        evaluate.main(["--data", str(data), "--model", str(tmp_path / "nope.onnx")])
