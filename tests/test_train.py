@@ -86,3 +86,18 @@ def test_learning_rate_decays_to_the_final_fraction():
     assert qt.learning_rate(cfg, 100) == pytest.approx(5e-5)
     rates = [qt.learning_rate(cfg, s) for s in range(101)]
     assert all(a >= b for a, b in zip(rates, rates[1:], strict=False))
+
+
+def test_training_report_summarises_the_log(data, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    from quietframe.bench import training_report
+
+    run = tmp_path / "tiny-run"
+    qt.train(config(data), run)
+    log = training_report.read_run(run)
+    assert [s for s, _ in log.validations] == [3, 6]
+    assert log.best[1] == max(v for _, v in log.validations)
+    training_report.main([str(run), "--out", str(tmp_path / "docs")])
+    assert (tmp_path / "docs" / "training_curves.png").stat().st_size > 1000
+    row = next(line for line in capsys.readouterr().out.splitlines() if "tiny-run" in line)
+    assert f"| {log.best[1]:.2f} | {log.best[0]} |" in row and "| 6 |" in row
