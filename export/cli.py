@@ -8,7 +8,8 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-export", description=__doc__)
-    parser.add_argument("--variant", default="nbg-2l-3g", help="architecture when untrained")
+    parser.add_argument("--variant", default="nbg-2l-3g",
+                        help="architecture when untrained; 'accumulation' = the pre-stage alone")
     parser.add_argument("--checkpoint", type=Path, help="training checkpoint (.pt)")
     parser.add_argument("--width", type=int, help="GuideNet width (untrained only)")
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
@@ -25,9 +26,11 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from quietframe.export.onnx_export import export_nbg
-    from quietframe.model.nbg import VARIANTS, NBGDenoiser, load_checkpoint
+    from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
 
-    if args.checkpoint:
+    if args.variant == "accumulation" and not args.checkpoint:
+        model, training, metrics = AccumulationDenoiser(), {"trained": False}, {}
+    elif args.checkpoint:
         model, checkpoint = load_checkpoint(str(args.checkpoint))
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
     else:
