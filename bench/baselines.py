@@ -5,7 +5,7 @@ Each is a stateful per-sequence object: `reset()` at a first frame or camera cut
 `albedo`, `normal` (H, W, 3), `depth` (H, W, 1) or (H, W), `motion` (H, W, 2) backward in pixels
 (pixel p of frame t was at p + motion in frame t-1; a missing motion is a static camera).
 
-The temporal rule (`backward_warp`, `history_valid`, the accumulation weights, demodulation) is
+The temporal rule (`nearest_warp`, `history_valid`, the accumulation weights, demodulation) is
 a numpy twin of the NBG pre-stage in `model/temporal.py` and `model/nbg.py`: same names, same
 constants, same formulas (tests/test_baselines.py holds them equal), without torch.
 """
@@ -72,43 +72,22 @@ def safe_albedo(albedo: np.ndarray) -> np.ndarray:
     return (1 + ramp * (albedo + ALBEDO_EPSILON - 1)).astype(np.float32)
 
 
-def backward_warp(image: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Fetch planar (C, H, W) image(t-1) at p + motion(p), bilinear, coordinates clamped to the
-    frame (grid_sample's border padding); also return `inside` (H, W): within half a pixel of
-    the frame."""
+def nearest_warp(image: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Planar (C, H, W) image(t-1) at the pixel nearest to p + motion(p), clamped to the frame
+    (grid_sample nearest with border padding: round half to even, as np.rint), and `inside`
+    (H, W): the source lies within half a pixel of the frame (as ai.quietframe::BackwardWarp)."""
     h, w = motion.shape[:2]
     mx, my = _planar(motion)  # contiguous planes: ops on strided (..., 0) views are slow
     src_x = np.arange(w, dtype=np.float32)[None, :] + mx  # (H, W) position in frame t-1
     src_y = np.arange(h, dtype=np.float32)[:, None] + my
     # NaN compares False: non-finite motion is outside
     inside = (src_x > -0.5) & (src_x < w - 0.5) & (src_y > -0.5) & (src_y < h - 0.5)
-    qx = np.clip(np.nan_to_num(src_x), 0, w - 1)
-    qy = np.clip(np.nan_to_num(src_y), 0, h - 1)
-    x0 = np.minimum(np.floor(qx), w - 2)  # x0 + 1 stays inside; fx = 1 at the last column
-    y0 = np.minimum(np.floor(qy), h - 2)
-    fx, fy = qx - x0, qy - y0  # float32 weights (int - float32 would promote to float64)
-    i00 = (y0 * w + x0).astype(np.intp)
-    gx, gy = 1 - fx, 1 - fy
-    taps = ((i00, gx * gy), (i00 + 1, fx * gy), (i00 + w, gx * fy), (i00 + (w + 1), fx * fy))
-    warped = np.empty(image.shape, np.float32)
-    tmp = np.empty((h, w), np.float32)
-    for plane, out in zip(image.reshape(len(image), -1), warped, strict=True):
-        # 1-D takes per plane: several times faster than gathering (C,)-rows of an (H·W, C) array
-        np.multiply(plane.take(taps[0][0]), taps[0][1], out=out)
-        for index, weight in taps[1:]:
-            out += np.multiply(plane.take(index), weight, out=tmp)
-    return warped, inside
-
-
-def nearest_warp(image: np.ndarray, motion: np.ndarray) -> np.ndarray:
-    """Planar (C, H, W) image(t-1) at the pixel nearest to p + motion(p), clamped to the frame
-    (grid_sample nearest with border padding: round half to even, as np.rint)."""
-    h, w = motion.shape[:2]
-    mx, my = _planar(motion)
-    qx = np.clip(np.rint(np.nan_to_num(np.arange(w, dtype=np.float32)[None, :] + mx)), 0, w - 1)
-    qy = np.clip(np.rint(np.nan_to_num(np.arange(h, dtype=np.float32)[:, None] + my)), 0, h - 1)
+    qx = np.clip(np.rint(np.nan_to_num(src_x)), 0, w - 1)
+    qy = np.clip(np.rint(np.nan_to_num(src_y)), 0, h - 1)
     index = (qy * w + qx).astype(np.intp)
-    return np.stack([plane.take(index) for plane in image.reshape(len(image), -1)])
+    # 1-D takes per plane: several times faster than gathering (C,)-rows of an (H·W, C) array
+    warped = np.stack([plane.take(index) for plane in image.reshape(len(image), -1)])
+    return warped, inside
 
 
 def history_valid(
@@ -130,9 +109,9 @@ def _reproject(
     the new history length n: 1 where history is dropped, else min(n_prev, max_count) + 1."""
     if state is None or state.shape[1:] != depth.shape:
         return None, np.ones(depth.shape, np.float32)
-    warped, inside = backward_warp(state, motion)
-    surface = nearest_warp(state[3:7], motion)  # as model/temporal: no blended silhouettes
-    keep = inside & history_valid(surface[0], surface[1:4], depth, normal)
+    # nearest pixel, as model/temporal: the surface test checks the very pixel that is reused
+    warped, inside = nearest_warp(state, motion)
+    keep = inside & history_valid(warped[3], warped[4:7], depth, normal)
     return warped, keep * np.clip(warped[7], 0, max_count) + 1
 
 

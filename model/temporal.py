@@ -97,13 +97,14 @@ def accumulate(
     radiance (N, 3, H, W), depth (N, 1, H, W), normal (N, 3, H, W), motion (N, 2, H, W),
     reset (N,) 1 = drop history, state (N, 8, H, W) -> (accumulated radiance, new state).
     """
-    warped, inside = backward_warp(state, motion)
+    # Nearest-pixel reprojection of the whole state: the surface test then checks exactly the
+    # pixel whose radiance is reused. Bilinear radiance mixed a tap from across a silhouette
+    # into the history (a light source next to a dark wall left a trail for frames) and blurred
+    # it a little more every frame; on the validation set nearest halved relMSE and lowered
+    # TRMAE by 7% at equal PSNR (docs/training.md).
+    warped, inside = backward_warp(state, motion, mode="nearest")
     prev_radiance, prev_count = warped[:, 0:3], warped[:, 7:8]
-    # The surface test uses the nearest previous pixel: bilinear depth at a silhouette is a
-    # blend of foreground and background that matches neither, which rejected history along
-    # every moving edge.
-    surface, _ = backward_warp(state[:, 3:7], motion, mode="nearest")
-    keep = inside * history_valid(surface[:, 0:1], surface[:, 1:4], depth, normal)
+    keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
     keep = keep * (1 - reset.view(-1, 1, 1, 1))
     count = keep * prev_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
     alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)  # (N, 1, H, W) weight of the current frame

@@ -101,18 +101,19 @@ def test_accumulation_is_a_twin_of_the_torch_prestage():
         np.testing.assert_allclose(acc(buffers), want, rtol=1e-4, atol=1e-5)
 
 
-def test_warp_integer_and_half_pixel_motion():
+def test_warp_integer_and_subpixel_motion():
     hist = np.random.default_rng(1).random((2, H, W)).astype(np.float32)
     motion = np.zeros((H, W, 2), np.float32)
     motion[..., 0], motion[..., 1] = -3, 2  # pixel p was at p + (-3, 2)
-    warped, inside = bl.backward_warp(hist, motion)
-    np.testing.assert_allclose(warped[:, : H - 2, 3:], hist[:, 2:, : W - 3], rtol=1e-6)
+    warped, inside = bl.nearest_warp(hist, motion)
+    np.testing.assert_array_equal(warped[:, : H - 2, 3:], hist[:, 2:, : W - 3])
     assert inside[: H - 2, 3:].all() and not inside[H - 2 :].any() and not inside[:, :3].any()
-    motion[..., 0], motion[..., 1] = 0.5, 0
-    warped, _ = bl.backward_warp(hist, motion)
-    np.testing.assert_allclose(warped[:, :, :-1], (hist[:, :, :-1] + hist[:, :, 1:]) / 2, rtol=1e-5)
+    motion[..., 0], motion[..., 1] = 0.4, -0.6  # nearest: (0, -1), never a blend of pixels
+    warped, inside = bl.nearest_warp(hist, motion)
+    np.testing.assert_array_equal(warped[:, 1:, :], hist[:, :-1, :])
+    assert not inside[0].any() and inside[1:].all()  # y - 0.6 < -0.5 on the first row
     motion[5, 7] = np.nan
-    assert not bl.backward_warp(hist, motion)[1][5, 7]  # non-finite motion: no history
+    assert not bl.nearest_warp(hist, motion)[1][5, 7]  # non-finite motion: no history
 
 
 def test_history_valid_thresholds():

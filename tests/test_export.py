@@ -26,7 +26,10 @@ def frame_inputs(index: int):
     color, albedo, normal, depth, motion, _, _ = example_inputs(HEIGHT, WIDTH, seed=7)
     shift = lambda t: torch.roll(t, shifts=index, dims=3)  # noqa: E731
     motion = torch.zeros_like(motion)
-    motion[:, 0] = -1.0 if index else 0.0  # pixel p came from p - 1 in the previous frame
+    # pixel p came from about p - 1 in the previous frame; sub-pixel, so that a bilinear and a
+    # nearest reprojection give different histories and a stale export cannot pass
+    motion[:, 0] = -1.3 if index else 0.0
+    motion[:, 1] = 0.4 if index else 0.0
     return shift(color), shift(albedo), shift(normal), shift(depth), motion
 
 
