@@ -23,6 +23,33 @@ def measure_720p_ms(runtime: Denoiser) -> float:
                    warmup=1, repeats=5).median_ms
 
 
+def describe_split(root: Path) -> str:
+    """One line on a rendered split, read from its manifests (docs/data.md)."""
+    manifests = [json.loads(p.read_text()) for p in sorted(root.glob("*/manifest.json"))]
+    if not manifests:
+        return f"`{root}`: not present on the machine that wrote this card"
+    frames = sum(m["frame_count"] for m in manifests)
+    sizes = sorted({f"{m['config']['width']}×{m['config']['height']}" for m in manifests})
+    levels = sorted({s for m in manifests for s in m["config"]["spp_levels"]})
+    refs = sorted({m["config"]["reference_spp"] for m in manifests})
+    seeds = [m["seed"] for m in manifests]
+    return (f"{len(manifests)} sequences (seeds {min(seeds)}–{max(seeds)}, generator "
+            f"{manifests[0].get('generator', '?')}), {frames} frames, {', '.join(sizes)}, inputs "
+            f"at {levels} spp, references at {refs} spp")
+
+
+def data_lines(training: dict) -> list[str]:
+    if "data" not in training:
+        return []
+    from quietframe.scenes.cli import split_dir
+
+    data = Path(training["data"]).expanduser()
+    return ["## Data", "",
+            f"- train: {describe_split(split_dir(data, 'train'))}",
+            f"- validation (never trained on; picks `best.pt`): "
+            f"{describe_split(split_dir(data, 'validation'))}", ""]
+
+
 def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 2) -> Path:
     """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model."""
     runtime = Denoiser(path, threads=threads)
@@ -36,6 +63,7 @@ def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 
         "## Architecture", "", "```json",
         json.dumps(json.loads(info.metadata.get("quietframe.architecture", "{}")), indent=1),
         "```", "", "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
+        *data_lines(info.training),
         "## Speed", "",
         f"{ms:.0f} ms per 1280×720 frame through quietframe.runtime with {threads} threads on "
         f"{cpu_peak_gflops(threads)[1]}, median of 5 (bench/timing.py).", "",

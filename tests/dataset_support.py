@@ -7,6 +7,7 @@ import json
 import numpy as np
 
 from quietframe.scenes import exr_io
+from quietframe.scenes.generator import GENERATOR_VERSION
 
 H, W = 40, 48
 SHIFT = (3, -2)  # frame t shows frame t-1 moved by this many pixels (x, y)
@@ -55,6 +56,8 @@ def write_sequence(
         "seed": seed,
         "frame_count": frames,
         "frames": recs,
-        "config": {"spp_levels": list(levels)},
+        "generator": GENERATOR_VERSION,
+        "config": {"width": W, "height": H, "frames": [frames, frames],
+                   "spp_levels": list(levels), "reference_spp": 64},
     }
     (d / "manifest.json").write_text(json.dumps(manifest))

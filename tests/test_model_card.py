@@ -1,0 +1,44 @@
+"""Model cards are written from the graph's metadata, the data manifests and a measurement."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from dataset_support import write_sequence
+
+torch = pytest.importorskip("torch")
+
+from quietframe.export.model_card import write_model_card  # noqa: E402
+from quietframe.export.onnx_export import export_nbg  # noqa: E402
+from quietframe.model.nbg import VARIANTS, NBGDenoiser  # noqa: E402
+from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
+
+
+def test_card_reports_architecture_data_speed_and_metrics(tmp_path):
+    data = tmp_path / "data"
+    for split, seeds in (("train", (3, 4)), ("validation", (9,))):
+        for seed in seeds:
+            write_sequence(data / GENERATOR_VERSION / split, seed, frames=3, levels=(1, 2))
+    torch.manual_seed(0)
+    path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "nbg-2l-1g.onnx",
+                      version="7", training={"variant": "nbg-2l-1g", "data": str(data),
+                                             "steps_done": 12}, metrics={"val": 1.0})
+    rows = [{"spp": 1, "psnr": 21.5, "ssim": 0.5, "smape": 0.2, "relmse": 0.3, "trmae": 1.25}]
+    card = write_model_card(path, rows, threads=1).read_text()
+    assert card.startswith("# nbg-2l-1g (version 7)")
+    assert '"grids": 1' in card and '"steps_done": 12' in card
+    assert "- train: 2 sequences (seeds 3–4, generator" in card
+    assert "6 frames, 48×40, inputs at [1, 2] spp" in card
+    assert "- validation (never trained on; picks `best.pt`): 1 sequences (seeds 9–9" in card
+    speed = re.search(r"(\d+) ms per 1280×720 frame", card)
+    assert speed and int(speed.group(1)) > 0
+    assert "| 1 | 21.50 | 0.5000 | 0.2000 | 0.3000 | 1.2500 |" in card
+
+
+def test_card_says_when_the_data_is_absent(tmp_path):
+    path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "m.onnx",
+                      training={"data": str(tmp_path / "nowhere")})
+    card = write_model_card(path, threads=1).read_text()
+    assert "not present on the machine that wrote this card" in card
+    assert "no evaluation run given" in card
