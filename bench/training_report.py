@@ -42,12 +42,15 @@ def read_run(run: Path) -> RunLog:
 
 
 def markdown_table(runs: list[RunLog]) -> str:
-    lines = ["| run | variant | loss | steps | best val PSNR (1 spp, last frame) | at step |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "| run | variant | width | loss | steps | best val PSNR (1 spp, last frame) | at step |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in runs:
         step, best = r.best
         last = r.losses[-1][0] if r.losses else 0
-        lines.append(f"| {r.name} | {r.config['variant']} | {r.config['loss']} | {last} | "
+        lines.append(f"| {r.name} | {r.config['variant']} | {r.config['width']} | "
+                     f"{r.config['loss']} | {last} | "
                      f"{best:.2f} | {step} |")
     return "\n".join(lines)
 
