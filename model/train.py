@@ -202,7 +202,8 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
                            "val_sequences": len(val_batches)}
                 save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
             save(latest, model, optimizer, step, cfg, best_psnr, metrics)
-    save(latest, model, optimizer, step, cfg, best_psnr, metrics)
+    if step % cfg.eval_every and step != cfg.steps:  # paused (--stop-at) between evaluations
+        save(latest, model, optimizer, step, cfg, best_psnr, metrics)
     bar.close()
     return run / "best.pt"
 
