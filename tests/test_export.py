@@ -60,8 +60,9 @@ def _graph_nodes(path):
     return onnx.load(str(path)).graph.node
 
 
-def assert_runtime_matches_torch(model, runtime) -> None:
-    """FRAMES frames through both with the state carried; outputs and state within 1e-4."""
+def assert_runtime_matches_torch(model, runtime, rtol: float = 1e-4, atol: float | None = None):
+    """FRAMES frames through both with the state carried; outputs and state within rtol and
+    atol (default: rtol × the frame's largest output)."""
     torch_state = model.initial_state(1, HEIGHT, WIDTH)
     ort_state = None
     for index in range(FRAMES):
@@ -76,10 +77,9 @@ def assert_runtime_matches_torch(model, runtime) -> None:
         result = runtime.denoise(buffers, ort_state, reset=index == 0)
         ort_state = result.state
         scale = float(expected.abs().max())
-        np.testing.assert_allclose(result.color, to_hwc(expected), rtol=1e-4, atol=1e-4 * scale)
-        np.testing.assert_allclose(
-            ort_state["accumulation"], torch_state.numpy(), rtol=1e-4, atol=1e-4 * scale
-        )
+        tolerance = {"rtol": rtol, "atol": rtol * scale if atol is None else atol}
+        np.testing.assert_allclose(result.color, to_hwc(expected), **tolerance)
+        np.testing.assert_allclose(ort_state["accumulation"], torch_state.numpy(), **tolerance)
     # The history was used: the last frame differs from a reset run of the same inputs.
     fresh = runtime.denoise(buffers, None, reset=True)
     assert np.abs(fresh.color - result.color).max() > 1e-3 * scale
@@ -124,19 +124,8 @@ def test_dynamic_sizes_and_missing_motion(exported):
 def assert_accumulation_matches(runtime) -> None:
     from quietframe.model.nbg import AccumulationDenoiser
 
-    model = AccumulationDenoiser()
-    state, ort_state = model.initial_state(1, HEIGHT, WIDTH), None
-    for index in range(FRAMES):
-        color, albedo, normal, depth, motion = frame_inputs(index)
-        with torch.no_grad():
-            expected, state = model(color, albedo, normal, depth, motion,
-                                    torch.tensor([float(index == 0)]), state)
-        buffers = {"color": to_hwc(color), "albedo": to_hwc(albedo), "normal": to_hwc(normal),
-                   "depth": to_hwc(depth), "motion": to_hwc(motion)}
-        result = runtime.denoise(buffers, ort_state, reset=index == 0)
-        ort_state = result.state
-        np.testing.assert_allclose(result.color, to_hwc(expected), rtol=1e-5, atol=1e-5)
     assert runtime.info.name == "accumulation"
+    assert_runtime_matches_torch(AccumulationDenoiser(), runtime, rtol=1e-5, atol=1e-5)
 
 
 def test_accumulation_only_graph_matches_pytorch(tmp_path):
