@@ -3,7 +3,7 @@
     python -m quietframe.bench.training_report RUN_DIR [RUN_DIR ...] --out docs
 
 Writes <out>/training_curves.png (training loss and validation PSNR against the step, one
-line per run) and prints a markdown table: run, variant, loss, steps, minutes, best val PSNR.
+line per run) and prints a markdown table: run, variant, width, loss, steps, best val PSNR.
 Figures come from the logs as written during training; nothing is recomputed.
 """
 
@@ -21,7 +21,6 @@ class RunLog:
     config: dict
     losses: list[tuple[int, float]]  # (step, smoothed training loss)
     validations: list[tuple[int, float]]  # (step, val PSNR dB)
-    seconds: float  # wall time of the last logged step (of the latest resume segment)
 
     @property
     def best(self) -> tuple[int, float]:
@@ -30,15 +29,14 @@ class RunLog:
 
 def read_run(run: Path) -> RunLog:
     config = json.loads((run / "config.json").read_text())
-    losses, validations, seconds = [], [], 0.0
+    losses, validations = [], []
     for line in (run / "log.txt").read_text().splitlines():
         record = json.loads(line)
         if "loss" in record:
             losses.append((record["step"], record["loss"]))
-            seconds = record.get("seconds", seconds)
         if "val_psnr" in record and record.get("val_sequences"):
             validations.append((record["step"], record["val_psnr"]))
-    return RunLog(run.name, config, losses, validations, seconds)
+    return RunLog(run.name, config, losses, validations)
 
 
 def markdown_table(runs: list[RunLog]) -> str:
