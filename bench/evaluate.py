@@ -28,6 +28,7 @@ from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
+from quietframe.runtime.buffers import planes_from_hwc
 
 AUX = ("albedo", "normal", "depth", "motion")
 
@@ -43,9 +44,10 @@ class RuntimeMethod:
         self.state = None
 
     def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
-        result = self.denoiser.denoise(buffers, self.state, reset=self.state is None)
+        """(H, W, C) images like the other methods; the runtime takes and returns planes."""
+        result = self.denoiser.denoise(planes_from_hwc(buffers), self.state)
         self.state = result.state
-        return result.color
+        return result.color.transpose(1, 2, 0)
 
 
 class Noisy:
@@ -131,7 +133,7 @@ def run_sequence(method, frames, scores: Scores, keep: list | None = None) -> No
 def time_720p(factory, threads: int) -> float:
     """ms/frame at 1280×720 on synthetic buffers, state carried like a real sequence."""
     method = factory()
-    buffers = frame_buffers()
+    buffers = {k: v.transpose(1, 2, 0) for k, v in frame_buffers().items()}  # (H, W, C) images
     method.reset()
     method(buffers)
     return time_ms(lambda: method(buffers), warmup=1, repeats=3).median_ms
@@ -252,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
     first = sequences[0][0][1]
     meta = {"sequences": len(folders), "split": args.split, "threads": args.threads,
             "resolution": f"{first.shape[1]}×{first.shape[0]}",
-            "frames": sum(len(s) for s in sequences), "machine": cpu_peak_gflops(2)[1],
+            "frames": sum(len(s) for s in sequences), "machine": cpu_peak_gflops(args.threads)[1],
             "command": "quietframe-eval " + " ".join(sys.argv[1:] if argv is None else argv)}
     (args.out / "benchmarks.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     write_report(rows, meta, args.out / "benchmarks.md")

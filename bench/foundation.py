@@ -60,8 +60,8 @@ def bench_model(config, threads: int, workdir: Path) -> float:
     path = export_nbg(NBGDenoiser(config), workdir / f"{config.name}-w{config.width}.onnx")
     runtime = Denoiser(path, threads=threads)
     buffers = frame_buffers()
-    state = runtime.denoise(buffers, None, reset=True).state
-    return time_ms(lambda: runtime.denoise(buffers, state, reset=False),
+    state = runtime.denoise(buffers, None).state
+    return time_ms(lambda: runtime.denoise(buffers, state),
                    warmup=1, repeats=5).median_ms
 
 

@@ -113,7 +113,7 @@ def paired(
         sid = client.create_session(*size, **body)["id"]
         for i in range(count + 2):
             start = time.perf_counter()
-            result = denoiser.denoise(decoded[i % len(decoded)], state, reset=i == 0)
+            result = denoiser.denoise(decoded[i % len(decoded)], state)
             alone.append(1e3 * (time.perf_counter() - start))
             state = result.state
             start = time.perf_counter()
@@ -282,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         from quietframe.runtime import Denoiser
 
-        state = Denoiser(model, threads=1).state_nbytes(args.height, args.width)
+        state = Denoiser(model, threads=1).info.state_nbytes(args.height, args.width)
         results["state_mib_per_session"] = round(state / 2**20, 1)
     finally:
         server.terminate()

@@ -20,14 +20,15 @@ def cpu_peak_gflops(threads: int) -> tuple[float, str]:
 
 
 def frame_buffers(height: int = 720, width: int = 1280, seed: int = 0) -> dict[str, np.ndarray]:
-    """Plausible canonical buffers (H, W, C) float32: noisy colour, unit normals, motion."""
+    """Plausible canonical buffers as the runtime takes them, (C, H, W) float32 planes: noisy
+    colour, unit normals, motion."""
     rng = np.random.default_rng(seed)
-    normal = rng.normal(size=(height, width, 3)).astype(np.float32)
-    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    normal = rng.normal(size=(3, height, width)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=0, keepdims=True)
     return {
-        "color": rng.exponential(0.5, (height, width, 3)).astype(np.float32),
-        "albedo": rng.uniform(0, 1, (height, width, 3)).astype(np.float32),
+        "color": rng.exponential(0.5, (3, height, width)).astype(np.float32),
+        "albedo": rng.uniform(0, 1, (3, height, width)).astype(np.float32),
         "normal": normal,
-        "depth": rng.uniform(1, 5, (height, width, 1)).astype(np.float32),
-        "motion": rng.normal(0, 1, (height, width, 2)).astype(np.float32),
+        "depth": rng.uniform(1, 5, (1, height, width)).astype(np.float32),
+        "motion": rng.normal(0, 1, (2, height, width)).astype(np.float32),
     }

@@ -18,8 +18,8 @@ from quietframe.runtime import Denoiser
 def measure_720p_ms(runtime: Denoiser) -> float:
     """Median ms per 1280×720 frame through the runtime, history carried (bench/timing.py)."""
     buffers = frame_buffers()
-    state = runtime.denoise(buffers, None, reset=True).state
-    return time_ms(lambda: runtime.denoise(buffers, state, reset=False),
+    state = runtime.denoise(buffers, None).state
+    return time_ms(lambda: runtime.denoise(buffers, state),
                    warmup=1, repeats=5).median_ms
 
 

@@ -1,30 +1,25 @@
-"""The one inference pipeline: numpy buffers -> onnxruntime (+ custom ops) -> numpy frame.
+"""The one inference pipeline: planar numpy buffers -> onnxruntime (+ custom ops) -> planar frame.
 
 Used by the service, the evaluation and the benchmarks, so every reported figure is a figure
 of the shipped path. Knows the graph interface of docs/model-interface.md, nothing about what a
-model does inside.
+model does inside. Buffers go in and the frame comes out as (C, H, W) float32 planes: the layout
+of EXR channels and of the NCHW graph alike, so nothing is transposed or re-copied on the way.
 """
 
 from __future__ import annotations
 
 import json
 import threading
-import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
-from quietframe.export import ops_library_path
+from quietframe.runtime.buffers import BUFFER_CHANNELS, BufferError, check_buffers, check_plane
+from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
-
-BUFFER_CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}
-
-
-class BufferError(ValueError):
-    """A frame's buffers do not fit the model: missing, wrong shape, or mismatched sizes."""
 
 
 @dataclass(frozen=True)
@@ -45,14 +40,16 @@ class ModelInfo:
     metrics: dict = field(default_factory=dict)
     training: dict = field(default_factory=dict)
 
+    def state_nbytes(self, height: int, width: int) -> int:
+        return sum(4 * s.channels * height * width for s in self.state_specs)
+
 
 @dataclass
 class DenoiseResult:
-    color: np.ndarray  # (H, W, 3) float32, finite
+    color: np.ndarray  # (3, H, W) float32, finite
     state: dict[str, np.ndarray]  # feed back as the next frame's state
     sanitized: dict[str, int]  # replaced input values per buffer (see sanitize.py)
-    missing: tuple[str, ...]  # optional buffers that were absent and filled with defaults
-    timings_ms: dict[str, float]
+    missing: tuple[str, ...]  # optional buffers that were absent and fed as zeros
 
 
 def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
@@ -85,12 +82,6 @@ def make_session(path: Path, threads: int) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def to_nchw(array: np.ndarray, channels: int) -> np.ndarray:
-    if array.ndim == 2:
-        array = array[:, :, None]
-    return np.ascontiguousarray(array[:, :, :channels].transpose(2, 0, 1)[None])
-
-
 class Denoiser:
     """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently)."""
 
@@ -103,58 +94,48 @@ class Denoiser:
         self.info = read_model_info(path, meta)
         self._output_names = [o.name for o in self.session.get_outputs()]
 
+    def check(self, present: Iterable[str]) -> tuple[str, ...]:
+        """The one check of a frame's buffers against the model: the absent optional ones;
+        MissingBuffers when a required one is absent. The service calls it from the EXR header,
+        before any pixel is decoded."""
+        info = self.info
+        return check_buffers(info.name, info.required_buffers, info.optional_buffers, present)
+
     def initial_state(self, height: int, width: int) -> dict[str, np.ndarray]:
         return {
             s.name: np.zeros((1, s.channels, height, width), np.float32)
             for s in self.info.state_specs
         }
 
-    def state_nbytes(self, height: int, width: int) -> int:
-        return sum(4 * s.channels * height * width for s in self.info.state_specs)
-
-    def _prepare(
-        self, buffers: Mapping[str, np.ndarray]
+    def _feeds(
+        self, planes: Mapping[str, np.ndarray]
     ) -> tuple[dict[str, np.ndarray], dict[str, int], tuple[str, ...], tuple[int, int]]:
-        missing_required = [b for b in self.info.required_buffers if b not in buffers]
-        if missing_required:
-            raise BufferError(
-                f"missing required buffers {missing_required}; got {sorted(buffers)}, "
-                f"model {self.info.name} needs {list(self.info.required_buffers)} "
-                f"(optional: {list(self.info.optional_buffers)})"
-            )
-        height, width = np.shape(buffers["color"])[:2]
+        missing = self.check(planes)
+        if "color" not in planes:
+            raise BufferError("a frame needs its color buffer")
+        _, height, width = np.shape(planes["color"])
         feeds: dict[str, np.ndarray] = {}
         sanitized: dict[str, int] = {}
-        missing: list[str] = []
         for name in (*self.info.required_buffers, *self.info.optional_buffers):
-            channels = BUFFER_CHANNELS[name]
-            if name not in buffers:
-                missing.append(name)  # documented default: zeros (motion: static camera)
-                feeds[name] = np.zeros((1, channels, height, width), np.float32)
+            if name in missing:
+                feeds[name] = np.zeros((1, BUFFER_CHANNELS[name], height, width), np.float32)
                 continue
-            array = np.asarray(buffers[name])
-            have = 1 if array.ndim == 2 else array.shape[-1] if array.ndim == 3 else -1
-            if array.shape[:2] != (height, width) or have < channels:
-                raise BufferError(
-                    f"buffer {name!r} has shape {array.shape}; expected ({height}, {width}, "
-                    f"{channels}) to match color"
-                )
-            clean, count = sanitize_buffer(name, array)
+            check_plane(name, planes[name], height, width)
+            clean, count = sanitize_buffer(name, planes[name])
             if count:
                 sanitized[name] = count
-            feeds[name] = to_nchw(clean, channels)
-        return feeds, sanitized, tuple(missing), (height, width)
+            feeds[name] = np.ascontiguousarray(clean)[None]  # a view when already contiguous
+        return feeds, sanitized, missing, (height, width)
 
     def denoise(
-        self,
-        buffers: Mapping[str, np.ndarray],
-        state: Mapping[str, np.ndarray] | None,
-        reset: bool,
+        self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None
     ) -> DenoiseResult:
-        start = time.perf_counter()
-        feeds, sanitized, missing, (height, width) = self._prepare(buffers)
+        """Denoise one frame of (C, H, W) float32 planes. `state` is the previous frame's
+        `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut)."""
+        feeds, sanitized, missing, (height, width) = self._feeds(planes)
+        fresh = state is None
         if state is None:
-            state, reset = self.initial_state(height, width), True
+            state = self.initial_state(height, width)
         for spec in self.info.state_specs:
             tensor = state[spec.name]
             if tensor.shape != (1, spec.channels, height, width):
@@ -162,24 +143,14 @@ class Denoiser:
                     f"state {spec.name!r} has shape {tensor.shape}, frame is {height}x{width}"
                 )
             feeds[f"state_in.{spec.name}"] = tensor
-        feeds["reset"] = np.array([1.0 if reset else 0.0], np.float32)
-        prepared = time.perf_counter()
-        outputs = self.session.run(None, feeds)
-        ran = time.perf_counter()
-        result = dict(zip(self._output_names, outputs, strict=True))
-        color, bad = sanitize_output(result["denoised"][0].transpose(1, 2, 0))
+        feeds["reset"] = np.array([1.0 if fresh else 0.0], np.float32)
+        outputs = dict(zip(self._output_names, self.session.run(None, feeds), strict=True))
+        color, bad = sanitize_output(outputs["denoised"][0])
         if bad:
             sanitized["denoised"] = bad
-        new_state = {s.name: result[f"state_out.{s.name}"] for s in self.info.state_specs}
-        done = time.perf_counter()
         return DenoiseResult(
-            color=np.ascontiguousarray(color),
-            state=new_state,
+            color=color,
+            state={s.name: outputs[f"state_out.{s.name}"] for s in self.info.state_specs},
             sanitized=sanitized,
             missing=missing,
-            timings_ms={
-                "prepare": 1e3 * (prepared - start),
-                "model": 1e3 * (ran - prepared),
-                "finish": 1e3 * (done - ran),
-            },
         )

@@ -1,11 +1,12 @@
-"""The one rule for bad input values, applied before a frame reaches a model.
+"""The one rule for bad input values, applied before a frame reaches a model; which rule a
+buffer gets is part of the buffer vocabulary (buffers.py).
 
-- color, albedo: NaN, ±Inf and negative values become 0 (a failed or overflowed sample carries
-  no usable estimate; radiance and albedo cannot be negative); values above 1e30 become 1e30
-  (larger ones overflow the float32 grid sums; see docs/grid-math.md).
-- normal, motion: NaN and ±Inf become 0 (no orientation / no motion).
-- depth: NaN, ±Inf and negative values become the largest finite depth of the frame (renderers
-  write Inf or garbage for the background, which is far away), or 0 if none is finite.
+- RADIANCE (color, albedo): NaN, ±Inf and negative values become 0 (a failed or overflowed sample
+  carries no usable estimate; radiance and albedo cannot be negative); values above 1e30 become
+  1e30 (larger ones overflow the float32 grid sums; see docs/grid-math.md).
+- DIRECTION (normal, motion): NaN and ±Inf become 0 (no orientation / no motion).
+- DISTANCE (depth): NaN, ±Inf and negative values become the largest finite depth of the frame
+  (renderers write Inf or garbage for the background, which is far away), or 0 if none is finite.
 Every replaced value is counted per buffer so the service can report it.
 """
 
@@ -13,24 +14,26 @@ from __future__ import annotations
 
 import numpy as np
 
-NON_NEGATIVE = frozenset({"color", "albedo"})
+from quietframe.runtime.buffers import BUFFERS, Rule
+
 MAX_VALUE = np.float32(1e30)
 
 
 def sanitize_buffer(name: str, values: np.ndarray) -> tuple[np.ndarray, int]:
     """Return (clean float32 array, number of replaced values); never modifies `values`."""
+    rule = BUFFERS[name].rule
     values = np.asarray(values, dtype=np.float32)
     bad = ~np.isfinite(values)
-    if name in NON_NEGATIVE or name == "depth":
+    if rule in (Rule.RADIANCE, Rule.DISTANCE):
         bad |= values < 0  # NaN compares False, already in `bad`
-    huge = ((values > MAX_VALUE) & ~bad) if name in NON_NEGATIVE else None
+    huge = ((values > MAX_VALUE) & ~bad) if rule is Rule.RADIANCE else None
     count = int(np.count_nonzero(bad)) + (int(np.count_nonzero(huge)) if huge is not None else 0)
     if count == 0:
         return values, 0
     if huge is not None:
         values = np.minimum(values, MAX_VALUE)  # a copy: the caller's array is left alone
     fill = 0.0
-    if name == "depth":
+    if rule is Rule.DISTANCE:
         finite = values[~bad]
         fill = float(finite.max()) if finite.size else 0.0
     return np.where(bad, np.float32(fill), values), count

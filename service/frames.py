@@ -4,12 +4,12 @@ A frame goes through three steps, so that a bad request is refused before any pi
 1. `read_header` parses the EXR header bytes in pure Python (size limits, channel list, flags);
 2. `resolve` maps the header's channel names onto the canonical buffers (ALIASES below, or the
    session's own mapping), naming what was found and what was expected when something is missing;
-3. `decode` reads the pixels with OpenEXR and assembles (H, W, C) float32 buffers, converting
-   renderer motion-vector conventions to ours; `encode` writes the denoised frame back with the
-   input's header attributes.
+3. `decode` reads the pixels with OpenEXR into planar (C, H, W) float32 buffers, converting
+   renderer motion-vector conventions to ours; `encode` writes the denoised (3, H, W) planes
+   back with the input's header attributes.
 
-Canonical buffers (DESIGN.md): color (RGB), albedo (RGB), normal (XYZ), depth (Z), motion (XY,
-backward, in pixels, x right and y down: pixel p of frame t was at p + motion in frame t-1).
+Canonical buffers (runtime/buffers.py): color (RGB), albedo (RGB), normal (XYZ), depth (Z), motion
+(XY, backward, in pixels, x right and y down: pixel p of frame t was at p + motion in frame t-1).
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import OpenEXR
 
+from quietframe.client.protocol import CUT_ATTRIBUTE
+from quietframe.runtime.buffers import BUFFER_CHANNELS, MissingBuffers, check_buffers
 from quietframe.service.errors import (
     AmbiguousChannels,
     BadExr,
@@ -33,7 +35,6 @@ from quietframe.service.errors import (
 
 log = logging.getLogger("quietframe.service")
 
-BUFFER_CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}
 # Component spellings tried for each buffer, in order (matched case-insensitively).
 COMPONENTS: dict[str, tuple[str, ...]] = {
     "color": ("RGB",),
@@ -116,7 +117,6 @@ def configure_io(threads: int) -> None:
     _io["threads"] = threads
 
 
-CUT_ATTRIBUTE = "quietframe.cut"  # EXR header attribute: nonzero int or "1"/"true" = camera cut
 
 _MAGIC = b"\x76\x2f\x31\x01"
 _TILED, _LONG_NAMES, _NON_IMAGE, _MULTIPART = 0x200, 0x400, 0x800, 0x1000
@@ -332,9 +332,11 @@ def resolve(
     optional: Sequence[str],
     mapping: Mapping[str, str | Sequence[str]] | None = None,
     mapped_motion_scale: tuple[float, float] = (1.0, 1.0),
+    model: str = "",
 ) -> dict[str, Source]:
-    """Canonical buffer -> Source for the model's buffers; MissingChannels if a required one is
-    absent (optional ones are simply left out: the runtime fills them and says so)."""
+    """Canonical buffer -> Source for the model's buffers. A required buffer that is absent is
+    refused by the runtime's one buffer check, here with the EXR names that were looked for
+    (MissingChannels); optional ones are simply left out (the runtime fills them, says so)."""
     names = sorted(channel_names)
     layers = _layers(names)
     sources: dict[str, Source] = {}
@@ -350,14 +352,23 @@ def resolve(
             source = _find_alias(buffer, names, layers)
         if source is not None:
             sources[buffer] = source
-        elif buffer in required:
-            expected = [a.layer or "R,G,B" for a in ALIASES[buffer]]
-            raise MissingChannels(
-                f"no channels for required buffer {buffer!r}; expected one of the layers "
-                f"{expected} (components {'/'.join(c for c in COMPONENTS[buffer] if c)}) or a "
-                f"session channel mapping; found {names}"
-            )
+    try:
+        check_buffers(model, required, optional, sources)
+    except MissingBuffers as exc:
+        raise MissingChannels(_missing_detail(exc.missing, names)) from exc
     return sources
+
+
+def _missing_detail(missing: Sequence[str], names: Sequence[str]) -> str:
+    looked_for = "; ".join(
+        f"{buffer!r}: one of the layers {[a.layer or 'R,G,B' for a in ALIASES[buffer]]} "
+        f"(components {'/'.join(COMPONENTS[buffer])})"
+        for buffer in missing
+    )
+    return (
+        f"no channels for required buffer(s) {', '.join(repr(b) for b in missing)}; expected "
+        f"{looked_for}, or a session channel mapping; found {list(names)}"
+    )
 
 
 def validate_mapping(mapping: Mapping[str, str | Sequence[str]]) -> None:
@@ -377,16 +388,14 @@ def validate_mapping(mapping: Mapping[str, str | Sequence[str]]) -> None:
 
 @dataclass
 class DecodedFrame:
-    buffers: dict[str, np.ndarray]  # canonical name -> (H, W, C) float32 (depth (H, W))
+    buffers: dict[str, np.ndarray]  # canonical name -> (C, H, W) float32 planes
     header: dict  # OpenEXR header attributes of the first part, for the output
     color_half: bool  # the input colour is half float (precision "input" keeps it)
 
 
 def decode(data: bytes, sources: Mapping[str, Source]) -> DecodedFrame:
-    """Decode the pixels; BadExr for anything the decoder rejects (truncated, corrupt chunks).
-
-    Buffers are (H, W, C) views of planar (C, H, W) float32 memory: the runtime's NCHW feed is
-    then that memory itself, with no interleave-and-back copies."""
+    """Decode the pixels into planar (C, H, W) float32 buffers, the runtime's layout (one
+    conversion per channel, no interleaving); BadExr for anything the decoder rejects."""
     wanted = {c for source in sources.values() for c in source.channels}
     try:
         exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, num_threads=_io["threads"])
@@ -404,16 +413,13 @@ def decode(data: bytes, sources: Mapping[str, Source]) -> DecodedFrame:
         raise BadExr(f"EXR channels {absent} are listed in the header but have no data")
     buffers: dict[str, np.ndarray] = {}
     for buffer, source in sources.items():
-        if buffer == "depth":
-            buffers[buffer] = np.asarray(planes[source.channels[0]], np.float32)
-            continue
         first = planes[source.channels[0]]
         planar = np.empty((len(source.channels), *first.shape), np.float32)  # (C, H, W)
         for i, name in enumerate(source.channels):
             planar[i] = planes[name]
         if buffer == "motion" and source.motion_scale != (1.0, 1.0):
             planar *= np.asarray(source.motion_scale, np.float32)[:, None, None]
-        buffers[buffer] = planar.transpose(1, 2, 0)  # (H, W, C) view
+        buffers[buffer] = planar
     color_half = "color" in sources and planes[sources["color"].channels[0]].dtype == np.float16
     return DecodedFrame(buffers, header, color_half)
 
@@ -430,8 +436,8 @@ def encode(
     extra: Mapping[str, str] | None = None,
     compression: str = "input",
 ) -> bytes:
-    """(H, W, 3) float32 -> single-part scanline EXR bytes with the input's header attributes
-    (its compression too, unless `compression` names another)."""
+    """(3, H, W) float32 planes -> single-part scanline EXR bytes with the input's header
+    attributes (its compression too, unless `compression` names another)."""
     dtype = np.float16 if precision == "half" else np.float32
     attributes = {k: v for k, v in header.items() if k not in _LAYOUT_ATTRIBUTES}
     attributes["type"] = OpenEXR.scanlineimage
@@ -439,9 +445,7 @@ def encode(
         name = "NO" if compression == "none" else compression.upper()
         attributes["compression"] = getattr(OpenEXR, f"{name}_COMPRESSION")
     attributes.update(extra or {})
-    channels = {
-        name: np.ascontiguousarray(color[:, :, i], dtype=dtype) for i, name in enumerate(names)
-    }
+    channels = {name: np.asarray(color[i], dtype=dtype) for i, name in enumerate(names)}
     try:
         return _write(attributes, channels)
     except Exception as exc:  # an attribute the binding reads but cannot write back

@@ -48,14 +48,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         registry_models = await asyncio.to_thread(ModelRegistry, settings)
         await asyncio.to_thread(registry_models.warm_up)
         pool = ThreadPoolExecutor(settings.worker_count, thread_name_prefix="quietframe-frame")
-        registry = SessionRegistry(settings, registry_models, app.state.metrics)
-        app.state.models, app.state.sessions, app.state.pool = registry_models, registry, pool
+        registry = await asyncio.to_thread(
+            SessionRegistry, settings, registry_models, app.state.metrics, pool
+        )  # reads the durable sessions' files: off the event loop
+        app.state.models, app.state.sessions = registry_models, registry
         period = min(30.0, settings.session_ttl_s / 4)
         reaper = asyncio.create_task(_expire_loop(registry, period))
         log.info(
             "ready",
             extra={
-                "models": sorted(registry_models.models),
+                "models": registry_models.names,
                 "default": registry_models.default,
                 "workers": settings.worker_count,
                 "threads": settings.model_threads,

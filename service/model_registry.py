@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.runtime import Denoiser, default_model_path, installed_models
+from quietframe.runtime import BUFFER_CHANNELS, Denoiser, default_model_path, installed_models
 from quietframe.service.errors import UnknownModel
 from quietframe.service.schemas import BufferSpec, ModelPublic
 from quietframe.service.settings import Settings
@@ -30,14 +30,14 @@ class ModelRegistry:
             paths += sorted(Path(settings.models_dir).glob("*.onnx"))
         if not paths:
             raise LookupError("no models installed (quietframe.models) and none in models_dir")
-        self.models: dict[str, Denoiser] = {}
+        self._denoisers: dict[str, Denoiser] = {}
         self._aliases: dict[str, str] = {}  # file stem -> model name
         for path in paths:
             denoiser = Denoiser(path, threads=settings.model_threads)
             name = denoiser.info.name
-            if name in self.models:
+            if name in self._denoisers:
                 log.warning("model %s at %s shadows an earlier one with that name", name, path)
-            self.models[name] = denoiser
+            self._denoisers[name] = denoiser
             self._aliases[path.stem] = name
         wanted = settings.default_model
         self.default = self.resolve(wanted) if wanted else self._runtime_default(paths)
@@ -48,30 +48,35 @@ class ModelRegistry:
             default = default_model_path()
         except LookupError:
             default = paths[0]
-        return self._aliases.get(default.stem, next(iter(self.models)))
+        return self._aliases.get(default.stem, next(iter(self._denoisers)))
+
+    @property
+    def names(self) -> list[str]:
+        return sorted(self._denoisers)
 
     def resolve(self, name: str) -> str:
         """Model name for a request's `model` ('auto', a name or a file stem)."""
         if name == "auto":
             return self.default
-        if name in self.models:
+        if name in self._denoisers:
             return name
         if name in self._aliases:
             return self._aliases[name]
-        raise UnknownModel(f"unknown model {name!r}; installed: {sorted(self.models)} or 'auto'")
+        raise UnknownModel(f"unknown model {name!r}; installed: {self.names} or 'auto'")
 
-    def get(self, name: str) -> Denoiser:
-        return self.models[self.resolve(name)]
+    def denoiser(self, name: str) -> Denoiser:
+        """The loaded model of a name that `resolve` returned."""
+        return self._denoisers[name]
 
     def warm_up(self) -> None:
         """Run one tiny frame through every model: loads the custom ops, allocates kernels."""
-        for denoiser in self.models.values():
-            size = (16, 16)
-            buffers = {
-                b: np.zeros((*size, 1 if b == "depth" else 2 if b == "motion" else 3), np.float32)
-                for b in (*denoiser.info.required_buffers, *denoiser.info.optional_buffers)
+        for denoiser in self._denoisers.values():
+            info = denoiser.info
+            planes = {
+                b: np.zeros((BUFFER_CHANNELS[b], 16, 16), np.float32)
+                for b in (*info.required_buffers, *info.optional_buffers)
             }
-            denoiser.denoise(buffers, None, reset=True)
+            denoiser.denoise(planes, None)
         self.ready = True
 
     def public(self) -> list[ModelPublic]:
@@ -88,5 +93,5 @@ class ModelRegistry:
                 metrics=d.info.metrics,
                 training=d.info.training,
             )
-            for name, d in self.models.items()
+            for name, d in self._denoisers.items()
         ]

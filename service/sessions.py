@@ -1,66 +1,85 @@
-"""Per-camera sessions: history state, frame order, idempotent replies, limits, durable state.
+"""Per-camera sessions and the one owner of a frame's journey.
 
-The service keeps each session's state tensors without knowing what they mean (DESIGN.md). All
-registry bookkeeping runs on the event loop thread; the heavy part of a frame (decode, denoise,
-encode, write) runs on the worker pool while the session's lock is held, so the frames of one
+`SessionRegistry.denoise_frame` takes a frame from request body to reply: header checks →
+lock → plan (retry / reset reason) → decode → denoise → encode → persist → commit. The service
+keeps each session's state tensors without knowing what they mean (DESIGN.md). Registry
+bookkeeping runs on the event loop thread; the heavy part of a frame (decode, denoise, encode,
+disk writes) runs on the worker pool while the session's lock is held, so the frames of one
 session run in order and sessions run in parallel. A frame changes its session only in
-`commit`, after everything succeeded: a rejected frame never changes the state.
+`_commit`, after everything succeeded: a rejected frame never changes the state.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import math
-import os
-import re
 import secrets
 import time
 import zlib
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from concurrent.futures import Executor
+from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
-from pathlib import Path
 
 import numpy as np
 
-from quietframe.runtime import Denoiser
+from quietframe.client.protocol import (
+    Header,
+    Reset,
+    format_counts,
+    format_timings,
+    join_list,
+)
+from quietframe.runtime import Denoiser, ModelInfo
 from quietframe.service import frames
 from quietframe.service.errors import (
     FrameConflict,
     FrameOutOfOrder,
     MemoryBudgetExceeded,
     SessionNotFound,
+    SizeMismatch,
     TooManySessions,
 )
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.schemas import ModelRef, SessionCreate, SessionPublic, StageTimings
+from quietframe.service.session_store import Reply, SessionStore
 from quietframe.service.settings import Settings
 
 log = logging.getLogger("quietframe.service")
 
-SESSION_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")  # secrets.token_urlsafe(16): 128 random bits
 STAGES = ("decode", "denoise", "encode", "total")
 
 
-@dataclass
-class Reply:
-    """The last frame's response, kept for an idempotent retry of the same index."""
+@dataclass(frozen=True)
+class SessionSpec:
+    """What a session is, fixed at creation (and stored with a durable session)."""
 
-    index: int
-    body: bytes
-    headers: dict[str, str]
-    request_crc: int
-    request_len: int
+    model: str
+    width: int
+    height: int
+    precision: str
+    compression: str
+    channels: dict | None
+    motion_scale: tuple[float, float]
 
 
 @dataclass
 class FrameOutcome:
+    """What the route turns into a response."""
+
+    reply: Reply
+    replayed: bool
+
+
+@dataclass
+class _Processed:
+    """A denoised frame not yet committed to its session."""
+
     reply: Reply
     state: dict[str, np.ndarray]
-    reset: str
+    reset: Reset
     sources: dict[str, list[str]]
     missing: list[str]
     sanitized: dict[str, int]
@@ -70,16 +89,8 @@ class FrameOutcome:
 @dataclass
 class Session:
     id: str
-    model: str
-    version: str
-    width: int
-    height: int
-    precision: str
-    compression: str
-    channels: dict | None
-    motion_scale: tuple[float, float]
-    required: tuple[str, ...]
-    optional: tuple[str, ...]
+    spec: SessionSpec
+    info: ModelInfo
     reserve_bytes: int
     durable: bool
     created_at: float = field(default_factory=time.time)
@@ -101,9 +112,9 @@ class Session:
         state = sum(a.nbytes for a in self.state.values()) if self.state else 0
         return state + (len(self.reply.body) if self.reply else 0)
 
-    def plan(self, index: int, body: bytes, cut: bool) -> Reply | str:
-        """The stored reply for a retry of the last index, else why history resets ("none",
-        "first-frame", "gap", "cut"); FrameOutOfOrder / FrameConflict for a refused index."""
+    def plan(self, index: int, body: bytes, cut: bool) -> Reply | Reset:
+        """The stored reply for a retry of the last index, else why history resets;
+        FrameOutOfOrder / FrameConflict for a refused index."""
         if self.last_index is not None and index == self.last_index:
             reply = self.reply
             if reply and reply.request_len == len(body) and reply.request_crc == zlib.crc32(body):
@@ -118,35 +129,47 @@ class Session:
                 "indices must increase (a gap is treated as a camera cut)"
             )
         if self.last_index is None:
-            return "first-frame"
+            return Reset.FIRST_FRAME
         if cut:
-            return "cut"
-        return "gap" if index > self.last_index + 1 else "none"
+            return Reset.CUT
+        return Reset.GAP if index > self.last_index + 1 else Reset.NONE
 
-    def commit(self, outcome: FrameOutcome) -> None:
-        self.state = outcome.state
-        self.reply = outcome.reply
-        self.last_index = outcome.reply.index
+    def commit(self, frame: _Processed) -> None:
+        self.state = frame.state
+        self.reply = frame.reply
+        self.last_index = frame.reply.index
         self.frames_done += 1
-        self.resets += outcome.reset != "none"
-        self.sources, self.missing = outcome.sources, outcome.missing
+        self.resets += frame.reset is not Reset.NONE
+        self.sources, self.missing = frame.sources, frame.missing
         for stage in STAGES:
-            self.timing_sum[stage] += outcome.timings_ms[stage]
-            self.timing_last[stage] = outcome.timings_ms[stage]
+            self.timing_sum[stage] += frame.timings_ms[stage]
+            self.timing_last[stage] = frame.timings_ms[stage]
         self.last_used = time.monotonic()
+
+    def meta(self, after: _Processed | None = None) -> dict:
+        """The stored record of the session, as it will be once `after` is committed."""
+        return {
+            "id": self.id,
+            **asdict(self.spec),
+            "created_at": self.created_at,
+            "last_index": after.reply.index if after else self.last_index,
+            "frames_done": self.frames_done + (after is not None),
+            "resets": self.resets + (after is not None and after.reset is not Reset.NONE),
+        }
 
     def public(self, ttl_s: float) -> SessionPublic:
         done = max(self.frames_done, 1)
+        spec = self.spec
         return SessionPublic(
             id=self.id,
-            model=ModelRef(name=self.model, version=self.version),
-            width=self.width,
-            height=self.height,
-            precision=self.precision,  # type: ignore[arg-type]
-            compression=self.compression,  # type: ignore[arg-type]
-            required_buffers=list(self.required),
-            optional_buffers=list(self.optional),
-            channels=self.channels,
+            model=ModelRef(name=spec.model, version=self.info.version),
+            width=spec.width,
+            height=spec.height,
+            precision=spec.precision,  # type: ignore[arg-type]
+            compression=spec.compression,  # type: ignore[arg-type]
+            required_buffers=list(self.info.required_buffers),
+            optional_buffers=list(self.info.optional_buffers),
+            channels=spec.channels,
             created_at=datetime.fromtimestamp(self.created_at, timezone.utc).isoformat(),
             frames_done=self.frames_done,
             last_index=self.last_index,
@@ -162,28 +185,37 @@ class Session:
         )
 
 
-def run_frame(
+def reserve_bytes(info: ModelInfo, spec: SessionSpec) -> int:
+    """What a session counts against the history budget: its state, the largest reply of its
+    precision (colour planes; compression only shrinks it) and a margin for headers."""
+    reply = 3 * spec.width * spec.height * (2 if spec.precision == "half" else 4)
+    return info.state_nbytes(spec.height, spec.width) + reply + 2**16
+
+
+def process_frame(
     denoiser: Denoiser,
-    session: Session,
+    spec: SessionSpec,
     index: int,
     body: bytes,
     sources: dict[str, frames.Source],
-    reset: str,
+    reset: Reset,
     state: dict[str, np.ndarray] | None,
-) -> FrameOutcome:
-    """Decode, denoise, encode one frame (worker thread; touches no session field)."""
+) -> _Processed:
+    """Decode, denoise, encode one frame (worker thread; touches no session field). `state`
+    is None when the history starts afresh."""
     start = time.perf_counter()
     frame = frames.decode(body, sources)
     decoded = time.perf_counter()
-    result = denoiser.denoise(frame.buffers, state, reset=reset != "none")
+    result = denoiser.denoise(frame.buffers, state)
     denoised = time.perf_counter()
     info = denoiser.info
-    extra = {"quietframe.model": f"{info.name} {info.version}", "quietframe.frame": str(index)}
-    precision = session.precision
+    model = f"{info.name} {info.version}"
+    precision = spec.precision
     if precision == "input":
         precision = "half" if frame.color_half else "float"
+    extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     body_out = frames.encode(
-        result.color, frame.header, sources["color"].channels, precision, extra, session.compression
+        result.color, frame.header, sources["color"].channels, precision, extra, spec.compression
     )
     done = time.perf_counter()
     timings = {
@@ -194,21 +226,18 @@ def run_frame(
     }
     sanitized = {k: v for k, v in result.sanitized.items() if v}
     headers = {
-        "X-Quietframe-Frame": str(index),
-        "X-Quietframe-Reset": reset,
-        "X-Quietframe-Model": f"{info.name} {info.version}",
-        "X-Quietframe-Sanitized": str(sum(sanitized.values())),
-        "Server-Timing": ", ".join(f"{k};dur={v:.1f}" for k, v in timings.items()),
+        Header.FRAME: str(index),
+        Header.RESET: reset.value,
+        Header.MODEL: model,
+        Header.SANITIZED: str(sum(sanitized.values())),
+        Header.SERVER_TIMING: format_timings(timings),
     }
     if sanitized:
-        headers["X-Quietframe-Sanitized-Buffers"] = ", ".join(
-            f"{k}={v}" for k, v in sorted(sanitized.items())
-        )
+        headers[Header.SANITIZED_BUFFERS] = format_counts(sanitized)
     if result.missing:
-        headers["X-Quietframe-Missing"] = ", ".join(result.missing)
-    reply = Reply(index, body_out, headers, zlib.crc32(body), len(body))
-    return FrameOutcome(
-        reply=reply,
+        headers[Header.MISSING] = join_list(result.missing)
+    return _Processed(
+        reply=Reply(index, body_out, headers, zlib.crc32(body), len(body)),
         state=result.state,
         reset=reset,
         sources={b: list(s.channels) for b, s in sources.items()},
@@ -219,12 +248,15 @@ def run_frame(
 
 
 class SessionRegistry:
-    def __init__(self, settings: Settings, models: ModelRegistry, metrics: Metrics) -> None:
-        self.settings, self.models, self.metrics = settings, models, metrics
+    def __init__(
+        self, settings: Settings, models: ModelRegistry, metrics: Metrics, pool: Executor
+    ) -> None:
+        self.settings, self.models, self.metrics, self.pool = settings, models, metrics, pool
         self.sessions: OrderedDict[str, Session] = OrderedDict()  # least recently used first
-        self.state_dir = Path(settings.state_dir) if settings.state_dir else None
-        if self.state_dir is not None:
-            self.state_dir.mkdir(parents=True, exist_ok=True)
+        self.store = SessionStore(settings.state_dir, settings.state_fsync) if (
+            settings.state_dir
+        ) else None
+        if self.store is not None:
             self._load_durable()
         self._update_gauges()
 
@@ -281,7 +313,19 @@ class SessionRegistry:
 
     # ---- create / delete ----------------------------------------------------------------------
 
-    def create(self, spec: SessionCreate) -> Session:
+    def _session(self, session_id: str, spec: SessionSpec, **progress) -> Session:
+        """The one constructor, for a new session and for one restored from disk."""
+        info = self.models.denoiser(spec.model).info
+        return Session(
+            id=session_id,
+            spec=spec,
+            info=info,
+            reserve_bytes=reserve_bytes(info, spec),
+            durable=self.store is not None,
+            **progress,
+        )
+
+    async def create(self, request: SessionCreate) -> Session:
         self.expire()
         if len(self.sessions) >= self.settings.max_sessions:
             raise TooManySessions(
@@ -289,29 +333,19 @@ class SessionRegistry:
                 "Retry-After seconds, or delete finished sessions",
                 headers={"Retry-After": self._retry_after()},
             )
-        name = self.models.resolve(spec.model)
-        denoiser = self.models.models[name]
-        info = denoiser.info
-        reply_bytes = 3 * spec.width * spec.height * (2 if spec.precision == "half" else 4)
-        reserve = denoiser.state_nbytes(spec.height, spec.width) + reply_bytes + 2**16
-        self._make_room(reserve)
-        session = Session(
-            id=secrets.token_urlsafe(16),
-            model=name,
-            version=info.version,
-            width=spec.width,
-            height=spec.height,
-            precision=spec.precision,
-            compression=spec.compression,
-            channels=spec.channels,
-            motion_scale=tuple(spec.motion_scale),  # type: ignore[arg-type]
-            required=info.required_buffers,
-            optional=info.optional_buffers,
-            reserve_bytes=reserve,
-            durable=self.state_dir is not None,
+        spec = SessionSpec(
+            model=self.models.resolve(request.model),
+            width=request.width,
+            height=request.height,
+            precision=request.precision,
+            compression=request.compression,
+            channels=request.channels,
+            motion_scale=tuple(request.motion_scale),  # type: ignore[arg-type]
         )
-        if session.durable:
-            self.persist(session, None)
+        session = self._session(secrets.token_urlsafe(16), spec)
+        self._make_room(session.reserve_bytes)
+        if self.store is not None:
+            await self._on_pool(self.store.write, session.meta(), None, None)
         self.sessions[session.id] = session
         self.metrics.sessions_created.inc()
         self._update_gauges()
@@ -327,30 +361,84 @@ class SessionRegistry:
         session.closed = True
         session.state, session.reply = None, None
         self.sessions.pop(session.id, None)
-        if self.state_dir is not None:
-            self._path(session.id).unlink(missing_ok=True)
+        if self.store is not None:
+            self.store.delete(session.id)
         self.metrics.sessions_closed.labels(reason).inc()
         self._update_gauges()
         log.info("session closed", extra={"session": session.id, "reason": reason})
 
     # ---- frames -------------------------------------------------------------------------------
 
-    async def ensure_resident(self, session: Session, loop, pool) -> None:
+    async def denoise_frame(
+        self, session_id: str, index: int, body: bytes, cut: bool
+    ) -> FrameOutcome:
+        """The frame protocol: everything that can be checked from the header is checked before
+        the lock; the session changes only once the reply is encoded (and stored)."""
+        session = self.get(session_id)
+        spec = session.spec
+        settings = self.settings
+        header = frames.read_header(body, settings.max_width, settings.max_height)
+        if (header.width, header.height) != (spec.width, spec.height):
+            raise SizeMismatch(
+                f"frame is {header.width}x{header.height}; this session is "
+                f"{spec.width}x{spec.height} (create a session per resolution)"
+            )
+        info = session.info
+        sources = frames.resolve(
+            header.channels,
+            info.required_buffers,
+            info.optional_buffers,
+            spec.channels,
+            spec.motion_scale,
+            model=info.name,
+        )
+        async with session.lock:
+            if session.closed:
+                raise SessionNotFound(f"session {session_id!r} was closed while this frame waited")
+            await self._ensure_resident(session)  # a retry needs the stored reply
+            plan = session.plan(index, body, cut or header.cut)
+            if isinstance(plan, Reply):
+                self.metrics.replays.inc()
+                return FrameOutcome(plan, replayed=True)
+            history = session.state if plan is Reset.NONE else None
+            denoiser = self.models.denoiser(spec.model)
+            frame = await self._on_pool(
+                process_frame, denoiser, spec, index, body, sources, plan, history
+            )
+            if self.store is not None:
+                await self._on_pool(self.store.write, session.meta(frame), frame.state, frame.reply)
+            self._commit(session, frame)
+        log.info(
+            "frame",
+            extra={
+                "session": session.id,
+                "index": index,
+                "reset": frame.reset.value,
+                "ms": round(frame.timings_ms["total"], 1),
+                "sanitized": frame.sanitized,
+            },
+        )
+        return FrameOutcome(frame.reply, replayed=False)
+
+    async def _on_pool(self, fn, *args):
+        return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
+
+    async def _ensure_resident(self, session: Session) -> None:
         if session.resident:
             return
         self._make_room(session.reserve_bytes, keep=session)
-        state, reply = await loop.run_in_executor(pool, self._read_state, session.id)
-        session.state, session.reply, session.resident = state, reply, True
+        assert self.store is not None  # only durable sessions leave memory
+        session.state, session.reply = await self._on_pool(self.store.read, session.id)
+        session.resident = True
         self._update_gauges()
 
-    def committed(self, session: Session, outcome: FrameOutcome) -> None:
-        session.commit(outcome)
+    def _commit(self, session: Session, frame: _Processed) -> None:
+        session.commit(frame)
         self.sessions.move_to_end(session.id)
-        model = session.model
-        self.metrics.frames.labels(model, outcome.reset).inc()
-        for stage, ms in outcome.timings_ms.items():
+        self.metrics.frames.labels(session.spec.model, frame.reset.value).inc()
+        for stage, ms in frame.timings_ms.items():
             self.metrics.latency.labels(stage).observe(ms / 1e3)
-        for buffer, count in outcome.sanitized.items():
+        for buffer, count in frame.sanitized.items():
             self.metrics.sanitized.labels(buffer).inc(count)
         self._update_gauges()
 
@@ -360,96 +448,28 @@ class SessionRegistry:
 
     # ---- durable state ------------------------------------------------------------------------
 
-    def _path(self, session_id: str) -> Path:
-        assert self.state_dir is not None and SESSION_ID.match(session_id)
-        return self.state_dir / f"{session_id}.npz"
-
-    def persist(self, session: Session, outcome: FrameOutcome | None) -> None:
-        """Write the session as it will be after `outcome` (atomically: temp file + rename)."""
-        reply = outcome.reply if outcome else session.reply
-        meta = {
-            "id": session.id,
-            "model": session.model,
-            "width": session.width,
-            "height": session.height,
-            "precision": session.precision,
-            "compression": session.compression,
-            "channels": session.channels,
-            "motion_scale": list(session.motion_scale),
-            "created_at": session.created_at,
-            "last_index": reply.index if reply else session.last_index,
-            "frames_done": session.frames_done + (1 if outcome else 0),
-            "resets": session.resets + (outcome.reset != "none" if outcome else 0),
-            "reply": None
-            if reply is None
-            else {
-                "index": reply.index,
-                "headers": reply.headers,
-                "crc": reply.request_crc,
-                "len": reply.request_len,
-            },
-        }
-        arrays = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
-        state = outcome.state if outcome else session.state
-        for name, tensor in (state or {}).items():
-            arrays[f"state.{name}"] = tensor
-        if reply is not None:
-            arrays["reply"] = np.frombuffer(reply.body, np.uint8)
-        path = self._path(session.id)
-        temp = path.with_name(f".{path.name}.tmp")
-        try:
-            with open(temp, "wb") as f:
-                np.savez(f, **arrays)
-                f.flush()
-                if self.settings.state_fsync:
-                    os.fsync(f.fileno())
-            os.replace(temp, path)
-        except BaseException:
-            temp.unlink(missing_ok=True)  # the previous state file stays as it was
-            raise
-
-    def _read_state(self, session_id: str) -> tuple[dict[str, np.ndarray] | None, Reply | None]:
-        with np.load(self._path(session_id)) as z:
-            meta = json.loads(z["meta"].tobytes())
-            state = {k[6:]: z[k] for k in z.files if k.startswith("state.")} or None
-            r = meta["reply"]
-            reply = None
-            if r is not None and "reply" in z.files:
-                reply = Reply(r["index"], z["reply"].tobytes(), r["headers"], r["crc"], r["len"])
-        return state, reply
-
     def _load_durable(self) -> None:
         """Register the sessions of an earlier run (state stays on disk until their next frame)."""
-        assert self.state_dir is not None
-        for path in sorted(self.state_dir.glob("*.npz")):
-            if not SESSION_ID.match(path.stem):
-                continue
+        assert self.store is not None
+        for path, meta in self.store.metas():
             try:
-                with np.load(path) as z:
-                    meta = json.loads(z["meta"].tobytes())
-                name = self.models.resolve(meta["model"])
+                if "error" in meta:
+                    raise ValueError(meta["error"])
+                spec = SessionSpec(
+                    model=self.models.resolve(meta["model"]),
+                    width=meta["width"],
+                    height=meta["height"],
+                    precision=meta["precision"],
+                    compression=meta["compression"],
+                    channels=meta["channels"],
+                    motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
+                )
             except Exception as exc:  # unreadable file or model no longer installed
                 log.warning("skipping stored session %s: %s", path.name, exc)
                 continue
-            info = self.models.models[name].info
-            width, height = meta["width"], meta["height"]
-            reply_bytes = 3 * width * height * (2 if meta["precision"] == "half" else 4)
-            session = Session(
-                id=meta["id"],
-                model=name,
-                version=info.version,
-                width=width,
-                height=height,
-                precision=meta["precision"],
-                compression=meta["compression"],
-                channels=meta["channels"],
-                motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
-                required=info.required_buffers,
-                optional=info.optional_buffers,
-                reserve_bytes=self.models.models[name].state_nbytes(height, width)
-                + reply_bytes
-                + 2**16,
-                durable=True,
+            session = self._session(
+                meta["id"],
+                spec,
                 created_at=meta["created_at"],
                 last_index=meta["last_index"],
                 frames_done=meta["frames_done"],
@@ -458,4 +478,4 @@ class SessionRegistry:
             )
             self.sessions[session.id] = session
         if self.sessions:
-            log.info("restored %d sessions from %s", len(self.sessions), self.state_dir)
+            log.info("restored %d sessions from %s", len(self.sessions), self.store.folder)

@@ -17,8 +17,9 @@ from quietframe.runtime import Denoiser, find_model, installed_models  # noqa: E
 HEIGHT, WIDTH, FRAMES = 48, 64, 3
 
 
-def to_hwc(tensor) -> np.ndarray:
-    return tensor[0].permute(1, 2, 0).numpy()
+def planes(tensor) -> np.ndarray:
+    """(1, C, H, W) tensor -> the runtime's (C, H, W) planes."""
+    return tensor[0].numpy()
 
 
 def frame_inputs(index: int):
@@ -71,17 +72,17 @@ def assert_runtime_matches_torch(model, runtime, rtol: float = 1e-4, atol: float
         with torch.no_grad():
             expected, torch_state = model(color, albedo, normal, depth, motion, reset, torch_state)
         buffers = {
-            "color": to_hwc(color), "albedo": to_hwc(albedo), "normal": to_hwc(normal),
-            "depth": to_hwc(depth), "motion": to_hwc(motion),
+            "color": planes(color), "albedo": planes(albedo), "normal": planes(normal),
+            "depth": planes(depth), "motion": planes(motion),
         }
-        result = runtime.denoise(buffers, ort_state, reset=index == 0)
+        result = runtime.denoise(buffers, ort_state)
         ort_state = result.state
         scale = float(expected.abs().max())
         tolerance = {"rtol": rtol, "atol": rtol * scale if atol is None else atol}
-        np.testing.assert_allclose(result.color, to_hwc(expected), **tolerance)
+        np.testing.assert_allclose(result.color, planes(expected), **tolerance)
         np.testing.assert_allclose(ort_state["accumulation"], torch_state.numpy(), **tolerance)
     # The history was used: the last frame differs from a reset run of the same inputs.
-    fresh = runtime.denoise(buffers, None, reset=True)
+    fresh = runtime.denoise(buffers, None)
     assert np.abs(fresh.color - result.color).max() > 1e-3 * scale
 
 
@@ -113,10 +114,10 @@ def test_dynamic_sizes_and_missing_motion(exported):
     _, runtime = exported
     for height, width in [(1, 1), (5, 3), (37, 53)]:
         color, albedo, normal, depth, *_ = example_inputs(height, width, seed=1)
-        buffers = {"color": to_hwc(color), "albedo": to_hwc(albedo),
-                   "normal": to_hwc(normal), "depth": to_hwc(depth)}
-        result = runtime.denoise(buffers, None, reset=True)
-        assert result.color.shape == (height, width, 3)
+        buffers = {"color": planes(color), "albedo": planes(albedo),
+                   "normal": planes(normal), "depth": planes(depth)}
+        result = runtime.denoise(buffers, None)
+        assert result.color.shape == (3, height, width)
         assert np.isfinite(result.color).all()
         assert result.missing == ("motion",)
 

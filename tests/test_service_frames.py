@@ -21,6 +21,11 @@ REQUIRED = ("color", "albedo", "normal", "depth")
 OPTIONAL = ("motion",)
 
 
+def hwc(planes: np.ndarray) -> np.ndarray:
+    """Decoded (C, H, W) planes as the (H, W, C) / (H, W) images of make_buffers."""
+    return planes[0] if planes.shape[0] == 1 else planes.transpose(1, 2, 0)
+
+
 def load(data: bytes, mapping=None, scale=(1.0, 1.0)):
     header = frames.read_header(data, 8192, 8192)
     sources = frames.resolve(header.channels, REQUIRED, OPTIONAL, mapping, scale)
@@ -36,7 +41,7 @@ def test_renderer_layouts_map_to_canonical_buffers(layout):
     assert set(decoded.buffers) == {"color", "albedo", "normal", "depth", "motion"}
     for name, array in expected.items():
         np.testing.assert_allclose(
-            decoded.buffers[name],
+            hwc(decoded.buffers[name]),
             array,
             rtol=0,
             atol=1e-6,
@@ -56,7 +61,7 @@ def test_blender_view_layer_and_vector_sign():
     assert sources["depth"].channels == ("ViewLayer.Denoising Depth.Z",)
     assert sources["motion"].channels == ("ViewLayer.Vector.X", "ViewLayer.Vector.Y")
     # Vector.Y is raster-up: (1.5, -0.5) ours was written as (1.5, +0.5).
-    assert decoded.buffers["motion"][0, 0].tolist() == [1.5, -0.5]
+    assert decoded.buffers["motion"][:, 0, 0].tolist() == [1.5, -0.5]
 
 
 def test_noisy_image_preferred_over_denoised_combined():
@@ -96,7 +101,7 @@ def test_two_view_layers_are_ambiguous_unless_mapped():
     }
     _, sources, decoded = load(data, mapping, scale=(1.0, -1.0))
     assert sources["color"].channels[0] == "Other.Combined.R"
-    np.testing.assert_allclose(decoded.buffers["motion"], b["motion"])
+    np.testing.assert_allclose(hwc(decoded.buffers["motion"]), b["motion"])
 
 
 def frames_prefixed(channels, view_layer):
@@ -184,7 +189,7 @@ def test_multipart_channels_are_merged():
     OpenEXR.File(parts).write(out)
     header, _, decoded = load(out.getvalue())
     assert header.parts == 2
-    np.testing.assert_allclose(decoded.buffers["albedo"], b["albedo"])
+    np.testing.assert_allclose(hwc(decoded.buffers["albedo"]), b["albedo"])
 
 
 def test_encode_keeps_header_attributes_and_colour_names():
@@ -215,7 +220,7 @@ def test_encode_keeps_header_attributes_and_colour_names():
         assert header["compression"] == OpenEXR.PIZ_COMPRESSION
         assert header["dataWindow"][0].tolist() == [4, 2]
         np.testing.assert_array_equal(header["worldToCamera"], np.eye(4))
-        np.testing.assert_allclose(channels["ViewLayer.Combined.R"], color[..., 0], rtol=1e-3)
+        np.testing.assert_allclose(channels["ViewLayer.Combined.R"], color[0], rtol=1e-3)
 
 
 def test_every_alias_is_documented():
@@ -248,7 +253,7 @@ def test_json_logs_carry_extra_fields(capsys):
 
 
 def test_attribute_that_cannot_be_written_back_is_dropped_not_fatal():
-    color = np.ones((4, 4, 3), np.float32)
+    color = np.ones((3, 4, 4), np.float32)
     header = {"comment": "kept", "odd": object()}
     out = frames.encode(color, header, ["R", "G", "B"], "half")
     attributes, channels = read_exr(out)

@@ -32,7 +32,7 @@ async def readyz(request: Request) -> Health:
     return Health(
         status="ready",
         detail={
-            "models": sorted(models.models),
+            "models": models.names,
             "default_model": models.default,
             "sessions": len(sessions.sessions),
         },

@@ -2,30 +2,30 @@
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response, status
 
-from quietframe.service import frames
+from quietframe.client.protocol import (
+    ACCEPTED_FRAME_TYPES,
+    CUT_ATTRIBUTE,
+    CUT_QUERY,
+    EXR_MEDIA_TYPE,
+    Header,
+    Reset,
+)
 from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
 from quietframe.service.errors import (
     ERROR_EXAMPLES,
     BodyTooLarge,
     InvalidRequest,
-    SessionNotFound,
-    SizeMismatch,
     UnsupportedMediaType,
 )
 from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
-from quietframe.service.sessions import Reply, run_frame
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 log = logging.getLogger("quietframe.service")
-
-EXR = "image/x-exr"
-_ACCEPTED_TYPES = {EXR, "application/octet-stream", ""}
 
 
 def _errors(*codes: int) -> dict:
@@ -59,13 +59,13 @@ async def create_session(
             f"{spec.width}x{spec.height} exceeds this server's maximum frame size "
             f"{settings.max_width}x{settings.max_height}"
         )
-    session = sessions.create(spec)
+    session = await sessions.create(spec)
     response.headers["Location"] = f"/v1/sessions/{session.id}"
     log.info(
         "session created",
         extra={
             "session": session.id,
-            "model": session.model,
+            "model": session.spec.model,
             "size": f"{spec.width}x{spec.height}",
         },
     )
@@ -110,24 +110,19 @@ async def _read_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def _exr_response(reply: Reply, replayed: bool, metrics) -> Response:
-    metrics.bytes_out.inc(len(reply.body))
-    headers = {**reply.headers, "X-Quietframe-Replayed": "true" if replayed else "false"}
-    return Response(reply.body, media_type=EXR, headers=headers)
-
-
-_FRAME_DOC = """Denoise frame `index` of the sequence. Body: one EXR (`image/x-exr`) with colour and
-AOVs under any of the recognised renderer names (or the session's mapping). Response: the denoised
-EXR, same size and header attributes, colour channels named as in the input.
+_FRAME_DOC = f"""Denoise frame `index` of the sequence. Body: one EXR (`{EXR_MEDIA_TYPE}`) with
+colour and AOVs under any of the recognised renderer names (or the session's mapping). Response: the
+denoised EXR, same size and header attributes, colour channels named as in the input.
 
 Order: `index` must increase. The same index as the last frame is an idempotent retry (the same
 bytes come back, history is not advanced twice); a lower index is refused (409). A gap in the
-indices, `?cut=true`, or a header attribute `quietframe.cut` = 1 starts from a fresh history.
+indices, `?{CUT_QUERY}=true`, or a header attribute `{CUT_ATTRIBUTE}` = 1 starts from a fresh
+history.
 
-Response headers: `X-Quietframe-Reset` (`none`, `first-frame`, `cut`, `gap`),
-`X-Quietframe-Sanitized` (input values replaced: NaN/Inf, negative colour/albedo/depth) with
-`X-Quietframe-Sanitized-Buffers`, `X-Quietframe-Missing` (optional buffers that were absent and
-filled: motion -> static camera), `X-Quietframe-Replayed`, `Server-Timing` (ms per stage)."""
+Response headers: `{Header.RESET}` ({", ".join(f"`{r.value}`" for r in Reset)}),
+`{Header.SANITIZED}` (input values replaced: NaN/Inf, negative colour/albedo/depth) with
+`{Header.SANITIZED_BUFFERS}`, `{Header.MISSING}` (optional buffers that were absent and
+filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` (ms per stage)."""
 
 
 @router.post(
@@ -137,7 +132,7 @@ filled: motion -> static camera), `X-Quietframe-Replayed`, `Server-Timing` (ms p
     description=_FRAME_DOC,
     responses={
         200: {
-            "content": {EXR: {"schema": {"type": "string", "format": "binary"}}},
+            "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
             "description": "the denoised EXR",
         },
         **_errors(400, 401, 404, 409, 413, 422),
@@ -145,7 +140,7 @@ filled: motion -> static camera), `X-Quietframe-Replayed`, `Server-Timing` (ms p
     openapi_extra={
         "requestBody": {
             "required": True,
-            "content": {EXR: {"schema": {"type": "string", "format": "binary"}}},
+            "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
         }
     },
 )
@@ -158,52 +153,16 @@ async def post_frame(
     metrics: MetricsDep,
     cut: Annotated[bool, Query(description="camera cut: start from a fresh history")] = False,
 ) -> Response:
-    session = sessions.get(session_id)
+    """Reads the body and answers with the outcome; `SessionRegistry.denoise_frame` owns the
+    frame's journey."""
+    sessions.get(session_id)  # 404 before reading a body for nothing
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if media_type not in _ACCEPTED_TYPES:
-        raise UnsupportedMediaType(f"send the EXR as {EXR} (got {media_type})")
+    if media_type not in ACCEPTED_FRAME_TYPES:
+        raise UnsupportedMediaType(f"send the EXR as {EXR_MEDIA_TYPE} (got {media_type})")
     body = await _read_body(request, settings.max_body_bytes)
     metrics.bytes_in.inc(len(body))
-    # Everything that can be checked from the header is checked before taking the lock.
-    header = frames.read_header(body, settings.max_width, settings.max_height)
-    if (header.width, header.height) != (session.width, session.height):
-        raise SizeMismatch(
-            f"frame is {header.width}x{header.height}; this session is "
-            f"{session.width}x{session.height} (create a session per resolution)"
-        )
-    sources = frames.resolve(
-        header.channels,
-        session.required,
-        session.optional,
-        session.channels,
-        session.motion_scale,
-    )
-    loop = asyncio.get_running_loop()
-    pool = request.app.state.pool
-    async with session.lock:
-        if session.closed:
-            raise SessionNotFound(f"session {session_id!r} was closed while this frame waited")
-        await sessions.ensure_resident(session, loop, pool)  # a retry needs the stored reply
-        plan = session.plan(index, body, cut or header.cut)
-        if isinstance(plan, Reply):
-            metrics.replays.inc()
-            return _exr_response(plan, True, metrics)
-        state = session.state if plan == "none" else None
-        denoiser = sessions.models.models[session.model]
-        outcome = await loop.run_in_executor(
-            pool, run_frame, denoiser, session, index, body, sources, plan, state
-        )
-        if session.durable:
-            await loop.run_in_executor(pool, sessions.persist, session, outcome)
-        sessions.committed(session, outcome)
-    log.info(
-        "frame",
-        extra={
-            "session": session.id,
-            "index": index,
-            "reset": plan,
-            "ms": round(outcome.timings_ms["total"], 1),
-            "sanitized": outcome.sanitized,
-        },
-    )
-    return _exr_response(outcome.reply, False, metrics)
+    outcome = await sessions.denoise_frame(session_id, index, body, cut)
+    reply = outcome.reply
+    metrics.bytes_out.inc(len(reply.body))
+    headers = {**reply.headers, Header.REPLAYED: "true" if outcome.replayed else "false"}
+    return Response(reply.body, media_type=EXR_MEDIA_TYPE, headers=headers)

@@ -1,0 +1,61 @@
+"""The wire protocol of /v1 frames, shared by the server and the clients: media type, header
+names, reset reasons, the cut signal. Standard library only, so a farm node that installs just
+the client extra can import it."""
+
+from __future__ import annotations
+
+from enum import Enum
+
+EXR_MEDIA_TYPE = "image/x-exr"
+# Request bodies the frame route accepts as EXR (an unset type is taken to be EXR).
+ACCEPTED_FRAME_TYPES = frozenset({EXR_MEDIA_TYPE, "application/octet-stream", ""})
+
+CUT_QUERY = "cut"  # POST .../frames/{index}?cut=true: camera cut, start a fresh history
+CUT_ATTRIBUTE = "quietframe.cut"  # EXR header attribute: nonzero int or "1"/"true" = cut
+
+
+class Reset(str, Enum):
+    """Why a frame started from a fresh history (the one representation, server and client)."""
+
+    NONE = "none"  # history continued
+    FIRST_FRAME = "first-frame"
+    CUT = "cut"  # ?cut=true or the header attribute
+    GAP = "gap"  # a frame index was skipped
+
+
+class Header:
+    """Response headers of a denoised frame (HTTP header names are case-insensitive)."""
+
+    FRAME = "X-Quietframe-Frame"
+    RESET = "X-Quietframe-Reset"  # a Reset value
+    MODEL = "X-Quietframe-Model"  # "<name> <version>"
+    SANITIZED = "X-Quietframe-Sanitized"  # input values replaced by the sanitising rule
+    SANITIZED_BUFFERS = "X-Quietframe-Sanitized-Buffers"  # "color=3, depth=1"
+    MISSING = "X-Quietframe-Missing"  # optional buffers absent, fed as zeros: "motion"
+    REPLAYED = "X-Quietframe-Replayed"  # "true": the stored reply of an idempotent retry
+    SERVER_TIMING = "Server-Timing"  # "decode;dur=1.0, denoise;dur=..., encode;..., total;..."
+
+
+def join_list(items) -> str:
+    return ", ".join(items)
+
+
+def split_list(value: str) -> tuple[str, ...]:
+    return tuple(item.strip() for item in value.split(",") if item.strip())
+
+
+def format_counts(counts: dict[str, int]) -> str:
+    return join_list(f"{name}={count}" for name, count in sorted(counts.items()))
+
+
+def format_timings(timings_ms: dict[str, float]) -> str:
+    return join_list(f"{stage};dur={ms:.1f}" for stage, ms in timings_ms.items())
+
+
+def parse_timings(value: str) -> dict[str, float]:
+    timings = {}
+    for part in split_list(value):
+        stage, _, dur = part.partition(";dur=")
+        if stage and dur:
+            timings[stage] = float(dur)
+    return timings

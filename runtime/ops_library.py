@@ -1,0 +1,41 @@
+"""Where the custom-op library (export/ops, built by `pip install .`) is, and its op domain.
+
+Part of the runtime because serving loads it; the exporter only needs the domain name.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+OPS_DOMAIN = "ai.quietframe"
+_LIBRARY_NAMES = {"linux": "libquietframe_ops.so", "darwin": "libquietframe_ops.dylib"}
+
+
+def ops_library_path() -> Path:
+    """Path of the built onnxruntime custom-op library (BilateralSplat, BilateralSlice,
+    BackwardWarp).
+
+    QUIETFRAME_OPS_LIBRARY overrides the installed copy (e.g. a debug build of export/ops).
+    """
+    override = os.environ.get("QUIETFRAME_OPS_LIBRARY")
+    if override:
+        path = Path(override)
+        if not path.is_file():
+            raise FileNotFoundError(f"QUIETFRAME_OPS_LIBRARY={override} is not a file")
+        return path
+    name = _LIBRARY_NAMES.get(sys.platform, "quietframe_ops.dll")
+    # Installed wheels put the library next to this package's files; editable installs keep
+    # package sources and built files in different folders, so look at every package path.
+    from quietframe import runtime
+
+    for folder in runtime.__path__:
+        candidate = Path(folder) / name
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"{name} not found next to quietframe.runtime ({list(runtime.__path__)}); "
+        "reinstall quietframe (pip install .) so that its CMake build runs, "
+        "or set QUIETFRAME_OPS_LIBRARY to a built library"
+    )
