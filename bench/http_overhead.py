@@ -127,7 +127,7 @@ def paired(
 def start_server(port: int, env: dict[str, str]) -> subprocess.Popen:
     import httpx
 
-    cmd = [sys.executable, "-m", "quietframe.client.cli", "serve", "--port", str(port)]
+    cmd = [sys.executable, "-m", "quietframe.service.cli", "--port", str(port)]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:

@@ -1,113 +1,18 @@
-"""HTTP clients of the quietframe service (sync `Client`, async `AsyncClient`), with retries.
+"""HTTP clients of the quietframe service: sync `Client`, async `AsyncClient`.
 
-Retries with exponential backoff (and the server's Retry-After) on 429, 5xx and connection
-errors. Frames are idempotent by index on the server (the same index again returns the same
-bytes without advancing history), so a frame whose response was lost is simply sent again.
-Creating a session is retried only when the server surely did not create it (429/502/503/504,
-or the connection was never made).
+Both are thin I/O shells over client/core.py, which builds the requests, decides the retries
+and parses the replies; each method here only sends a core Call (and awaits, for the async one).
 """
 
 from __future__ import annotations
 
 import asyncio
-import random
 import time
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 
 import httpx
 
-EXR = "image/x-exr"
-_RETRY_STATUS = frozenset({429, 500, 502, 503, 504})
-_RETRY_STATUS_CREATE = frozenset({429, 502, 503, 504})
-
-
-class QuietframeError(Exception):
-    """A request failed for good: `status` (0 for connection errors), `code`, `detail`."""
-
-    def __init__(self, status: int, code: str, detail: str) -> None:
-        super().__init__(f"{status} {code}: {detail}" if status else f"{code}: {detail}")
-        self.status, self.code, self.detail = status, code, detail
-
-
-@dataclass
-class FrameResult:
-    index: int
-    exr: bytes  # the denoised EXR
-    reset: str  # "none", "first-frame", "cut", "gap"
-    sanitized: int  # input values replaced by the server's sanitising rule
-    missing: tuple[str, ...]  # optional buffers the frame lacked (filled by the model)
-    replayed: bool  # answered from the server's stored reply (a retry)
-    timings_ms: dict[str, float] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class RetryPolicy:
-    retries: int = 5
-    backoff_s: float = 0.5
-    max_backoff_s: float = 30.0
-
-    def delay(self, attempt: int, retry_after: str | None = None) -> float:
-        """Seconds before retry number `attempt` (0-based): the server's Retry-After when it
-        gives one, else exponential backoff with jitter; never more than max_backoff_s."""
-        if retry_after is not None:
-            try:
-                return min(self.max_backoff_s, max(0.0, float(retry_after)))
-            except ValueError:
-                pass
-        base = min(self.max_backoff_s, self.backoff_s * 2**attempt)
-        return base * random.uniform(0.5, 1.0)
-
-    def should_retry(self, attempt: int, outcome: httpx.Response | Exception, create: bool) -> bool:
-        if attempt >= self.retries:
-            return False
-        if isinstance(outcome, httpx.Response):
-            return outcome.status_code in (_RETRY_STATUS_CREATE if create else _RETRY_STATUS)
-        if create:  # the request may have reached the server: only retry if it surely did not
-            return isinstance(outcome, httpx.ConnectError | httpx.ConnectTimeout)
-        return isinstance(outcome, httpx.TransportError)
-
-
-def _error(response: httpx.Response) -> QuietframeError:
-    try:
-        body = response.json()
-        return QuietframeError(response.status_code, body["error"], body["detail"])
-    except Exception:
-        return QuietframeError(response.status_code, "http_error", response.text[:500])
-
-
-def _frame_result(index: int, response: httpx.Response) -> FrameResult:
-    h = response.headers
-    timings = {}
-    for part in h.get("server-timing", "").split(","):
-        name, _, dur = part.strip().partition(";dur=")
-        if name and dur:
-            timings[name] = float(dur)
-    missing = tuple(m.strip() for m in h.get("x-quietframe-missing", "").split(",") if m.strip())
-    return FrameResult(
-        index=index,
-        exr=response.content,
-        reset=h.get("x-quietframe-reset", "none"),
-        sanitized=int(h.get("x-quietframe-sanitized", "0")),
-        missing=missing,
-        replayed=h.get("x-quietframe-replayed") == "true",
-        timings_ms=timings,
-    )
-
-
-def _session_body(width, height, model, channels, precision, motion_scale, compression) -> dict:
-    body: dict = {"width": width, "height": height, "model": model, "precision": precision}
-    if compression != "input":
-        body["compression"] = compression
-    if channels:
-        body["channels"] = dict(channels)
-    if motion_scale is not None:
-        body["motion_scale"] = list(motion_scale)
-    return body
-
-
-def _headers(token: str | None) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"} if token else {}
+from quietframe.client import core
+from quietframe.client.core import Call, FrameResult, QuietframeError, RetryPolicy
 
 
 class Client:
@@ -124,7 +29,7 @@ class Client:
         self.retry = retry or RetryPolicy()
         self._http = httpx.Client(
             base_url=base_url.rstrip("/"),
-            headers=_headers(token),
+            headers=core.auth_headers(token),
             timeout=timeout_s,
             transport=transport,
         )
@@ -138,27 +43,22 @@ class Client:
     def close(self) -> None:
         self._http.close()
 
-    def _request(self, method: str, path: str, *, create: bool = False, **kw) -> httpx.Response:
-        attempt = 0
+    def _send(self, call: Call) -> httpx.Response:
+        attempts = core.Attempts(self.retry, call)
         while True:
             try:
-                outcome: httpx.Response | Exception = self._http.request(method, path, **kw)
+                outcome: httpx.Response | Exception = self._http.request(
+                    call.method, call.path, **call.options
+                )
             except httpx.TransportError as exc:
                 outcome = exc
-            if isinstance(outcome, httpx.Response) and outcome.status_code < 400:
-                return outcome
-            if not self.retry.should_retry(attempt, outcome, create):
-                if isinstance(outcome, httpx.Response):
-                    raise _error(outcome)
-                raise QuietframeError(0, "connection_error", f"{type(outcome).__name__}: {outcome}")
-            retry_after = (
-                outcome.headers.get("retry-after") if isinstance(outcome, httpx.Response) else None
-            )
-            time.sleep(self.retry.delay(attempt, retry_after))
-            attempt += 1
+            delay = attempts.after(outcome)
+            if delay is None:
+                return outcome  # type: ignore[return-value]
+            time.sleep(delay)
 
     def models(self) -> dict:
-        return self._request("GET", "/v1/models").json()
+        return self._send(core.models_call()).json()
 
     def ready(self) -> bool:
         try:
@@ -166,40 +66,24 @@ class Client:
         except httpx.TransportError:
             return False
 
-    def create_session(
-        self,
-        width: int,
-        height: int,
-        model: str = "auto",
-        channels: Mapping[str, str | Sequence[str]] | None = None,
-        precision: str = "input",
-        motion_scale: tuple[float, float] | None = None,
-        compression: str = "input",
-    ) -> dict:
-        """Start a sequence; see the API's SessionCreate for the fields."""
-        body = _session_body(width, height, model, channels, precision, motion_scale, compression)
-        return self._request("POST", "/v1/sessions", json=body, create=True).json()
+    def create_session(self, width: int, height: int, model: str = "auto", **options) -> dict:
+        """Start a sequence; options are core.SessionRequest's (channels, precision,
+        motion_scale, compression), the API's SessionCreate fields."""
+        return self._send(core.SessionRequest(width, height, model, **options).call()).json()
 
     def session(self, session_id: str) -> dict:
-        return self._request("GET", f"/v1/sessions/{session_id}").json()
+        return self._send(core.session_call(session_id)).json()
 
     def delete_session(self, session_id: str, missing_ok: bool = True) -> None:
         try:
-            self._request("DELETE", f"/v1/sessions/{session_id}")
+            self._send(core.delete_session_call(session_id))
         except QuietframeError as exc:
             if not (missing_ok and exc.status == 404):
                 raise
 
     def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False) -> FrameResult:
-        params = {"cut": "true"} if cut else None
-        response = self._request(
-            "POST",
-            f"/v1/sessions/{session_id}/frames/{index}",
-            content=exr,
-            headers={"Content-Type": EXR},
-            params=params,
-        )
-        return _frame_result(index, response)
+        response = self._send(core.frame_call(session_id, index, exr, cut))
+        return core.parse_frame(index, response)
 
     def denoise_sequence(self, source, out_dir, **options) -> str | None:
         """Stream a folder or glob of EXR frames through one session into `out_dir` (same
@@ -225,7 +109,7 @@ class AsyncClient:
         self.retry = retry or RetryPolicy()
         self._http = httpx.AsyncClient(
             base_url=base_url.rstrip("/"),
-            headers=_headers(token),
+            headers=core.auth_headers(token),
             timeout=timeout_s,
             transport=transport,
         )
@@ -239,48 +123,36 @@ class AsyncClient:
     async def aclose(self) -> None:
         await self._http.aclose()
 
-    async def _request(self, method: str, path: str, *, create: bool = False, **kw):
-        attempt = 0
+    async def _send(self, call: Call) -> httpx.Response:
+        attempts = core.Attempts(self.retry, call)
         while True:
             try:
-                outcome: httpx.Response | Exception = await self._http.request(method, path, **kw)
+                outcome: httpx.Response | Exception = await self._http.request(
+                    call.method, call.path, **call.options
+                )
             except httpx.TransportError as exc:
                 outcome = exc
-            if isinstance(outcome, httpx.Response) and outcome.status_code < 400:
-                return outcome
-            if not self.retry.should_retry(attempt, outcome, create):
-                if isinstance(outcome, httpx.Response):
-                    raise _error(outcome)
-                raise QuietframeError(0, "connection_error", f"{type(outcome).__name__}: {outcome}")
-            retry_after = (
-                outcome.headers.get("retry-after") if isinstance(outcome, httpx.Response) else None
-            )
-            await asyncio.sleep(self.retry.delay(attempt, retry_after))
-            attempt += 1
+            delay = attempts.after(outcome)
+            if delay is None:
+                return outcome  # type: ignore[return-value]
+            await asyncio.sleep(delay)
 
     async def models(self) -> dict:
-        return (await self._request("GET", "/v1/models")).json()
+        return (await self._send(core.models_call())).json()
 
     async def create_session(
-        self,
-        width: int,
-        height: int,
-        model: str = "auto",
-        channels: Mapping[str, str | Sequence[str]] | None = None,
-        precision: str = "input",
-        motion_scale: tuple[float, float] | None = None,
-        compression: str = "input",
+        self, width: int, height: int, model: str = "auto", **options
     ) -> dict:
-        """Start a sequence; see the API's SessionCreate for the fields."""
-        body = _session_body(width, height, model, channels, precision, motion_scale, compression)
-        return (await self._request("POST", "/v1/sessions", json=body, create=True)).json()
+        """Start a sequence; options as for Client.create_session."""
+        call = core.SessionRequest(width, height, model, **options).call()
+        return (await self._send(call)).json()
 
     async def session(self, session_id: str) -> dict:
-        return (await self._request("GET", f"/v1/sessions/{session_id}")).json()
+        return (await self._send(core.session_call(session_id))).json()
 
     async def delete_session(self, session_id: str, missing_ok: bool = True) -> None:
         try:
-            await self._request("DELETE", f"/v1/sessions/{session_id}")
+            await self._send(core.delete_session_call(session_id))
         except QuietframeError as exc:
             if not (missing_ok and exc.status == 404):
                 raise
@@ -288,15 +160,8 @@ class AsyncClient:
     async def send_frame(
         self, session_id: str, index: int, exr: bytes, cut: bool = False
     ) -> FrameResult:
-        params = {"cut": "true"} if cut else None
-        response = await self._request(
-            "POST",
-            f"/v1/sessions/{session_id}/frames/{index}",
-            content=exr,
-            headers={"Content-Type": EXR},
-            params=params,
-        )
-        return _frame_result(index, response)
+        response = await self._send(core.frame_call(session_id, index, exr, cut))
+        return core.parse_frame(index, response)
 
     async def denoise_sequence(self, source, out_dir, **options) -> str | None:
         """`Client.denoise_sequence` for asyncio (one task per sequence)."""

@@ -1,6 +1,7 @@
-"""`quietframe` command: serve | denoise | models.
+"""`quietframe` command: denoise | models, and the commands other parts of quietframe register
+under the `quietframe.commands` entry point (`serve`, from quietframe.service.cli).
 
-`serve` imports only the serve extra (no torch); `denoise` and `models --server` only the client.
+`denoise` and `models --server` import only the client extra.
 """
 
 from __future__ import annotations
@@ -8,25 +9,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from importlib.metadata import entry_points
 
 EXIT_FAILURE, EXIT_USAGE = 1, 2
-
-
-def _serve(args: argparse.Namespace) -> int:
-    from quietframe.service.main import run
-    from quietframe.service.settings import Settings
-
-    overrides = {
-        "default_model": args.model,
-        "models_dir": args.models_dir,
-        "workers": args.workers,
-        "threads": args.threads,
-        "state_dir": args.state_dir,
-        "log_level": args.log_level,
-    }
-    settings = Settings(**{k: v for k, v in overrides.items() if v is not None})
-    run(args.host, args.port, settings)
-    return 0
+COMMANDS_GROUP = "quietframe.commands"
 
 
 def _denoise(args: argparse.Namespace) -> int:
@@ -132,17 +118,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quietframe", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    serve = sub.add_parser("serve", help="run the denoising server with the bundled model")
-    serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=int, default=8000)
-    serve.add_argument("--model", help="default model for 'auto' (name); env QUIETFRAME_*")
-    serve.add_argument("--models-dir", help="extra folder of .onnx models")
-    serve.add_argument("--workers", type=int, help="frames processed at once")
-    serve.add_argument("--threads", type=int, help="onnxruntime threads per model")
-    serve.add_argument("--state-dir", help="durable sessions: write state here after each frame")
-    serve.add_argument("--log-level", help="debug, info, warning, error")
-    serve.set_defaults(func=_serve)
-
     denoise = sub.add_parser("denoise", help="denoise a folder or glob of EXR frames")
     denoise.add_argument("input", help="folder of .exr frames, or a glob like 'shot/*.exr'")
     denoise.add_argument("--out", required=True, help="output folder (same file names)")
@@ -184,6 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     models.add_argument("--server", default=os.environ.get("QUIETFRAME_SERVER"))
     models.add_argument("--token")
     models.set_defaults(func=_models)
+    for command in entry_points(group=COMMANDS_GROUP):  # e.g. `serve`, from quietframe.service
+        command.load()(sub)
     return parser
 
 

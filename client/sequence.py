@@ -10,6 +10,7 @@ re-sends up to `warmup` finished frames (outputs not rewritten) to rebuild the h
 
 from __future__ import annotations
 
+import asyncio
 import glob
 import json
 import os
@@ -136,6 +137,14 @@ def _resume_plan(pending: int, session: dict | None, warmup: int) -> tuple[str |
     return session["id"], []
 
 
+def _matches(job: Job, server: str, pending: int, stored: dict, session: dict) -> bool:
+    return (
+        stored.get("server") == server
+        and session.get("last_index") == job.indices[pending - 1]
+        and (session.get("width"), session.get("height")) == (job.width, job.height)
+    )
+
+
 def run_sequence(
     client: Client,
     job: Job,
@@ -146,26 +155,29 @@ def run_sequence(
     compression: str = "input",
     on_progress: Callable[[Progress], None] | None = None,
 ) -> str | None:
-    """Denoise every pending frame of `job`; returns the session id (None if nothing to do)."""
-    pending = job.first_pending()
-    if pending == len(job.files):
-        return None
-    session = _reusable_session(client, job, server, pending)
-    session_id, warm = _resume_plan(pending, session, warmup)
-    if session_id is None:
-        session_id = client.create_session(
-            job.width, job.height, model, precision=precision, compression=compression
-        )["id"]
-    for i in warm:
-        client.send_frame(session_id, job.indices[i], _check_size(job, i))
-        _notify(on_progress, Progress(i, job.files[i], None))
-    for i in range(pending, len(job.files)):
-        result = client.send_frame(session_id, job.indices[i], _check_size(job, i))
-        job.write_output(i, result.exr)
-        job.write_job(server=server, session=session_id, last_index=job.indices[i])
-        _notify(on_progress, Progress(i, job.files[i], result))
-    client.delete_session(session_id)
-    return session_id
+    """Denoise every pending frame of `job`; returns the session id (None if nothing to do).
+    The sequence protocol is written once, in `arun_sequence`; here it drives the sync client
+    (one frame at a time either way)."""
+    return asyncio.run(
+        arun_sequence(
+            _Awaitable(client), job, server, model, precision, warmup, compression, on_progress
+        )
+    )
+
+
+class _Awaitable:
+    """A sync Client whose methods can be awaited (they run to completion when called)."""
+
+    def __init__(self, client: Client) -> None:
+        self._client = client
+
+    def __getattr__(self, name: str):
+        method = getattr(self._client, name)
+
+        async def call(*args, **kwargs):
+            return method(*args, **kwargs)
+
+        return call
 
 
 async def arun_sequence(
@@ -182,7 +194,7 @@ async def arun_sequence(
     pending = job.first_pending()
     if pending == len(job.files):
         return None
-    session = await _areusable_session(client, job, server, pending)
+    session = await _reusable_session(client, job, server, pending)
     session_id, warm = _resume_plan(pending, session, warmup)
     if session_id is None:
         created = await client.create_session(
@@ -201,26 +213,7 @@ async def arun_sequence(
     return session_id
 
 
-def _matches(job: Job, server: str, pending: int, stored: dict, session: dict) -> bool:
-    return (
-        stored.get("server") == server
-        and session.get("last_index") == job.indices[pending - 1]
-        and (session.get("width"), session.get("height")) == (job.width, job.height)
-    )
-
-
-def _reusable_session(client: Client, job: Job, server: str, pending: int) -> dict | None:
-    stored = job.read_job()
-    if pending == 0 or not stored.get("session"):
-        return None
-    try:
-        session = client.session(stored["session"])
-    except QuietframeError:
-        return None
-    return session if _matches(job, server, pending, stored, session) else None
-
-
-async def _areusable_session(client: AsyncClient, job: Job, server: str, pending: int):
+async def _reusable_session(client: AsyncClient, job: Job, server: str, pending: int):
     stored = job.read_job()
     if pending == 0 or not stored.get("session"):
         return None

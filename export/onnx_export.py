@@ -16,14 +16,13 @@ import torch
 from onnx.defs import OpSchema
 from torch import Tensor, nn
 
-from quietframe.export import OPS_DOMAIN
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
 from quietframe.model.temporal import WARP_MODES
+from quietframe.runtime.buffers import BUFFER_NAMES
+from quietframe.runtime.ops_library import OPS_DOMAIN
 
 OPSET = 18
-BUFFERS = ("color", "albedo", "normal", "depth", "motion")
-BUFFER_CHANNELS = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}
 REQUIRED_BUFFERS = ("color", "albedo", "normal", "depth")
 OPTIONAL_BUFFERS = ("motion",)  # missing: zeros, i.e. a static camera
 STATE_NAME = "accumulation"
@@ -132,7 +131,7 @@ def export_nbg(
     width = torch.export.Dim("width", min=1, max=8192)
     image_dims = {2: height, 3: width}
     # In the order of the forward arguments: the exporter matches them by position.
-    dynamic = {name: image_dims for name in BUFFERS} | {"reset": None, "state": image_dims}
+    dynamic = {name: image_dims for name in BUFFER_NAMES} | {"reset": None, "state": image_dims}
     table = {
         torch.ops.quietframe.bilateral_splat.default: _splat_to_onnx,
         torch.ops.quietframe.bilateral_slice.default: _slice_to_onnx,
@@ -142,7 +141,7 @@ def export_nbg(
         program = torch.onnx.export(
             _ExportWrapper(model).eval(), example_inputs(), dynamo=True, opset_version=OPSET,
             custom_translation_table=table, dynamic_shapes=dynamic,
-            input_names=[*BUFFERS, "reset", f"state_in.{STATE_NAME}"],
+            input_names=[*BUFFER_NAMES, "reset", f"state_in.{STATE_NAME}"],
             output_names=["denoised", f"state_out.{STATE_NAME}"],
             verbose=False,
         )

@@ -24,8 +24,7 @@ from torch import Tensor
 from quietframe.model.losses import l1_tonemapped_loss, smape_loss, temporal_loss
 from quietframe.model.metrics import psnr
 from quietframe.model.nbg import VARIANTS, NBGConfig, NBGDenoiser
-
-BUFFERS = ("color", "albedo", "normal", "depth", "motion")
+from quietframe.runtime.buffers import BUFFER_NAMES
 
 
 @dataclasses.dataclass
@@ -71,7 +70,7 @@ def unroll(model: NBGDenoiser, batch: dict[str, Tensor]) -> list[Tensor]:
     outputs = []
     for i in range(t):
         reset = torch.ones(b) if i == 0 else batch["reset"][:, i].float()
-        out, state = model(*(batch[k][:, i] for k in BUFFERS), reset, state)
+        out, state = model(*(batch[k][:, i] for k in BUFFER_NAMES), reset, state)
         outputs.append(out)
     return outputs
 
@@ -153,13 +152,15 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     (run / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
-    config: NBGConfig = dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width)
-    model = NBGDenoiser(config)
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     step, best_psnr, metrics = 0, -math.inf, {}
     latest = run / "checkpoint.pt"
-    if latest.exists():
-        ckpt = torch.load(latest, map_location="cpu", weights_only=False)
+    ckpt = torch.load(latest, map_location="cpu", weights_only=False) if latest.exists() else None
+    # A resumed run is the checkpoint's own model, whatever the flags say (resume_config).
+    config = (NBGConfig(**ckpt["config"]) if ckpt else
+              dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width))
+    model = NBGDenoiser(config)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    if ckpt:
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         step, best_psnr, metrics = ckpt["step"], ckpt["best_psnr"], ckpt["metrics"]
@@ -208,16 +209,44 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     return run / "best.pt"
 
 
+ARCHITECTURE_FIELDS = ("variant", "width")  # fixed by a run's checkpoint once it exists
+
+
+def resume_config(run: Path, flags: dict) -> TrainConfig:
+    """The run's configuration: a new run's from the flags given (defaults elsewhere); a
+    resumed run's from its checkpoint, with the flags given on top except the architecture,
+    which a flag cannot change (ValueError naming the conflict)."""
+    latest = run / "checkpoint.pt"
+    if not latest.exists():
+        return TrainConfig(**flags)
+    saved = torch.load(latest, map_location="cpu", weights_only=False)["training"]
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    base = {k: v for k, v in saved.items() if k in known}
+    clashes = [k for k in ARCHITECTURE_FIELDS if k in flags and flags[k] != base.get(k)]
+    if clashes:
+        raise ValueError(
+            f"{run} resumes a {base.get('variant')} run (width {base.get('width')}); "
+            f"--{'/--'.join(clashes)} cannot change a checkpoint's model: use a new --run"
+        )
+    return TrainConfig(**{**base, **flags})
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-train", description=__doc__.split("\n")[0])
+    defaults = TrainConfig()
     for field in dataclasses.fields(TrainConfig):
-        parser.add_argument(f"--{field.name.replace('_', '-')}", type=type(field.default),
-                            default=field.default)
+        default = getattr(defaults, field.name)
+        parser.add_argument(f"--{field.name.replace('_', '-')}", type=type(default),
+                            default=argparse.SUPPRESS, help=f"default {default}")
     parser.add_argument("--run", type=Path, required=True, help="run directory (resumes)")
     parser.add_argument("--stop-at", type=int, help="pause at this step (resume later)")
-    args = vars(parser.parse_args(argv))
-    run, stop_at = args.pop("run"), args.pop("stop_at")
-    best = train(TrainConfig(**args), run, stop_at)
+    flags = vars(parser.parse_args(argv))
+    run, stop_at = flags.pop("run"), flags.pop("stop_at")
+    try:
+        cfg = resume_config(run, flags)
+    except ValueError as exc:
+        parser.error(str(exc))
+    best = train(cfg, run, stop_at)
     print(f"best checkpoint: {best}")
     return 0
 

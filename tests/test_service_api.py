@@ -117,11 +117,22 @@ def test_get_and_delete_session(client):
 
 
 def test_models(client):
+    """Every installed model is listed as its own file's metadata describes it."""
+    from quietframe.runtime import Denoiser, default_model_path, installed_models
+
     body = client.get("/v1/models").json()
-    assert body["models"] and body["default"] in [m["name"] for m in body["models"]]
-    model = body["models"][0]
-    assert {"color", "albedo"} <= set(model["required_buffers"])
-    assert "metrics" in model and "state" in model and model["file"].endswith(".onnx")
+    files = {p.name: p for p in installed_models()}
+    assert sorted(m["file"] for m in body["models"]) == sorted(files)
+    for model in body["models"]:
+        info = Denoiser(files[model["file"]], threads=1).info
+        assert (model["name"], model["version"]) == (info.name, info.version)
+        assert model["required_buffers"] == list(info.required_buffers)
+        assert model["optional_buffers"] == list(info.optional_buffers)
+        state = [{"name": s.name, "channels": s.channels} for s in info.state_specs]
+        assert model["state"] == state
+        assert model["metrics"] == info.metrics and model["training"] == info.training
+        assert model["default"] == (model["name"] == body["default"])
+    assert body["default"] == Denoiser(default_model_path(), threads=1).info.name
 
 
 def test_health_ready_metrics(client):

@@ -101,3 +101,16 @@ def test_training_report_summarises_the_log(data, tmp_path, capsys):
     assert (tmp_path / "docs" / "training_curves.png").stat().st_size > 1000
     row = next(line for line in capsys.readouterr().out.splitlines() if "tiny-run" in line)
     assert f"| {log.best[1]:.2f} | {log.best[0]} |" in row and "| 6 |" in row
+
+
+def test_resumed_run_is_rebuilt_from_its_checkpoint_not_the_flags(data, tmp_path):
+    run = tmp_path / "run"
+    qt.train(config(data), run, stop_at=2)
+    # Flags that would build another model are refused; other settings come from the run.
+    with pytest.raises(ValueError, match="cannot change a checkpoint's model"):
+        qt.resume_config(run, {"width": 8})
+    cfg = qt.resume_config(run, {"steps": 9})
+    assert (cfg.variant, cfg.width, cfg.steps, cfg.batch) == ("nbg-2l-1g", 4, 9, 2)
+    assert qt.resume_config(tmp_path / "new", {"width": 8}).width == 8
+    with pytest.raises(SystemExit):  # the CLI says so instead of training a different model
+        qt.main(["--run", str(run), "--variant", "nbg-7l-3g"])

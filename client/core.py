@@ -1,0 +1,180 @@
+"""The client's logic without I/O, shared by the sync and the async client: building requests,
+deciding retries, parsing replies.
+
+Retries with exponential backoff (and the server's Retry-After) on 429, 5xx and connection
+errors. Frames are idempotent by index on the server (the same index again returns the same
+bytes without advancing history), so a frame whose response was lost is simply sent again.
+Creating a session is retried only when the server surely did not create it (429/502/503/504,
+or the connection was never made).
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import httpx
+
+from quietframe.client.protocol import (
+    CUT_QUERY,
+    EXR_MEDIA_TYPE,
+    Header,
+    parse_timings,
+    split_list,
+)
+
+_RETRY_STATUS = frozenset({429, 500, 502, 503, 504})
+_RETRY_STATUS_CREATE = frozenset({429, 502, 503, 504})
+
+
+class QuietframeError(Exception):
+    """A request failed for good: `status` (0 for connection errors), `code`, `detail`."""
+
+    def __init__(self, status: int, code: str, detail: str) -> None:
+        super().__init__(f"{status} {code}: {detail}" if status else f"{code}: {detail}")
+        self.status, self.code, self.detail = status, code, detail
+
+
+@dataclass
+class FrameResult:
+    index: int
+    exr: bytes  # the denoised EXR
+    reset: str  # a protocol.Reset value: "none", "first-frame", "cut", "gap"
+    sanitized: int  # input values replaced by the server's sanitising rule
+    missing: tuple[str, ...]  # optional buffers the frame lacked (filled by the model)
+    replayed: bool  # answered from the server's stored reply (a retry)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    retries: int = 5
+    backoff_s: float = 0.5
+    max_backoff_s: float = 30.0
+
+    def delay(self, attempt: int, retry_after: str | None = None) -> float:
+        """Seconds before retry number `attempt` (0-based): the server's Retry-After when it
+        gives one, else exponential backoff with jitter; never more than max_backoff_s."""
+        if retry_after is not None:
+            try:
+                return min(self.max_backoff_s, max(0.0, float(retry_after)))
+            except ValueError:
+                pass
+        base = min(self.max_backoff_s, self.backoff_s * 2**attempt)
+        return base * random.uniform(0.5, 1.0)
+
+    def should_retry(self, attempt: int, outcome: httpx.Response | Exception, create: bool) -> bool:
+        if attempt >= self.retries:
+            return False
+        if isinstance(outcome, httpx.Response):
+            return outcome.status_code in (_RETRY_STATUS_CREATE if create else _RETRY_STATUS)
+        if create:  # the request may have reached the server: only retry if it surely did not
+            return isinstance(outcome, httpx.ConnectError | httpx.ConnectTimeout)
+        return isinstance(outcome, httpx.TransportError)
+
+
+@dataclass(frozen=True)
+class Call:
+    """One API request, as both clients send it."""
+
+    method: str
+    path: str
+    create: bool = False  # creates a session: retried only when it surely was not created
+    options: dict[str, Any] = field(default_factory=dict)  # httpx request keyword arguments
+
+
+class Attempts:
+    """The retry loop's decisions for one Call: `after(outcome)` is None when the response is
+    the answer, else the seconds to wait before sending again; it raises QuietframeError when
+    the call has failed for good."""
+
+    def __init__(self, policy: RetryPolicy, call: Call) -> None:
+        self.policy, self.call, self.attempt = policy, call, 0
+
+    def after(self, outcome: httpx.Response | Exception) -> float | None:
+        if isinstance(outcome, httpx.Response) and outcome.status_code < 400:
+            return None
+        if not self.policy.should_retry(self.attempt, outcome, self.call.create):
+            if isinstance(outcome, httpx.Response):
+                raise parse_error(outcome)
+            raise QuietframeError(0, "connection_error", f"{type(outcome).__name__}: {outcome}")
+        retry_after = (
+            outcome.headers.get("retry-after") if isinstance(outcome, httpx.Response) else None
+        )
+        delay = self.policy.delay(self.attempt, retry_after)
+        self.attempt += 1
+        return delay
+
+
+def parse_error(response: httpx.Response) -> QuietframeError:
+    try:
+        body = response.json()
+        return QuietframeError(response.status_code, body["error"], body["detail"])
+    except Exception:
+        return QuietframeError(response.status_code, "http_error", response.text[:500])
+
+
+def parse_frame(index: int, response: httpx.Response) -> FrameResult:
+    h = response.headers
+    return FrameResult(
+        index=index,
+        exr=response.content,
+        reset=h.get(Header.RESET, "none"),
+        sanitized=int(h.get(Header.SANITIZED, "0")),
+        missing=split_list(h.get(Header.MISSING, "")),
+        replayed=h.get(Header.REPLAYED) == "true",
+        timings_ms=parse_timings(h.get(Header.SERVER_TIMING, "")),
+    )
+
+
+def auth_headers(token: str | None) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"} if token else {}
+
+
+def models_call() -> Call:
+    return Call("GET", "/v1/models")
+
+
+@dataclass(frozen=True)
+class SessionRequest:
+    """The fields of POST /v1/sessions (the API's SessionCreate)."""
+
+    width: int
+    height: int
+    model: str = "auto"
+    channels: Mapping[str, str | Sequence[str]] | None = None
+    precision: str = "input"
+    motion_scale: tuple[float, float] | None = None
+    compression: str = "input"
+
+    def call(self) -> Call:
+        body: dict = {
+            "width": self.width,
+            "height": self.height,
+            "model": self.model,
+            "precision": self.precision,
+        }
+        if self.compression != "input":
+            body["compression"] = self.compression
+        if self.channels:
+            body["channels"] = dict(self.channels)
+        if self.motion_scale is not None:
+            body["motion_scale"] = list(self.motion_scale)
+        return Call("POST", "/v1/sessions", create=True, options={"json": body})
+
+
+def session_call(session_id: str) -> Call:
+    return Call("GET", f"/v1/sessions/{session_id}")
+
+
+def delete_session_call(session_id: str) -> Call:
+    return Call("DELETE", f"/v1/sessions/{session_id}")
+
+
+def frame_call(session_id: str, index: int, exr: bytes, cut: bool = False) -> Call:
+    options: dict[str, Any] = {"content": exr, "headers": {"Content-Type": EXR_MEDIA_TYPE}}
+    if cut:
+        options["params"] = {CUT_QUERY: "true"}
+    return Call("POST", f"/v1/sessions/{session_id}/frames/{index}", options=options)
