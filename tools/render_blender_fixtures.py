@@ -2,7 +2,7 @@
 
 Regenerate (one command; needs Blender as a Python module in its own venv, not the project's):
 
-    python3.11 -m venv /work/bpy-venv && /work/bpy-venv/bin/pip install "bpy==4.5.*" numpy
+    python3.11 -m venv /work/bpy-venv && /work/bpy-venv/bin/pip install "bpy==4.5.*"
     nice -n 10 /work/bpy-venv/bin/python tools/render_blender_fixtures.py [--out DIR]
 
 The scene is built in code (no downloaded assets): a floor, a cube, a sphere and a cylinder with
