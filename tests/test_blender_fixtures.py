@@ -270,6 +270,32 @@ def test_vector_halves_point_to_previous_and_next_frame():
         assert np.median(np.abs(diff)) < 0.05
 
 
+def test_blender_denoiser_keeps_the_raw_beauty_as_noisy_image():
+    """Same render as passes_half_piz with the denoiser on: Noisy Image is that Combined bit for
+    bit, Combined is the denoised one, every other pass is unchanged."""
+    denoised, plain = (
+        pixels(read("blender_denoised.0002.exr")),
+        pixels(read("passes_half_piz.0002.exr")),
+    )
+    for c in "RGBA":
+        np.testing.assert_array_equal(
+            denoised[f"ViewLayer.Noisy Image.{c}"], plain[f"ViewLayer.Combined.{c}"]
+        )
+    assert np.abs(denoised["ViewLayer.Combined.R"] - plain["ViewLayer.Combined.R"]).mean() > 0.05
+    for name in plain:
+        if ".Combined." not in name:
+            np.testing.assert_array_equal(denoised[name], plain[name], err_msg=name)
+
+
+def test_denoising_albedo_of_an_emitter_adds_its_emission():
+    """The lamp sphere (base colour = emission colour (1, 0.6, 0.2), strength 4): about
+    (1 + 4) x the colour, far above 1 (the sanitising rule does not clamp albedo)."""
+    channels = pixels(read("passes_float_zip.0002.exr"))
+    albedo = np.stack([channels[f"ViewLayer.Denoising Albedo.{c}"] for c in "RGB"], -1)
+    lamp = albedo.reshape(-1, 3)[np.argmax(albedo[..., 0])]
+    np.testing.assert_allclose(lamp, [5.0, 3.0, 1.0], atol=0.1)  # measured (5.0, 3.03, 1.06)
+
+
 def test_dwaa_is_lossy_on_channels_named_y_too():
     """DWA compresses channels it takes for colour (R, G, B and luminance Y) lossily, so in a
     DWAA file Vector.Y and Denoising Normal.Y lose precision while X, Z, W stay exact. The

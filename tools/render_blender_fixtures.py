@@ -7,7 +7,8 @@ Regenerate (one command; needs Blender as a Python module in its own venv, not t
 
 The scene is built in code (no downloaded assets): a floor, a cube, a sphere and a cylinder with
 different materials, a sun, a coloured sky in the top part of the frame, and a camera that pans
-right and tilts up over frames 1-3, so every pixel (sky included) moves by a known direction.
+right and tilts up over frames 1-3, so every surface moves by a known amount in the image (Cycles
+writes no motion for the sky: tests/fixtures/blender/README.md).
 Each variant is one point of the issue-12 matrix (passes, view layers, motion blur, Blender's
 denoiser, half/float, ZIP/PIZ/DWAA). Seeds are fixed and Cycles runs on one CPU thread so the
 pixels are reproducible; `manifest.json` records the Blender version and every setting.
@@ -260,7 +261,7 @@ def main() -> None:
     manifest = {
         "blender": bpy.app.version_string,
         "build_hash": bpy.app.build_hash.decode(),
-        "command": "/work/bpy-venv/bin/python tools/render_blender_fixtures.py",
+        "command": "<bpy venv>/bin/python tools/render_blender_fixtures.py",
         "resolution": [WIDTH, HEIGHT],
         "seed": SEED,
         "device": "CPU, 1 thread",
