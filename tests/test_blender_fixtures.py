@@ -74,9 +74,16 @@ def read(file: str) -> bytes:
 
 
 def load(data: bytes, mapping=None, scale=(1.0, 1.0), required=REQUIRED, optional=OPTIONAL):
+    """header, sources and the decoded frame, its planes shown as (H, W, C) / (H, W) images."""
     header = frames.read_header(data, 8192, 8192)
     sources = frames.resolve(header.channels, required, optional, mapping, scale)
-    return header, sources, frames.decode(data, sources)
+    decoded = frames.decode(data, sources)
+    decoded.buffers = {k: image(v) for k, v in decoded.buffers.items()}
+    return header, sources, decoded
+
+
+def image(planes: np.ndarray) -> np.ndarray:
+    return planes[0] if planes.shape[0] == 1 else planes.transpose(1, 2, 0)
 
 
 def pixels(data: bytes) -> dict[str, np.ndarray]:
@@ -101,7 +108,8 @@ def roundtrip(data: bytes, mapping=None, scale=(1.0, 1.0)) -> tuple[np.ndarray, 
     _, sources, decoded = load(data, mapping, scale)
     denoised = decoded.buffers["color"] * np.float32(0.5)
     precision = "half" if decoded.color_half else "float"
-    out = frames.encode(denoised, decoded.header, sources["color"].channels, precision)
+    planes = np.ascontiguousarray(denoised.transpose(2, 0, 1))  # the runtime's output layout
+    out = frames.encode(planes, decoded.header, sources["color"].channels, precision)
     return denoised, out
 
 
