@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.card:
         import json
 
-        from quietframe.export.model_card import write_model_card
+        from quietframe.bench.model_card import write_model_card
 
         rows = []
         if args.evaluation:

@@ -9,7 +9,7 @@ from dataset_support import write_sequence
 
 torch = pytest.importorskip("torch")
 
-from quietframe.export.model_card import write_model_card  # noqa: E402
+from quietframe.bench.model_card import write_model_card  # noqa: E402
 from quietframe.export.onnx_export import export_nbg  # noqa: E402
 from quietframe.model.nbg import VARIANTS, NBGDenoiser  # noqa: E402
 from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
