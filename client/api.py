@@ -15,8 +15,10 @@ from quietframe.client import core
 from quietframe.client.core import Call, FrameResult, QuietframeError, RetryPolicy
 
 
-class Client:
-    """Synchronous client. `Client("http://farm-denoise:8000")`, use as a context manager."""
+class _ClientBase:
+    """Connection settings shared by both clients; `_http_class` is httpx's sync or async one."""
+
+    _http_class: type = httpx.Client
 
     def __init__(
         self,
@@ -24,15 +26,19 @@ class Client:
         token: str | None = None,
         timeout_s: float = 300.0,
         retry: RetryPolicy | None = None,
-        transport: httpx.BaseTransport | None = None,
+        transport: httpx.BaseTransport | httpx.AsyncBaseTransport | None = None,
     ) -> None:
         self.retry = retry or RetryPolicy()
-        self._http = httpx.Client(
+        self._http = self._http_class(
             base_url=base_url.rstrip("/"),
             headers=core.auth_headers(token),
             timeout=timeout_s,
             transport=transport,
         )
+
+
+class Client(_ClientBase):
+    """Synchronous client. `Client("http://farm-denoise:8000")`, use as a context manager."""
 
     def __enter__(self) -> Client:
         return self
@@ -45,17 +51,15 @@ class Client:
 
     def _send(self, call: Call) -> httpx.Response:
         attempts = core.Attempts(self.retry, call)
-        while True:
-            try:
-                outcome: httpx.Response | Exception = self._http.request(
-                    call.method, call.path, **call.options
-                )
-            except httpx.TransportError as exc:
-                outcome = exc
-            delay = attempts.after(outcome)
-            if delay is None:
-                return outcome  # type: ignore[return-value]
+        while (delay := attempts.after(self._try(call))) is not None:
             time.sleep(delay)
+        return attempts.response
+
+    def _try(self, call: Call) -> httpx.Response | httpx.TransportError:
+        try:
+            return self._http.request(call.method, call.path, **call.options)
+        except httpx.TransportError as exc:
+            return exc
 
     def models(self) -> dict:
         return self._send(core.models_call()).json()
@@ -95,24 +99,10 @@ class Client:
         return run_sequence(self, job, str(self._http.base_url), **options)
 
 
-class AsyncClient:
+class AsyncClient(_ClientBase):
     """The same API for asyncio (several sequences from one process, one task per sequence)."""
 
-    def __init__(
-        self,
-        base_url: str,
-        token: str | None = None,
-        timeout_s: float = 300.0,
-        retry: RetryPolicy | None = None,
-        transport: httpx.AsyncBaseTransport | None = None,
-    ) -> None:
-        self.retry = retry or RetryPolicy()
-        self._http = httpx.AsyncClient(
-            base_url=base_url.rstrip("/"),
-            headers=core.auth_headers(token),
-            timeout=timeout_s,
-            transport=transport,
-        )
+    _http_class = httpx.AsyncClient
 
     async def __aenter__(self) -> AsyncClient:
         return self
@@ -125,17 +115,15 @@ class AsyncClient:
 
     async def _send(self, call: Call) -> httpx.Response:
         attempts = core.Attempts(self.retry, call)
-        while True:
-            try:
-                outcome: httpx.Response | Exception = await self._http.request(
-                    call.method, call.path, **call.options
-                )
-            except httpx.TransportError as exc:
-                outcome = exc
-            delay = attempts.after(outcome)
-            if delay is None:
-                return outcome  # type: ignore[return-value]
+        while (delay := attempts.after(await self._try(call))) is not None:
             await asyncio.sleep(delay)
+        return attempts.response
+
+    async def _try(self, call: Call) -> httpx.Response | httpx.TransportError:
+        try:
+            return await self._http.request(call.method, call.path, **call.options)
+        except httpx.TransportError as exc:
+            return exc
 
     async def models(self) -> dict:
         return (await self._send(core.models_call())).json()

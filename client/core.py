@@ -92,9 +92,11 @@ class Attempts:
 
     def __init__(self, policy: RetryPolicy, call: Call) -> None:
         self.policy, self.call, self.attempt = policy, call, 0
+        self.response: httpx.Response | None = None  # the answer, once `after` returned None
 
     def after(self, outcome: httpx.Response | Exception) -> float | None:
         if isinstance(outcome, httpx.Response) and outcome.status_code < 400:
+            self.response = outcome
             return None
         if not self.policy.should_retry(self.attempt, outcome, self.call.create):
             if isinstance(outcome, httpx.Response):

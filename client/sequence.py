@@ -145,24 +145,12 @@ def _matches(job: Job, server: str, pending: int, stored: dict, session: dict) -
     )
 
 
-def run_sequence(
-    client: Client,
-    job: Job,
-    server: str,
-    model: str = "auto",
-    precision: str = "input",
-    warmup: int = 4,
-    compression: str = "input",
-    on_progress: Callable[[Progress], None] | None = None,
-) -> str | None:
-    """Denoise every pending frame of `job`; returns the session id (None if nothing to do).
-    The sequence protocol is written once, in `arun_sequence`; here it drives the sync client
-    (one frame at a time either way)."""
-    return asyncio.run(
-        arun_sequence(
-            _Awaitable(client), job, server, model, precision, warmup, compression, on_progress
-        )
-    )
+def run_sequence(client: Client, job: Job, server: str, **options) -> str | None:
+    """Denoise every pending frame of `job` (options of `arun_sequence`: model, precision,
+    warmup, compression, on_progress); returns the session id (None if nothing to do). The
+    sequence protocol is written once, in `arun_sequence`; here it drives the sync client (one
+    frame at a time either way)."""
+    return asyncio.run(arun_sequence(_Awaitable(client), job, server, **options))
 
 
 class _Awaitable:
