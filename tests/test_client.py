@@ -227,6 +227,12 @@ def test_cli_models(live_server, capsys):
     assert main(["models"]) == 0 and "(default)" in capsys.readouterr().out
 
 
+def test_serve_is_a_quietframe_command_registered_by_the_service(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["serve", "--help"])
+    assert exit_.value.code == 0 and "--state-dir" in capsys.readouterr().out
+
+
 def test_imports_stay_in_their_extra():
     """The client needs neither the server nor onnxruntime; the server never imports torch."""
     import subprocess
@@ -234,6 +240,7 @@ def test_imports_stay_in_their_extra():
 
     probe = (
         "import sys, quietframe.client.cli, quietframe.client.sequence;"
+        "quietframe.client.cli.build_parser();"  # with the commands other packages register
         "assert not {'onnxruntime', 'fastapi', 'torch'} & set(sys.modules), sys.modules.keys();"
         "import quietframe.service.main;"
         "assert 'torch' not in sys.modules"
