@@ -1,5 +1,5 @@
-// Plumbing shared by the ops: errors as OrtStatus, tensor access, attributes, parallel-for, and
-// the OrtCustomOp table built from a kernel class.
+// Plumbing shared by the ops: errors as OrtStatus, tensor access, attributes, and the OrtCustomOp
+// table built from a kernel class (threads and bands: runtime_support.h).
 //
 // A kernel class K provides
 //   static constexpr const char* kName;  static constexpr size_t kInputs, kOutputs;
@@ -7,29 +7,16 @@
 //   OrtStatus* Compute(const qf::ort::Api&, OrtKernelContext*) const;  // thread-safe
 #pragma once
 
-#include <algorithm>
 #include <array>
-#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <stdexcept>
 #include <string>
 
 #include "ort_abi.h"
+#include "runtime_support.h"
 
 namespace qf {
-
-// Process-wide facts about the loaded onnxruntime, set once by RegisterCustomOps.
-struct RuntimeInfo {
-  ort::Api api;                               // the version-16 table
-  ort::ParallelForFn parallel_for = nullptr;  // KernelContext_ParallelFor, NULL before ORT 1.17
-};
-const RuntimeInfo& runtime_info();
-void init_runtime_info(const OrtApiBase* base);
-
-// The CPUs this process may run on, or QUIETFRAME_OPS_NUM_THREADS: how finely work is cut, and
-// the threads of the std::thread fallback (onnxruntime < 1.17 only).
-int cpu_count();
 
 // ---- errors -----------------------------------------------------------------------------------
 
@@ -136,43 +123,6 @@ inline OrtStatus* get_float_attribute(const ort::Api& api, const char* op,
         api, op, std::string("attribute '") + name + "' (float) is missing or not a float", s);
   }
   return nullptr;
-}
-
-// ---- parallel-for -----------------------------------------------------------------------------
-
-void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user);
-
-// Runs fn(i) for i in [0, count), on onnxruntime's intra-op pool when the runtime offers it
-// (>= 1.17), else on our own threads. Returns false if a task threw (only std::bad_alloc of its
-// scratch memory can); the other tasks still run.
-template <class Fn>
-bool parallel_for(OrtKernelContext* ctx, size_t count, const Fn& fn) {
-  std::atomic<bool> failed{false};
-  auto guarded = [&fn, &failed](size_t i) noexcept {
-    try {
-      fn(i);
-    } catch (...) {
-      failed.store(true, std::memory_order_relaxed);
-    }
-  };
-  using Guarded = decltype(guarded);
-  void (*trampoline)(void*, size_t) = [](void* user, size_t i) {
-    (*static_cast<Guarded*>(user))(i);
-  };
-  if (count == 1) {
-    guarded(0);
-  } else if (count > 1) {
-    OrtStatus* status = nullptr;
-    const ort::ParallelForFn pf = runtime_info().parallel_for;
-    // num_batch = 0: onnxruntime schedules each index as one task (ours are coarse).
-    if (pf != nullptr && (status = pf(ctx, trampoline, count, 0, &guarded)) == nullptr) {
-      return !failed.load();
-    }
-    // Fails only up front (a minimal build without the kernel-context API): our own threads.
-    if (status != nullptr) runtime_info().api.ReleaseStatus(status);
-    parallel_for_threads(count, trampoline, &guarded);
-  }
-  return !failed.load();
 }
 
 // ---- the OrtCustomOp table --------------------------------------------------------------------

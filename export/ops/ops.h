@@ -1,0 +1,13 @@
+// Every op of the library, one source file each; register.cc adds them to the ai.quietframe
+// domain.
+#pragma once
+
+#include "ort_abi.h"
+
+namespace qf {
+
+const OrtCustomOp* bilateral_splat_op();          // bilateral_splat.cc
+const OrtCustomOp* bilateral_slice_op();          // bilateral_slice.cc
+const OrtCustomOp* backward_warp_op();            // backward_warp.cc
+
+}  // namespace qf
