@@ -5,6 +5,7 @@
 //   static constexpr const char* kName;  static constexpr size_t kInputs, kOutputs;
 //   static OrtStatus* Create(const qf::ort::Api&, const OrtKernelInfo*, K** out);  // validates
 //   OrtStatus* Compute(const qf::ort::Api&, OrtKernelContext*) const;  // thread-safe
+// and optionally static ONNXTensorElementDataType input_type(size_t index) (default: float32).
 #pragma once
 
 #include <array>
@@ -12,6 +13,7 @@
 #include <cstdint>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 
 #include "ort_abi.h"
 #include "runtime_support.h"
@@ -90,6 +92,40 @@ inline OrtStatus* get_float_input(const ort::Api& api, const char* op, OrtKernel
   return nullptr;
 }
 
+// An int64 scalar input (shape [] or [1]), e.g. a kernel size that may change between runs.
+inline OrtStatus* get_int64_scalar_input(const ort::Api& api, const char* op,
+                                         OrtKernelContext* ctx, size_t index, const char* name,
+                                         int64_t* out) {
+  const std::string what = std::string("reading input '") + name + "'";
+  const OrtValue* value = nullptr;
+  QF_RETURN_IF_ORT_ERROR(api, op, what, api.KernelContext_GetInput(ctx, index, &value));
+  if (value == nullptr) return op_error(api, op, std::string("input '") + name + "' is missing");
+  OrtTensorTypeAndShapeInfo* info = nullptr;
+  QF_RETURN_IF_ORT_ERROR(api, op, what, api.GetTensorTypeAndShape(value, &info));
+  ONNXTensorElementDataType type = ONNX_TENSOR_ELEMENT_DATA_TYPE_UNDEFINED;
+  Shape shape;
+  OrtStatus* status = api.GetTensorElementType(info, &type);
+  if (status == nullptr) status = api.GetDimensionsCount(info, &shape.rank);
+  if (status == nullptr && shape.rank <= kMaxRank) {
+    status = api.GetDimensions(info, shape.dims.data(), shape.rank);
+  }
+  api.ReleaseTensorTypeAndShapeInfo(info);
+  if (status != nullptr) return op_error_from(api, op, what, status);
+  if (type != ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64) {
+    return op_error(api, op, std::string("input '") + name + "' must be int64");
+  }
+  if (!(shape.rank == 0 || (shape.rank == 1 && shape[0] == 1))) {
+    return op_error(api, op,
+                    std::string("input '") + name +
+                        "' must be one int64 (shape [] or [1]), got " + shape.str());
+  }
+  void* ptr = nullptr;
+  QF_RETURN_IF_ORT_ERROR(api, op, what,
+                         api.GetTensorMutableData(const_cast<OrtValue*>(value), &ptr));
+  *out = *static_cast<const int64_t*>(ptr);
+  return nullptr;
+}
+
 // Allocates output `index` with the given shape and returns its data.
 inline OrtStatus* get_float_output(const ort::Api& api, const char* op, OrtKernelContext* ctx,
                                    size_t index, const char* name, const Shape& shape,
@@ -127,6 +163,16 @@ inline OrtStatus* get_float_attribute(const ort::Api& api, const char* op,
 
 // ---- the OrtCustomOp table --------------------------------------------------------------------
 
+// K::input_type(i) where the kernel declares it, else float32 for every input.
+template <class K, class = void>
+struct InputTypes {
+  static ONNXTensorElementDataType of(size_t) { return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT; }
+};
+template <class K>
+struct InputTypes<K, std::void_t<decltype(K::input_type(size_t{}))>> {
+  static ONNXTensorElementDataType of(size_t index) { return K::input_type(index); }
+};
+
 template <class K>
 class CustomOp {
  public:
@@ -147,9 +193,7 @@ class CustomOp {
     op.CreateKernel = &CreateV1;
     op.GetName = [](const OrtCustomOp*) { return K::kName; };
     op.GetExecutionProviderType = [](const OrtCustomOp*) -> const char* { return nullptr; };
-    op.GetInputType = [](const OrtCustomOp*, size_t) {
-      return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT;
-    };
+    op.GetInputType = [](const OrtCustomOp*, size_t index) { return InputTypes<K>::of(index); };
     op.GetInputTypeCount = [](const OrtCustomOp*) { return K::kInputs; };
     op.GetOutputType = [](const OrtCustomOp*, size_t) {
       return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT;
