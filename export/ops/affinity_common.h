@@ -146,7 +146,9 @@ inline void filter_pixels_scalar(const Job& j, const Image& im, int64_t y, int64
     const int64_t p = y * j.W + x;
     float* out = im.out + p;
     const float a = non_negative(im.A[p]), c = non_negative(im.Cw[p]);
-    for (int64_t ch = 0; ch < j.C; ++ch) out[ch * plane] = c * im.L[ch * plane + p];  // w_pp = c_p
+    for (int64_t ch = 0; ch < j.C; ++ch) {
+      out[ch * plane] = c * im.L[ch * plane + p];  // w_pp = c_p
+    }
     float den = c;
     for (int64_t i = -r; i <= r; ++i) {  // eq. 4 + 6
       const int64_t yq = y + i * dil;
@@ -193,7 +195,7 @@ inline void filter_pixels_scalar(const Job& j, const Image& im, int64_t y, int64
   }
 }
 
-// ---- AVX2 -----------------------------------------------------------------------------------------
+// ---- AVX2 ---------------------------------------------------------------------------------------
 
 #if QF_HAVE_AVX2
 // weight_of on 8 lanes: exp(-t) = 2^-m · e^-u with m = round(t·log2 e), |u| <= ln2/2, e^-u by
@@ -255,7 +257,7 @@ inline void add_window8(const Job& j, const Image& im, int64_t y, int64_t x, int
   const int64_t plane = j.H * j.W, p = y * j.W + x;
   const int64_t D = kD > 0 ? kD : j.D;
   __m256 own[kD > 0 ? kD : 1];
-  if (kD > 0) {
+  if constexpr (kD > 0) {
     for (int f = 0; f < kD; ++f) own[f] = _mm256_loadu_ps(im.F + f * plane + p);
   }
   const int64_t r = kTemporal ? j.temporal_radius : j.radius;
@@ -273,7 +275,12 @@ inline void add_window8(const Job& j, const Image& im, int64_t y, int64_t x, int
       const int64_t q = yq * j.W + xq;
       __m256 d2 = _mm256_setzero_ps();
       for (int64_t f = 0; f < D; ++f) {
-        const __m256 fp = kD > 0 ? own[kD > 0 ? f : 0] : _mm256_loadu_ps(im.F + f * plane + p);
+        __m256 fp;
+        if constexpr (kD > 0) {
+          fp = own[f];
+        } else {
+          fp = _mm256_loadu_ps(im.F + f * plane + p);
+        }
         const __m256 diff = _mm256_sub_ps(fp, load8(neighbours + f * plane, q, whole, mask));
         d2 = _mm256_fmadd_ps(diff, diff, d2);
       }
@@ -297,7 +304,9 @@ inline void filter_chunk_avx2(const Job& j, const Image& im, int64_t y, int64_t 
   const __m256 a = _mm256_max_ps(_mm256_loadu_ps(im.A + p), zero);
   const __m256 c = _mm256_max_ps(_mm256_loadu_ps(im.Cw + p), zero);
   __m256 num[G];
-  for (int g = 0; g < G; ++g) num[g] = _mm256_mul_ps(c, _mm256_loadu_ps(im.L + (c0 + g) * plane + p));
+  for (int g = 0; g < G; ++g) {
+    num[g] = _mm256_mul_ps(c, _mm256_loadu_ps(im.L + (c0 + g) * plane + p));  // w_pp = c_p
+  }
   __m256 den = c;
   add_window8<G, kD, false>(j, im, y, x, c0, a, zero, num, den);
   if (im.on > 0.0f) {
@@ -335,7 +344,9 @@ inline void filter_row(const Job& j, const Image& im, int64_t y) {
   int64_t x = 0;
 #if QF_HAVE_AVX2
   // d = 8, the paper's feature count, with the pixel's own features in registers
-  if (simd_enabled()) x = j.D == 8 ? filter_row_avx2<8>(j, im, y) : filter_row_avx2<0>(j, im, y);
+  if (simd_enabled()) {
+    x = j.D == 8 ? filter_row_avx2<8>(j, im, y) : filter_row_avx2<0>(j, im, y);
+  }
 #endif
   filter_pixels_scalar(j, im, y, x, j.W);
 }
@@ -348,7 +359,7 @@ inline void filter_band(const Job& j, int64_t task) {
   for (int64_t y = ya; y < yb; ++y) filter_row(j, im, y);
 }
 
-// ---- inputs ---------------------------------------------------------------------------------------
+// ---- inputs -------------------------------------------------------------------------------------
 
 // "(N, k, H, W)" with N, H, W from `like` and k given.
 inline std::string nchw(const Shape& like, const std::string& channels) {
