@@ -26,7 +26,7 @@ import argparse
 import numpy as np
 
 from quietframe.bench.timing import Timing, time_ms
-from quietframe.export import OPS_DOMAIN, ops_library_path
+from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
 
 HEIGHT, WIDTH = 720, 1280
 SCALES = ((4, 4.0), (8, 8.0), (16, 16.0))  # (σs, σr) of the three grids

@@ -6,7 +6,7 @@ import numpy as np
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from quietframe.export import OPS_DOMAIN
+from quietframe.runtime.ops_library import OPS_DOMAIN
 
 SCALES = [(4, 4.0), (8, 8.0), (16, 16.0)]
 

@@ -15,7 +15,7 @@ import onnxruntime as ort
 import pytest
 from ops_support import SCALES, attrs_for, make_session, op_model, range_cells, spatial_cells
 
-from quietframe.export import ops_library_path
+from quietframe.runtime.ops_library import ops_library_path
 
 
 @pytest.fixture(scope="session")
@@ -30,8 +30,15 @@ def session_for(ops_library):
     return functools.partial(make_session, ops_library)
 
 
-def test_library_path_is_a_file(ops_library):
-    assert ops_library.endswith((".so", ".dylib", ".dll"))
+def test_library_exports_only_its_entry_point_and_registers(ops_library):
+    import ctypes
+
+    import onnxruntime as ort
+
+    library = ctypes.CDLL(ops_library)
+    assert hasattr(library, "RegisterCustomOps")  # the one exported symbol (exports.map)
+    assert not hasattr(library, "cpu_count")  # internals stay hidden
+    ort.SessionOptions().register_custom_ops_library(ops_library)
 
 
 @pytest.mark.parametrize("sigma_s,sigma_r", SCALES)

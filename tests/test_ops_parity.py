@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from ops_support import SCALES, attrs_for, make_session, op_model
 
-from quietframe.export import ops_library_path
+from quietframe.runtime.ops_library import ops_library_path
 
 torch = pytest.importorskip("torch")
 grid_ref = pytest.importorskip("quietframe.model.grid")

@@ -14,7 +14,7 @@ import pytest
 from onnx import TensorProto, helper
 from ops_support import make_session
 
-from quietframe.export import OPS_DOMAIN, ops_library_path
+from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
 
 torch = pytest.importorskip("torch")
 temporal = pytest.importorskip("quietframe.model.temporal")
