@@ -63,6 +63,9 @@ class SessionSpec:
     compression: str
     channels: dict | None
     motion_scale: tuple[float, float]
+    layer: str | None = None
+    denoised_layer: str | None = None
+    quality: str | None = None
 
 
 @dataclass
@@ -170,6 +173,9 @@ class Session:
             required_buffers=list(self.info.required_buffers),
             optional_buffers=list(self.info.optional_buffers),
             channels=spec.channels,
+            layer=spec.layer,
+            denoised_layer=spec.denoised_layer,
+            quality=spec.quality,  # type: ignore[arg-type]
             created_at=datetime.fromtimestamp(self.created_at, timezone.utc).isoformat(),
             frames_done=self.frames_done,
             last_index=self.last_index,
@@ -215,7 +221,13 @@ def process_frame(
         precision = "half" if frame.color_half else "float"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     body_out = frames.encode(
-        result.color, frame.header, sources["color"].channels, precision, extra, spec.compression
+        result.color,
+        frame,
+        sources["color"].channels,
+        precision,
+        extra,
+        spec.compression,
+        spec.denoised_layer,
     )
     done = time.perf_counter()
     timings = {
@@ -341,6 +353,9 @@ class SessionRegistry:
             compression=request.compression,
             channels=request.channels,
             motion_scale=tuple(request.motion_scale),  # type: ignore[arg-type]
+            layer=request.layer,
+            denoised_layer=request.denoised_layer,
+            quality=request.quality,
         )
         session = self._session(secrets.token_urlsafe(16), spec)
         self._make_room(session.reserve_bytes)
@@ -391,6 +406,8 @@ class SessionRegistry:
             spec.channels,
             spec.motion_scale,
             model=info.name,
+            layer=spec.layer,
+            installed=self.models.buffers(),
         )
         async with session.lock:
             if session.closed:
@@ -463,6 +480,9 @@ class SessionRegistry:
                     compression=meta["compression"],
                     channels=meta["channels"],
                     motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
+                    layer=meta.get("layer"),
+                    denoised_layer=meta.get("denoised_layer"),
+                    quality=meta.get("quality"),
                 )
             except Exception as exc:  # unreadable file or model no longer installed
                 log.warning("skipping stored session %s: %s", path.name, exc)
