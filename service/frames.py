@@ -353,12 +353,12 @@ def resolve(
                 f"{list(view_layers(names))}, its channels {names}"
             )
     layers = _layers(candidates)
+    every_layer = _layers(names) if mapping else {}
     sources: dict[str, Source] = {}
     for buffer in (*required, *optional):
         if mapping and buffer in mapping:
-            source = _mapped_source(
-                buffer, mapping[buffer], names, _layers(names), mapped_motion_scale
-            )
+            spec, scale = mapping[buffer], mapped_motion_scale
+            source = _mapped_source(buffer, spec, names, every_layer, scale)
             if source is None:
                 raise MissingChannels(
                     f"session mapping {buffer}={mapping[buffer]!r} names channels that are not in "
