@@ -298,3 +298,13 @@ def test_attribute_that_cannot_be_written_back_is_dropped_not_fatal():
     attributes, channels = read_exr(out)
     assert attributes["comment"] == "kept" and attributes["quietframe.dropped_attributes"] == "odd"
     assert sorted(channels) == ["B", "G", "R"]
+
+
+def test_output_passes_benchmark_runs(capsys):
+    """bench/output_passes.py at a tiny size: complete outputs hold more than the beauty."""
+    from quietframe.bench import output_passes
+
+    assert output_passes.main(["--width", "32", "--height", "18", "--repeats", "1",
+                               "--warmup", "0", "--compression", "zip"]) == 0
+    rows = [r for r in capsys.readouterr().out.splitlines() if r.startswith("| zip")]
+    assert [r.split("|")[2].strip() for r in rows] == ["11", "39"]
