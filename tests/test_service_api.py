@@ -81,6 +81,10 @@ def test_create_session(client):
     assert body["frames_done"] == 0 and body["last_index"] is None and body["reserved_bytes"] > 0
     other = client.post("/v1/sessions", json=SIZE).json()
     assert other["id"] != body["id"] and other["precision"] == "input"
+    assert other["layer"] is None and other["denoised_layer"] is None
+    options = {"layer": "Objects", "denoised_layer": "Denoised", "quality": "fast"}
+    chosen = client.post("/v1/sessions", json={**SIZE, **options}).json()
+    assert {k: chosen[k] for k in options} == options
 
 
 @pytest.mark.parametrize(
@@ -92,6 +96,9 @@ def test_create_session(client):
         {**SIZE, "unknown": 1},
         {**SIZE, "channels": {"colour": "beauty"}},
         {**SIZE, "channels": {"albedo": ["a.R", "a.G"]}},
+        {**SIZE, "layer": ""},
+        {**SIZE, "denoised_layer": "Denoised."},
+        {**SIZE, "quality": "ultra"},
     ],
 )
 def test_create_session_rejects_invalid_bodies(client, body):
@@ -403,3 +410,11 @@ def test_durable_sessions_are_evicted_to_disk_under_memory_pressure(make_client,
         expected = send(c, ref, i, f)
     np.testing.assert_array_equal(pixels(third), pixels(expected))
     assert send(c, a, 1, frames[1]).status_code == 409 and outputs
+
+
+def test_durable_session_keeps_its_layer_options_across_a_restart(make_client, tmp_path):
+    options = {"layer": "ViewLayer", "denoised_layer": "Denoised", "quality": "best"}
+    sid = new_session(make_client(state_dir=str(tmp_path)), **options)
+    restarted = make_client(state_dir=str(tmp_path))  # a second server on the same folder
+    status = restarted.get(f"/v1/sessions/{sid}").json()
+    assert {k: status[k] for k in options} == options
