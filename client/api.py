@@ -72,7 +72,8 @@ class Client(_ClientBase):
 
     def create_session(self, width: int, height: int, model: str = "auto", **options) -> dict:
         """Start a sequence; options are core.SessionRequest's (channels, precision,
-        motion_scale, compression), the API's SessionCreate fields."""
+        motion_scale, compression, layer, denoised_layer, quality), the API's SessionCreate
+        fields."""
         return self._send(core.SessionRequest(width, height, model, **options).call()).json()
 
     def session(self, session_id: str) -> dict:
@@ -92,7 +93,8 @@ class Client(_ClientBase):
     def denoise_sequence(self, source, out_dir, **options) -> str | None:
         """Stream a folder or glob of EXR frames through one session into `out_dir` (same
         names), resuming an earlier run; options of `sequence.run_sequence` (model, precision,
-        compression, warmup, on_progress). Returns the session id, None if nothing was left."""
+        compression, warmup, on_progress, layers, and session fields such as channels).
+        Returns the session id, None if nothing was left."""
         from quietframe.client.sequence import Job, run_sequence
 
         job = Job.plan(source, out_dir)

@@ -7,12 +7,51 @@ under the `quietframe.commands` entry point (`serve`, from quietframe.service.cl
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from importlib.metadata import entry_points
+from pathlib import Path
 
 EXIT_FAILURE, EXIT_USAGE = 1, 2
 COMMANDS_GROUP = "quietframe.commands"
+
+
+def session_options(args: argparse.Namespace) -> dict:
+    """Session fields from the command line (besides model, precision, compression); ValueError
+    for a --channels that is not a JSON object (or @file holding one)."""
+    text = args.channels
+    if text is not None and text.startswith("@"):
+        try:
+            text = Path(text[1:]).read_text()
+        except OSError as exc:
+            raise ValueError(f"--channels {args.channels}: {exc}") from exc
+    try:
+        mapping = json.loads(text) if text is not None else None
+    except ValueError as exc:
+        raise ValueError(f"--channels is not JSON ({exc}): {text!r}") from exc
+    if mapping is not None and not isinstance(mapping, dict):
+        raise ValueError('--channels must be a JSON object, e.g. \'{"albedo": "alb"}\'')
+    return {
+        "channels": mapping or None,
+        "motion_scale": tuple(args.motion_scale) if args.motion_scale else None,
+        "quality": args.quality,
+        "denoised_layer": args.denoised_layer,
+    }
+
+
+def _layers(job, layer: str | None, options: dict) -> tuple[str | None, ...]:
+    """The view layers to denoise, one session each: `all` reads them from the first frame."""
+    from quietframe.client.sequence import file_view_layers
+
+    if layer != "all":
+        return (layer,)
+    if options["channels"]:
+        raise ValueError(
+            "--channels names whole channels, the same for every session; with --layer all "
+            "leave it out (each view layer's passes are found by name) or run one --layer each"
+        )
+    return file_view_layers(job.files[0]) or (None,)
 
 
 def _denoise(args: argparse.Namespace) -> int:
@@ -25,8 +64,14 @@ def _denoise(args: argparse.Namespace) -> int:
         print("quietframe: error: pass --server URL (or set QUIETFRAME_SERVER)", file=sys.stderr)
         return EXIT_USAGE
     try:
+        options = session_options(args)
+    except ValueError as exc:
+        print(f"quietframe: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
         job = Job.plan(args.input, args.out)
-    except SequenceError as exc:
+        layers = _layers(job, args.layer, options)
+    except (SequenceError, ValueError) as exc:
         print(f"quietframe: error: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     done = job.first_pending()
@@ -35,6 +80,8 @@ def _denoise(args: argparse.Namespace) -> int:
     )
     if done:
         bar.write(f"resuming: {done} of {len(job.files)} frames already in {job.out_dir}")
+    if len(layers) > 1:
+        bar.write(f"view layers {', '.join(map(str, layers))}: one session each, one file out")
     current = {"path": job.files[min(done, len(job.files) - 1)]}
 
     def progress(p) -> None:
@@ -63,6 +110,8 @@ def _denoise(args: argparse.Namespace) -> int:
                 warmup=args.warmup,
                 compression=args.compression,
                 on_progress=progress,
+                layers=layers,
+                **options,
             )
     except (QuietframeError, SequenceError, OSError) as exc:
         bar.close()
@@ -126,7 +175,36 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("QUIETFRAME_SERVER"),
         help="server URL (env QUIETFRAME_SERVER)",
     )
-    denoise.add_argument("--model", default="auto")
+    denoise.add_argument("--model", default="auto", help="installed model name, or auto")
+    denoise.add_argument(
+        "--quality",
+        choices=("fast", "balanced", "best"),
+        help="target for --model auto (recorded by the server; auto is its default model today)",
+    )
+    denoise.add_argument(
+        "--layer",
+        help="view layer to denoise (Blender: ViewLayer, ...); 'all': every view layer of the "
+        "files, one session each, written into one output file per frame",
+    )
+    denoise.add_argument(
+        "--channels",
+        metavar="JSON",
+        help="session channel mapping, buffer -> layer or channel list, as JSON or @file: "
+        '\'{"albedo": "alb", "depth": "Z"}\'',
+    )
+    denoise.add_argument(
+        "--motion-scale",
+        nargs=2,
+        type=float,
+        metavar=("X", "Y"),
+        help="factors for a motion layer named in --channels (Blender Vector: 1 -1)",
+    )
+    denoise.add_argument(
+        "--denoised-layer",
+        metavar="NAME",
+        help="write the denoised colour as a new layer <view layer>.NAME and keep the noisy "
+        "beauty (default: the denoised colour replaces the beauty's R, G, B)",
+    )
     denoise.add_argument(
         "--precision",
         choices=("input", "half", "float"),

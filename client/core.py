@@ -150,6 +150,9 @@ class SessionRequest:
     precision: str = "input"
     motion_scale: tuple[float, float] | None = None
     compression: str = "input"
+    layer: str | None = None  # view layer to denoise
+    denoised_layer: str | None = None  # write the denoised colour as this new layer
+    quality: str | None = None
 
     def call(self) -> Call:
         body: dict = {
@@ -164,6 +167,9 @@ class SessionRequest:
             body["channels"] = dict(self.channels)
         if self.motion_scale is not None:
             body["motion_scale"] = list(self.motion_scale)
+        for name in ("layer", "denoised_layer", "quality"):  # sent only when set
+            if getattr(self, name) is not None:
+                body[name] = getattr(self, name)
         return Call("POST", "/v1/sessions", create=True, options={"json": body})
 
 

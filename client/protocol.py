@@ -36,6 +36,13 @@ class Header:
     SERVER_TIMING = "Server-Timing"  # "decode;dur=1.0, denoise;dur=..., encode;..., total;..."
 
 
+def view_layers(names) -> tuple[str, ...]:
+    """View layers of a multilayer EXR from its channel names: the first segment of
+    `<layer>.<pass>.<channel>` (Blender's multilayer naming); empty for a single-layer file.
+    The server's session `layer` and the CLI's `--layer all` read files the same way."""
+    return tuple(sorted({n.split(".", 1)[0] for n in names if n.count(".") >= 2}))
+
+
 def join_list(items) -> str:
     return ", ".join(items)
 

@@ -6,6 +6,10 @@ cut). Outputs are written atomically under the input names, so an output that ex
 A job file in the output folder remembers the session: a resumed run continues that session when
 the server still has it at the last finished frame; otherwise it starts a new session and first
 re-sends up to `warmup` finished frames (outputs not rewritten) to rebuild the history.
+
+Several view layers of one file (`layers`): one session per layer, each frame sent to every
+session; each reply is the whole file with its layer denoised, so the output is the first reply
+with every other layer's channels taken from that layer's reply (one file per frame).
 """
 
 from __future__ import annotations
@@ -16,10 +20,11 @@ import json
 import os
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from quietframe.client.api import AsyncClient, Client, FrameResult, QuietframeError
+from quietframe.client.protocol import view_layers
 
 JOB_FILE = ".quietframe-job.json"
 _NUMBER = re.compile(r"(\d+)(?!.*\d)")
@@ -44,6 +49,17 @@ def find_frames(source: str | Path) -> list[Path]:
 def frame_number(path: Path) -> int | None:
     match = _NUMBER.search(path.stem)
     return int(match.group(1)) if match else None
+
+
+def file_view_layers(path: Path) -> tuple[str, ...]:
+    """View layers of an EXR (every part), from its header only."""
+    import OpenEXR
+
+    try:
+        parts = OpenEXR.File(str(path), header_only=True).parts
+    except Exception as exc:
+        raise SequenceError(f"{path} is not a readable EXR file: {exc}") from exc
+    return view_layers(c.name for part in parts for c in part.header["channels"])
 
 
 def frame_size(path: Path) -> tuple[int, int]:
@@ -137,19 +153,56 @@ def _resume_plan(pending: int, session: dict | None, warmup: int) -> tuple[str |
     return session["id"], []
 
 
-def _matches(job: Job, server: str, pending: int, stored: dict, session: dict) -> bool:
+def _matches(job: Job, server: str, pending: int, stored: dict, session: dict, layer) -> bool:
     return (
         stored.get("server") == server
         and session.get("last_index") == job.indices[pending - 1]
         and (session.get("width"), session.get("height")) == (job.width, job.height)
+        and session.get("layer") == layer
     )
+
+
+def _stored_sessions(stored: dict) -> dict[str, str]:
+    """Layer key ("" for none) -> session id; job files of one session store `session`."""
+    if "sessions" in stored:
+        return dict(stored["sessions"])
+    return {"": stored["session"]} if stored.get("session") else {}
+
+
+def merge_layers(replies: dict[str | None, bytes]) -> bytes:
+    """One file from the replies of one frame's sessions (one per view layer): the first reply,
+    with each other layer's channels (`<layer>.*`) from that layer's reply. Channels keep
+    their pixel types; parts, attributes and compression are the first reply's."""
+    import io
+
+    import OpenEXR
+
+    (_, first), *others = replies.items()
+    base = OpenEXR.File(io.BytesIO(first), separate_channels=True)
+    for layer, data in others:
+        reply = OpenEXR.File(io.BytesIO(data), separate_channels=True)
+        for part in reply.parts:
+            for name, channel in part.channels.items():
+                if not name.startswith(f"{layer}."):
+                    continue
+                home = next((p for p in base.parts if name in p.channels), None)
+                if home is None:  # a new layer (`denoised_layer`): next to the layer's others
+                    home = next((p for p in base.parts if _holds(p, layer)), base.parts[0])
+                home.channels[name] = channel
+    out = io.BytesIO()
+    base.write(out)
+    return out.getvalue()
+
+
+def _holds(part, layer: str) -> bool:
+    return any(name.startswith(f"{layer}.") for name in part.channels)
 
 
 def run_sequence(client: Client, job: Job, server: str, **options) -> str | None:
     """Denoise every pending frame of `job` (options of `arun_sequence`: model, precision,
-    warmup, compression, on_progress); returns the session id (None if nothing to do). The
-    sequence protocol is written once, in `arun_sequence`; here it drives the sync client (one
-    frame at a time either way)."""
+    warmup, compression, on_progress, layers, further session fields); returns the session id
+    (the first layer's when several; None if nothing to do). The sequence protocol is written
+    once, in `arun_sequence`; here it drives the sync client (one frame at a time either way)."""
     return asyncio.run(arun_sequence(_Awaitable(client), job, server, **options))
 
 
@@ -177,39 +230,79 @@ async def arun_sequence(
     warmup: int = 4,
     compression: str = "input",
     on_progress: Callable[[Progress], None] | None = None,
+    layers: tuple[str | None, ...] = (None,),
+    **options,
 ) -> str | None:
-    """`run_sequence` for AsyncClient (one task per sequence)."""
+    """`run_sequence` for AsyncClient (one task per sequence). `layers`: view layers to denoise,
+    one session each (None: the server's alias table picks the beauty); `options`: further
+    session fields (channels, denoised_layer, quality, motion_scale)."""
     pending = job.first_pending()
     if pending == len(job.files):
         return None
-    session = await _reusable_session(client, job, server, pending)
-    session_id, warm = _resume_plan(pending, session, warmup)
-    if session_id is None:
-        created = await client.create_session(
-            job.width, job.height, model, precision=precision, compression=compression
-        )
-        session_id = created["id"]
-    for i in warm:
-        await client.send_frame(session_id, job.indices[i], _check_size(job, i))
-        _notify(on_progress, Progress(i, job.files[i], None))
-    for i in range(pending, len(job.files)):
-        result = await client.send_frame(session_id, job.indices[i], _check_size(job, i))
-        job.write_output(i, result.exr)
-        job.write_job(server=server, session=session_id, last_index=job.indices[i])
-        _notify(on_progress, Progress(i, job.files[i], result))
-    await client.delete_session(session_id)
-    return session_id
-
-
-async def _reusable_session(client: AsyncClient, job: Job, server: str, pending: int):
     stored = job.read_job()
-    if pending == 0 or not stored.get("session"):
+    sessions: dict[str | None, str] = {}
+    warm: dict[str | None, list[int]] = {}
+    for layer in layers:
+        session = await _reusable_session(client, job, server, pending, stored, layer)
+        session_id, warm[layer] = _resume_plan(pending, session, warmup)
+        if session_id is None:
+            created = await client.create_session(
+                job.width,
+                job.height,
+                model,
+                precision=precision,
+                compression=compression,
+                layer=layer,
+                **options,
+            )
+            session_id = created["id"]
+        sessions[layer] = session_id
+    for i in sorted({i for positions in warm.values() for i in positions}):
+        data = _check_size(job, i)
+        for layer, session_id in sessions.items():
+            if i in warm[layer]:
+                await client.send_frame(session_id, job.indices[i], data)
+        _notify(on_progress, Progress(i, job.files[i], None))
+    keys = {layer or "": session_id for layer, session_id in sessions.items()}
+    for i in range(pending, len(job.files)):
+        data = _check_size(job, i)
+        results = {
+            layer: await client.send_frame(session_id, job.indices[i], data)
+            for layer, session_id in sessions.items()
+        }
+        result = _combined(results)
+        job.write_output(i, result.exr)
+        job.write_job(server=server, sessions=keys, last_index=job.indices[i])
+        _notify(on_progress, Progress(i, job.files[i], result))
+    for session_id in sessions.values():
+        await client.delete_session(session_id)
+    return next(iter(sessions.values()))
+
+
+def _combined(results: dict[str | None, FrameResult]) -> FrameResult:
+    """One frame's results of every layer's session as one (the first's reset and timings)."""
+    first = next(iter(results.values()))
+    if len(results) == 1:
+        return first
+    return replace(
+        first,
+        exr=merge_layers({layer: r.exr for layer, r in results.items()}),
+        sanitized=sum(r.sanitized for r in results.values()),
+        missing=tuple(sorted({m for r in results.values() for m in r.missing})),
+    )
+
+
+async def _reusable_session(
+    client: AsyncClient, job: Job, server: str, pending: int, stored: dict, layer: str | None
+):
+    session_id = _stored_sessions(stored).get(layer or "")
+    if pending == 0 or not session_id:
         return None
     try:
-        session = await client.session(stored["session"])
+        session = await client.session(session_id)
     except QuietframeError:
         return None
-    return session if _matches(job, server, pending, stored, session) else None
+    return session if _matches(job, server, pending, stored, session, layer) else None
 
 
 def _notify(callback, progress: Progress) -> None:

@@ -5,8 +5,9 @@ A frame goes through three steps, so that a bad request is refused before any pi
 2. `resolve` maps the header's channel names onto the canonical buffers (ALIASES below, or the
    session's own mapping), naming what was found and what was expected when something is missing;
 3. `decode` reads the pixels with OpenEXR into planar (C, H, W) float32 buffers, converting
-   renderer motion-vector conventions to ours; `encode` writes the denoised (3, H, W) planes
-   back with the input's header attributes.
+   renderer conventions to ours (motion vectors, "no hit" depths, an all-zero motion layer);
+   `encode` writes the input back, every part, channel and attribute as decoded, with the
+   denoised (3, H, W) planes in place of the beauty's R, G, B (or as a layer of their own).
 
 Canonical buffers (runtime/buffers.py): color (RGB), albedo (RGB), normal (XYZ), depth (Z), motion
 (XY, backward, in pixels, x right and y down: pixel p of frame t was at p + motion in frame t-1).
@@ -23,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import OpenEXR
 
-from quietframe.client.protocol import CUT_ATTRIBUTE
+from quietframe.client.protocol import CUT_ATTRIBUTE, view_layers
 from quietframe.runtime.buffers import BUFFER_CHANNELS, MissingBuffers, check_buffers
 from quietframe.service.errors import (
     AmbiguousChannels,
@@ -333,42 +334,88 @@ def resolve(
     mapping: Mapping[str, str | Sequence[str]] | None = None,
     mapped_motion_scale: tuple[float, float] = (1.0, 1.0),
     model: str = "",
+    layer: str | None = None,
+    installed: Mapping[str, tuple[Sequence[str], Sequence[str]]] | None = None,
 ) -> dict[str, Source]:
     """Canonical buffer -> Source for the model's buffers. A required buffer that is absent is
     refused by the runtime's one buffer check, here with the EXR names that were looked for
-    (MissingChannels); optional ones are simply left out (the runtime fills them, says so)."""
+    (MissingChannels); optional ones are simply left out (the runtime fills them, says so).
+    `layer` restricts the alias table to one view layer (`<layer>.<pass>.<channel>`); a mapping
+    names whole channels and is not restricted. `installed` (model -> required, optional
+    buffers) lets the refusal name the models that would accept the frame."""
     names = sorted(channel_names)
-    layers = _layers(names)
+    candidates = names
+    if layer:
+        candidates = [n for n in names if n.startswith(layer + ".")]
+        if not candidates:
+            raise MissingChannels(
+                f"no channels of view layer {layer!r}; the file's view layers are "
+                f"{list(view_layers(names))}, its channels {names}"
+            )
+    layers = _layers(candidates)
+    every_layer = _layers(names) if mapping else {}
     sources: dict[str, Source] = {}
     for buffer in (*required, *optional):
         if mapping and buffer in mapping:
-            source = _mapped_source(buffer, mapping[buffer], names, layers, mapped_motion_scale)
+            spec, scale = mapping[buffer], mapped_motion_scale
+            source = _mapped_source(buffer, spec, names, every_layer, scale)
             if source is None:
                 raise MissingChannels(
                     f"session mapping {buffer}={mapping[buffer]!r} names channels that are not in "
                     f"the file; found {names}"
                 )
         else:
-            source = _find_alias(buffer, names, layers)
+            source = _find_alias(buffer, candidates, layers)
         if source is not None:
             sources[buffer] = source
     try:
         check_buffers(model, required, optional, sources)
     except MissingBuffers as exc:
-        raise MissingChannels(_missing_detail(exc.missing, names)) from exc
+        raise MissingChannels(_missing_detail(exc, names, installed)) from exc
     return sources
 
 
-def _missing_detail(missing: Sequence[str], names: Sequence[str]) -> str:
+def _missing_detail(
+    exc: MissingBuffers,
+    names: Sequence[str],
+    installed: Mapping[str, tuple[Sequence[str], Sequence[str]]] | None,
+) -> str:
+    """What is missing, what was looked for, and what would make the frame work."""
     looked_for = "; ".join(
         f"{buffer!r}: one of the layers {[a.layer or 'R,G,B' for a in ALIASES[buffer]]} "
         f"(components {'/'.join(COMPONENTS[buffer])})"
-        for buffer in missing
+        for buffer in exc.missing
     )
+    found = exc.present
+    lead = (
+        f"colour-only frame: only 'color' was found, and model {exc.model or '(this one)'} also "
+        f"needs {', '.join(exc.missing)}. "
+        if found == ["color"]
+        else ""
+    )
+    accepting = [m for m, (req, opt) in (installed or {}).items() if _accepts(m, req, opt, found)]
+    if accepting:
+        models = f" Installed models that accept the buffers found: {accepting} (session model)."
+    elif installed is not None:
+        what = "colour-only input" if found == ["color"] else f"a frame with only {found}"
+        models = f" No installed model accepts {what}."
+    else:
+        models = ""
     return (
-        f"no channels for required buffer(s) {', '.join(repr(b) for b in missing)}; expected "
-        f"{looked_for}, or a session channel mapping; found {list(names)}"
+        f"{lead}no channels for required buffer(s) {', '.join(repr(b) for b in exc.missing)}; "
+        f"expected {looked_for}; found {list(names)}.{models} To make it work: render those AOVs "
+        "(Blender: View Layer > Passes > Data > Denoising Data), or name the channels that hold "
+        "them in the session's channel mapping (`channels`, CLI --channels "
+        """'{"albedo": "myAlbedo"}')"""
     )
+
+
+def _accepts(model: str, required: Sequence[str], optional: Sequence[str], found) -> bool:
+    try:
+        check_buffers(model, required, optional, found)  # the one buffer check
+    except MissingBuffers:
+        return False
+    return True
 
 
 def validate_mapping(mapping: Mapping[str, str | Sequence[str]]) -> None:
@@ -386,25 +433,46 @@ def validate_mapping(mapping: Mapping[str, str | Sequence[str]]) -> None:
 # Pixels
 
 
+# A depth that marks a ray that hit nothing: 0 (Blender's Denoising Depth on the sky, the training
+# format's "no hit") or this far or farther (Blender's Depth pass writes 1e10 there).
+DEPTH_NO_HIT = 1e10
+
+
+@dataclass
+class Part:
+    """One part of the input as decoded: its channels are handed to the writer unchanged."""
+
+    name: str
+    attributes: dict  # OpenEXR header attributes
+    channels: dict  # channel name -> OpenEXR.Channel (pixels in their own type)
+
+
 @dataclass
 class DecodedFrame:
     buffers: dict[str, np.ndarray]  # canonical name -> (C, H, W) float32 planes
-    header: dict  # OpenEXR header attributes of the first part, for the output
+    parts: list[Part]  # everything the input holds, for the output
     color_half: bool  # the input colour is half float (precision "input" keeps it)
+
+    @property
+    def header(self) -> dict:
+        """Attributes of the first part."""
+        return self.parts[0].attributes
 
 
 def decode(data: bytes, sources: Mapping[str, Source]) -> DecodedFrame:
     """Decode the pixels into planar (C, H, W) float32 buffers, the runtime's layout (one
-    conversion per channel, no interleaving); BadExr for anything the decoder rejects."""
+    conversion per channel, no interleaving); BadExr for anything the decoder rejects.
+    A depth that marks "no hit" becomes +inf, which the runtime's sanitising rule turns into the
+    frame's farthest depth (the rule for every renderer's background); an all-zero motion layer
+    is left out (motion blur on in Blender), so the runtime fills it and reports it missing."""
     wanted = {c for source in sources.values() for c in source.channels}
     try:
         exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, num_threads=_io["threads"])
+        parts = [Part(p.name(), dict(p.header), dict(p.channels)) for p in exr.parts]
         channels: dict = {}
-        for part in exr.parts:
+        for part in parts:
             for name, channel in part.channels.items():
                 channels.setdefault(name, channel)
-        header = dict(exr.parts[0].header)
-        # Only the channels in use: reading `pixels` converts, and files carry unused AOVs.
         planes = {name: channels[name].pixels for name in wanted if name in channels}
     except Exception as exc:  # the binding raises RuntimeError/ValueError/UnicodeDecodeError
         raise BadExr(f"EXR pixel data could not be decoded: {exc}") from exc
@@ -417,47 +485,90 @@ def decode(data: bytes, sources: Mapping[str, Source]) -> DecodedFrame:
         planar = np.empty((len(source.channels), *first.shape), np.float32)  # (C, H, W)
         for i, name in enumerate(source.channels):
             planar[i] = planes[name]
-        if buffer == "motion" and source.motion_scale != (1.0, 1.0):
-            planar *= np.asarray(source.motion_scale, np.float32)[:, None, None]
+        if buffer == "motion":
+            if not planar.any():  # the whole frame: Cycles writes 0 on the sky of a moving camera
+                continue
+            if source.motion_scale != (1.0, 1.0):
+                planar *= np.asarray(source.motion_scale, np.float32)[:, None, None]
+        if buffer == "depth":
+            planar[(planar == 0) | (planar >= DEPTH_NO_HIT)] = np.inf
         buffers[buffer] = planar
     color_half = "color" in sources and planes[sources["color"].channels[0]].dtype == np.float16
-    return DecodedFrame(buffers, header, color_half)
+    return DecodedFrame(buffers, parts, color_half)
+
+
+def output_channels(color: Sequence[str], denoised_layer: str | None = None) -> tuple[str, ...]:
+    """Where the denoised R, G, B go: in place of the colour read (Blender's `Noisy Image`:
+    as `Combined`, the pass Blender shows), or as `<view layer>.<denoised_layer>.R/G/B`."""
+    names = []
+    for channel in color:
+        layer, component = _split(channel)
+        view_layer, _, name = layer.rpartition(".")
+        if denoised_layer:
+            layer = f"{view_layer}.{denoised_layer}" if view_layer else denoised_layer
+        elif name.lower() == "noisy image":
+            layer = f"{view_layer}.Combined" if view_layer else "Combined"
+        names.append(f"{layer}.{component}" if layer else component)
+    return tuple(names)
 
 
 # Attributes that describe the layout of the input file, not the image; the writer sets them.
 _LAYOUT_ATTRIBUTES = frozenset({"channels", "chunkCount", "name", "type", "tiles", "version"})
+# Codecs that lose precision (DWA on channels named R, G, B, Y; B44 on half; PXR24 on float):
+# the output does not recompress what it passes through with them unless the session asks.
+LOSSY_CODECS = frozenset({"DWAA", "DWAB", "B44", "B44A", "PXR24"})
+
+
+def output_compression(given, session: str):
+    """The output's codec for a part written with `given`: the session's, else the input's,
+    except that a lossy input codec becomes ZIP so passed-through data keep their values."""
+    if session != "input":
+        return getattr(OpenEXR, f"{'NO' if session == 'none' else session.upper()}_COMPRESSION")
+    if given is None or given.name.removesuffix("_COMPRESSION") in LOSSY_CODECS:
+        return OpenEXR.ZIP_COMPRESSION
+    return given
 
 
 def encode(
     color: np.ndarray,
-    header: Mapping,
-    names: Sequence[str],
+    frame: DecodedFrame,
+    color_channels: Sequence[str],
     precision: str,
     extra: Mapping[str, str] | None = None,
     compression: str = "input",
+    denoised_layer: str | None = None,
 ) -> bytes:
-    """(3, H, W) float32 planes -> single-part scanline EXR bytes with the input's header
-    attributes (its compression too, unless `compression` names another)."""
+    """The input frame with the denoised (3, H, W) float32 planes written in (`output_channels`),
+    as scanline EXR bytes: every part, channel (its pixel type too) and header attribute of
+    the input; only the denoised channels take the session's `precision`."""
     dtype = np.float16 if precision == "half" else np.float32
-    attributes = {k: v for k, v in header.items() if k not in _LAYOUT_ATTRIBUTES}
-    attributes["type"] = OpenEXR.scanlineimage
-    if compression != "input":
-        name = "NO" if compression == "none" else compression.upper()
-        attributes["compression"] = getattr(OpenEXR, f"{name}_COMPRESSION")
-    attributes.update(extra or {})
-    channels = {name: np.asarray(color[i], dtype=dtype) for i, name in enumerate(names)}
+    parts = []
+    for part in frame.parts:
+        attributes = {k: v for k, v in part.attributes.items() if k not in _LAYOUT_ATTRIBUTES}
+        attributes["type"] = OpenEXR.scanlineimage
+        given = part.attributes.get("compression")
+        attributes["compression"] = output_compression(given, compression)
+        attributes.update(extra or {})
+        parts.append(Part(part.name, attributes, dict(part.channels)))  # the decoded channels
+    home = next((p for p in parts if color_channels[0] in p.channels), parts[0])
+    for i, name in enumerate(output_channels(color_channels, denoised_layer)):
+        target = next((p for p in parts if name in p.channels), home)
+        target.channels[name] = np.asarray(color[i], dtype=dtype)
     try:
-        return _write(attributes, channels)
+        return _write(parts)
     except Exception as exc:  # an attribute the binding reads but cannot write back
-        probe = {"R": np.zeros((1, 1), np.float16)}
-        kept = {k: v for k, v in attributes.items() if k in _STANDARD_ATTRIBUTES}
-        for key, value in attributes.items():
-            if key not in kept and _writable({key: value}, probe):
-                kept[key] = value
-        dropped = sorted(set(attributes) - set(kept))
+        dropped: set[str] = set()
+        for part in parts:
+            kept = {k: v for k, v in part.attributes.items() if k in _STANDARD_ATTRIBUTES}
+            for key, value in part.attributes.items():
+                if key not in kept and _writable({key: value}):
+                    kept[key] = value
+            dropped |= set(part.attributes) - set(kept)
+            part.attributes = kept
         log.warning("dropped EXR attributes that could not be written: %s (%s)", dropped, exc)
-        kept["quietframe.dropped_attributes"] = ", ".join(dropped)
-        return _write(kept, channels)
+        for part in parts:
+            part.attributes["quietframe.dropped_attributes"] = ", ".join(sorted(dropped))
+        return _write(parts)
 
 
 # Attributes of every EXR; the rest are kept one by one if they can be written back.
@@ -477,15 +588,21 @@ _STANDARD_ATTRIBUTES = frozenset(
 )
 
 
-def _writable(attributes: Mapping, channels: Mapping[str, np.ndarray]) -> bool:
+def _writable(attributes: Mapping) -> bool:
+    attributes = {**attributes, "type": OpenEXR.scanlineimage}
+    probe = [Part("", attributes, {"R": np.zeros((1, 1), np.float16)})]
     try:
-        _write({**attributes, "type": OpenEXR.scanlineimage}, channels)
+        _write(probe)
         return True
     except Exception:
         return False
 
 
-def _write(attributes: Mapping, channels: Mapping[str, np.ndarray]) -> bytes:
+def _write(parts: Sequence[Part]) -> bytes:
+    """One part: a single-part file; several: a multi-part file with the input's part names."""
     out = io.BytesIO()
-    OpenEXR.File(dict(attributes), dict(channels)).write(out)
+    if len(parts) == 1:
+        OpenEXR.File(dict(parts[0].attributes), dict(parts[0].channels)).write(out)
+    else:
+        OpenEXR.File([OpenEXR.Part(p.attributes, p.channels, p.name) for p in parts]).write(out)
     return out.getvalue()

@@ -68,6 +68,13 @@ class ModelRegistry:
         """The loaded model of a name that `resolve` returned."""
         return self._denoisers[name]
 
+    def buffers(self) -> dict[str, tuple[tuple[str, ...], tuple[str, ...]]]:
+        """Model name -> (required, optional) buffers, for errors that name a model to use."""
+        return {
+            name: (tuple(d.info.required_buffers), tuple(d.info.optional_buffers))
+            for name, d in self._denoisers.items()
+        }
+
     def warm_up(self) -> None:
         """Run one tiny frame through every model: loads the custom ops, allocates kernels."""
         for denoiser in self._denoisers.values():

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from quietframe.service.frames import validate_mapping
 
 Precision = Literal["input", "half", "float"]
+Quality = Literal["fast", "balanced", "best"]
 Compression = Literal[
     "input", "none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab"
 ]
@@ -46,15 +47,39 @@ class SessionCreate(BaseModel):
         description="factors for (x, y) of a mapped motion layer, to reach quietframe's "
         "convention: backward motion in pixels, y down",
     )
+    layer: str | None = Field(
+        None,
+        description="view layer to denoise in a multilayer file (`<layer>.<pass>.<channel>`): "
+        "the alias table looks only at its channels; the rest of the file passes through",
+    )
+    denoised_layer: str | None = Field(
+        None,
+        description="write the denoised colour as a new layer `<view layer>.<denoised_layer>` "
+        "(e.g. 'Denoised') and keep the noisy beauty; unset: it replaces the beauty's R, G, B",
+    )
+    quality: Quality | None = Field(
+        None,
+        description="target for model 'auto' (fast | balanced | best); recorded, not yet used: "
+        "'auto' is the default model until per-session choice lands",
+    )
     precision: Precision = Field(
         "input",
-        description="pixel type of the denoised EXR; 'input' is that of the input's colour",
+        description="pixel type of the denoised colour channels (every other channel keeps "
+        "its own); 'input' is that of the input's colour",
     )
     compression: Compression = Field(
         "input",
         description="compression of the denoised EXR; 'input' keeps the input's (a header "
-        "attribute), 'none' is the fastest to write",
+        "attribute) unless it is lossy (dwaa, dwab, b44, b44a, pxr24: then zip, so passed-through "
+        "data keep their values), 'none' is the fastest to write",
     )
+
+    @field_validator("layer", "denoised_layer")
+    @classmethod
+    def _layer_name(cls, value: str | None) -> str | None:
+        if value is not None and (not value or value.startswith(".") or value.endswith(".")):
+            raise ValueError("a layer name is not empty and neither starts nor ends with '.'")
+        return value
 
     @field_validator("channels")
     @classmethod
@@ -86,6 +111,9 @@ class SessionPublic(BaseModel):
     required_buffers: list[str] = Field(description="buffers every frame must carry")
     optional_buffers: list[str] = Field(description="buffers used when present (else defaults)")
     channels: dict[str, str | list[str]] | None = None
+    layer: str | None = None
+    denoised_layer: str | None = None
+    quality: Quality | None = None
     created_at: str
     frames_done: int = 0
     last_index: int | None = None

@@ -63,6 +63,9 @@ class SessionSpec:
     compression: str
     channels: dict | None
     motion_scale: tuple[float, float]
+    layer: str | None = None
+    denoised_layer: str | None = None
+    quality: str | None = None
 
 
 @dataclass
@@ -170,6 +173,9 @@ class Session:
             required_buffers=list(self.info.required_buffers),
             optional_buffers=list(self.info.optional_buffers),
             channels=spec.channels,
+            layer=spec.layer,
+            denoised_layer=spec.denoised_layer,
+            quality=spec.quality,  # type: ignore[arg-type]
             created_at=datetime.fromtimestamp(self.created_at, timezone.utc).isoformat(),
             frames_done=self.frames_done,
             last_index=self.last_index,
@@ -185,11 +191,15 @@ class Session:
         )
 
 
+REPLY_MARGIN_BYTES = 2**16  # headers and EXR framing around the pixels
+
+
 def reserve_bytes(info: ModelInfo, spec: SessionSpec) -> int:
-    """What a session counts against the history budget: its state, the largest reply of its
-    precision (colour planes; compression only shrinks it) and a margin for headers."""
+    """What a new session counts against the history budget: its state and a reply of at least
+    the denoised colour planes (the reply is the whole input file: `_reserve_reply` grows the
+    reservation to its real size on the first frame)."""
     reply = 3 * spec.width * spec.height * (2 if spec.precision == "half" else 4)
-    return info.state_nbytes(spec.height, spec.width) + reply + 2**16
+    return info.state_nbytes(spec.height, spec.width) + reply + REPLY_MARGIN_BYTES
 
 
 def process_frame(
@@ -215,7 +225,13 @@ def process_frame(
         precision = "half" if frame.color_half else "float"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     body_out = frames.encode(
-        result.color, frame.header, sources["color"].channels, precision, extra, spec.compression
+        result.color,
+        frame,
+        sources["color"].channels,
+        precision,
+        extra,
+        spec.compression,
+        spec.denoised_layer,
     )
     done = time.perf_counter()
     timings = {
@@ -341,6 +357,9 @@ class SessionRegistry:
             compression=request.compression,
             channels=request.channels,
             motion_scale=tuple(request.motion_scale),  # type: ignore[arg-type]
+            layer=request.layer,
+            denoised_layer=request.denoised_layer,
+            quality=request.quality,
         )
         session = self._session(secrets.token_urlsafe(16), spec)
         self._make_room(session.reserve_bytes)
@@ -391,6 +410,8 @@ class SessionRegistry:
             spec.channels,
             spec.motion_scale,
             model=info.name,
+            layer=spec.layer,
+            installed=self.models.buffers(),
         )
         async with session.lock:
             if session.closed:
@@ -405,6 +426,7 @@ class SessionRegistry:
             frame = await self._on_pool(
                 process_frame, denoiser, spec, index, body, sources, plan, history
             )
+            self._reserve_reply(session, len(frame.reply.body))
             if self.store is not None:
                 await self._on_pool(self.store.write, session.meta(frame), frame.state, frame.reply)
             self._commit(session, frame)
@@ -419,6 +441,17 @@ class SessionRegistry:
             },
         )
         return FrameOutcome(frame.reply, replayed=False)
+
+    def _reserve_reply(self, session: Session, reply_bytes: int) -> None:
+        """The reply is the whole input file with the denoised colour in it, larger than the
+        creation-time estimate when the farm sends many passes: grow the session's reservation
+        to what it will hold (MemoryBudgetExceeded, before anything changed, if that does not
+        fit)."""
+        need = session.info.state_nbytes(session.spec.height, session.spec.width)
+        need += reply_bytes + REPLY_MARGIN_BYTES
+        if need > session.reserve_bytes:
+            self._make_room(need - session.reserve_bytes, keep=session)
+            session.reserve_bytes = need
 
     async def _on_pool(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
@@ -463,6 +496,9 @@ class SessionRegistry:
                     compression=meta["compression"],
                     channels=meta["channels"],
                     motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
+                    layer=meta.get("layer"),
+                    denoised_layer=meta.get("denoised_layer"),
+                    quality=meta.get("quality"),
                 )
             except Exception as exc:  # unreadable file or model no longer installed
                 log.warning("skipping stored session %s: %s", path.name, exc)

@@ -2,9 +2,9 @@
 
 The fixtures in tests/fixtures/blender/ are rendered by tools/render_blender_fixtures.py and
 committed, so these tests need no bpy; the tests that ask Blender to read quietframe's output
-are skipped where `bpy` is not importable. Tests marked xfail(strict=True) are issue-12
-expectations that today's code does not meet: the phase that meets one flips it (a strict xfail
-that passes fails the run).
+are skipped where `bpy` is not importable. The issue-12 expectations (complete outputs, Noisy
+Image written back as Combined, the sky's depth, an all-zero Vector reported missing, colour-only
+frames told what would work, the CLI's view layers) are plain tests since phase 2.
 """
 
 from __future__ import annotations
@@ -101,16 +101,18 @@ def read_back(data: bytes) -> tuple[dict, dict[str, np.ndarray]]:
     return dict(exr.header()), {k: v.pixels for k, v in exr.channels().items()}
 
 
-def roundtrip(data: bytes, mapping=None, scale=(1.0, 1.0)) -> tuple[np.ndarray, bytes]:
-    """The service's path in today's shape (sessions.run_frame): decode, a stand-in denoiser
-    (colour x 0.5, so the output differs from every input layer), encode. The phase that
-    changes the encoder changes this helper, not the expectations below."""
-    _, sources, decoded = load(data, mapping, scale)
-    denoised = decoded.buffers["color"] * np.float32(0.5)
+def roundtrip(
+    data: bytes, mapping=None, scale=(1.0, 1.0), layer=None, **encode
+) -> tuple[np.ndarray, bytes]:
+    """The service's path (sessions.process_frame): decode, a stand-in denoiser (colour x 0.5,
+    so the output differs from every input layer), encode."""
+    header = frames.read_header(data, 8192, 8192)
+    sources = frames.resolve(header.channels, REQUIRED, OPTIONAL, mapping, scale, layer=layer)
+    decoded = frames.decode(data, sources)
+    denoised = decoded.buffers["color"] * np.float32(0.5)  # (3, H, W), the runtime's layout
     precision = "half" if decoded.color_half else "float"
-    planes = np.ascontiguousarray(denoised.transpose(2, 0, 1))  # the runtime's output layout
-    out = frames.encode(planes, decoded.header, sources["color"].channels, precision)
-    return denoised, out
+    out = frames.encode(denoised, decoded, sources["color"].channels, precision, **encode)
+    return image(denoised), out
 
 
 def sky_mask(channels: dict[str, np.ndarray], layer: str = "ViewLayer") -> np.ndarray:
@@ -193,7 +195,8 @@ def test_single_view_layer_files_resolve_and_decode(variant, file):
     assert decoded.color_half == (v["depth"] == "16")
     for name, array in decoded.buffers.items():
         assert array.shape[:2] == (36, 64) and array.dtype == np.float32, name
-        assert np.isfinite(array).all(), name
+        # depth: +inf where no ray hit (the runtime's sanitising rule makes it the farthest)
+        assert (np.isfinite(array) | (name == "depth") & np.isposinf(array)).all(), name
     assert decoded.buffers["color"].max() > 1.0  # HDR: the lamp is well above 1
 
 
@@ -320,9 +323,9 @@ def test_dwaa_is_lossy_on_channels_named_y_too():
 def test_motion_blur_writes_an_all_zero_vector(file):
     channels = pixels(read(file))
     assert all((channels[f"ViewLayer.Vector.{c}"] == 0).all() for c in "XYZW")
-    # Today this decodes as a static camera: the motion buffer is there, all zero.
+    # Found, but all zero over the whole frame: left out, so the runtime reports it missing.
     _, sources, decoded = load(read(file))
-    assert "motion" in sources and not decoded.buffers["motion"].any()
+    assert "motion" in sources and "motion" not in decoded.buffers
 
 
 # ---- motion sign, checked by warping the rendered frames ------------------------------------
@@ -384,39 +387,39 @@ def test_decoded_motion_matches_the_camera_turn():
     np.testing.assert_allclose(np.median(motion[fg][:, 1]), expected_y, rtol=0.1)
 
 
-# ---- the output today ------------------------------------------------------------------------
+# ---- what comes back -------------------------------------------------------------------------
 
 
 def test_output_keeps_blenders_header_attributes():
     import OpenEXR
 
-    _, out = roundtrip(read("passes_half_piz.0002.exr"))
+    _, out = roundtrip(read("passes_half_piz.0002.exr"), extra={"quietframe.frame": "2"})
     header, channels = read_back(out)
     assert header["cycles.ViewLayer.samples"] == "4" and header["Frame"] == "2"
     assert header["BlenderMultiChannel"] == "Blender V2.55.1 and newer"
+    assert header["quietframe.frame"] == "2"
     assert header["compression"] == OpenEXR.PIZ_COMPRESSION
     assert channels["ViewLayer.Combined.R"].dtype == np.float16
+    given = frames.read_header(read("passes_half_piz.0002.exr"), 8192, 8192).attributes
+    assert set(given) - {"chunkCount"} <= set(header)
 
 
-# ---- issue 12: expectations today's code does not meet (strict xfail) ------------------------
-
-GAP = "issue 12: "
-
-
-@pytest.mark.xfail(strict=True, reason=GAP + "the output holds only the beauty's R, G, B")
 @pytest.mark.parametrize(
-    ("file", "layer"),
+    ("file", "layer", "how"),
     [
-        ("passes_half_piz.0002.exr", None),
-        ("passes_float_zip.0002.exr", None),
-        ("transparent.0002.exr", None),
-        ("two_view_layers.0002.exr", "Objects"),
+        ("passes_half_piz.0002.exr", None, None),
+        ("passes_float_zip.0002.exr", None, None),
+        ("transparent.0002.exr", None, None),
+        ("no_vector.0002.exr", None, None),
+        ("two_view_layers.0002.exr", "Objects", "mapping"),
+        ("two_view_layers.0002.exr", "Objects", "layer"),
+        ("two_view_layers.0002.exr", "ViewLayer", "layer"),
     ],
 )
-def test_output_keeps_every_channel_with_its_pixel_type(file, layer):
+def test_output_keeps_every_channel_with_its_pixel_type(file, layer, how):
     data = read(file)
-    mapping = mapping_for(layer) if layer else None
-    denoised, out = roundtrip(data, mapping, (1.0, -1.0))
+    mapping = mapping_for(layer) if how == "mapping" else None
+    denoised, out = roundtrip(data, mapping, (1.0, -1.0), layer if how == "layer" else None)
     given = frames.read_header(data, 8192, 8192).channels
     returned = frames.read_header(out, 8192, 8192).channels
     assert {k: v.pixel_type for k, v in returned.items()} == {
@@ -432,51 +435,149 @@ def test_output_keeps_every_channel_with_its_pixel_type(file, layer):
         np.testing.assert_allclose(after[f"{beauty}.{c}"], denoised[..., i], rtol=1e-3, atol=1e-6)
 
 
-@pytest.mark.xfail(strict=True, reason=GAP + "the denoised colour is written as 'Noisy Image'")
+def test_precision_applies_to_the_denoised_colour_only():
+    """A float session on a half file: the denoised R, G, B are float, every other channel
+    (alpha and the colour-typed passes included) keeps its own type."""
+    data = read("passes_half_piz.0002.exr")  # half colour, float data passes
+    given = frames.read_header(data, 8192, 8192).channels
+    _, sources, decoded = load(data)
+    planes = np.ascontiguousarray(decoded.buffers["color"].transpose(2, 0, 1))
+    out = frames.encode(planes, decoded, sources["color"].channels, "float")
+    returned = frames.read_header(out, 8192, 8192).channels
+    assert given["ViewLayer.Combined.R"].pixel_type == HALF
+    for name, info in given.items():
+        colour = name in {f"ViewLayer.Combined.{c}" for c in "RGB"}
+        assert returned[name].pixel_type == (FLOAT if colour else info.pixel_type), name
+
+
 def test_noisy_image_comes_back_denoised_as_combined():
+    """Blender's denoiser ran: quietframe denoises Noisy Image and writes it as Combined (the
+    pass Blender shows); Noisy Image stays as it was, Combined keeps its alpha."""
     data = read("blender_denoised.0002.exr")
     denoised, out = roundtrip(data)
-    channels = pixels(out)
+    before, channels = pixels(data), pixels(out)
+    assert set(channels) == set(before)
     for i, c in enumerate("RGB"):
         np.testing.assert_allclose(
             channels[f"ViewLayer.Combined.{c}"], denoised[..., i], rtol=1e-3, atol=1e-6
         )
+    for name in before:
+        if name not in {f"ViewLayer.Combined.{c}" for c in "RGB"}:
+            np.testing.assert_array_equal(channels[name], before[name], err_msg=name)
 
 
-@pytest.mark.xfail(strict=True, reason=GAP + "Denoising Depth (0 on the sky) is preferred")
+@pytest.mark.parametrize("file", ["blender_denoised.0002.exr", "passes_half_piz.0002.exr"])
+def test_denoised_layer_option_keeps_the_noisy_beauty(file):
+    data = read(file)
+    denoised, out = roundtrip(data, denoised_layer="Denoised")
+    before, after = pixels(data), pixels(out)
+    added = {f"ViewLayer.Denoised.{c}" for c in "RGB"}
+    assert set(after) == set(before) | added
+    for name in before:
+        np.testing.assert_array_equal(after[name], before[name], err_msg=name)
+    for i, c in enumerate("RGB"):
+        np.testing.assert_allclose(
+            after[f"ViewLayer.Denoised.{c}"], denoised[..., i], rtol=1e-3, atol=1e-6
+        )
+    types = frames.read_header(out, 8192, 8192).channels
+    assert types["ViewLayer.Denoised.R"].pixel_type == types["ViewLayer.Combined.R"].pixel_type
+
+
+def test_lossy_input_comes_back_lossless_unless_the_session_asks():
+    """DWAA damages channels named R, G, B and Y (Vector.Y, Denoising Normal.Y): recompressing
+    what passes through would damage them again, so `compression: input` writes a lossy input
+    back with ZIP (every passed-through value as decoded); a session that asks for dwaa gets it."""
+    import OpenEXR
+
+    data = read("passes_half_dwaa.0002.exr")
+    before = pixels(data)
+    beauty = {f"ViewLayer.Combined.{c}" for c in "RGB"}
+    _, kept = roundtrip(data)
+    header, _ = read_back(kept)
+    assert header["compression"] == OpenEXR.ZIP_COMPRESSION
+    after = pixels(kept)
+    for name in set(before) - beauty:
+        np.testing.assert_array_equal(after[name], before[name], err_msg=name)
+    _, small = roundtrip(data, compression="dwaa")
+    header, _ = read_back(small)
+    assert header["compression"] == OpenEXR.DWAA_COMPRESSION and len(small) < len(kept)
+    lossy = pixels(small)
+    np.testing.assert_array_equal(lossy["ViewLayer.Vector.X"], before["ViewLayer.Vector.X"])
+    assert not np.array_equal(lossy["ViewLayer.Vector.Y"], before["ViewLayer.Vector.Y"])
+
+
 def test_depth_on_the_sky_is_farther_than_every_surface():
+    """Denoising Depth is 0 on the sky: decoded as "no hit" (+inf), which the runtime's
+    sanitising rule makes the frame's farthest depth, as for every renderer's background."""
+    from quietframe.runtime.sanitize import sanitize_buffer
+
     data = read("passes_float_zip.0002.exr")
     channels = pixels(data)
     depth = load(data)[2].buffers["depth"]
     sky, surfaces = sky_mask(channels), channels["ViewLayer.Depth.Z"] < BACKGROUND_Z
     assert depth[sky].min() > depth[surfaces].max()
+    clean, replaced = sanitize_buffer("depth", depth[None])
+    misses = channels["ViewLayer.Denoising Depth.Z"] == 0
+    assert replaced == misses.sum() >= sky.sum()
+    assert (clean[0][misses] == clean[0][~misses].max()).all()
+    np.testing.assert_array_equal(clean[0][surfaces], depth[surfaces])  # ray distances kept
 
 
-@pytest.mark.xfail(strict=True, reason=GAP + "an all-zero Vector is decoded as a static camera")
+def test_depth_pass_background_is_no_hit_too():
+    """Blender's Depth pass (planar Z, 1e10 on the sky) when it is the depth used."""
+    data = read("passes_float_zip.0002.exr")
+    mapping = {"depth": "ViewLayer.Depth.Z"}
+    depth = load(data, mapping)[2].buffers["depth"]
+    background = pixels(data)["ViewLayer.Depth.Z"] >= BACKGROUND_Z
+    assert np.isinf(depth[background]).all() and np.isfinite(depth[~background]).all()
+
+
 def test_all_zero_vector_is_reported_missing():
     _, sources, decoded = load(read("motion_blur.0002.exr"))
     # Left out of the buffers, the runtime fills it and X-Quietframe-Missing names it.
     assert "motion" not in decoded.buffers
+    # A moving camera: Vector is 0 on the sky only, and the motion is kept.
+    _, _, moving = load(read("passes_float_zip.0002.exr"))
+    assert "motion" in moving.buffers and (moving.buffers["motion"] == 0).any()
 
 
-@pytest.mark.xfail(strict=True, reason=GAP + "the 422 does not say which model takes colour only")
 def test_colour_only_file_is_told_which_model_accepts_it():
     header = frames.read_header(read("plain_rgba.0002.exr"), 8192, 8192)
     with pytest.raises(MissingChannels) as err:
         frames.resolve(header.channels, REQUIRED, OPTIONAL)
     assert re.search(r"colou?r[- ]only", err.value.detail)
+    installed = {"nbg": (REQUIRED, OPTIONAL)}
+    with pytest.raises(MissingChannels) as err:
+        frames.resolve(header.channels, REQUIRED, OPTIONAL, model="nbg", installed=installed)
+    detail = err.value.detail
+    assert "No installed model accepts colour-only input" in detail
+    assert "'albedo', 'normal', 'depth'" in detail and "--channels" in detail
+    installed["colour"] = (("color",), ())
+    with pytest.raises(MissingChannels, match=r"accept the buffers found: \['colour'\]"):
+        frames.resolve(header.channels, REQUIRED, OPTIONAL, model="nbg", installed=installed)
 
 
-@pytest.mark.xfail(strict=True, reason=GAP + "the CLI has no --layer / --channels")
-def test_cli_takes_a_view_layer_and_a_channel_mapping():
-    from quietframe.client.cli import build_parser
+def test_view_layer_restricts_the_alias_table():
+    header = frames.read_header(read("two_view_layers.0002.exr"), 8192, 8192)
+    for layer in ("ViewLayer", "Objects"):
+        sources = frames.resolve(header.channels, REQUIRED, OPTIONAL, layer=layer)
+        assert all(c.startswith(layer + ".") for s in sources.values() for c in s.channels)
+        assert sources["motion"].motion_scale == (1.0, -1.0)  # the alias, not a mapping
+    with pytest.raises(MissingChannels, match=r"view layers are \['Objects', 'ViewLayer'\]"):
+        frames.resolve(header.channels, REQUIRED, OPTIONAL, layer="Nope")
 
+
+def test_cli_takes_a_view_layer_and_a_channel_mapping(tmp_path):
+    from quietframe.client.cli import build_parser, session_options
+
+    mapping = tmp_path / "map.json"
+    mapping.write_text('{"albedo": "alb"}')
     argv = ["denoise", "shot/", "--out", "out/", "--layer", "Objects", "--channels", "{}"]
-    try:
-        args = build_parser().parse_args(argv)
-    except SystemExit:  # argparse's answer to an unknown option
-        pytest.fail("unknown option")
-    assert args.layer == "Objects"
+    args = build_parser().parse_args(argv)
+    assert args.layer == "Objects" and session_options(args)["channels"] is None
+    args = build_parser().parse_args([*argv[:-1], f"@{mapping}", "--quality", "fast"])
+    assert session_options(args)["channels"] == {"albedo": "alb"}
+    assert session_options(args)["quality"] == "fast"
 
 
 # ---- Blender reads quietframe's output (needs bpy; the fixtures above do not) ----------------
@@ -506,29 +607,27 @@ def blender_passes(path: Path, layers: list[str]) -> dict[str, list[str]]:
 
 
 def test_blender_reads_quietframe_output(tmp_path):
-    """What Blender finds in today's output: the view layer and its Combined pass, nothing
-    else (the Image node always offers an Alpha socket, whether or not the file has alpha)."""
+    """Blender finds in the output every pass it wrote (the Image node always offers an Alpha
+    socket, whether or not the file has alpha)."""
     pytest.importorskip("bpy")
     given = tmp_path / "given.exr"
     given.write_bytes(read("passes_half_piz.0002.exr"))
     _, out = roundtrip(given.read_bytes())
     returned = tmp_path / "returned.exr"
     returned.write_bytes(out)
-    assert blender_passes(given, ["ViewLayer"]) == {
-        "ViewLayer": [
-            "Combined",
-            "Alpha",
-            "Depth",
-            "Vector",
-            "Denoising Albedo",
-            "Denoising Depth",
-            "Denoising Normal",
-        ]
-    }
-    assert blender_passes(returned, ["ViewLayer"]) == {"ViewLayer": ["Combined", "Alpha"]}
+    passes = [
+        "Combined",
+        "Alpha",
+        "Depth",
+        "Vector",
+        "Denoising Albedo",
+        "Denoising Depth",
+        "Denoising Normal",
+    ]
+    assert blender_passes(given, ["ViewLayer"]) == {"ViewLayer": passes}
+    assert blender_passes(returned, ["ViewLayer"]) == {"ViewLayer": passes}
 
 
-@pytest.mark.xfail(strict=True, reason=GAP + "Blender finds only the beauty pass in the output")
 @pytest.mark.parametrize(
     ("file", "layer"),
     [
@@ -546,3 +645,11 @@ def test_blender_finds_every_pass_of_the_input_in_the_output(tmp_path, file, lay
     returned.write_bytes(out)
     layers = ["ViewLayer", "Objects"]
     assert blender_passes(returned, layers) == blender_passes(given, layers)
+
+
+def test_blender_finds_the_denoised_layer(tmp_path):
+    pytest.importorskip("bpy")
+    _, out = roundtrip(read("passes_half_piz.0002.exr"), denoised_layer="Denoised")
+    returned = tmp_path / "returned.exr"
+    returned.write_bytes(out)
+    assert "Denoised" in blender_passes(returned, ["ViewLayer"])["ViewLayer"]

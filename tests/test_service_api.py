@@ -53,9 +53,13 @@ def send(c, sid, index, data, **params):
 
 
 def pixels(response) -> np.ndarray:
-    header, channels = read_exr(response.content)
-    names = sorted(channels, key=lambda n: "RGB".index(n[-1].upper()))
-    return np.stack([channels[n] for n in names], -1)
+    """The denoised colour of a reply (the reply holds every channel of the input)."""
+    _, channels = read_exr(response.content)
+    for prefix in ("ViewLayer.Combined.", "Ci.", "beauty.", ""):
+        for names in ([prefix + c for c in "RGB"], [prefix + c for c in "rgb"]):
+            if all(n in channels for n in names):
+                return np.stack([channels[n] for n in names], -1)
+    raise AssertionError(f"no colour channels in {sorted(channels)}")
 
 
 def assert_error(response, status, code):
@@ -77,6 +81,10 @@ def test_create_session(client):
     assert body["frames_done"] == 0 and body["last_index"] is None and body["reserved_bytes"] > 0
     other = client.post("/v1/sessions", json=SIZE).json()
     assert other["id"] != body["id"] and other["precision"] == "input"
+    assert other["layer"] is None and other["denoised_layer"] is None
+    options = {"layer": "Objects", "denoised_layer": "Denoised", "quality": "fast"}
+    chosen = client.post("/v1/sessions", json={**SIZE, **options}).json()
+    assert {k: chosen[k] for k in options} == options
 
 
 @pytest.mark.parametrize(
@@ -88,6 +96,9 @@ def test_create_session(client):
         {**SIZE, "unknown": 1},
         {**SIZE, "channels": {"colour": "beauty"}},
         {**SIZE, "channels": {"albedo": ["a.R", "a.G"]}},
+        {**SIZE, "layer": ""},
+        {**SIZE, "denoised_layer": "Denoised."},
+        {**SIZE, "quality": "ultra"},
     ],
 )
 def test_create_session_rejects_invalid_bodies(client, body):
@@ -171,8 +182,9 @@ def test_renderer_layouts_round_trip(client, layout):
     assert r.headers["content-type"] == "image/x-exr"
     header, channels = read_exr(r.content)
     in_header, in_channels = read_exr(data)
-    colour = [n for n in in_channels if n in channels]
-    assert len(channels) == 3 and len(colour) == 3, (sorted(channels), sorted(in_channels))
+    assert sorted(channels) == sorted(in_channels)  # every channel comes back
+    changed = [n for n in in_channels if not np.array_equal(channels[n], in_channels[n])]
+    assert len(changed) == 3, changed  # the colour, nothing else
     assert header["comment"] == layout
     out = pixels(r)
     assert out.shape == (48, 64, 3) and np.isfinite(out).all()
@@ -287,7 +299,8 @@ def test_output_precision_follows_the_input_by_default(client):
         r = send(client, new_session(client), 0, frame_bytes(dtype=dtype))
         assert all(c.dtype == dtype for c in read_exr(r.content)[1].values())
     r = send(client, new_session(client, precision="float"), 0, frame_bytes(dtype=np.float16))
-    assert all(c.dtype == np.float32 for c in read_exr(r.content)[1].values())
+    types = {n: c.dtype for n, c in read_exr(r.content)[1].items()}
+    assert {n for n, t in types.items() if t == np.float32} == {"R", "G", "B"}  # the colour only
 
 
 def test_session_channel_mapping(client):
@@ -307,8 +320,8 @@ def test_session_channel_mapping(client):
     assert r.status_code == 200, r.text
     header, out = read_exr(r.content)
     assert str(header["compression"]) == "Compression.NO_COMPRESSION"
-    assert sorted(out) == ["beauty.B", "beauty.G", "beauty.R"]
-    assert out["beauty.R"].dtype == np.float16
+    assert sorted(out) == sorted(channels)
+    assert out["beauty.R"].dtype == np.float16 and out["dist"].dtype == np.float32
     assert client.get(f"/v1/sessions/{sid}").json()["sources"]["depth"] == ["dist"]
 
 
@@ -342,6 +355,25 @@ def test_too_many_sessions_and_memory_budget(make_client):
     r = c.post("/v1/sessions", json=SIZE)
     assert_error(r, 429, "memory_budget_exceeded")
     assert int(r.headers["retry-after"]) >= 1
+
+
+def test_reservation_grows_to_the_whole_file_reply(make_client):
+    """Replies carry every input pass: a frame whose reply does not fit the budget is refused
+    before it changes the session, and the reservation then covers what the session holds."""
+    import OpenEXR
+
+    c = make_client(history_budget_mb=0.6)  # a 64x48 session first reserves ~0.13 MiB
+    sid = new_session(c)
+    channels = LAYOUTS["plain-normal"](make_buffers())
+    extra = {f"aov{i}.{c}": np.full((48, 64), i, np.float32) for i in range(30) for c in "RGB"}
+    big = write_exr({**channels, **extra}, compression=OpenEXR.NO_COMPRESSION)  # ~1.1 MiB of passes
+    assert_error(send(c, sid, 0, big), 429, "memory_budget_exceeded")
+    assert c.get(f"/v1/sessions/{sid}").json()["frames_done"] == 0
+    few = dict(list(extra.items())[:9])
+    small = write_exr({**channels, **few}, compression=OpenEXR.NO_COMPRESSION)
+    assert send(c, sid, 0, small).status_code == 200
+    status = c.get(f"/v1/sessions/{sid}").json()
+    assert status["reserved_bytes"] >= status["memory_bytes"] > len(small) // 2
 
 
 def test_idle_sessions_expire(make_client):
@@ -397,3 +429,11 @@ def test_durable_sessions_are_evicted_to_disk_under_memory_pressure(make_client,
         expected = send(c, ref, i, f)
     np.testing.assert_array_equal(pixels(third), pixels(expected))
     assert send(c, a, 1, frames[1]).status_code == 409 and outputs
+
+
+def test_durable_session_keeps_its_layer_options_across_a_restart(make_client, tmp_path):
+    options = {"layer": "ViewLayer", "denoised_layer": "Denoised", "quality": "best"}
+    sid = new_session(make_client(state_dir=str(tmp_path)), **options)
+    restarted = make_client(state_dir=str(tmp_path))  # a second server on the same folder
+    status = restarted.get(f"/v1/sessions/{sid}").json()
+    assert {k: status[k] for k in options} == options

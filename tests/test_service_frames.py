@@ -192,7 +192,7 @@ def test_multipart_channels_are_merged():
     np.testing.assert_allclose(hwc(decoded.buffers["albedo"]), b["albedo"])
 
 
-def test_encode_keeps_header_attributes_and_colour_names():
+def test_encode_keeps_header_attributes_and_every_channel():
     import OpenEXR
 
     attrs = {
@@ -203,24 +203,62 @@ def test_encode_keeps_header_attributes_and_colour_names():
         "displayWindow": (np.array([0, 0], np.int32), np.array([99, 99], np.int32)),
     }
     data = frame_bytes("blender", header=attrs)
+    _, in_channels = read_exr(data)
     _, sources, decoded = load(data)
     color = decoded.buffers["color"] * 2
     for precision, dtype in (("half", np.float16), ("float", np.float32)):
         out = frames.encode(
-            color, decoded.header, sources["color"].channels, precision, {"quietframe.frame": "3"}
+            color, decoded, sources["color"].channels, precision, {"quietframe.frame": "3"}
         )
         header, channels = read_exr(out)
-        assert sorted(channels) == [
-            "ViewLayer.Combined.B",
-            "ViewLayer.Combined.G",
-            "ViewLayer.Combined.R",
-        ]
+        assert sorted(channels) == sorted(in_channels)
         assert channels["ViewLayer.Combined.G"].dtype == dtype
+        assert channels["ViewLayer.Combined.A"].dtype == np.float32  # as given
         assert header["comment"] == "shot 12" and header["quietframe.frame"] == "3"
         assert header["compression"] == OpenEXR.PIZ_COMPRESSION
         assert header["dataWindow"][0].tolist() == [4, 2]
         np.testing.assert_array_equal(header["worldToCamera"], np.eye(4))
         np.testing.assert_allclose(channels["ViewLayer.Combined.R"], color[0], rtol=1e-3)
+        for name in set(in_channels) - {f"ViewLayer.Combined.{c}" for c in "RGB"}:
+            np.testing.assert_array_equal(channels[name], in_channels[name], err_msg=name)
+
+
+def test_multipart_input_comes_back_multipart():
+    """Parts keep their names, channels and pixel types; the colour is replaced in its part."""
+    import io
+
+    import OpenEXR
+
+    b = make_buffers()
+    ch = LAYOUTS["plain-normal"](b)
+    beauty = {k: np.ascontiguousarray(v, np.float16) for k, v in ch.items() if "." not in k}
+    aovs = {k: np.ascontiguousarray(v, np.float32) for k, v in ch.items() if "." in k}
+    aovs["id.V"] = np.arange(48 * 64, dtype=np.uint32).reshape(48, 64)
+    parts = [
+        OpenEXR.Part({"comment": "beauty part"}, dict(beauty), "rgba"),  # (it converts the dict)
+        OpenEXR.Part({"compression": OpenEXR.PIZ_COMPRESSION}, dict(aovs), "aovs"),
+    ]
+    given = io.BytesIO()
+    OpenEXR.File(parts).write(given)
+    header, sources, decoded = load(given.getvalue())
+    color = decoded.buffers["color"] * 3
+    out = frames.encode(color, decoded, sources["color"].channels, "float")
+    assert frames.read_header(out, 8192, 8192).parts == 2
+    back = OpenEXR.File(io.BytesIO(out), separate_channels=True)
+    assert [p.name() for p in back.parts] == ["rgba", "aovs"]
+    assert back.parts[0].header["comment"] == "beauty part"
+    assert back.parts[1].header["compression"] == OpenEXR.PIZ_COMPRESSION
+    for part, expected in zip(back.parts, (beauty, aovs), strict=True):
+        assert set(part.channels) == set(expected)
+        for name, array in expected.items():
+            got = part.channels[name].pixels
+            colour = name in ("R", "G", "B")
+            assert got.dtype == (np.float32 if colour else array.dtype), name
+            if not colour:
+                np.testing.assert_array_equal(got, array, err_msg=name)
+    np.testing.assert_allclose(
+        back.parts[0].channels["G"].pixels, color[1], rtol=1e-6
+    )
 
 
 def test_every_alias_is_documented():
@@ -255,7 +293,18 @@ def test_json_logs_carry_extra_fields(capsys):
 def test_attribute_that_cannot_be_written_back_is_dropped_not_fatal():
     color = np.ones((3, 4, 4), np.float32)
     header = {"comment": "kept", "odd": object()}
-    out = frames.encode(color, header, ["R", "G", "B"], "half")
+    frame = frames.DecodedFrame({}, [frames.Part("", header, {})], color_half=True)
+    out = frames.encode(color, frame, ["R", "G", "B"], "half")
     attributes, channels = read_exr(out)
     assert attributes["comment"] == "kept" and attributes["quietframe.dropped_attributes"] == "odd"
     assert sorted(channels) == ["B", "G", "R"]
+
+
+def test_output_passes_benchmark_runs(capsys):
+    """bench/output_passes.py at a tiny size: complete outputs hold more than the beauty."""
+    from quietframe.bench import output_passes
+
+    assert output_passes.main(["--width", "32", "--height", "18", "--repeats", "1",
+                               "--warmup", "0", "--compression", "zip"]) == 0
+    rows = [r for r in capsys.readouterr().out.splitlines() if r.startswith("| zip")]
+    assert [r.split("|")[2].strip() for r in rows] == ["11", "39"]

@@ -112,7 +112,7 @@ async def _read_body(request: Request, limit: int) -> bytes:
 
 _FRAME_DOC = f"""Denoise frame `index` of the sequence. Body: one EXR (`{EXR_MEDIA_TYPE}`) with
 colour and AOVs under any of the recognised renderer names (or the session's mapping). Response: the
-denoised EXR, same size and header attributes, colour channels named as in the input.
+input EXR with the beauty's R, G, B denoised: every part, channel and header attribute kept.
 
 Order: `index` must increase. The same index as the last frame is an idempotent retry (the same
 bytes come back, history is not advanced twice); a lower index is refused (409). A gap in the
