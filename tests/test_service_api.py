@@ -415,7 +415,8 @@ def test_header_parser_rejects_short_dataWindow(client):
 
 def test_durable_sessions_are_evicted_to_disk_under_memory_pressure(make_client, tmp_path):
     frames = shot(3)
-    c = make_client(state_dir=str(tmp_path), history_budget_mb=0.2)  # room for one session
+    # room for one session with its whole-file reply (~0.27 MiB), not for two
+    c = make_client(state_dir=str(tmp_path), history_budget_mb=0.4)
     a = new_session(c)
     outputs = [send(c, a, i, frames[i]).content for i in range(2)]
     b = new_session(c)  # evicts a's state to disk instead of refusing
