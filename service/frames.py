@@ -433,11 +433,6 @@ def validate_mapping(mapping: Mapping[str, str | Sequence[str]]) -> None:
 # Pixels
 
 
-# A depth that marks a ray that hit nothing: 0 (Blender's Denoising Depth on the sky, the training
-# format's "no hit") or this far or farther (Blender's Depth pass writes 1e10 there).
-DEPTH_NO_HIT = 1e10
-
-
 @dataclass
 class Part:
     """One part of the input as decoded: its channels are handed to the writer unchanged."""
@@ -462,9 +457,9 @@ class DecodedFrame:
 def decode(data: bytes, sources: Mapping[str, Source]) -> DecodedFrame:
     """Decode the pixels into planar (C, H, W) float32 buffers, the runtime's layout (one
     conversion per channel, no interleaving); BadExr for anything the decoder rejects.
-    A depth that marks "no hit" becomes +inf, which the runtime's sanitising rule turns into the
-    frame's farthest depth (the rule for every renderer's background); an all-zero motion layer
-    is left out (motion blur on in Blender), so the runtime fills it and reports it missing."""
+    Depth is passed on as written: the runtime's sanitising rule turns every renderer's "no hit"
+    marker (0, ≥ 1e10, ±inf) into the frame's farthest depth. An all-zero motion layer is left
+    out (motion blur on in Blender), so the runtime fills it and reports it missing."""
     wanted = {c for source in sources.values() for c in source.channels}
     try:
         exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, num_threads=_io["threads"])
@@ -490,8 +485,6 @@ def decode(data: bytes, sources: Mapping[str, Source]) -> DecodedFrame:
                 continue
             if source.motion_scale != (1.0, 1.0):
                 planar *= np.asarray(source.motion_scale, np.float32)[:, None, None]
-        if buffer == "depth":
-            planar[(planar == 0) | (planar >= DEPTH_NO_HIT)] = np.inf
         buffers[buffer] = planar
     color_half = "color" in sources and planes[sources["color"].channels[0]].dtype == np.float16
     return DecodedFrame(buffers, parts, color_half)
