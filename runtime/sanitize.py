@@ -2,8 +2,12 @@
 buffer gets is part of the buffer vocabulary (buffers.py).
 
 - RADIANCE (color, albedo): NaN, ±Inf and negative values become 0 (a failed or overflowed sample
-  carries no usable estimate; radiance and albedo cannot be negative); values above 1e30 become
-  1e30 (larger ones overflow the float32 grid sums; see docs/grid-math.md).
+  carries no usable estimate; radiance and albedo cannot be negative); values above MAX_VALUE =
+  65504, the largest half float, become 65504. The ceiling is what a half-float render can hold
+  at all, far above any display-referred or exposed scene value, and it bounds what enters the
+  temporal history: the history is a weighted average of inputs, so one bad sample (1e30 from a
+  divergent path) no longer keeps thousands of pixels at 1e28..1e29 for a dozen frames; it can
+  at most be as bright as a half-float firefly and fades at the history's rate.
 - DIRECTION (normal, motion): NaN and ±Inf become 0 (no orientation / no motion).
 - DISTANCE (depth): NaN, ±Inf and negative values become the largest finite depth of the frame
   (renderers write Inf or garbage for the background, which is far away), or 0 if none is finite.
@@ -16,7 +20,8 @@ import numpy as np
 
 from quietframe.runtime.buffers import BUFFERS, Rule
 
-MAX_VALUE = np.float32(1e30)
+MAX_VALUE = np.float32(65504.0)  # np.finfo(np.float16).max
+HALF_MAX = np.float32(np.finfo(np.float16).max)
 
 
 def sanitize_buffer(name: str, values: np.ndarray) -> tuple[np.ndarray, int]:
@@ -44,3 +49,11 @@ def sanitize_output(values: np.ndarray) -> tuple[np.ndarray, int]:
     bad = ~np.isfinite(values)
     count = int(np.count_nonzero(bad))
     return (np.where(bad, np.float32(0), values) if count else values), count
+
+
+def clamp_to_half(values: np.ndarray) -> tuple[np.ndarray, int]:
+    """float32 -> the range a float16 can hold (±65504): a plain cast turns 65520 and above into
+    ±Inf. Returns (values, number clamped); a copy only when something was clamped."""
+    over = np.abs(values) > HALF_MAX
+    count = int(np.count_nonzero(over))
+    return (np.clip(values, -HALF_MAX, HALF_MAX) if count else values), count
