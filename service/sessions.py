@@ -16,7 +16,6 @@ import logging
 import math
 import secrets
 import time
-import zlib
 from collections import OrderedDict
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
@@ -32,6 +31,7 @@ from quietframe.client.protocol import (
     join_list,
 )
 from quietframe.runtime import Denoiser, ModelInfo
+from quietframe.runtime.sanitize import clamp_to_half
 from quietframe.service import frames
 from quietframe.service.errors import (
     FrameConflict,
@@ -44,7 +44,12 @@ from quietframe.service.errors import (
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.schemas import ModelRef, SessionCreate, SessionPublic, StageTimings
-from quietframe.service.session_store import Reply, SessionStore
+from quietframe.service.session_store import (
+    Reply,
+    SessionStore,
+    StateDamaged,
+    request_digest,
+)
 from quietframe.service.settings import Settings
 
 log = logging.getLogger("quietframe.service")
@@ -101,6 +106,7 @@ class Session:
     state: dict[str, np.ndarray] | None = None
     reply: Reply | None = None
     resident: bool = True  # False: durable state is on disk only (restart or evicted)
+    state_lost: bool = False  # the stored state was damaged: the next frame starts afresh
     closed: bool = False
     sources: dict[str, list[str]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
@@ -112,12 +118,15 @@ class Session:
         state = sum(a.nbytes for a in self.state.values()) if self.state else 0
         return state + (len(self.reply.body) if self.reply else 0)
 
-    def plan(self, index: int, body: bytes, cut: bool) -> Reply | Reset:
+    def plan(self, index: int, body: bytes | bytearray, cut: bool) -> Reply | Reset:
         """The stored reply for a retry of the last index, else why history resets;
-        FrameOutOfOrder / FrameConflict for a refused index."""
+        FrameOutOfOrder / FrameConflict for a refused index. After lost state (no reply to
+        compare with), the last index and later ones start from a fresh history."""
+        if self.state_lost and (self.last_index is None or index >= self.last_index):
+            return Reset.STATE_LOST
         if self.last_index is not None and index == self.last_index:
             reply = self.reply
-            if reply and reply.request_len == len(body) and reply.request_crc == zlib.crc32(body):
+            if reply and reply.matches(body):
                 return reply
             raise FrameConflict(
                 f"frame {index} was already denoised from a different body; send the next index "
@@ -135,6 +144,7 @@ class Session:
         return Reset.GAP if index > self.last_index + 1 else Reset.NONE
 
     def commit(self, frame: _Processed) -> None:
+        self.state_lost = False
         self.state = frame.state
         self.reply = frame.reply
         self.last_index = frame.reply.index
@@ -196,7 +206,7 @@ def process_frame(
     denoiser: Denoiser,
     spec: SessionSpec,
     index: int,
-    body: bytes,
+    body: bytes | bytearray,
     sources: dict[str, frames.Source],
     reset: Reset,
     state: dict[str, np.ndarray] | None,
@@ -214,8 +224,11 @@ def process_frame(
     if precision == "input":
         precision = "half" if frame.color_half else "float"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
+    color, clamped = result.color, 0
+    if precision == "half":  # a plain cast would turn values beyond ±65504 into ±Inf
+        color, clamped = clamp_to_half(color)
     body_out = frames.encode(
-        result.color, frame.header, sources["color"].channels, precision, extra, spec.compression
+        color, frame.header, sources["color"].channels, precision, extra, spec.compression
     )
     done = time.perf_counter()
     timings = {
@@ -225,6 +238,8 @@ def process_frame(
         "total": 1e3 * (done - start),
     }
     sanitized = {k: v for k, v in result.sanitized.items() if v}
+    if clamped:
+        sanitized["denoised"] = sanitized.get("denoised", 0) + clamped
     headers = {
         Header.FRAME: str(index),
         Header.RESET: reset.value,
@@ -237,7 +252,7 @@ def process_frame(
     if result.missing:
         headers[Header.MISSING] = join_list(result.missing)
     return _Processed(
-        reply=Reply(index, body_out, headers, zlib.crc32(body), len(body)),
+        reply=Reply(index, body_out, headers, len(body), request_digest(body)),
         state=result.state,
         reset=reset,
         sources={b: list(s.channels) for b, s in sources.items()},
@@ -428,7 +443,19 @@ class SessionRegistry:
             return
         self._make_room(session.reserve_bytes, keep=session)
         assert self.store is not None  # only durable sessions leave memory
-        session.state, session.reply = await self._on_pool(self.store.read, session.id)
+        try:
+            session.state, session.reply = await self._on_pool(
+                self.store.read, session.id, session.spec.height, session.spec.width
+            )
+        except StateDamaged as exc:
+            # Continue the sequence from a fresh history, said so in X-Quietframe-Reset; the
+            # damaged file is kept aside for a look, never read again.
+            aside = await self._on_pool(self.store.quarantine, session.id)
+            log.error(
+                "stored session state is damaged; the next frame starts a fresh history",
+                extra={"session": session.id, "error": str(exc), "quarantined": str(aside)},
+            )
+            session.state, session.reply, session.state_lost = None, None, True
         session.resident = True
         self._update_gauges()
 
@@ -452,9 +479,14 @@ class SessionRegistry:
         """Register the sessions of an earlier run (state stays on disk until their next frame)."""
         assert self.store is not None
         for path, meta in self.store.metas():
+            if "error" in meta:  # unreadable, truncated, or another session's file
+                aside = self.store.quarantine_path(path)
+                log.error(
+                    "stored session file is damaged and cannot be restored; moved aside",
+                    extra={"file": path.name, "error": meta["error"], "quarantined": str(aside)},
+                )
+                continue
             try:
-                if "error" in meta:
-                    raise ValueError(meta["error"])
                 spec = SessionSpec(
                     model=self.models.resolve(meta["model"]),
                     width=meta["width"],
@@ -464,7 +496,7 @@ class SessionRegistry:
                     channels=meta["channels"],
                     motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
                 )
-            except Exception as exc:  # unreadable file or model no longer installed
+            except Exception as exc:  # model no longer installed, or an incomplete meta
                 log.warning("skipping stored session %s: %s", path.name, exc)
                 continue
             session = self._session(
