@@ -90,7 +90,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 
 def _document_limits(app: FastAPI, settings: Settings) -> None:
-    """The OpenAPI states this server's frame-size maxima (they are settings, not constants)."""
+    """The OpenAPI describes this server: its frame-size maxima (settings, not constants), and
+    the bearer scheme only when a token is set."""
     build = app.openapi
 
     def openapi() -> dict:
@@ -98,6 +99,11 @@ def _document_limits(app: FastAPI, settings: Settings) -> None:
         fields = schema["components"]["schemas"]["SessionCreate"]["properties"]
         fields["width"]["maximum"] = settings.max_width
         fields["height"]["maximum"] = settings.max_height
+        if settings.auth_token is None:
+            schema["components"].pop("securitySchemes", None)
+            for path in schema["paths"].values():
+                for operation in path.values():
+                    operation.pop("security", None)
         return schema
 
     app.openapi = openapi  # type: ignore[method-assign]

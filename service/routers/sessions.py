@@ -30,7 +30,7 @@ router = APIRouter(prefix="/sessions", tags=["sessions"])
 log = logging.getLogger("quietframe.service")
 
 
-def _errors(*codes: int) -> dict:
+def errors(*codes: int) -> dict:
     return {
         code: {
             "model": ErrorBody,
@@ -48,7 +48,7 @@ def _errors(*codes: int) -> dict:
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=SessionPublic,
-    responses=_errors(401, 422, 429),
+    responses=errors(401, 408, 413, 422, 429),
     summary="Start a camera sequence",
 )
 async def create_session(
@@ -77,7 +77,7 @@ async def create_session(
 @router.get(
     "/{session_id}",
     response_model=SessionPublic,
-    responses=_errors(401, 404),
+    responses=errors(401, 404),
     summary="Session status",
 )
 async def get_session(
@@ -91,7 +91,7 @@ async def get_session(
 @router.delete(
     "/{session_id}",
     status_code=status.HTTP_204_NO_CONTENT,
-    responses=_errors(401, 404),
+    responses=errors(401, 404),
     summary="End a session and free its history",
 )
 async def delete_session(session_id: str, sessions: SessionsDep) -> Response:
@@ -185,7 +185,7 @@ filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` 
             "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
             "description": "the denoised EXR",
         },
-        **_errors(400, 401, 404, 409, 413, 422),
+        **errors(400, 401, 404, 408, 409, 413, 415, 422),
     },
     openapi_extra={
         "requestBody": {
