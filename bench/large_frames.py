@@ -19,6 +19,8 @@ import time
 
 import numpy as np
 
+from quietframe.runtime.tiling import DEFAULT_TILE_PIXELS
+
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "8k": (7680, 4320)}
 
 
@@ -35,20 +37,20 @@ def buffers(width: int, height: int, seed: int) -> dict[str, np.ndarray]:
     normal /= np.sqrt((normal * normal).sum(0, keepdims=True))
     depth = (4.0 + 2.0 * np.sin(x / 400) * np.cos(y / 300))[None].astype(np.float32)
     color = albedo * (0.3 + 0.7 * normal[2:3])
-    color *= rng.gamma(4.0, 0.25, size=color.shape).astype(np.float32)
+    color *= 0.25 * rng.standard_gamma(4.0, size=color.shape, dtype=np.float32)  # mean 1
     motion = np.zeros((2, height, width), np.float32)
     motion[0] = 2.0
     return {"color": color, "albedo": albedo, "normal": normal, "depth": depth, "motion": motion}
 
 
-def one(width: int, height: int, frames: int, threads: int) -> dict:
+def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | None) -> dict:
     import os
 
     from quietframe.bench.http_overhead import rss_mib
     from quietframe.runtime import Denoiser, default_model_path
     from quietframe.runtime.tiling import tiles_of
 
-    denoiser = Denoiser(default_model_path(), threads=threads)
+    denoiser = Denoiser(default_model_path(), threads=threads, tile_pixels=tile_pixels)
     base = rss_mib(os.getpid(), "VmHWM")
     times, state = [], None
     for i in range(frames):
@@ -60,7 +62,9 @@ def one(width: int, height: int, frames: int, threads: int) -> dict:
         state = result.state
     inputs = sum(p.nbytes for p in planes.values()) / 2**20
     geometry = denoiser.geometry
-    tiles = len(list(tiles_of(height, width, geometry, planes["motion"], denoiser.tile_pixels)))
+    tiles = 1
+    if tile_pixels is not None:
+        tiles = len(list(tiles_of(height, width, geometry, planes["motion"], tile_pixels)))
     return {
         "size": f"{width}x{height}",
         "ms_per_frame": round(statistics.median(times), 0),
@@ -78,16 +82,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
     parser.add_argument("--frames", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--tile-pixels", type=int, default=DEFAULT_TILE_PIXELS, help="0: untiled (comparison)"
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one:
         width, height = SIZES[args.one]
-        print(json.dumps(one(width, height, args.frames, args.threads)))
+        tile_pixels = args.tile_pixels or None
+        print(json.dumps(one(width, height, args.frames, args.threads, tile_pixels)))
         return 0
     rows = []
     for size in args.sizes:
         cmd = [sys.executable, "-m", "quietframe.bench.large_frames", "--one", size,
-               "--frames", str(args.frames), "--threads", str(args.threads)]
+               "--frames", str(args.frames), "--threads", str(args.threads),
+               "--tile-pixels", str(args.tile_pixels)]
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         rows.append(json.loads(out.strip().splitlines()[-1]))
         print(json.dumps(rows[-1]), file=sys.stderr)
