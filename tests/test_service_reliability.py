@@ -201,6 +201,23 @@ def test_body_longer_than_its_header_allows_is_refused_from_the_header(auth_serv
     assert status_of(raw) == 413 and b"body_too_large" in raw
 
 
+def test_chunked_frame_body_is_held_to_its_header_size(auth_server):
+    import httpx
+
+    sid = httpx.post(f"{auth_server.url}/v1/sessions", json=SIZE, headers=TOKEN).json()["id"]
+    data = frame_bytes()
+
+    def chunks():  # no Content-Length: the bound applies while streaming
+        yield data
+        for _ in range(200):
+            yield bytes(65536)
+
+    r = httpx.post(
+        f"{auth_server.url}/v1/sessions/{sid}/frames/0", content=chunks(), headers={**TOKEN, **EXR}
+    )
+    assert "at most" in assert_error(r, 413, "body_too_large")
+
+
 def test_default_frame_limit_fits_an_8k_multilayer_float_exr():
     from quietframe.service.settings import Settings
 
