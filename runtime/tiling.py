@@ -1,5 +1,5 @@
-"""Large frames in overlapping tiles, so a model's working set stays bounded (about 640 bytes per
-pixel for NBG: 1080p peaks near 1.4 GiB untiled, 8K would need ~21 GiB).
+"""Large frames in overlapping tiles, so a model's working set stays bounded (NBG needs about
+0.7 KiB per pixel untiled, which an 8K frame would multiply by 33 Mpx; docs/reliability.md).
 
 Why the tiles join without seams: an NBG output pixel depends only on inputs within a finite
 radius (its receptive field) and on the history at those pixels' motion targets. With
@@ -29,8 +29,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Pixels of one padded tile: ~640 B/px for NBG -> ~0.7 GiB per tile in flight.
-DEFAULT_TILE_PIXELS = 1 << 20
+# Pixels of one padded tile: 1080p (2.07 Mpx) still runs whole (tiles cost their overlap);
+# NBG's working set is ~0.7 KiB/px, so a tile in flight holds ~1.4 GiB whatever the frame size.
+DEFAULT_TILE_PIXELS = 1 << 21
 
 
 @dataclass(frozen=True)
