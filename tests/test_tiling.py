@@ -1,7 +1,8 @@
 """Large frames run in overlapping tiles (runtime/tiling.py): tiled and untiled runs of the same
-sequence agree, so tiles join without seams. 384x512 frames cut into 200x200-pixel tiles (nine
-tiles with borders inside the frame), history carried over three frames, depth that differs
-50-fold between the halves of the frame (the GuideNet's depth scale is frame-wide)."""
+sequence agree, so tiles join without seams. 512x384 frames cut into 200x200-pixel padded tiles
+(24 tiles, 192 with the larger motion's wider overlap), history carried over three frames, depth
+that differs 50-fold between the halves of the frame (the GuideNet's depth scale is frame-wide).
+"""
 
 from __future__ import annotations
 
