@@ -8,6 +8,9 @@ Reading verifies the file: every member is read whole, so the zip format's CRC-3
 checked; the meta lists every member with its shape (`manifest`), its id must be the file's
 name, and state tensors must be of the session's frame size. Anything else raises StateDamaged;
 `quarantine` moves such a file aside (`quarantine/`), where it is never read again.
+
+Beside it, `<id>.json` holds the session's settings, written once at creation: when the .npz
+is damaged (or gone), the session can still continue from a fresh history.
 """
 
 from __future__ import annotations
@@ -67,6 +70,27 @@ class SessionStore:
         if not SESSION_ID.match(session_id):
             raise ValueError(f"not a session id: {session_id!r}")
         return self.folder / f"{session_id}.npz"
+
+    def spec_path(self, session_id: str) -> Path:
+        return self.path(session_id).with_suffix(".json")
+
+    def write_spec(self, meta: Mapping) -> None:
+        """The session's settings, once, at creation (temp file + rename)."""
+        path = self.spec_path(meta["id"])
+        temp = path.with_name(f".{path.name}.tmp")
+        temp.write_text(json.dumps(dict(meta)))
+        os.replace(temp, path)
+
+    def read_spec(self, session_id: str) -> dict | None:
+        """The settings written at creation, or None (absent, unreadable, another id)."""
+        try:
+            meta = json.loads(self.spec_path(session_id).read_text())
+        except (OSError, ValueError):
+            return None
+        return meta if isinstance(meta, dict) and meta.get("id") == session_id else None
+
+    def spec_ids(self) -> list[str]:
+        return sorted(p.stem for p in self.folder.glob("*.json") if SESSION_ID.match(p.stem))
 
     def write(
         self,
@@ -159,6 +183,7 @@ class SessionStore:
 
     def delete(self, session_id: str) -> None:
         self.path(session_id).unlink(missing_ok=True)
+        self.spec_path(session_id).unlink(missing_ok=True)
 
 
 def _verify(meta: dict, arrays: dict, session_id: str, height: int, width: int) -> None:

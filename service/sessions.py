@@ -360,6 +360,7 @@ class SessionRegistry:
         session = self._session(secrets.token_urlsafe(16), spec)
         self._make_room(session.reserve_bytes)
         if self.store is not None:
+            await self._on_pool(self.store.write_spec, session.meta())
             await self._on_pool(self.store.write, session.meta(), None, None)
         self.sessions[session.id] = session
         self.metrics.sessions_created.inc()
@@ -442,6 +443,9 @@ class SessionRegistry:
         if session.resident:
             return
         self._make_room(session.reserve_bytes, keep=session)
+        if session.state_lost:  # nothing on disk to read: the next frame starts afresh
+            session.resident = True
+            return
         assert self.store is not None  # only durable sessions leave memory
         try:
             session.state, session.reply = await self._on_pool(
@@ -476,38 +480,55 @@ class SessionRegistry:
     # ---- durable state ------------------------------------------------------------------------
 
     def _load_durable(self) -> None:
-        """Register the sessions of an earlier run (state stays on disk until their next frame)."""
+        """Register the sessions of an earlier run (state stays on disk until their next frame).
+        A damaged file is quarantined; its session continues from a fresh history (state-lost)
+        when its settings file (written at creation) is intact."""
         assert self.store is not None
         for path, meta in self.store.metas():
-            if "error" in meta:  # unreadable, truncated, or another session's file
+            lost = "error" in meta  # unreadable, truncated, or another session's file
+            if lost:
                 aside = self.store.quarantine_path(path)
                 log.error(
-                    "stored session file is damaged and cannot be restored; moved aside",
+                    "stored session file is damaged; moved aside",
                     extra={"file": path.name, "error": meta["error"], "quarantined": str(aside)},
                 )
-                continue
-            try:
-                spec = SessionSpec(
-                    model=self.models.resolve(meta["model"]),
-                    width=meta["width"],
-                    height=meta["height"],
-                    precision=meta["precision"],
-                    compression=meta["compression"],
-                    channels=meta["channels"],
-                    motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
-                )
-            except Exception as exc:  # model no longer installed, or an incomplete meta
-                log.warning("skipping stored session %s: %s", path.name, exc)
-                continue
-            session = self._session(
-                meta["id"],
-                spec,
-                created_at=meta["created_at"],
-                last_index=meta["last_index"],
-                frames_done=meta["frames_done"],
-                resets=meta["resets"],
-                resident=False,
-            )
-            self.sessions[session.id] = session
+                meta = self.store.read_spec(path.stem)
+                if meta is None:
+                    log.error("no settings file either: session %s is gone", path.stem)
+                    continue
+            self._restore(path.stem, meta, lost)
+        for session_id in self.store.spec_ids():  # settings without a state file
+            if session_id not in self.sessions and not self.store.path(session_id).exists():
+                meta = self.store.read_spec(session_id)
+                if meta is not None:
+                    log.error("session %s has no state file; continues afresh", session_id)
+                    self._restore(session_id, meta, lost=True)
         if self.sessions:
             log.info("restored %d sessions from %s", len(self.sessions), self.store.folder)
+
+    def _restore(self, session_id: str, meta: dict, lost: bool) -> None:
+        try:
+            spec = SessionSpec(
+                model=self.models.resolve(meta["model"]),
+                width=meta["width"],
+                height=meta["height"],
+                precision=meta["precision"],
+                compression=meta["compression"],
+                channels=meta["channels"],
+                motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
+            )
+        except Exception as exc:  # model no longer installed, or an incomplete meta
+            log.warning("skipping stored session %s: %s", session_id, exc)
+            return
+        progress = {"last_index": None, "frames_done": 0, "resets": 0}
+        if not lost:
+            progress = {k: meta[k] for k in progress}
+        session = self._session(
+            session_id,
+            spec,
+            created_at=meta["created_at"],
+            resident=lost,  # a lost session has nothing on disk to load
+            state_lost=lost,
+            **progress,
+        )
+        self.sessions[session.id] = session

@@ -291,19 +291,26 @@ def test_retry_of_the_last_index_after_lost_state_is_denoised_again(tmp_path):
 
 
 def test_truncated_and_foreign_state_files_are_quarantined(tmp_path, caplog):
+    """A truncated file and a file under another id are moved aside at start-up; their sessions
+    continue from a fresh history when their settings file is intact, else they are gone."""
     with app_client(state_dir=str(tmp_path)) as c:
-        a, b = new_session(c), new_session(c)
+        a, b, gone = new_session(c), new_session(c), new_session(c)
         send(c, a, 0, frame_bytes())
-    (tmp_path / f"{b}.npz").write_bytes((tmp_path / f"{b}.npz").read_bytes()[:50])
-    foreign = "A" * 22
+        send(c, b, 0, frame_bytes())
+    for sid in (b, gone):  # truncated
+        (tmp_path / f"{sid}.npz").write_bytes((tmp_path / f"{sid}.npz").read_bytes()[:50])
+    (tmp_path / f"{gone}.json").unlink()
+    foreign = "A" * 22  # a copy of a's file under another id
     (tmp_path / f"{foreign}.npz").write_bytes((tmp_path / f"{a}.npz").read_bytes())
     with caplog.at_level(logging.INFO), app_client(state_dir=str(tmp_path)) as c:
-        assert send(c, a, 1, frame_bytes(seed=1)).status_code == 200
+        assert send(c, a, 1, frame_bytes(seed=1)).headers["x-quietframe-reset"] == "none"
+        r = send(c, b, 1, frame_bytes(seed=1))
+        assert r.status_code == 200 and r.headers["x-quietframe-reset"] == "state-lost"
         assert_error(send(c, foreign, 0, frame_bytes()), 404, "session_not_found")
-        assert_error(c.get(f"/v1/sessions/{b}"), 404, "session_not_found")
-    assert sorted(p.name for p in tmp_path.glob("*.npz")) == [f"{a}.npz"]
-    assert len(list((tmp_path / "quarantine").iterdir())) == 2
-    assert sum("damaged" in rec.getMessage() for rec in caplog.records) == 2
+        assert_error(c.get(f"/v1/sessions/{gone}"), 404, "session_not_found")
+    assert sorted(p.name for p in tmp_path.glob("*.npz")) == sorted([f"{a}.npz", f"{b}.npz"])
+    assert len(list((tmp_path / "quarantine").iterdir())) == 3
+    assert sum("damaged" in rec.getMessage() for rec in caplog.records) == 3
 
 
 # ---- 5. deep parts and mip/ripmaps ---------------------------------------------------------------
