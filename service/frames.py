@@ -118,6 +118,7 @@ def configure_io(threads: int) -> None:
     threads = max(1, threads)
     OpenEXR.set_global_thread_count(threads)
     _io["threads"] = threads
+    _stdout_router()  # installed once, before worker threads decode
 
 
 
@@ -560,10 +561,14 @@ class _ThreadStdout(io.TextIOBase):
             self.local.lines = None
 
 
-def _openexr_output() -> contextlib.AbstractContextManager[list[str]]:
+def _stdout_router() -> _ThreadStdout:
     if not isinstance(sys.stdout, _ThreadStdout):
         sys.stdout = _ThreadStdout(sys.stdout)
-    return sys.stdout.captured()
+    return sys.stdout
+
+
+def _openexr_output() -> contextlib.AbstractContextManager[list[str]]:
+    return _stdout_router().captured()
 
 
 def decode(data: bytes | bytearray, sources: Mapping[str, Source]) -> DecodedFrame:
