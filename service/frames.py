@@ -125,6 +125,7 @@ def configure_io(threads: int) -> None:
 _MAGIC = b"\x76\x2f\x31\x01"
 _TILED, _LONG_NAMES, _NON_IMAGE, _MULTIPART = 0x200, 0x400, 0x800, 0x1000
 _MAX_ATTRIBUTES = 4096  # a header with more is not a render's
+_MAX_ATTRIBUTE_BYTES = 64 << 20  # a preview image or ICC profile is far smaller
 _COMPRESSION_METHODS = int(OpenEXR.NUM_COMPRESSION_METHODS)  # compression bytes this build reads
 
 
@@ -160,7 +161,9 @@ class _Reader:
         self.data, self.pos = data, pos
 
     def take(self, n: int) -> bytes:
-        if n < 0 or self.pos + n > len(self.data):
+        if n < 0:
+            raise BadExr("EXR header has an attribute of negative size")
+        if self.pos + n > len(self.data):
             raise TruncatedExr("EXR header is truncated")
         chunk = self.data[self.pos : self.pos + n]
         self.pos += n
@@ -207,6 +210,8 @@ def _parse_part(reader: _Reader, limit: int) -> dict[str, tuple[str, bytes]]:
         name = reader.cstring(limit)
         kind = reader.cstring(limit)
         (size,) = struct.unpack("<i", reader.take(4))
+        if size > _MAX_ATTRIBUTE_BYTES:  # refused now, not after reading that much
+            raise BadExr(f"EXR header attribute {name!r} claims {size} bytes")
         attributes[name] = (kind, reader.take(size))
 
 

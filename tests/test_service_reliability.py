@@ -218,6 +218,20 @@ def test_chunked_frame_body_is_held_to_its_header_size(auth_server):
     assert "at most" in assert_error(r, 413, "body_too_large")
 
 
+def test_header_claiming_a_huge_attribute_is_refused_at_once(auth_server):
+    import httpx
+
+    sid = httpx.post(f"{auth_server.url}/v1/sessions", json=SIZE, headers=TOKEN).json()["id"]
+    head = (
+        f"POST /v1/sessions/{sid}/frames/0 HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer s3cret\r\n"
+        "Content-Type: image/x-exr\r\nContent-Length: 500000000\r\n\r\n"
+    )
+    for size in (b"\x00\x00\x00\x7f", b"\xff\xff\xff\xff"):  # 2 GiB, -1
+        start = b"\x76\x2f\x31\x01\x02\0\0\0owner\0string\0" + size
+        raw = raw_request(auth_server.port, head, start + bytes(70000))
+        assert status_of(raw) == 400 and b"bad_exr" in raw
+
+
 def test_default_frame_limit_fits_an_8k_multilayer_float_exr():
     from quietframe.service.settings import Settings
 
