@@ -21,6 +21,7 @@ class Reset(str, Enum):
     FIRST_FRAME = "first-frame"
     CUT = "cut"  # ?cut=true or the header attribute
     GAP = "gap"  # a frame index was skipped
+    STATE_LOST = "state-lost"  # the session's stored history was damaged and set aside
 
 
 class Header:

@@ -18,7 +18,7 @@ import numpy as np
 class Rule(str, Enum):
     """How bad input values of a buffer are replaced (sanitize.py implements each)."""
 
-    RADIANCE = "radiance"  # NaN/±Inf/negative -> 0; above 1e30 -> 1e30
+    RADIANCE = "radiance"  # NaN/±Inf/negative -> 0; above 65504 (half max) -> 65504
     DIRECTION = "direction"  # NaN/±Inf -> 0 (no orientation / no motion)
     DISTANCE = "distance"  # NaN/±Inf/negative -> the farthest finite depth of the frame
 

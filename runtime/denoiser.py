@@ -20,6 +20,14 @@ import onnxruntime as ort
 from quietframe.runtime.buffers import BUFFER_CHANNELS, BufferError, check_buffers, check_plane
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
+from quietframe.runtime.tiling import (
+    DEFAULT_TILE_PIXELS,
+    add_ballast,
+    crop,
+    model_geometry,
+    place,
+    tiles_of,
+)
 
 
 @dataclass(frozen=True)
@@ -83,15 +91,24 @@ def make_session(path: Path, threads: int) -> ort.InferenceSession:
 
 
 class Denoiser:
-    """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently)."""
+    """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently).
+    Frames above `tile_pixels` run in overlapping tiles (tiling.py) when the model card gives
+    the geometry to make them seamless; None runs every frame whole."""
 
-    def __init__(self, model_path: str | Path, threads: int = 2) -> None:
+    def __init__(
+        self,
+        model_path: str | Path,
+        threads: int = 2,
+        tile_pixels: int | None = DEFAULT_TILE_PIXELS,
+    ) -> None:
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"model file {path} does not exist")
         self.session = make_session(path, threads)
         meta = self.session.get_modelmeta().custom_metadata_map
         self.info = read_model_info(path, meta)
+        self.geometry = model_geometry(meta)
+        self.tile_pixels = tile_pixels
         self._output_names = [o.name for o in self.session.get_outputs()]
 
     def check(self, present: Iterable[str]) -> tuple[str, ...]:
@@ -144,7 +161,7 @@ class Denoiser:
                 )
             feeds[f"state_in.{spec.name}"] = tensor
         feeds["reset"] = np.array([1.0 if fresh else 0.0], np.float32)
-        outputs = dict(zip(self._output_names, self.session.run(None, feeds), strict=True))
+        outputs = self._run(feeds, height, width)
         color, bad = sanitize_output(outputs["denoised"][0])
         if bad:
             sanitized["denoised"] = bad
@@ -154,3 +171,26 @@ class Denoiser:
             sanitized=sanitized,
             missing=missing,
         )
+
+    def _run(self, feeds: dict[str, np.ndarray], height: int, width: int) -> dict[str, np.ndarray]:
+        """One run, or one per tile with each tile's interior put in place."""
+        run = self.session.run
+        if self.geometry is None or self.tile_pixels is None:
+            return dict(zip(self._output_names, run(None, feeds), strict=True))
+        motion = feeds.get("motion")
+        tiles = list(tiles_of(height, width, self.geometry, motion, self.tile_pixels))
+        if len(tiles) == 1:
+            return dict(zip(self._output_names, run(None, feeds), strict=True))
+        geometry, dy, dx = self.geometry, 0, 0
+        ballast = geometry.depth_mean and "depth" in feeds
+        mean_depth = float(feeds["depth"].mean(dtype=np.float64)) if ballast else 0.0
+        outputs: dict[str, np.ndarray] = {}
+        for tile in tiles:
+            part = {k: crop(v, tile) if v.ndim == 4 else v for k, v in feeds.items()}
+            if ballast:
+                part, dy, dx = add_ballast(part, tile, height, width, mean_depth, geometry.align)
+            for name, result in zip(self._output_names, run(None, part), strict=True):
+                if name not in outputs:  # (N, C, H, W) of the whole frame
+                    outputs[name] = np.empty((*result.shape[:2], height, width), result.dtype)
+                place(outputs[name], tile, result, dy, dx)
+        return outputs

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import hmac
 from typing import Annotated
 
 from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from quietframe.service.errors import NotReady, Unauthorized
+from quietframe.service.guard import token_matches
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.sessions import SessionRegistry
@@ -42,13 +43,23 @@ SessionsDep = Annotated[SessionRegistry, Depends(_sessions)]
 ModelsDep = Annotated[ModelRegistry, Depends(_models)]
 
 
-def require_auth(request: Request, settings: SettingsDep) -> None:
-    """With QUIETFRAME_AUTH_TOKEN set, /v1 needs `Authorization: Bearer <token>`."""
+_bearer = HTTPBearer(
+    auto_error=False, description="QUIETFRAME_AUTH_TOKEN, when the server sets one"
+)
+
+
+def require_auth(
+    request: Request,
+    settings: SettingsDep,
+    _: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    """With QUIETFRAME_AUTH_TOKEN set, /v1 needs `Authorization: Bearer <token>`. The request
+    guard (guard.py) checks it before any body is read; this dependency documents the scheme
+    in the OpenAPI and checks again for an app mounted without the guard."""
     if settings.auth_token is None:
         return
-    scheme, _, token = request.headers.get("authorization", "").partition(" ")
-    expected = settings.auth_token.get_secret_value().encode()
-    if scheme.lower() != "bearer" or not hmac.compare_digest(token.strip().encode(), expected):
+    authorization = request.headers.get("authorization", "")
+    if not token_matches(authorization, settings.auth_token.get_secret_value()):
         raise Unauthorized(
             "missing or wrong bearer token (header 'Authorization: Bearer <token>')",
             headers={"WWW-Authenticate": 'Bearer realm="quietframe"'},

@@ -14,6 +14,8 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
+from starlette.responses import Response
 
 from quietframe.runtime import BufferError
 
@@ -52,6 +54,12 @@ class FrameConflict(ServiceError):
     """Same index retried with a different body."""
 
     status, code = 409, "frame_conflict"
+
+
+class BodyReadTimeout(ServiceError):
+    """The client paused sending its body for longer than QUIETFRAME_BODY_READ_TIMEOUT_S."""
+
+    status, code = 408, "body_read_timeout"
 
 
 class BodyTooLarge(ServiceError):
@@ -108,9 +116,11 @@ ERROR_EXAMPLES = {
     400: ("bad_exr", "body is not an OpenEXR file (bad magic number)"),
     401: ("unauthorized", "missing or wrong bearer token"),
     404: ("session_not_found", "no session 'Jx3…' (expired, deleted or never created)"),
+    408: ("body_read_timeout", "no request body bytes for 30 s; send the body without pauses"),
     409: ("frame_out_of_order", "frame 11 is older than the last frame 12 of this session"),
     413: ("resolution_too_large", "frame is 16384x16384; this server accepts at most 8192x8192"),
     422: ("missing_channels", "no channels for required buffer 'albedo'; found [...]"),
+    415: ("unsupported_media_type", "send the EXR as image/x-exr (got text/plain)"),
     429: ("too_many_sessions", "64 sessions are open; retry after the time in Retry-After"),
 }
 
@@ -142,8 +152,21 @@ def install_handlers(app: FastAPI, count_error: Callable[[int, str], None]) -> N
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400:  # FastAPI's "error parsing the body": not UTF-8 JSON
+            return respond(
+                422, "invalid_request", "the body is not JSON (send UTF-8 application/json)"
+            )
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
         return respond(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
+
+    @app.exception_handler(ClientDisconnect)
+    async def client_disconnect(request: Request, _: ClientDisconnect) -> Response:
+        # Not a server error: one info line, no traceback; nobody reads the response.
+        log.info(
+            "client disconnected before its request body ended", extra={"path": request.url.path}
+        )
+        count_error(499, "client_disconnected")
+        return Response(status_code=499)
 
     @app.exception_handler(Exception)
     async def unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -15,10 +15,13 @@ Canonical buffers (runtime/buffers.py): color (RGB), albedo (RGB), normal (XYZ),
 
 from __future__ import annotations
 
+import contextlib
 import io
 import logging
 import struct
-from collections.abc import Iterable, Mapping, Sequence
+import sys
+import threading
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -116,12 +119,15 @@ def configure_io(threads: int) -> None:
     threads = max(1, threads)
     OpenEXR.set_global_thread_count(threads)
     _io["threads"] = threads
+    _stdout_router()  # installed once, before worker threads decode
 
 
 
 _MAGIC = b"\x76\x2f\x31\x01"
 _TILED, _LONG_NAMES, _NON_IMAGE, _MULTIPART = 0x200, 0x400, 0x800, 0x1000
 _MAX_ATTRIBUTES = 4096  # a header with more is not a render's
+_MAX_ATTRIBUTE_BYTES = 64 << 20  # a preview image or ICC profile is far smaller
+_COMPRESSION_METHODS = int(OpenEXR.NUM_COMPRESSION_METHODS)  # compression bytes this build reads
 
 
 @dataclass(frozen=True)
@@ -141,8 +147,14 @@ class ExrHeader:
     channels: dict[str, ChannelInfo]
     parts: int
     header_bytes: int  # where the offset tables and pixels start
+    max_bytes: int  # the largest file this header can describe (uncompressed pixels + tables)
     cut: bool = False
     attributes: dict[str, tuple[str, bytes]] = field(default_factory=dict)  # first part
+
+
+class TruncatedExr(BadExr):
+    """The bytes end inside the header: a whole body is bad, a body still arriving is not yet
+    complete (the frame route reads on)."""
 
 
 class _Reader:
@@ -150,8 +162,10 @@ class _Reader:
         self.data, self.pos = data, pos
 
     def take(self, n: int) -> bytes:
-        if n < 0 or self.pos + n > len(self.data):
-            raise BadExr("EXR header is truncated")
+        if n < 0:
+            raise BadExr("EXR header has an attribute of negative size")
+        if self.pos + n > len(self.data):
+            raise TruncatedExr("EXR header is truncated")
         chunk = self.data[self.pos : self.pos + n]
         self.pos += n
         return chunk
@@ -159,7 +173,9 @@ class _Reader:
     def cstring(self, limit: int) -> str:
         end = self.data.find(b"\0", self.pos, self.pos + limit + 1)
         if end < 0:
-            raise BadExr("EXR header is truncated or has an over-long name")
+            if len(self.data) <= self.pos + limit:
+                raise TruncatedExr("EXR header is truncated")
+            raise BadExr("EXR header has an over-long name")
         raw = self.data[self.pos : end]
         self.pos = end + 1
         try:
@@ -186,7 +202,7 @@ def _parse_part(reader: _Reader, limit: int) -> dict[str, tuple[str, bytes]]:
     attributes: dict[str, tuple[str, bytes]] = {}
     while True:
         if reader.pos >= len(reader.data):
-            raise BadExr("EXR header is truncated")
+            raise TruncatedExr("EXR header is truncated")
         if reader.data[reader.pos] == 0:
             reader.pos += 1
             return attributes
@@ -195,40 +211,43 @@ def _parse_part(reader: _Reader, limit: int) -> dict[str, tuple[str, bytes]]:
         name = reader.cstring(limit)
         kind = reader.cstring(limit)
         (size,) = struct.unpack("<i", reader.take(4))
+        if size > _MAX_ATTRIBUTE_BYTES:  # refused now, not after reading that much
+            raise BadExr(f"EXR header attribute {name!r} claims {size} bytes")
         attributes[name] = (kind, reader.take(size))
 
 
-def read_header(data: bytes, max_width: int, max_height: int) -> ExrHeader:
-    """Parse and check the header; raises BadExr (400), ResolutionTooLarge (413), UnsupportedExr."""
+def read_header(data: bytes | bytearray, max_width: int, max_height: int) -> ExrHeader:
+    """Parse and check the header; raises BadExr (400), ResolutionTooLarge (413), UnsupportedExr
+    (422), TruncatedExr (a BadExr) when `data` ends inside the header."""
     if len(data) < 8 or data[:4] != _MAGIC:
+        if len(data) < 4 and _MAGIC.startswith(bytes(data)):
+            raise TruncatedExr("EXR header is truncated")
         raise BadExr("body is not an OpenEXR file (bad magic number)")
     (version,) = struct.unpack("<I", data[4:8])
     if version & 0xFF != 2:
         raise BadExr(f"unsupported OpenEXR file version {version & 0xFF}")
     if version & _NON_IMAGE:
-        raise UnsupportedExr("deep (non-image) EXR data is not supported; send flat images")
+        raise UnsupportedExr(_DEEP_DETAIL)
     limit = 255 if version & _LONG_NAMES else 31
     reader = _Reader(data, 8)
     parts = [_parse_part(reader, limit)]
-    while version & _MULTIPART and reader.pos < len(data) and data[reader.pos] != 0:
+    while version & _MULTIPART:
+        if reader.pos >= len(data):
+            raise TruncatedExr("EXR header is truncated")
+        if data[reader.pos] == 0:
+            break
         parts.append(_parse_part(reader, limit))
     channels: dict[str, ChannelInfo] = {}
     size = None
-    for attributes in parts:
-        if "dataWindow" not in attributes or "channels" not in attributes:
-            raise BadExr("EXR header lacks its dataWindow or channels attribute")
-        kind, value = attributes["dataWindow"]
-        if kind != "box2i" or len(value) != 16:
-            raise BadExr("EXR dataWindow attribute is malformed")
-        x0, y0, x1, y1 = struct.unpack("<iiii", value)
-        part_size = (x1 - x0 + 1, y1 - y0 + 1)
-        if part_size[0] < 1 or part_size[1] < 1:
-            raise BadExr(f"EXR dataWindow is empty ({x0},{y0})-({x1},{y1})")
+    max_bytes = reader.pos + 1
+    for number, attributes in enumerate(parts):
+        part_size, part_channels = _check_part(number, attributes, limit, version)
         if size is not None and part_size != size:
             raise UnsupportedExr("EXR parts have different data windows; send one size")
         size = part_size
-        for name, info in _parse_chlist(attributes["channels"][1], limit).items():
+        for name, info in part_channels.items():
             channels.setdefault(name, info)  # a name in several parts: the first part's
+        max_bytes += _max_part_bytes(part_size, part_channels.values(), attributes)
     width, height = size  # type: ignore[misc]
     if width > max_width or height > max_height:
         raise ResolutionTooLarge(
@@ -237,7 +256,100 @@ def read_header(data: bytes, max_width: int, max_height: int) -> ExrHeader:
     subsampled = [c.name for c in channels.values() if (c.x_sampling, c.y_sampling) != (1, 1)]
     if subsampled:
         raise UnsupportedExr(f"subsampled channels are not supported: {subsampled}")
-    return ExrHeader(width, height, channels, len(parts), reader.pos, _cut_flag(parts[0]), parts[0])
+    return ExrHeader(
+        width,
+        height,
+        channels,
+        len(parts),
+        reader.pos,
+        max_bytes,
+        _cut_flag(parts[0]),
+        parts[0],
+    )
+
+
+_DEEP_DETAIL = (
+    "deep EXR data is not supported; send a flat (scanline or tiled) image: flatten the deep "
+    "samples in the renderer or compositor (e.g. Nuke DeepToImage) and write a flat EXR"
+)
+_IMAGE_TYPES = {"scanlineimage": False, "tiledimage": True}
+_LEVEL_MODES = ("single-level", "mipmap", "ripmap")
+_PIXEL_BYTES = {0: 4, 1: 2, 2: 4}  # uint, half, float
+
+
+def _check_part(
+    number: int, attributes: Mapping[str, tuple[str, bytes]], limit: int, version: int
+) -> tuple[tuple[int, int], dict[str, ChannelInfo]]:
+    """One part's data window and channels, after the checks that need no pixels: its type
+    (deep parts are refused however the file's flags are set), tiling, compression."""
+    if "dataWindow" not in attributes or "channels" not in attributes:
+        raise BadExr("EXR header lacks its dataWindow or channels attribute")
+    kind, value = attributes["dataWindow"]
+    if kind != "box2i" or len(value) != 16:
+        raise BadExr("EXR dataWindow attribute is malformed")
+    x0, y0, x1, y1 = struct.unpack("<iiii", value)
+    part_size = (x1 - x0 + 1, y1 - y0 + 1)
+    if part_size[0] < 1 or part_size[1] < 1:
+        raise BadExr(f"EXR dataWindow is empty ({x0},{y0})-({x1},{y1})")
+    part_type = _string_attribute(attributes, "type")
+    if part_type is not None and part_type.startswith("deep"):
+        raise UnsupportedExr(f"part {number} is {part_type}: {_DEEP_DETAIL}")
+    if part_type is not None and part_type not in _IMAGE_TYPES:
+        raise BadExr(f"part {number} has an unknown EXR part type {part_type!r}")
+    tiled = _IMAGE_TYPES[part_type] if part_type is not None else bool(version & _TILED)
+    if tiled:
+        _check_tiles(number, attributes)
+    kind, value = attributes.get("compression", ("compression", b"\0"))
+    if kind != "compression" or len(value) != 1 or value[0] >= _COMPRESSION_METHODS:
+        raise BadExr(f"part {number} has an invalid EXR compression attribute ({value.hex()})")
+    try:
+        part_channels = _parse_chlist(attributes["channels"][1], limit)
+    except TruncatedExr as exc:  # the attribute is whole: its content is malformed
+        raise BadExr("EXR channel list is malformed") from exc
+    return part_size, part_channels
+
+
+def _check_tiles(number: int, attributes: Mapping[str, tuple[str, bytes]]) -> None:
+    kind, value = attributes.get("tiles", ("", b""))
+    if kind != "tiledesc" or len(value) != 9:
+        raise BadExr(f"tiled part {number} lacks a valid tile description")
+    x_size, y_size, mode = struct.unpack("<IIB", value)
+    if x_size < 1 or y_size < 1 or mode & 0x0F >= len(_LEVEL_MODES):
+        raise BadExr(f"tiled part {number} has an invalid tile description")
+    if mode & 0x0F:
+        # The decoder reads single-level files only; level 0 of a mip/ripmap is the image, but
+        # reading it needs the level-aware API this service does not use.
+        raise UnsupportedExr(
+            f"part {number} is a {_LEVEL_MODES[mode & 0x0F]} tiled EXR; send a scanline or "
+            "single-level tiled EXR (the render output, not a texture: e.g. oiiotool in.exr "
+            "--scanline -o out.exr)"
+        )
+
+
+def _max_part_bytes(
+    size: tuple[int, int], channels: Iterable[ChannelInfo], attributes: Mapping
+) -> int:
+    """The most bytes a flat single-level part can take on disk: its pixels uncompressed
+    (OpenEXR stores a chunk raw when compression does not shrink it), plus per-row chunk
+    headers and offsets (a chunk holds at least one row or one tile), plus 1% for writers
+    whose compression expands data slightly."""
+    width, height = size
+    pixels = width * height * sum(_PIXEL_BYTES[c.pixel_type] for c in channels)
+    chunks = height
+    kind, value = attributes.get("tiles", ("", b""))
+    if kind == "tiledesc" and len(value) == 9:  # checked by _check_tiles when the part is tiled
+        x_size, y_size, _ = struct.unpack("<IIB", value)
+        chunks = max(chunks, -(-width // max(x_size, 1)) * -(-height // max(y_size, 1)))
+    return pixels + pixels // 100 + 32 * chunks + 4096
+
+
+def _string_attribute(attributes: Mapping[str, tuple[str, bytes]], name: str) -> str | None:
+    if name not in attributes:
+        return None
+    kind, value = attributes[name]
+    if kind != "string":
+        raise BadExr(f"EXR attribute {name!r} is malformed")
+    return value.decode("utf-8", "replace")
 
 
 def _cut_flag(attributes: Mapping[str, tuple[str, bytes]]) -> bool:
@@ -454,15 +566,98 @@ class DecodedFrame:
         return self.parts[0].attributes
 
 
-def decode(data: bytes, sources: Mapping[str, Source]) -> DecodedFrame:
+class _BufferStream(io.RawIOBase):
+    """A read-only stream over the body's buffer: io.BytesIO would copy a bytearray whole; the
+    decoder reads it in chunks, so this keeps one copy of the body in memory."""
+
+    def __init__(self, data: bytes | bytearray | memoryview) -> None:
+        self._view, self._pos = memoryview(data), 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        n = max(0, min(len(buffer), len(self._view) - self._pos))
+        buffer[:n] = self._view[self._pos : self._pos + n]
+        self._pos += n
+        return n
+
+    def read(self, size: int = -1) -> bytes:
+        end = len(self._view) if size is None or size < 0 else self._pos + size
+        chunk = self._view[self._pos : end].tobytes()
+        self._pos += len(chunk)
+        return chunk
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: len(self._view)}[whence]
+        self._pos = max(0, base + offset)
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+
+class _ThreadStdout(io.TextIOBase):
+    """sys.stdout that hands the text a thread writes while `captured()` is active to that
+    thread: the OpenEXR binding prints its `Warning: ...` lines with Python's print, which would
+    land unstructured in the JSON log. Other threads write through."""
+
+    def __init__(self, target) -> None:
+        self.target, self.local = target, threading.local()
+
+    def write(self, text: str) -> int:
+        lines = getattr(self.local, "lines", None)
+        if lines is None:
+            return self.target.write(text)
+        lines.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        self.target.flush()
+
+    @contextlib.contextmanager
+    def captured(self) -> Iterator[list[str]]:
+        self.local.lines = lines = []
+        try:
+            yield lines
+        finally:
+            self.local.lines = None
+
+
+def _stdout_router() -> _ThreadStdout:
+    if not isinstance(sys.stdout, _ThreadStdout):
+        sys.stdout = _ThreadStdout(sys.stdout)
+    return sys.stdout
+
+
+def _openexr_output() -> contextlib.AbstractContextManager[list[str]]:
+    return _stdout_router().captured()
+
+
+def decode(data: bytes | bytearray, sources: Mapping[str, Source]) -> DecodedFrame:
     """Decode the pixels into planar (C, H, W) float32 buffers, the runtime's layout (one
     conversion per channel, no interleaving); BadExr for anything the decoder rejects.
     Depth is passed on as written: the runtime's sanitising rule turns every renderer's "no hit"
     marker (0, ≥ 1e10, ±inf) into the frame's farthest depth. An all-zero motion layer is left
-    out (motion blur on in Blender), so the runtime fills it and reports it missing."""
+    out (motion blur on in Blender), so the runtime fills it and reports it missing. The
+    decoder's printed warnings go to the log as fields of one record."""
+    with _openexr_output() as printed:
+        try:
+            return _decode(data, sources)
+        finally:
+            warnings = [line.strip() for line in "".join(printed).splitlines() if line.strip()]
+            if warnings:
+                log.warning("OpenEXR warnings while decoding", extra={"openexr": warnings})
+
+
+def _decode(data: bytes | bytearray, sources: Mapping[str, Source]) -> DecodedFrame:
     wanted = {c for source in sources.values() for c in source.channels}
     try:
-        exr = OpenEXR.File(io.BytesIO(data), separate_channels=True, num_threads=_io["threads"])
+        stream = _BufferStream(data)  # reads the request's one buffer in place
+        exr = OpenEXR.File(stream, separate_channels=True, num_threads=_io["threads"])
         parts = [Part(p.name(), dict(p.header), dict(p.channels)) for p in exr.parts]
         channels: dict = {}
         for part in parts:

@@ -16,6 +16,7 @@ from fastapi import Depends, FastAPI
 from quietframe.service import frames, logs
 from quietframe.service.deps import require_auth
 from quietframe.service.errors import install_handlers
+from quietframe.service.guard import RequestGuard
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.routers import health, models, sessions
@@ -79,11 +80,33 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = Metrics()
     install_handlers(app, app.state.metrics.count_error)
+    app.add_middleware(RequestGuard, settings=settings, count_error=app.state.metrics.count_error)
     auth = [Depends(require_auth)]
     app.include_router(sessions.router, prefix="/v1", dependencies=auth)
     app.include_router(models.router, prefix="/v1", dependencies=auth)
     app.include_router(health.router)
+    _document_limits(app, settings)
     return app
+
+
+def _document_limits(app: FastAPI, settings: Settings) -> None:
+    """The OpenAPI describes this server: its frame-size maxima (settings, not constants), and
+    the bearer scheme only when a token is set."""
+    build = app.openapi
+
+    def openapi() -> dict:
+        schema = build()  # cached by FastAPI; patching again is idempotent
+        fields = schema["components"]["schemas"]["SessionCreate"]["properties"]
+        fields["width"]["maximum"] = settings.max_width
+        fields["height"]["maximum"] = settings.max_height
+        if settings.auth_token is None:
+            schema["components"].pop("securitySchemes", None)
+            for path in schema["paths"].values():
+                for operation in path.values():
+                    operation.pop("security", None)
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def run(host: str, port: int, settings: Settings | None = None) -> None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -13,6 +13,11 @@ Quality = Literal["fast", "balanced", "best"]
 Compression = Literal[
     "input", "none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab"
 ]
+
+
+# A finite number, not a boolean (strict: JSON true is not 1.0) nor NaN/Infinity (Python's json
+# reads those literals).
+Factor = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 
 
 class SessionCreate(BaseModel):
@@ -42,7 +47,7 @@ class SessionCreate(BaseModel):
         description="own AOV mapping, buffer -> layer name or list of channel names; buffers "
         "not listed use the built-in alias table (Blender, Arnold, RenderMan, V-Ray, plain)",
     )
-    motion_scale: tuple[float, float] = Field(
+    motion_scale: tuple[Factor, Factor] = Field(
         (1.0, 1.0),
         description="factors for (x, y) of a mapped motion layer, to reach quietframe's "
         "convention: backward motion in pixels, y down",

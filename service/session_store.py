@@ -3,13 +3,26 @@
 A file holds the session's settings and progress (`meta`, JSON), its state tensors and the last
 reply (for an idempotent retry after a restart). The registry decides when to write and read;
 this module only knows the file format. All calls do disk I/O: run them off the event loop.
+
+Reading verifies the file: every member is read whole, so the zip format's CRC-32 of each one is
+checked; the meta lists every member with its shape (`manifest`), its id must be the file's
+name, and state tensors must be of the session's frame size. Anything else raises StateDamaged;
+`quarantine` moves such a file aside (`quarantine/`), where it is never read again.
+
+Beside it, `<id>.json` holds the session's settings, written once at creation: when the .npz
+is damaged (or gone), the session can still continue from a fresh history.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import json
 import os
 import re
+import time
+import zipfile
+import zlib
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +32,16 @@ import numpy as np
 SESSION_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")  # secrets.token_urlsafe(16): 128 random bits
 
 
+def request_digest(body: bytes | bytearray) -> str:
+    """What identifies a frame's request body for a retry: a CRC can be forged to match a
+    different body (issue 13); BLAKE2b-256 cannot."""
+    return hashlib.blake2b(body, digest_size=32).hexdigest()
+
+
+class StateDamaged(Exception):
+    """A stored session file that cannot be trusted: unreadable, truncated, another session's."""
+
+
 @dataclass
 class Reply:
     """A frame's response, kept for an idempotent retry of the same index."""
@@ -26,8 +49,16 @@ class Reply:
     index: int
     body: bytes
     headers: dict[str, str]
-    request_crc: int
     request_len: int
+    request_digest: str | None  # None: a file written before digests (has request_crc)
+    request_crc: int | None = None
+
+    def matches(self, body: bytes | bytearray) -> bool:
+        if len(body) != self.request_len:
+            return False
+        if self.request_digest is not None:
+            return hmac.compare_digest(self.request_digest, request_digest(body))
+        return self.request_crc == zlib.crc32(body)  # the one reply of an older file
 
 
 class SessionStore:
@@ -39,6 +70,27 @@ class SessionStore:
         if not SESSION_ID.match(session_id):
             raise ValueError(f"not a session id: {session_id!r}")
         return self.folder / f"{session_id}.npz"
+
+    def spec_path(self, session_id: str) -> Path:
+        return self.path(session_id).with_suffix(".json")
+
+    def write_spec(self, meta: Mapping) -> None:
+        """The session's settings, once, at creation (temp file + rename)."""
+        path = self.spec_path(meta["id"])
+        temp = path.with_name(f".{path.name}.tmp")
+        temp.write_text(json.dumps(dict(meta)))
+        os.replace(temp, path)
+
+    def read_spec(self, session_id: str) -> dict | None:
+        """The settings written at creation, or None (absent, unreadable, another id)."""
+        try:
+            meta = json.loads(self.spec_path(session_id).read_text())
+        except (OSError, ValueError):
+            return None
+        return meta if isinstance(meta, dict) and meta.get("id") == session_id else None
+
+    def spec_ids(self) -> list[str]:
+        return sorted(p.stem for p in self.folder.glob("*.json") if SESSION_ID.match(p.stem))
 
     def write(
         self,
@@ -56,10 +108,12 @@ class SessionStore:
             record["reply"] = {
                 "index": reply.index,
                 "headers": reply.headers,
+                "digest": reply.request_digest,
                 "crc": reply.request_crc,
                 "len": reply.request_len,
             }
             arrays["reply"] = np.frombuffer(reply.body, np.uint8)
+        record["manifest"] = {name: list(array.shape) for name, array in arrays.items()}
         arrays["meta"] = np.frombuffer(json.dumps(record).encode(), np.uint8)
         path = self.path(meta["id"])
         temp = path.with_name(f".{path.name}.tmp")
@@ -75,31 +129,71 @@ class SessionStore:
             raise
 
     def read(
-        self, session_id: str
+        self, session_id: str, height: int, width: int
     ) -> tuple[dict[str, np.ndarray] | None, Reply | None]:
-        """The state tensors and the last reply of a stored session."""
-        with np.load(self.path(session_id)) as z:
-            meta = json.loads(z["meta"].tobytes())
-            state = {k[6:]: z[k] for k in z.files if k.startswith("state.")} or None
-            r = meta["reply"]
-            reply = None
-            if r is not None and "reply" in z.files:
+        """The state tensors and the last reply of a stored session, verified (StateDamaged)."""
+        try:
+            with np.load(self.path(session_id)) as z:
+                arrays = {name: z[name] for name in z.files}  # whole reads check each CRC-32
+            meta = json.loads(arrays.pop("meta").tobytes())
+            _verify(meta, arrays, session_id, height, width)
+            state = {k[6:]: v for k, v in arrays.items() if k.startswith("state.")} or None
+            r, reply = meta["reply"], None
+            if r is not None and "reply" in arrays:
                 reply = Reply(
-                    r["index"], z["reply"].tobytes(), r["headers"], r["crc"], r["len"]
+                    r["index"],
+                    arrays["reply"].tobytes(),
+                    r["headers"],
+                    r["len"],
+                    r.get("digest"),
+                    r.get("crc"),
                 )
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
+            raise StateDamaged(f"{type(exc).__name__}: {exc}") from exc
         return state, reply
 
+    def quarantine(self, session_id: str) -> Path | None:
+        """Move a damaged file aside (kept for inspection, never loaded again)."""
+        return self.quarantine_path(self.path(session_id))
+
+    def quarantine_path(self, path: Path) -> Path | None:
+        folder = self.folder / "quarantine"
+        folder.mkdir(exist_ok=True)
+        target = folder / f"{path.name}.{time.strftime('%Y%m%dT%H%M%S')}"
+        try:
+            os.replace(path, target)
+        except FileNotFoundError:
+            return None
+        return target
+
     def metas(self) -> Iterator[tuple[Path, dict]]:
-        """(path, meta) of every stored session file, skipping unreadable ones (with the error
-        as the meta's "error")."""
+        """(path, meta) of every stored session file; an unreadable one, or one whose meta names
+        another session, has the error as the meta's "error"."""
         for path in sorted(self.folder.glob("*.npz")):
             if not SESSION_ID.match(path.stem):
                 continue
             try:
                 with np.load(path) as z:
-                    yield path, json.loads(z["meta"].tobytes())
+                    meta = json.loads(z["meta"].tobytes())
+                if meta.get("id") != path.stem:
+                    raise StateDamaged(f"the file holds session {meta.get('id')!r}")
+                yield path, meta
             except Exception as exc:  # unreadable file
                 yield path, {"error": f"{type(exc).__name__}: {exc}"}
 
     def delete(self, session_id: str) -> None:
         self.path(session_id).unlink(missing_ok=True)
+        self.spec_path(session_id).unlink(missing_ok=True)
+
+
+def _verify(meta: dict, arrays: dict, session_id: str, height: int, width: int) -> None:
+    if meta.get("id") != session_id:
+        raise ValueError(f"the file holds session {meta.get('id')!r}, not {session_id!r}")
+    manifest = meta.get("manifest")
+    if manifest is not None:  # files written before manifests have none
+        listed = {name: tuple(shape) for name, shape in manifest.items() if name != "meta"}
+        if listed != {name: array.shape for name, array in arrays.items()}:
+            raise ValueError("the file's members do not match its manifest")
+    for name, array in arrays.items():
+        if name.startswith("state.") and (array.ndim != 4 or array.shape[2:] != (height, width)):
+            raise ValueError(f"{name} has shape {array.shape}; frames are {width}x{height}")

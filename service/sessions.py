@@ -16,7 +16,6 @@ import logging
 import math
 import secrets
 import time
-import zlib
 from collections import OrderedDict
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
@@ -32,6 +31,7 @@ from quietframe.client.protocol import (
     join_list,
 )
 from quietframe.runtime import Denoiser, ModelInfo
+from quietframe.runtime.sanitize import clamp_to_half
 from quietframe.service import frames
 from quietframe.service.errors import (
     FrameConflict,
@@ -44,7 +44,12 @@ from quietframe.service.errors import (
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.schemas import ModelRef, SessionCreate, SessionPublic, StageTimings
-from quietframe.service.session_store import Reply, SessionStore
+from quietframe.service.session_store import (
+    Reply,
+    SessionStore,
+    StateDamaged,
+    request_digest,
+)
 from quietframe.service.settings import Settings
 
 log = logging.getLogger("quietframe.service")
@@ -104,6 +109,7 @@ class Session:
     state: dict[str, np.ndarray] | None = None
     reply: Reply | None = None
     resident: bool = True  # False: durable state is on disk only (restart or evicted)
+    state_lost: bool = False  # the stored state was damaged: the next frame starts afresh
     closed: bool = False
     sources: dict[str, list[str]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
@@ -115,12 +121,15 @@ class Session:
         state = sum(a.nbytes for a in self.state.values()) if self.state else 0
         return state + (len(self.reply.body) if self.reply else 0)
 
-    def plan(self, index: int, body: bytes, cut: bool) -> Reply | Reset:
+    def plan(self, index: int, body: bytes | bytearray, cut: bool) -> Reply | Reset:
         """The stored reply for a retry of the last index, else why history resets;
-        FrameOutOfOrder / FrameConflict for a refused index."""
+        FrameOutOfOrder / FrameConflict for a refused index. After lost state (no reply to
+        compare with), the last index and later ones start from a fresh history."""
+        if self.state_lost and (self.last_index is None or index >= self.last_index):
+            return Reset.STATE_LOST
         if self.last_index is not None and index == self.last_index:
             reply = self.reply
-            if reply and reply.request_len == len(body) and reply.request_crc == zlib.crc32(body):
+            if reply and reply.matches(body):
                 return reply
             raise FrameConflict(
                 f"frame {index} was already denoised from a different body; send the next index "
@@ -138,6 +147,7 @@ class Session:
         return Reset.GAP if index > self.last_index + 1 else Reset.NONE
 
     def commit(self, frame: _Processed) -> None:
+        self.state_lost = False
         self.state = frame.state
         self.reply = frame.reply
         self.last_index = frame.reply.index
@@ -206,7 +216,7 @@ def process_frame(
     denoiser: Denoiser,
     spec: SessionSpec,
     index: int,
-    body: bytes,
+    body: bytes | bytearray,
     sources: dict[str, frames.Source],
     reset: Reset,
     state: dict[str, np.ndarray] | None,
@@ -224,8 +234,11 @@ def process_frame(
     if precision == "input":
         precision = "half" if frame.color_half else "float"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
+    color, clamped = result.color, 0
+    if precision == "half":  # a plain cast would turn values beyond ±65504 into ±Inf
+        color, clamped = clamp_to_half(color)
     body_out = frames.encode(
-        result.color,
+        color,
         frame,
         sources["color"].channels,
         precision,
@@ -241,6 +254,8 @@ def process_frame(
         "total": 1e3 * (done - start),
     }
     sanitized = {k: v for k, v in result.sanitized.items() if v}
+    if clamped:
+        sanitized["denoised"] = sanitized.get("denoised", 0) + clamped
     headers = {
         Header.FRAME: str(index),
         Header.RESET: reset.value,
@@ -253,7 +268,7 @@ def process_frame(
     if result.missing:
         headers[Header.MISSING] = join_list(result.missing)
     return _Processed(
-        reply=Reply(index, body_out, headers, zlib.crc32(body), len(body)),
+        reply=Reply(index, body_out, headers, len(body), request_digest(body)),
         state=result.state,
         reset=reset,
         sources={b: list(s.channels) for b, s in sources.items()},
@@ -364,6 +379,7 @@ class SessionRegistry:
         session = self._session(secrets.token_urlsafe(16), spec)
         self._make_room(session.reserve_bytes)
         if self.store is not None:
+            await self._on_pool(self.store.write_spec, session.meta())
             await self._on_pool(self.store.write, session.meta(), None, None)
         self.sessions[session.id] = session
         self.metrics.sessions_created.inc()
@@ -460,8 +476,23 @@ class SessionRegistry:
         if session.resident:
             return
         self._make_room(session.reserve_bytes, keep=session)
+        if session.state_lost:  # nothing on disk to read: the next frame starts afresh
+            session.resident = True
+            return
         assert self.store is not None  # only durable sessions leave memory
-        session.state, session.reply = await self._on_pool(self.store.read, session.id)
+        try:
+            session.state, session.reply = await self._on_pool(
+                self.store.read, session.id, session.spec.height, session.spec.width
+            )
+        except StateDamaged as exc:
+            # Continue the sequence from a fresh history, said so in X-Quietframe-Reset; the
+            # damaged file is kept aside for a look, never read again.
+            aside = await self._on_pool(self.store.quarantine, session.id)
+            log.error(
+                "stored session state is damaged; the next frame starts a fresh history",
+                extra={"session": session.id, "error": str(exc), "quarantined": str(aside)},
+            )
+            session.state, session.reply, session.state_lost = None, None, True
         session.resident = True
         self._update_gauges()
 
@@ -482,36 +513,58 @@ class SessionRegistry:
     # ---- durable state ------------------------------------------------------------------------
 
     def _load_durable(self) -> None:
-        """Register the sessions of an earlier run (state stays on disk until their next frame)."""
+        """Register the sessions of an earlier run (state stays on disk until their next frame).
+        A damaged file is quarantined; its session continues from a fresh history (state-lost)
+        when its settings file (written at creation) is intact."""
         assert self.store is not None
         for path, meta in self.store.metas():
-            try:
-                if "error" in meta:
-                    raise ValueError(meta["error"])
-                spec = SessionSpec(
-                    model=self.models.resolve(meta["model"]),
-                    width=meta["width"],
-                    height=meta["height"],
-                    precision=meta["precision"],
-                    compression=meta["compression"],
-                    channels=meta["channels"],
-                    motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
-                    layer=meta.get("layer"),
-                    denoised_layer=meta.get("denoised_layer"),
-                    quality=meta.get("quality"),
+            lost = "error" in meta  # unreadable, truncated, or another session's file
+            if lost:
+                aside = self.store.quarantine_path(path)
+                log.error(
+                    "stored session file is damaged; moved aside",
+                    extra={"file": path.name, "error": meta["error"], "quarantined": str(aside)},
                 )
-            except Exception as exc:  # unreadable file or model no longer installed
-                log.warning("skipping stored session %s: %s", path.name, exc)
-                continue
-            session = self._session(
-                meta["id"],
-                spec,
-                created_at=meta["created_at"],
-                last_index=meta["last_index"],
-                frames_done=meta["frames_done"],
-                resets=meta["resets"],
-                resident=False,
-            )
-            self.sessions[session.id] = session
+                meta = self.store.read_spec(path.stem)
+                if meta is None:
+                    log.error("no settings file either: session %s is gone", path.stem)
+                    continue
+            self._restore(path.stem, meta, lost)
+        for session_id in self.store.spec_ids():  # settings without a state file
+            if session_id not in self.sessions and not self.store.path(session_id).exists():
+                meta = self.store.read_spec(session_id)
+                if meta is not None:
+                    log.error("session %s has no state file; continues afresh", session_id)
+                    self._restore(session_id, meta, lost=True)
         if self.sessions:
             log.info("restored %d sessions from %s", len(self.sessions), self.store.folder)
+
+    def _restore(self, session_id: str, meta: dict, lost: bool) -> None:
+        try:
+            spec = SessionSpec(
+                model=self.models.resolve(meta["model"]),
+                width=meta["width"],
+                height=meta["height"],
+                precision=meta["precision"],
+                compression=meta["compression"],
+                channels=meta["channels"],
+                motion_scale=tuple(meta["motion_scale"]),  # type: ignore[arg-type]
+                layer=meta.get("layer"),
+                denoised_layer=meta.get("denoised_layer"),
+                quality=meta.get("quality"),
+            )
+        except Exception as exc:  # model no longer installed, or an incomplete meta
+            log.warning("skipping stored session %s: %s", session_id, exc)
+            return
+        progress = {"last_index": None, "frames_done": 0, "resets": 0}
+        if not lost:
+            progress = {k: meta[k] for k in progress}
+        session = self._session(
+            session_id,
+            spec,
+            created_at=meta["created_at"],
+            resident=lost,  # a lost session has nothing on disk to load
+            state_lost=lost,
+            **progress,
+        )
+        self.sessions[session.id] = session

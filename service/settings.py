@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -23,7 +23,18 @@ class Settings(BaseSettings):
     workers: int = Field(0, ge=0, description="frames in flight at once; 0: CPUs / threads")
 
     # Limits. Sizes carry their unit in the name.
-    max_body_mb: float = Field(1024.0, gt=0)
+    # An 8K UHD (7680x4320) multi-layer render with the layers a denoiser needs and a renderer
+    # writes beside them (beauty RGBA, albedo, normal, depth, vector XYZW: 15 channels) is
+    # 1898 MiB as float32 without compression, the largest such a file gets (compression only
+    # shrinks it); 1920 MiB adds the offset tables and headers. Every body is also held to its
+    # own header's uncompressed size as soon as the header has arrived (frames.py).
+    max_body_mb: float = Field(1920.0, gt=0, description="frame (EXR) body limit")
+    max_json_body_bytes: int = Field(
+        8192, ge=256, description="JSON body limit (a session with a channel mapping: ~1 KiB)"
+    )
+    body_read_timeout_s: float = Field(
+        30.0, gt=0, description="a body that sends no byte for this long gets 408"
+    )
     max_width: int = Field(8192, ge=1)
     max_height: int = Field(8192, ge=1)
     max_sessions: int = Field(64, ge=1)
@@ -37,6 +48,16 @@ class Settings(BaseSettings):
     auth_token: SecretStr | None = Field(None, description="bearer token for /v1; None: no auth")
     log_level: str = "info"
     log_json: bool = True
+
+    @field_validator("auth_token")
+    @classmethod
+    def _token_not_empty(cls, value: SecretStr | None) -> SecretStr | None:
+        # An empty token would turn auth on with an empty secret (a bare "Bearer" passes).
+        if value is not None and not value.get_secret_value().strip():
+            raise ValueError(
+                "QUIETFRAME_AUTH_TOKEN is set but empty; unset it for no auth or set a secret"
+            )
+        return value
 
     @property
     def max_body_bytes(self) -> int:

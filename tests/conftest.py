@@ -213,7 +213,7 @@ class LiveServer:
                 raise RuntimeError("test server did not start")
             time.sleep(0.02)
         port = self.server.servers[0].sockets[0].getsockname()[1]
-        self.url = f"http://127.0.0.1:{port}"
+        self.port, self.url = port, f"http://127.0.0.1:{port}"
         return self
 
     def __exit__(self, *_) -> None:

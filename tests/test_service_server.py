@@ -154,7 +154,7 @@ def test_killed_server_continues_sequence_from_durable_state(tmp_path, live_serv
             first = [client.send_frame(sid, i, frames[i]) for i in range(3)]
         server.send_signal(signal.SIGKILL)  # no shutdown hook: only what was on disk survives
         server.wait(timeout=30)
-        assert [p.name for p in tmp_path.iterdir()] == [f"{sid}.npz"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == [f"{sid}.json", f"{sid}.npz"]
         server = _start_cli_server(port, tmp_path)
         with Client(url) as client:
             assert client.session(sid)["last_index"] == 2

@@ -15,6 +15,7 @@ from quietframe.client.protocol import (
     Header,
     Reset,
 )
+from quietframe.service import frames
 from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
 from quietframe.service.errors import (
     ERROR_EXAMPLES,
@@ -23,12 +24,13 @@ from quietframe.service.errors import (
     UnsupportedMediaType,
 )
 from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
+from quietframe.service.settings import Settings
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 log = logging.getLogger("quietframe.service")
 
 
-def _errors(*codes: int) -> dict:
+def errors(*codes: int) -> dict:
     return {
         code: {
             "model": ErrorBody,
@@ -46,7 +48,7 @@ def _errors(*codes: int) -> dict:
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=SessionPublic,
-    responses=_errors(401, 422, 429),
+    responses=errors(401, 408, 413, 422, 429),
     summary="Start a camera sequence",
 )
 async def create_session(
@@ -75,7 +77,7 @@ async def create_session(
 @router.get(
     "/{session_id}",
     response_model=SessionPublic,
-    responses=_errors(401, 404),
+    responses=errors(401, 404),
     summary="Session status",
 )
 async def get_session(
@@ -89,7 +91,7 @@ async def get_session(
 @router.delete(
     "/{session_id}",
     status_code=status.HTTP_204_NO_CONTENT,
-    responses=_errors(401, 404),
+    responses=errors(401, 404),
     summary="End a session and free its history",
 )
 async def delete_session(session_id: str, sessions: SessionsDep) -> Response:
@@ -97,17 +99,65 @@ async def delete_session(session_id: str, sessions: SessionsDep) -> Response:
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
+async def _read_frame(request: Request, settings: Settings) -> bytearray:
+    """The EXR body, refused as early as its bytes allow: the magic number and the header are
+    checked as they arrive, and the body is held to its header's largest possible size. One
+    copy: when Content-Length is given the buffer is allocated once, after the header passed
+    (the request guard has already held Content-Length and the stream to the body limit)."""
     declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise BodyTooLarge(f"body is {int(declared)} bytes; the limit is {limit} bytes")
-    chunks, size = [], 0
+    expected = int(declared) if declared and declared.isdigit() else None
+    body, size, bound = bytearray(), 0, settings.max_body_bytes
+    header, next_parse = None, 8
     async for chunk in request.stream():
+        if not chunk:
+            continue
+        if header is None:
+            body += chunk
+            size = len(body)
+            if size < next_parse:
+                continue
+            header = _header_so_far(body, settings)
+            if header is None:  # more header to come: parse again once the bytes double
+                next_parse = 2 * size
+                continue
+            bound = min(bound, header.max_bytes)
+            if expected is not None:
+                _check_size(expected, bound, header)
+                whole = bytearray(expected)  # the one allocation of the body
+                whole[:size] = body
+                body = whole
+            continue
+        if size + len(chunk) > bound:
+            _check_size(size + len(chunk), bound, header)
+        if expected is not None:
+            if size + len(chunk) > expected:
+                raise InvalidRequest(f"body is longer than its Content-Length {expected}")
+            body[size : size + len(chunk)] = chunk
+        else:
+            body += chunk
         size += len(chunk)
-        if size > limit:
-            raise BodyTooLarge(f"body exceeds the limit of {limit} bytes")
-        chunks.append(chunk)
-    return b"".join(chunks)
+    if header is None:
+        frames.read_header(body, settings.max_width, settings.max_height)  # raises BadExr
+    if expected is not None and size != expected:
+        raise InvalidRequest(f"body ended after {size} of its {expected} declared bytes")
+    return body
+
+
+def _header_so_far(data: bytearray, settings: Settings) -> frames.ExrHeader | None:
+    try:
+        return frames.read_header(data, settings.max_width, settings.max_height)
+    except frames.TruncatedExr:
+        return None
+
+
+def _check_size(size: int, bound: int, header: frames.ExrHeader) -> None:
+    if size > bound:
+        raise BodyTooLarge(
+            f"body is {size} bytes; a {header.width}x{header.height} EXR with these "
+            f"{len(header.channels)} channels has at most {bound} bytes (this server's frame "
+            "limit or the file's uncompressed size)",
+            headers={"Connection": "close"},
+        )
 
 
 _FRAME_DOC = f"""Denoise frame `index` of the sequence. Body: one EXR (`{EXR_MEDIA_TYPE}`) with
@@ -135,7 +185,7 @@ filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` 
             "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
             "description": "the denoised EXR",
         },
-        **_errors(400, 401, 404, 409, 413, 422),
+        **errors(400, 401, 404, 408, 409, 413, 415, 422),
     },
     openapi_extra={
         "requestBody": {
@@ -159,7 +209,7 @@ async def post_frame(
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type not in ACCEPTED_FRAME_TYPES:
         raise UnsupportedMediaType(f"send the EXR as {EXR_MEDIA_TYPE} (got {media_type})")
-    body = await _read_body(request, settings.max_body_bytes)
+    body = await _read_frame(request, settings)
     metrics.bytes_in.inc(len(body))
     outcome = await sessions.denoise_frame(session_id, index, body, cut)
     reply = outcome.reply

@@ -1,0 +1,112 @@
+"""Large frames through the runtime: peak memory and time per frame at 1080p, 4K and 8K.
+
+    python -m quietframe.bench.large_frames [--sizes 1080p 4k 8k] [--frames 2] [--threads 2]
+
+Each size runs in its own process (peak RSS = that process's VmHWM): synthetic render-like
+buffers (float32, built without float64 temporaries), `frames` frames with the history carried,
+through `Denoiser.denoise` with its default tiling (runtime/tiling.py). Prints a Markdown table:
+ms per frame (median), peak RSS, the inputs' and state's share of it, and the tile count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from quietframe.runtime.tiling import DEFAULT_TILE_PIXELS
+
+SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "8k": (7680, 4320)}
+
+
+def buffers(width: int, height: int, seed: int) -> dict[str, np.ndarray]:
+    """(C, H, W) float32 planes: tiled albedo, smooth normal and depth, noisy colour, a pan."""
+    rng = np.random.default_rng(seed)
+    x = np.arange(width, dtype=np.float32)[None, :] + 2.0 * seed
+    y = np.arange(height, dtype=np.float32)[:, None]
+    tiles = ((x // 97).astype(np.int32) * 7 + (y // 61).astype(np.int32) * 13) % 17
+    palette = np.random.default_rng(0).uniform(0.05, 0.9, size=(3, 17)).astype(np.float32)
+    albedo = palette[:, tiles]  # (3, H, W)
+    normal = np.empty((3, height, width), np.float32)
+    normal[0], normal[1], normal[2] = np.sin(x / 300), np.cos(y / 200), 1.0
+    normal /= np.sqrt((normal * normal).sum(0, keepdims=True))
+    depth = (4.0 + 2.0 * np.sin(x / 400) * np.cos(y / 300))[None].astype(np.float32)
+    color = albedo * (0.3 + 0.7 * normal[2:3])
+    color *= 0.25 * rng.standard_gamma(4.0, size=color.shape, dtype=np.float32)  # mean 1
+    motion = np.zeros((2, height, width), np.float32)
+    motion[0] = 2.0
+    return {"color": color, "albedo": albedo, "normal": normal, "depth": depth, "motion": motion}
+
+
+def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | None) -> dict:
+    import os
+
+    from quietframe.bench.http_overhead import rss_mib
+    from quietframe.runtime import Denoiser, default_model_path
+    from quietframe.runtime.tiling import tiles_of
+
+    denoiser = Denoiser(default_model_path(), threads=threads, tile_pixels=tile_pixels)
+    base = rss_mib(os.getpid(), "VmHWM")
+    times, state = [], None
+    for i in range(frames):
+        planes = buffers(width, height, i)
+        start = time.perf_counter()
+        result = denoiser.denoise(planes, state)
+        times.append(1e3 * (time.perf_counter() - start))
+        assert np.isfinite(result.color).all()
+        state = result.state
+    inputs = sum(p.nbytes for p in planes.values()) / 2**20
+    geometry = denoiser.geometry
+    tiles = 1
+    if tile_pixels is not None:
+        tiles = len(list(tiles_of(height, width, geometry, planes["motion"], tile_pixels)))
+    return {
+        "size": f"{width}x{height}",
+        "ms_per_frame": round(statistics.median(times), 0),
+        "ms_all": [round(t) for t in times],
+        "peak_rss_mib": round(rss_mib(os.getpid(), "VmHWM")),
+        "base_rss_mib": round(base),
+        "inputs_mib": round(inputs),
+        "state_mib": round(sum(s.nbytes for s in state.values()) / 2**20),
+        "tiles": tiles,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
+    parser.add_argument("--frames", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--tile-pixels", type=int, default=DEFAULT_TILE_PIXELS, help="0: untiled (comparison)"
+    )
+    parser.add_argument("--one", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.one:
+        width, height = SIZES[args.one]
+        tile_pixels = args.tile_pixels or None
+        print(json.dumps(one(width, height, args.frames, args.threads, tile_pixels)))
+        return 0
+    rows = []
+    for size in args.sizes:
+        cmd = [sys.executable, "-m", "quietframe.bench.large_frames", "--one", size,
+               "--frames", str(args.frames), "--threads", str(args.threads),
+               "--tile-pixels", str(args.tile_pixels)]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+        rows.append(json.loads(out.strip().splitlines()[-1]))
+        print(json.dumps(rows[-1]), file=sys.stderr)
+    print("| size | ms/frame (median) | peak RSS MiB | of which inputs + state MiB | tiles |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['size']} | {r['ms_per_frame']:.0f} ({r['ms_all']}) | {r['peak_rss_mib']} "
+              f"| {r['inputs_mib']} + 2 x {r['state_mib']} | {r['tiles']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,148 @@
+"""Load: N sessions x M frames at a given size against one server on 127.0.0.1.
+
+    python -m quietframe.bench.load [--sessions 4] [--frames 8] [--width 640 --height 360]
+    python -m quietframe.bench.soak [--minutes 2] ...   (session churn for a set time)
+
+Starts a `quietframe serve` process (env QUIETFRAME_*), streams every session on its own thread
+(frames in order, as a render farm does), and reports: requests and errors (by status),
+latency p50/p99 of a frame request (upload + denoise + download), frames/s over all sessions,
+and the server's peak RSS (VmHWM). Frames are the render-like synthetic Blender EXRs of
+bench/http_overhead.py. Bounded by the counts given; loopback only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from collections import Counter
+
+import numpy as np
+
+from quietframe.bench.http_overhead import (
+    blender_exr,
+    free_port,
+    rss_mib,
+    start_server,
+    synthetic_buffers,
+)
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def frames_for(width: int, height: int, count: int) -> list[bytes]:
+    return [blender_exr(synthetic_buffers(width, height, i), "zip", True) for i in range(count)]
+
+
+class Tally:
+    """Latencies and statuses from all client threads."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.latency_ms: list[float] = []
+        self.statuses: Counter = Counter()
+        self.failures: list[str] = []
+
+    def add(self, status: int, ms: float | None, detail: str = "") -> None:
+        with self.lock:
+            self.statuses[status] += 1
+            if ms is not None and status == 200:
+                self.latency_ms.append(ms)
+            if status != 200 and len(self.failures) < 5:
+                self.failures.append(f"{status}: {detail[:200]}")
+
+
+def run_session(http, url: str, size, frames: list[bytes], count: int, tally: Tally) -> None:
+    r = http.post(f"{url}/v1/sessions", json={"width": size[0], "height": size[1]})
+    if r.status_code != 201:
+        tally.add(r.status_code, None, r.text)
+        return
+    sid = r.json()["id"]
+    for i in range(count):
+        start = time.perf_counter()
+        try:
+            r = http.post(
+                f"{url}/v1/sessions/{sid}/frames/{i}",
+                content=frames[i % len(frames)],
+                headers={"content-type": "image/x-exr"},
+            )
+            tally.add(r.status_code, 1e3 * (time.perf_counter() - start), r.text[:200])
+        except Exception as exc:  # transport errors count as errors
+            tally.add(0, None, repr(exc))
+    http.delete(f"{url}/v1/sessions/{sid}")
+
+
+def server_env(threads: int, workers: int) -> dict[str, str]:
+    return {
+        **os.environ,
+        "QUIETFRAME_THREADS": str(threads),
+        "QUIETFRAME_WORKERS": str(workers),
+        "QUIETFRAME_LOG_LEVEL": "warning",
+    }
+
+
+def report(tally: Tally, seconds: float, peak_rss: float, **extra) -> dict:
+    done = len(tally.latency_ms)
+    return {
+        **extra,
+        "requests": sum(tally.statuses.values()),
+        "errors": sum(v for k, v in tally.statuses.items() if k != 200),
+        "statuses": dict(tally.statuses),
+        "p50_ms": round(percentile(tally.latency_ms, 50), 1),
+        "p99_ms": round(percentile(tally.latency_ms, 99), 1),
+        "frames_per_s": round(done / seconds, 2),
+        "seconds": round(seconds, 1),
+        "server_peak_rss_mib": round(peak_rss),
+        "failures": tally.failures,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    import httpx
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sessions", type=int, default=4)
+    parser.add_argument("--frames", type=int, default=8, help="frames per session")
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=360)
+    parser.add_argument("--threads", type=int, default=1, help="server onnxruntime threads")
+    parser.add_argument("--workers", type=int, default=2, help="server frames in flight")
+    args = parser.parse_args(argv)
+    size = (args.width, args.height)
+    frames = frames_for(*size, 4)
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    server = start_server(port, server_env(args.threads, args.workers))
+    tally = Tally()
+    try:
+        with httpx.Client(timeout=600) as http:
+            session_args = (http, url, size, frames, args.frames, tally)
+            threads = [
+                threading.Thread(target=run_session, args=session_args)
+                for _ in range(args.sessions)
+            ]
+            start = time.perf_counter()
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            seconds = time.perf_counter() - start
+        peak = rss_mib(server.pid, "VmHWM")
+    finally:
+        server.terminate()
+        server.wait(30)
+    result = report(
+        tally, seconds, peak, size=f"{size[0]}x{size[1]}", sessions=args.sessions,
+        frames_per_session=args.frames, exr_mib=round(len(frames[0]) / 2**20, 2),
+    )
+    print(json.dumps(result, indent=1))
+    return 1 if result["errors"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,162 @@
+"""Checks made before routing and before any body byte is read: the bearer token, the body
+limit, the time allowed between body chunks, and a client that goes away mid-body.
+
+A pure ASGI middleware because FastAPI reads and parses a JSON body before any dependency runs:
+the token check in a dependency came after an unbounded read. Small JSON bodies are read here,
+whole and bounded, then handed on; a frame body is handed on as a bounded, timed stream that the
+frame route reads itself (it checks the EXR header as the first bytes arrive).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+import logging
+import re
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+from starlette.datastructures import Headers
+from starlette.requests import ClientDisconnect
+
+from quietframe.service.errors import BodyReadTimeout, BodyTooLarge, error_body
+from quietframe.service.settings import Settings
+
+log = logging.getLogger("quietframe.service")
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+
+FRAME_PATH = re.compile(r"^/v1/sessions/[^/]+/frames/[^/]+/?$")
+_AUTH_CHALLENGE = 'Bearer realm="quietframe"'
+
+
+def token_matches(authorization: str, token: str) -> bool:
+    """`Authorization: Bearer <token>`, compared in constant time."""
+    scheme, _, given = authorization.partition(" ")
+    return scheme.lower() == "bearer" and hmac.compare_digest(
+        given.strip().encode(), token.encode()
+    )
+
+
+def timed_receive(receive: Receive, limit_bytes: int, timeout_s: float) -> Receive:
+    """`receive` that raises BodyTooLarge past `limit_bytes`, BodyReadTimeout when no chunk
+    arrives for `timeout_s`, ClientDisconnect when the client leaves before the body's end.
+    Once the body is complete it passes messages through (disconnect listeners wait freely)."""
+    state = {"size": 0, "done": False}
+
+    async def wrapped() -> Message:
+        if state["done"]:
+            return await receive()
+        try:
+            message = await asyncio.wait_for(receive(), timeout_s)
+        except asyncio.TimeoutError:
+            raise BodyReadTimeout(
+                f"no request body bytes for {timeout_s:g} s; send the body without pauses",
+                headers={"Connection": "close"},
+            ) from None
+        if message["type"] == "http.disconnect":
+            raise ClientDisconnect()
+        if message["type"] == "http.request":
+            state["size"] += len(message.get("body", b""))
+            if state["size"] > limit_bytes:
+                raise BodyTooLarge(
+                    f"body exceeds the limit of {limit_bytes} bytes",
+                    headers={"Connection": "close"},
+                )
+            state["done"] = not message.get("more_body", False)
+        return message
+
+    return wrapped
+
+
+class RequestGuard:
+    def __init__(self, app, settings: Settings, count_error: Callable[[int, str], None]) -> None:
+        self.app, self.settings, self.count_error = app, settings, count_error
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        settings, path = self.settings, scope["path"]
+        headers = Headers(scope=scope)
+        token = settings.auth_token
+        if path.startswith("/v1") and token is not None:
+            if not token_matches(headers.get("authorization", ""), token.get_secret_value()):
+                await self._reject(
+                    send,
+                    401,
+                    "unauthorized",
+                    "missing or wrong bearer token (header 'Authorization: Bearer <token>')",
+                    {"WWW-Authenticate": _AUTH_CHALLENGE},
+                )
+                return
+        frame = FRAME_PATH.match(path) is not None
+        limit = settings.max_body_bytes if frame else settings.max_json_body_bytes
+        declared = headers.get("content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+            await self._reject(
+                send,
+                413 if declared.isdigit() else 400,
+                "body_too_large" if declared.isdigit() else "bad_request",
+                f"body is {declared} bytes; the limit for {path} is {limit} bytes"
+                if declared.isdigit()
+                else f"Content-Length {declared!r} is not a byte count",
+            )
+            return
+        bounded = timed_receive(receive, limit, settings.body_read_timeout_s)
+        if frame:  # the frame route streams the body itself (errors reach the app's handlers)
+            await self.app(scope, bounded, send)
+            return
+        try:
+            body = await _read_all(bounded)
+        except (BodyTooLarge, BodyReadTimeout) as exc:
+            await self._reject(send, exc.status, exc.code, exc.detail)
+            return
+        except ClientDisconnect:
+            log.info("client disconnected before its request body ended", extra={"path": path})
+            self.count_error(499, "client_disconnected")
+            return
+        await self.app(scope, _replay(body, receive), send)
+
+    async def _reject(
+        self, send: Send, status: int, code: str, detail: str, headers: dict | None = None
+    ) -> None:
+        """Answer without reading the body; `Connection: close` so the unread rest is dropped."""
+        self.count_error(status, code)
+        payload = json.dumps(error_body(code, detail)).encode()
+        raw = [
+            (b"content-type", b"application/json"),
+            (b"content-length", str(len(payload)).encode()),
+            (b"connection", b"close"),
+        ]
+        raw += [(k.lower().encode(), v.encode()) for k, v in (headers or {}).items()]
+        await send({"type": "http.response.start", "status": status, "headers": raw})
+        await send({"type": "http.response.body", "body": payload})
+
+
+async def _read_all(receive: Receive) -> bytes:
+    chunks = []
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            continue
+        chunks.append(message.get("body", b""))
+        if not message.get("more_body", False):
+            return b"".join(chunks)  # bounded by the JSON limit (a few KiB)
+
+
+def _replay(body: bytes, receive: Receive) -> Receive:
+    sent = False
+
+    async def replay() -> Message:
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()  # after the body: disconnect listeners
+
+    return replay
