@@ -1,0 +1,262 @@
+"""`model=auto`: which installed model a session uses, from what its first frame shows.
+
+Pure functions (no service state): the session registry calls `choose` in the plan step of a
+session's first frame and of a cut, and nowhere else, so a shot never switches model mid-way
+(a switch changes the look: that would be flicker). Inputs:
+
+- the buffers the frame carries (from the EXR header, before any pixel is decoded);
+- its noise level as an equivalent spp: the renderer's own count where the header has one
+  (`samples_from_header`), else estimated from the decoded colour without a reference
+  (`estimate_spp`, calibrated on rendered frames by `bench/noise_calibration.py`);
+- the session's target: `quality` (fast | balanced | best) and/or `latency_ms`;
+- each model's measured table (`ModelProfile.from_info`: `quietframe.metrics` in the ONNX
+  metadata, written by measurements, docs/model-interface.md).
+
+The cheapest model whose expected PSNR is within the quality's tolerance of the best expected
+PSNR (among the models that fit the latency budget) wins.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+# dB below the best expected PSNR a quality accepts in exchange for speed. "balanced" matches
+# the acceptance target of bench/auto_choice.py (within 0.3 dB of the best fixed model).
+QUALITY_TOLERANCE_DB = {"fast": 1.0, "balanced": 0.3, "best": 0.0}
+DEFAULT_QUALITY = "balanced"
+REFERENCE_PIXELS = 1280 * 720  # `ms_720p` is per 1280×720 frame
+
+# Header attributes that state a frame's samples per pixel, by renderer. Only Cycles is known to
+# write one (`cycles.<view layer>.samples`, a string, tests/fixtures/blender/README.md). Arnold,
+# RenderMan and V-Ray write none we are confident of (V-Ray's `vrayInfo/*` carries no sample
+# count): their frames use the estimate.
+CYCLES_PREFIX, CYCLES_SUFFIX = "cycles.", ".samples"
+
+CALIBRATION_FILE = Path(__file__).with_name("noise_calibration.json")
+
+
+@dataclass(frozen=True)
+class NoiseLevel:
+    spp: float
+    source: str  # the header attribute it came from, "estimate" or "unknown"
+
+
+@dataclass(frozen=True)
+class ModelProfile:
+    """What the choice knows of one installed model."""
+
+    name: str
+    required: tuple[str, ...]
+    optional: tuple[str, ...]
+    ms_720p: float | None = None
+    psnr_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, PSNR), spp ascending
+    absent_db: Mapping[str, float] = field(default_factory=dict)  # PSNR change, buffer absent
+
+    @classmethod
+    def from_metadata(
+        cls, name: str, required: Sequence[str], optional: Sequence[str], metrics: Mapping
+    ) -> ModelProfile:
+        table = metrics.get("by_spp") or []
+        rows = sorted((float(r["spp"]), float(r["psnr"])) for r in table if "psnr" in r)
+        absent = metrics.get("absent_db") or {}
+        ms = metrics.get("ms_720p")
+        return cls(
+            name=name,
+            required=tuple(required),
+            optional=tuple(optional),
+            ms_720p=float(ms) if ms is not None else None,
+            psnr_by_spp=tuple(rows),
+            absent_db={k: float(v) for k, v in absent.items()},
+        )
+
+    @property
+    def measured(self) -> bool:
+        return self.ms_720p is not None and bool(self.psnr_by_spp)
+
+    def accepts(self, present: Iterable[str]) -> bool:
+        return set(self.required) <= set(present)
+
+    def expected_psnr(self, spp: float, present: Iterable[str]) -> float:
+        """PSNR at `spp`, linear in log2(spp) between measured levels and flat beyond them (no
+        extrapolation: a model is never credited with more than was measured), plus the
+        measured change for each optional buffer the frame lacks (0 where unmeasured)."""
+        levels = np.log2([s for s, _ in self.psnr_by_spp])
+        psnr = float(np.interp(math.log2(max(spp, 1e-3)), levels, [p for _, p in self.psnr_by_spp]))
+        have = set(present)
+        return psnr + sum(self.absent_db.get(b, 0.0) for b in self.optional if b not in have)
+
+    def expected_ms(self, pixels: int) -> float:
+        assert self.ms_720p is not None
+        return self.ms_720p * pixels / REFERENCE_PIXELS
+
+
+@dataclass(frozen=True)
+class Choice:
+    model: str
+    reason: str
+    spp: float | None
+    noise_source: str
+    buffers: tuple[str, ...]  # what the deciding frame carried
+    expected_psnr: float | None = None
+    expected_ms: float | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> Choice:
+        return cls(**{**data, "buffers": tuple(data["buffers"])})
+
+
+# ---- noise level ----------------------------------------------------------------------------
+
+
+def _attribute_number(kind: str, value: bytes) -> float | None:
+    try:
+        if kind == "string":
+            return float(value.decode("utf-8", "replace").strip())
+        if kind == "int" and len(value) == 4:
+            return float(struct.unpack("<i", value)[0])
+        if kind == "float" and len(value) == 4:
+            return float(struct.unpack("<f", value)[0])
+    except ValueError:
+        return None
+    return None
+
+
+def samples_from_header(
+    attributes: Mapping[str, tuple[str, bytes]], layer: str | None = None
+) -> NoiseLevel | None:
+    """The renderer's samples per pixel from EXR header attributes (kind, raw bytes), or None.
+    With several view layers and none chosen, the fewest samples (the noisiest layer) count."""
+    found: dict[str, float] = {}
+    for name, (kind, value) in attributes.items():
+        if name.startswith(CYCLES_PREFIX) and name.endswith(CYCLES_SUFFIX):
+            view = name[len(CYCLES_PREFIX) : -len(CYCLES_SUFFIX)]
+            number = _attribute_number(kind, value)
+            if number is not None and math.isfinite(number) and number >= 1:
+                found[view] = number
+    if layer is not None and layer in found:
+        return NoiseLevel(found[layer], f"{CYCLES_PREFIX}{layer}{CYCLES_SUFFIX}")
+    if not found:
+        return None
+    view = min(found, key=found.__getitem__)
+    return NoiseLevel(found[view], f"{CYCLES_PREFIX}{view}{CYCLES_SUFFIX}")
+
+
+def _box(x: np.ndarray, size: int) -> np.ndarray:
+    """Mean over a size×size window (edge-padded), by summed-area table."""
+    h, w = x.shape
+    padded = np.pad(x, size // 2, mode="edge")
+    table = np.pad(padded, ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+    return (
+        table[size : size + h, size : size + w] - table[:h, size : size + w]
+        - table[size : size + h, :w] + table[:h, :w]
+    ) / (size * size)
+
+
+def noise_statistic(color: np.ndarray, albedo: np.ndarray | None = None) -> float:
+    """A reference-free noise statistic of one (3, H, W) frame: the relative variance of the
+    demodulated luminance around its 5×5 box mean. Dividing by albedo removes texture, so what
+    is left around the local mean is mostly Monte Carlo noise (variance ∝ 1/spp). Not a robust
+    (median) spread: at 1–2 spp most pixels of a dim scene are exactly 0, which a median reads
+    as no noise; instead the brightest 0.1 % (fireflies) are clipped."""
+    lum = np.nan_to_num(np.asarray(color, np.float64).mean(0), nan=0.0, posinf=0.0)
+    lum = np.maximum(lum, 0.0)
+    if albedo is not None:
+        lum = lum / np.maximum(np.asarray(albedo, np.float64).mean(0), 0.05)
+    lum = np.minimum(lum, np.percentile(lum, 99.9))
+    smooth = _box(lum, 5)
+    scale = float(smooth.mean()) ** 2
+    if not math.isfinite(scale) or scale <= 0:
+        return 0.0
+    return float(((lum - smooth) ** 2).mean() / scale)
+
+
+def load_calibration(path: Path = CALIBRATION_FILE) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def spp_from_sigma(sigma: float, calibration: Mapping) -> float:
+    """Equivalent spp of a noise statistic: log2(spp) = intercept + slope·log2(σ) (fitted by
+    bench/noise_calibration.py; σ is a variance ∝ 1/spp, so the slope is near -1)."""
+    if sigma <= 0:
+        return float(calibration.get("max_spp", 1024))
+    log_spp = calibration["intercept"] + calibration["slope"] * math.log2(sigma)
+    lo, hi = calibration.get("min_spp", 0.25), calibration.get("max_spp", 1024)
+    return float(min(max(2.0**log_spp, lo), hi))
+
+
+def estimate_spp(
+    color: np.ndarray, albedo: np.ndarray | None, calibration: Mapping | None
+) -> NoiseLevel:
+    if calibration is None:  # no fit shipped: the choice then plans for the noisiest input
+        return NoiseLevel(1.0, "unknown")
+    sigma = noise_statistic(color, albedo if calibration.get("demodulated", True) else None)
+    return NoiseLevel(round(spp_from_sigma(sigma, calibration), 2), "estimate")
+
+
+# ---- the choice -----------------------------------------------------------------------------
+
+
+def choose(
+    present: Iterable[str],
+    noise: NoiseLevel,
+    profiles: Sequence[ModelProfile],
+    default: str,
+    quality: str | None = None,
+    latency_ms: float | None = None,
+    pixels: int = REFERENCE_PIXELS,
+) -> Choice:
+    """The cheapest model expected to meet the target (see the module docstring)."""
+    have = tuple(sorted(set(present)))
+    base = {"spp": noise.spp, "noise_source": noise.source, "buffers": have}
+    accepting = [p for p in profiles if p.accepts(have)]
+    if not accepting:  # the frame check then names the buffers and the models that take them
+        return Choice(default, f"no installed model accepts buffers {list(have)}", **base)
+    measured = [p for p in accepting if p.measured]
+    if not measured:
+        name = default if any(p.name == default for p in accepting) else accepting[0].name
+        return Choice(name, "no measured speed/error table: the default model", **base)
+    quality = quality or DEFAULT_QUALITY
+    scored = [(p, p.expected_psnr(noise.spp, have), p.expected_ms(pixels)) for p in measured]
+    pool, budget_note = scored, ""
+    if latency_ms is not None:
+        fits = [s for s in scored if s[2] <= latency_ms]
+        if fits:
+            pool, budget_note = fits, f", fits {latency_ms:g} ms"
+        else:  # nothing fits: the fastest is the closest to the budget
+            fastest = min(scored, key=lambda s: s[2])
+            return Choice(
+                fastest[0].name,
+                f"no model fits {latency_ms:g} ms; the fastest ({fastest[2]:.0f} ms expected)",
+                **base,
+                expected_psnr=round(fastest[1], 2),
+                expected_ms=round(fastest[2], 1),
+            )
+    best_psnr = max(s[1] for s in pool)
+    tolerance = QUALITY_TOLERANCE_DB[quality]
+    good = [s for s in pool if s[1] >= best_psnr - tolerance - 1e-9]
+    profile, psnr, ms = min(good, key=lambda s: (s[2], -s[1]))
+    best_name = max(pool, key=lambda s: (s[1], -s[2]))[0].name
+    relation = (
+        "the best expected" if profile.name == best_name
+        else f"within {tolerance:g} dB of {best_name}"
+    )
+    reason = (
+        f"{quality}: cheapest within tolerance at {noise.spp:g} spp ({noise.source}); "
+        f"{psnr:.2f} dB expected, {relation}{budget_note}"
+    )
+    return Choice(
+        profile.name, reason, **base, expected_psnr=round(psnr, 2), expected_ms=round(ms, 1)
+    )
