@@ -49,8 +49,12 @@ def main(argv: list[str] | None = None) -> int:
 
         rows = []
         if args.evaluation:
-            rows = [r for r in json.loads(args.evaluation.read_text())["rows"]
-                    if r["method"] == path.stem]
+            from quietframe.bench.model_metrics import metrics_from_rows, stamp
+
+            evaluation = json.loads(args.evaluation.read_text())
+            rows = [r for r in evaluation["rows"] if r["method"] == path.stem]
+            if rows:  # the speed/error table `model=auto` reads (docs/model-interface.md)
+                stamp(path, metrics_from_rows(rows, evaluation.get("meta", {})))
         print(f"wrote {write_model_card(path, rows)}")
     return 0
 

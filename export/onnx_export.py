@@ -31,6 +31,20 @@ OPTIONAL_BUFFERS = ("motion",)  # missing: zeros, i.e. a static camera
 STATE_NAME = "accumulation"
 
 
+def buffer_roles(training: Mapping | None) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(required, optional) buffers of a model from its training config: a buffer the run
+    dropped (TrainConfig.dropout, model/train.py) was seen absent in training, so the model
+    lists it as optional; with all four dropped only colour is required (the colour-only
+    path)."""
+    training = training or {}
+    dropped: set[str] = set()
+    if float(training.get("dropout", 0) or 0) > 0:
+        dropped = {b.strip() for b in str(training.get("dropout_buffers", "")).split(",")}
+    required = tuple(b for b in REQUIRED_BUFFERS if b not in dropped)
+    optional = (*(b for b in REQUIRED_BUFFERS if b in dropped), *OPTIONAL_BUFFERS)
+    return required, optional
+
+
 def _register_schemas() -> None:
     """Declare our op schemas to onnx so onnxscript can emit them with typed outputs."""
     float_t = [("T", ["tensor(float)"], "float32 tensors, NCHW / NCDHW")]
@@ -208,12 +222,13 @@ def export_nbg(
         )
     proto = program.model_proto
     config = model.config
+    required, optional = buffer_roles(training)
     metadata = {
         "quietframe.name": config.name,
         "quietframe.version": version,
         "quietframe.architecture": json.dumps(config.to_dict()),
-        "quietframe.buffers.required": json.dumps(list(REQUIRED_BUFFERS)),
-        "quietframe.buffers.optional": json.dumps(list(OPTIONAL_BUFFERS)),
+        "quietframe.buffers.required": json.dumps(list(required)),
+        "quietframe.buffers.optional": json.dumps(list(optional)),
         "quietframe.state": json.dumps([{"name": STATE_NAME, "channels": model.state_channels}]),
         "quietframe.ops_domain": OPS_DOMAIN,
         "quietframe.training": json.dumps(dict(training or {})),

@@ -44,6 +44,11 @@ class TrainConfig:
     log_every: int = 20
     seed: int = 0
     threads: int = 2
+    # Buffer dropout: each listed buffer is absent from a whole training sequence with this
+    # probability, fed as the runtime feeds an absent optional buffer (zeros, runtime/buffers.py).
+    # The exporter then lists these buffers as optional (a colour-only path when all four are).
+    dropout: float = 0.0
+    dropout_buffers: str = "albedo,normal,depth,motion"
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
@@ -61,6 +66,34 @@ def sequence_loss(cfg: TrainConfig, outputs: list[Tensor], refs: list[Tensor]) -
         return spatial
     temporal = temporal_loss(torch.stack(outputs, dim=1), torch.stack(refs, dim=1))
     return spatial + cfg.temporal_weight * temporal
+
+
+def dropped_buffers(cfg: TrainConfig) -> tuple[str, ...]:
+    """The buffers a run may drop (none without dropout); ValueError for an unknown one."""
+    if cfg.dropout <= 0:
+        return ()
+    names = tuple(b.strip() for b in cfg.dropout_buffers.split(",") if b.strip())
+    unknown = [b for b in names if b not in BUFFER_NAMES or b == "color"]
+    if unknown:
+        raise ValueError(f"dropout_buffers {unknown}: only {list(BUFFER_NAMES[1:])} can be absent")
+    return names
+
+
+def drop_buffers(cfg: TrainConfig, batch: dict[str, Tensor], step: int) -> dict[str, Tensor]:
+    """Zero each droppable buffer of each (B, T, C, h, w) sequence with probability
+    cfg.dropout, the same in all T frames (a session lacks a buffer for the whole shot). Drawn
+    from (seed, step) alone, so a resumed run drops what an uninterrupted one would."""
+    names = dropped_buffers(cfg)
+    if not names:
+        return batch
+    generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + 7919 * step + 2)
+    absent = torch.rand(len(names), batch["color"].shape[0], generator=generator) < cfg.dropout
+    out = dict(batch)
+    for name, drop in zip(names, absent, strict=True):
+        if drop.any():
+            keep = (~drop).to(batch[name].dtype).view(-1, *([1] * (batch[name].dim() - 1)))
+            out[name] = batch[name] * keep
+    return out
 
 
 def unroll(model: NBGDenoiser, batch: dict[str, Tensor]) -> list[Tensor]:
@@ -170,7 +203,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     started, running = time.time(), None
     end = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
     while step < end:
-        batch = train_batches(step)
+        batch = drop_buffers(cfg, train_batches(step), step)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(cfg, step)
         outputs = unroll(model, batch)
@@ -244,6 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     run, stop_at = flags.pop("run"), flags.pop("stop_at")
     try:
         cfg = resume_config(run, flags)
+        dropped_buffers(cfg)
     except ValueError as exc:
         parser.error(str(exc))
     best = train(cfg, run, stop_at)

@@ -102,7 +102,9 @@ def test_shipped_model_is_the_export_of_its_shipped_checkpoint(name):
     runtime = Denoiser(find_model(name), threads=2)
     training = json.loads(runtime.info.metadata["quietframe.training"])
     assert training["steps_done"] == checkpoint["training"]["steps_done"]
-    assert runtime.info.metrics == checkpoint["metrics"]
+    # the checkpoint's validation score, plus measured tables stamped after export
+    # (bench/model_metrics.py)
+    assert {k: runtime.info.metrics.get(k) for k in checkpoint["metrics"]} == checkpoint["metrics"]
     assert_runtime_matches_torch(model.eval(), runtime)
 
 
@@ -135,3 +137,21 @@ def test_accumulation_only_graph_matches_pytorch(tmp_path):
     assert_accumulation_matches(
         Denoiser(export_nbg(AccumulationDenoiser(), tmp_path / "accumulation.onnx"), threads=1)
     )
+
+
+def test_dropout_training_makes_buffers_optional(tmp_path):
+    from quietframe.export.onnx_export import buffer_roles
+
+    assert buffer_roles({}) == (("color", "albedo", "normal", "depth"), ("motion",))
+    assert buffer_roles({"dropout": 0.0, "dropout_buffers": "albedo"})[0][1] == "albedo"
+    everything = {"dropout": 0.3, "dropout_buffers": "albedo,normal,depth,motion"}
+    assert buffer_roles(everything) == (("color",), ("albedo", "normal", "depth", "motion"))
+    torch.manual_seed(0)
+    path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "colour-only.onnx",
+                      training=everything)
+    runtime = Denoiser(path, threads=1)
+    assert runtime.info.required_buffers == ("color",)
+    color = example_inputs(HEIGHT, WIDTH)[0][0].numpy()
+    result = runtime.denoise({"color": color}, None)  # the colour-only path runs
+    assert result.missing == ("albedo", "normal", "depth", "motion")
+    assert result.color.shape == (3, HEIGHT, WIDTH) and np.isfinite(result.color).all()

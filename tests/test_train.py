@@ -79,6 +79,33 @@ def test_run_directory_contents(data, tmp_path):
     assert model.config.width == 4
 
 
+def test_buffer_dropout_zeroes_whole_sequences_deterministically(data):
+    cfg = config(data, batch=4, dropout=0.5)
+    batch = qt.TrainingBatches(cfg)(0)
+    seen = set()
+    for step in range(12):
+        dropped = qt.drop_buffers(cfg, batch, step)
+        assert torch.equal(dropped["color"], batch["color"])  # colour is never dropped
+        for name in ("albedo", "normal", "depth", "motion"):
+            zero = dropped[name].flatten(1).abs().amax(1) == 0  # per sequence, all frames
+            kept = (dropped[name] == batch[name]).flatten(1).all(1)
+            assert bool((zero | kept).all()), name
+            seen.update((name, bool(z)) for z in zero)
+        again = qt.drop_buffers(cfg, batch, step)
+        assert all(torch.equal(again[k], dropped[k]) for k in dropped)
+    assert {(n, z) for n in ("albedo", "normal", "depth", "motion") for z in (0, 1)} <= seen
+    assert qt.drop_buffers(config(data), batch, 0) is batch  # off by default
+    with pytest.raises(ValueError, match="color"):
+        qt.dropped_buffers(config(data, dropout=0.5, dropout_buffers="color"))
+
+
+def test_training_with_dropout_runs_and_records_it(data, tmp_path):
+    cfg = config(data, dropout=0.5, steps=3)
+    qt.train(cfg, tmp_path / "run")
+    saved = torch.load(tmp_path / "run" / "best.pt", weights_only=False)["training"]
+    assert saved["dropout"] == 0.5 and saved["dropout_buffers"] == "albedo,normal,depth,motion"
+
+
 def test_learning_rate_decays_to_the_final_fraction():
     cfg = qt.TrainConfig(lr=1e-3, lr_final=0.05, steps=100)
     assert qt.learning_rate(cfg, 0) == pytest.approx(1e-3)

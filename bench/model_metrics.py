@@ -1,0 +1,70 @@
+"""Write measured speed/error tables into shipped models' metadata (`quietframe.metrics`).
+
+    python -m quietframe.bench.model_metrics --evaluation docs/benchmarks.json models/*.onnx
+
+The rows of one `quietframe-eval` run (benchmarks.json: method = model file stem) become
+`by_spp` (spp, PSNR, TRMAE) and `ms_720p` (the same run's 1280×720 timing), with the run's
+command and machine as `measured`; `--absent` adds `absent_db` from bench/auto_choice.py's
+buffer-absence rows. Existing keys (training's validation score) are kept. Nothing here is
+typed in: `model=auto` reads what a measurement wrote (docs/model-interface.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import onnx
+
+
+def metrics_from_rows(rows: list[dict], meta: dict) -> dict:
+    """`quietframe.metrics` additions for one model from its evaluation rows."""
+    rows = sorted(rows, key=lambda r: r["spp"])
+    table = [{"spp": r["spp"], "psnr": round(r["psnr"], 3), "trmae": round(r["trmae"], 4)}
+             for r in rows]
+    out: dict = {"by_spp": table}
+    timed = [r["ms_720p"] for r in rows if r.get("ms_720p")]
+    if timed:
+        out["ms_720p"] = round(float(timed[0]), 1)
+    out["measured"] = {k: meta[k] for k in ("command", "machine", "threads", "split",
+                                            "resolution", "sequences") if k in meta}
+    return out
+
+
+def stamp(path: Path, additions: dict) -> dict:
+    """Merge `additions` into the file's `quietframe.metrics` (rewrites the file in place)."""
+    model = onnx.load(str(path))
+    props = {p.key: p.value for p in model.metadata_props}
+    metrics = {**json.loads(props.get("quietframe.metrics", "{}") or "{}"), **additions}
+    props["quietframe.metrics"] = json.dumps(metrics)
+    del model.metadata_props[:]
+    onnx.helper.set_model_props(model, props)
+    onnx.save_model(model, str(path))
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="model_metrics", description=__doc__.split("\n")[0])
+    parser.add_argument("models", type=Path, nargs="+")
+    parser.add_argument("--evaluation", type=Path, required=True, help="benchmarks.json")
+    parser.add_argument("--absent", type=Path,
+                        help="auto_choice.json: per-model PSNR change with each buffer absent")
+    args = parser.parse_args(argv)
+    evaluation = json.loads(args.evaluation.read_text())
+    absent = json.loads(args.absent.read_text()).get("absent_db", {}) if args.absent else {}
+    for path in args.models:
+        rows = [r for r in evaluation["rows"] if r["method"] == path.stem]
+        if not rows:
+            print(f"{path}: no rows for {path.stem!r} in {args.evaluation}; left as it is")
+            continue
+        additions = metrics_from_rows(rows, evaluation.get("meta", {}))
+        if path.stem in absent:
+            additions["absent_db"] = absent[path.stem]
+        metrics = stamp(path, additions)
+        print(f"{path}: {json.dumps(metrics)[:200]}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
