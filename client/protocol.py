@@ -33,6 +33,9 @@ class Header:
     SANITIZED = "X-Quietframe-Sanitized"  # input values replaced by the sanitising rule
     SANITIZED_BUFFERS = "X-Quietframe-Sanitized-Buffers"  # "color=3, depth=1"
     MISSING = "X-Quietframe-Missing"  # optional buffers absent, fed as zeros: "motion"
+    # model=auto sessions: "<model>; spp=<n>; source=<header attribute|estimate|unknown>;
+    # reason=<why>" (the choice made at the shot's first frame, repeated on every frame of it)
+    CHOICE = "X-Quietframe-Choice"
     REPLAYED = "X-Quietframe-Replayed"  # "true": the stored reply of an idempotent retry
     SERVER_TIMING = "Server-Timing"  # "decode;dur=1.0, denoise;dur=..., encode;..., total;..."
 

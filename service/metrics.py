@@ -54,6 +54,12 @@ class Metrics:
             ["buffer"],
             registry=r,
         )
+        self.choices = Counter(
+            "quietframe_auto_choices",
+            "Models chosen by model=auto (a session's first frame and each cut)",
+            ["model", "quality", "noise_source"],
+            registry=r,
+        )
         self.errors = Counter(
             "quietframe_errors", "Error responses", ["status", "code"], registry=r
         )

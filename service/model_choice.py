@@ -242,7 +242,7 @@ def choose(
                 f"no model fits {latency_ms:g} ms; the fastest ({fastest[2]:.0f} ms expected)",
                 **base,
                 expected_psnr=round(fastest[1], 2),
-                expected_ms=round(fastest[2], 1),
+                expected_ms=round(fastest[2], 3),
             )
     best_psnr = max(s[1] for s in pool)
     tolerance = QUALITY_TOLERANCE_DB[quality]
@@ -258,5 +258,5 @@ def choose(
         f"{psnr:.2f} dB expected, {relation}{budget_note}"
     )
     return Choice(
-        profile.name, reason, **base, expected_psnr=round(psnr, 2), expected_ms=round(ms, 1)
+        profile.name, reason, **base, expected_psnr=round(psnr, 2), expected_ms=round(ms, 3)
     )

@@ -10,10 +10,13 @@ import numpy as np
 
 from quietframe.runtime import BUFFER_CHANNELS, Denoiser, default_model_path, installed_models
 from quietframe.service.errors import UnknownModel
+from quietframe.service.model_choice import ModelProfile, load_calibration
 from quietframe.service.schemas import BufferSpec, ModelPublic
 from quietframe.service.settings import Settings
 
 log = logging.getLogger("quietframe.service")
+
+AUTO = "auto"
 
 
 def _json_or_text(value: str | None) -> dict | str | None:
@@ -41,6 +44,13 @@ class ModelRegistry:
             self._aliases[path.stem] = name
         wanted = settings.default_model
         self.default = self.resolve(wanted) if wanted else self._runtime_default(paths)
+        self.profiles = [
+            ModelProfile.from_metadata(
+                name, d.info.required_buffers, d.info.optional_buffers, d.info.metrics
+            )
+            for name, d in self._denoisers.items()
+        ]
+        self.calibration = load_calibration()  # spp from a frame's noise (model_choice.py)
         self.ready = False
 
     def _runtime_default(self, paths: list[Path]) -> str:
@@ -54,9 +64,13 @@ class ModelRegistry:
     def names(self) -> list[str]:
         return sorted(self._denoisers)
 
+    def requested(self, name: str) -> str:
+        """A session's model as created: 'auto' (chosen per shot) or an installed name."""
+        return AUTO if name == AUTO else self.resolve(name)
+
     def resolve(self, name: str) -> str:
-        """Model name for a request's `model` ('auto', a name or a file stem)."""
-        if name == "auto":
+        """Model name for a request's `model` ('auto' = the default, a name or a file stem)."""
+        if name == AUTO:
             return self.default
         if name in self._denoisers:
             return name

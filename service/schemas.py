@@ -41,7 +41,11 @@ class SessionCreate(BaseModel):
 
     width: int = Field(ge=1, description="frame width in pixels (EXR data window)")
     height: int = Field(ge=1, description="frame height in pixels")
-    model: str = Field("auto", description="installed model name, or 'auto' for the default")
+    model: str = Field(
+        "auto",
+        description="installed model name, or 'auto': chosen per shot from the first frame's "
+        "buffers and noise level and the session's quality / latency_ms (docs/service.md)",
+    )
     channels: dict[str, str | list[str]] | None = Field(
         None,
         description="own AOV mapping, buffer -> layer name or list of channel names; buffers "
@@ -64,8 +68,13 @@ class SessionCreate(BaseModel):
     )
     quality: Quality | None = Field(
         None,
-        description="target for model 'auto' (fast | balanced | best); recorded, not yet used: "
-        "'auto' is the default model until per-session choice lands",
+        description="target for model 'auto': the cheapest model expected within 1 dB (fast), "
+        "0.3 dB (balanced, the default) or 0 dB (best) of the best expected PSNR",
+    )
+    latency_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = Field(
+        None,
+        description="budget for model 'auto': expected denoise ms per frame at this session's "
+        "size (from each model's measured 720p time); models over it are not chosen",
     )
     precision: Precision = Field(
         "input",
@@ -106,6 +115,16 @@ class StageTimings(BaseModel):
     total: float = 0.0
 
 
+class ChoicePublic(BaseModel):
+    model: str
+    reason: str
+    spp: float | None = Field(description="noise level as equivalent samples per pixel")
+    noise_source: str = Field(description="header attribute read, 'estimate' or 'unknown'")
+    buffers: list[str] = Field(description="buffers the deciding frame carried")
+    expected_psnr: float | None = None
+    expected_ms: float | None = None
+
+
 class SessionPublic(BaseModel):
     id: str = Field(description="unguessable session id (the capability to use the session)")
     model: ModelRef
@@ -119,6 +138,11 @@ class SessionPublic(BaseModel):
     layer: str | None = None
     denoised_layer: str | None = None
     quality: Quality | None = None
+    latency_ms: float | None = None
+    requested_model: str = Field(description="as created: a model name or 'auto'")
+    choice: ChoicePublic | None = Field(
+        None, description="model 'auto': the current shot's choice and why (None: no frame yet)"
+    )
     created_at: str
     frames_done: int = 0
     last_index: int | None = None

@@ -1,8 +1,9 @@
 """Per-camera sessions and the one owner of a frame's journey.
 
 `SessionRegistry.denoise_frame` takes a frame from request body to reply: header checks →
-lock → plan (retry / reset reason) → decode → denoise → encode → persist → commit. The service
-keeps each session's state tensors without knowing what they mean (DESIGN.md). Registry
+lock → plan (retry / reset reason; for `model=auto` at a shot's first frame, the model choice)
+→ decode → denoise → encode → persist → commit. The service keeps each session's state tensors
+without knowing what they mean (DESIGN.md). Registry
 bookkeeping runs on the event loop thread; the heavy part of a frame (decode, denoise, encode,
 disk writes) runs on the worker pool while the session's lock is held, so the frames of one
 session run in order and sessions run in parallel. A frame changes its session only in
@@ -31,8 +32,9 @@ from quietframe.client.protocol import (
     join_list,
 )
 from quietframe.runtime import Denoiser, ModelInfo
+from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.sanitize import clamp_to_half
-from quietframe.service import frames
+from quietframe.service import frames, model_choice
 from quietframe.service.errors import (
     FrameConflict,
     FrameOutOfOrder,
@@ -42,8 +44,15 @@ from quietframe.service.errors import (
     TooManySessions,
 )
 from quietframe.service.metrics import Metrics
-from quietframe.service.model_registry import ModelRegistry
-from quietframe.service.schemas import ModelRef, SessionCreate, SessionPublic, StageTimings
+from quietframe.service.model_choice import Choice
+from quietframe.service.model_registry import AUTO, ModelRegistry
+from quietframe.service.schemas import (
+    ChoicePublic,
+    ModelRef,
+    SessionCreate,
+    SessionPublic,
+    StageTimings,
+)
 from quietframe.service.session_store import (
     Reply,
     SessionStore,
@@ -61,7 +70,7 @@ STAGES = ("decode", "denoise", "encode", "total")
 class SessionSpec:
     """What a session is, fixed at creation (and stored with a durable session)."""
 
-    model: str
+    model: str  # an installed model's name, or "auto" (chosen per shot: model_choice.py)
     width: int
     height: int
     precision: str
@@ -71,6 +80,13 @@ class SessionSpec:
     layer: str | None = None
     denoised_layer: str | None = None
     quality: str | None = None
+    latency_ms: float | None = None
+
+
+# A choice is revisited only where the history starts afresh for a new shot anyway: switching
+# models inside a shot would change its look from one frame to the next (flicker). A gap keeps
+# the shot's model (it is a skipped frame more often than a new shot).
+CHOICE_RESETS = (Reset.FIRST_FRAME, Reset.CUT)
 
 
 @dataclass
@@ -92,13 +108,15 @@ class _Processed:
     missing: list[str]
     sanitized: dict[str, int]
     timings_ms: dict[str, float]
+    info: ModelInfo  # the model that denoised it
+    choice: Choice | None = None  # model=auto: set when this frame made (or kept) the choice
 
 
 @dataclass
 class Session:
     id: str
     spec: SessionSpec
-    info: ModelInfo
+    info: ModelInfo  # the model in use (model=auto: the current shot's choice)
     reserve_bytes: int
     durable: bool
     created_at: float = field(default_factory=time.time)
@@ -113,6 +131,7 @@ class Session:
     closed: bool = False
     sources: dict[str, list[str]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
+    choice: Choice | None = None  # model=auto only
     timing_sum: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     timing_last: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     lock: asyncio.Lock = field(default_factory=asyncio.Lock, repr=False)
@@ -154,6 +173,9 @@ class Session:
         self.frames_done += 1
         self.resets += frame.reset is not Reset.NONE
         self.sources, self.missing = frame.sources, frame.missing
+        self.info = frame.info
+        if frame.choice is not None:
+            self.choice = frame.choice
         for stage in STAGES:
             self.timing_sum[stage] += frame.timings_ms[stage]
             self.timing_last[stage] = frame.timings_ms[stage]
@@ -161,7 +183,9 @@ class Session:
 
     def meta(self, after: _Processed | None = None) -> dict:
         """The stored record of the session, as it will be once `after` is committed."""
+        choice = after.choice if after is not None and after.choice else self.choice
         return {
+            "choice": choice.to_dict() if choice else None,
             "id": self.id,
             **asdict(self.spec),
             "created_at": self.created_at,
@@ -175,7 +199,10 @@ class Session:
         spec = self.spec
         return SessionPublic(
             id=self.id,
-            model=ModelRef(name=spec.model, version=self.info.version),
+            model=ModelRef(name=self.info.name, version=self.info.version),
+            requested_model=spec.model,
+            latency_ms=spec.latency_ms,
+            choice=ChoicePublic(**self.choice.to_dict()) if self.choice else None,
             width=spec.width,
             height=spec.height,
             precision=spec.precision,  # type: ignore[arg-type]
@@ -212,6 +239,12 @@ def reserve_bytes(info: ModelInfo, spec: SessionSpec) -> int:
     return info.state_nbytes(spec.height, spec.width) + reply + REPLY_MARGIN_BYTES
 
 
+def choice_header(choice: Choice) -> str:
+    spp = "unknown" if choice.spp is None else f"{choice.spp:g}"
+    text = f"{choice.model}; spp={spp}; source={choice.noise_source}; reason={choice.reason}"
+    return text.encode("ascii", "replace").decode()  # an HTTP header value is latin-1
+
+
 def process_frame(
     denoiser: Denoiser,
     spec: SessionSpec,
@@ -220,9 +253,10 @@ def process_frame(
     sources: dict[str, frames.Source],
     reset: Reset,
     state: dict[str, np.ndarray] | None,
+    choice: Choice | None = None,
 ) -> _Processed:
     """Decode, denoise, encode one frame (worker thread; touches no session field). `state`
-    is None when the history starts afresh."""
+    is None when the history starts afresh; `choice` (model=auto) is said in a header."""
     start = time.perf_counter()
     frame = frames.decode(body, sources)
     decoded = time.perf_counter()
@@ -267,6 +301,8 @@ def process_frame(
         headers[Header.SANITIZED_BUFFERS] = format_counts(sanitized)
     if result.missing:
         headers[Header.MISSING] = join_list(result.missing)
+    if choice is not None:
+        headers[Header.CHOICE] = choice_header(choice)
     return _Processed(
         reply=Reply(index, body_out, headers, len(body), request_digest(body)),
         state=result.state,
@@ -275,6 +311,8 @@ def process_frame(
         missing=list(result.missing),
         sanitized=sanitized,
         timings_ms=timings,
+        info=info,
+        choice=choice,
     )
 
 
@@ -344,10 +382,15 @@ class SessionRegistry:
 
     # ---- create / delete ----------------------------------------------------------------------
 
-    def _session(self, session_id: str, spec: SessionSpec, **progress) -> Session:
-        """The one constructor, for a new session and for one restored from disk."""
-        info = self.models.denoiser(spec.model).info
+    def _session(
+        self, session_id: str, spec: SessionSpec, choice: Choice | None = None, **progress
+    ) -> Session:
+        """The one constructor, for a new session and for one restored from disk. An auto
+        session counts as the default model until its first frame chooses."""
+        model = choice.model if choice else spec.model
+        info = self.models.denoiser(self.models.resolve(model)).info
         return Session(
+            choice=choice,
             id=session_id,
             spec=spec,
             info=info,
@@ -365,7 +408,7 @@ class SessionRegistry:
                 headers={"Retry-After": self._retry_after()},
             )
         spec = SessionSpec(
-            model=self.models.resolve(request.model),
+            model=self.models.requested(request.model),
             width=request.width,
             height=request.height,
             precision=request.precision,
@@ -375,6 +418,7 @@ class SessionRegistry:
             layer=request.layer,
             denoised_layer=request.denoised_layer,
             quality=request.quality,
+            latency_ms=request.latency_ms,
         )
         session = self._session(secrets.token_urlsafe(16), spec)
         self._make_room(session.reserve_bytes)
@@ -418,17 +462,10 @@ class SessionRegistry:
                 f"frame is {header.width}x{header.height}; this session is "
                 f"{spec.width}x{spec.height} (create a session per resolution)"
             )
-        info = session.info
-        sources = frames.resolve(
-            header.channels,
-            info.required_buffers,
-            info.optional_buffers,
-            spec.channels,
-            spec.motion_scale,
-            model=info.name,
-            layer=spec.layer,
-            installed=self.models.buffers(),
-        )
+        auto = spec.model == AUTO
+        # model=auto: every buffer the frame carries (the choice's input, from the header); the
+        # chosen model's own check follows once the plan says which model this frame uses.
+        sources = self._sources(header, spec, None if auto else session.info)
         async with session.lock:
             if session.closed:
                 raise SessionNotFound(f"session {session_id!r} was closed while this frame waited")
@@ -438,14 +475,33 @@ class SessionRegistry:
                 self.metrics.replays.inc()
                 return FrameOutcome(plan, replayed=True)
             history = session.state if plan is Reset.NONE else None
-            denoiser = self.models.denoiser(spec.model)
+            info, choice, chose = session.info, None, False
+            if auto:
+                chose = plan in CHOICE_RESETS or session.choice is None
+                choice = await self._choose(session, header, body, sources) if chose else (
+                    session.choice
+                )
+                assert choice is not None
+                info = self.models.denoiser(choice.model).info
+                sources = self._sources(header, spec, info)
+                if info.name != session.info.name:  # another model's state means nothing here
+                    history = None
+            denoiser = self.models.denoiser(info.name)
             frame = await self._on_pool(
-                process_frame, denoiser, spec, index, body, sources, plan, history
+                process_frame, denoiser, spec, index, body, sources, plan, history, choice
             )
-            self._reserve_reply(session, len(frame.reply.body))
+            self._reserve_reply(session, len(frame.reply.body), info)
             if self.store is not None:
                 await self._on_pool(self.store.write, session.meta(frame), frame.state, frame.reply)
             self._commit(session, frame)
+            if chose and choice is not None:
+                kind = choice.noise_source
+                kind = "header" if kind not in ("estimate", "unknown") else kind
+                self.metrics.choices.labels(choice.model, spec.quality or "balanced", kind).inc()
+                log.info(
+                    "model chosen",
+                    extra={"session": session.id, "index": index, **choice.to_dict()},
+                )
         log.info(
             "frame",
             extra={
@@ -458,12 +514,63 @@ class SessionRegistry:
         )
         return FrameOutcome(frame.reply, replayed=False)
 
-    def _reserve_reply(self, session: Session, reply_bytes: int) -> None:
+    def _sources(
+        self, header: frames.ExrHeader, spec: SessionSpec, info: ModelInfo | None
+    ) -> dict[str, frames.Source]:
+        """Where the model's buffers are in the file (header only; MissingChannels for an absent
+        required one). `info` None: every canonical buffer the file has, colour required."""
+        if info is None:
+            required, optional = ("color",), tuple(b for b in BUFFER_NAMES if b != "color")
+        else:
+            required, optional = info.required_buffers, info.optional_buffers
+        return frames.resolve(
+            header.channels,
+            required,
+            optional,
+            spec.channels,
+            spec.motion_scale,
+            model=info.name if info else AUTO,
+            layer=spec.layer,
+            installed=self.models.buffers(),
+        )
+
+    async def _choose(
+        self,
+        session: Session,
+        header: frames.ExrHeader,
+        body: bytes | bytearray,
+        sources: dict[str, frames.Source],
+    ) -> Choice:
+        """model=auto for a shot: the renderer's sample count from the header where it wrote
+        one, else estimated from the decoded colour (and albedo) on the worker pool."""
+        spec = session.spec
+        noise = model_choice.samples_from_header(header.attributes, spec.layer)
+        if noise is None:
+            noise = await self._on_pool(self._estimate_noise, body, sources)
+        return model_choice.choose(
+            sources,
+            noise,
+            self.models.profiles,
+            self.models.default,
+            quality=spec.quality,
+            latency_ms=spec.latency_ms,
+            pixels=spec.width * spec.height,
+        )
+
+    def _estimate_noise(
+        self, body: bytes | bytearray, sources: dict[str, frames.Source]
+    ) -> model_choice.NoiseLevel:
+        planes = frames.decode(body, {b: sources[b] for b in ("color", "albedo") if b in sources})
+        return model_choice.estimate_spp(
+            planes.buffers["color"], planes.buffers.get("albedo"), self.models.calibration
+        )
+
+    def _reserve_reply(self, session: Session, reply_bytes: int, info: ModelInfo) -> None:
         """The reply is the whole input file with the denoised colour in it, larger than the
         creation-time estimate when the farm sends many passes: grow the session's reservation
         to what it will hold (MemoryBudgetExceeded, before anything changed, if that does not
         fit)."""
-        need = session.info.state_nbytes(session.spec.height, session.spec.width)
+        need = info.state_nbytes(session.spec.height, session.spec.width)
         need += reply_bytes + REPLY_MARGIN_BYTES
         if need > session.reserve_bytes:
             self._make_room(need - session.reserve_bytes, keep=session)
@@ -499,7 +606,7 @@ class SessionRegistry:
     def _commit(self, session: Session, frame: _Processed) -> None:
         session.commit(frame)
         self.sessions.move_to_end(session.id)
-        self.metrics.frames.labels(session.spec.model, frame.reset.value).inc()
+        self.metrics.frames.labels(frame.info.name, frame.reset.value).inc()
         for stage, ms in frame.timings_ms.items():
             self.metrics.latency.labels(stage).observe(ms / 1e3)
         for buffer, count in frame.sanitized.items():
@@ -542,7 +649,7 @@ class SessionRegistry:
     def _restore(self, session_id: str, meta: dict, lost: bool) -> None:
         try:
             spec = SessionSpec(
-                model=self.models.resolve(meta["model"]),
+                model=self.models.requested(meta["model"]),
                 width=meta["width"],
                 height=meta["height"],
                 precision=meta["precision"],
@@ -552,7 +659,11 @@ class SessionRegistry:
                 layer=meta.get("layer"),
                 denoised_layer=meta.get("denoised_layer"),
                 quality=meta.get("quality"),
+                latency_ms=meta.get("latency_ms"),
             )
+            choice = Choice.from_dict(meta["choice"]) if meta.get("choice") else None
+            if choice is not None and choice.model not in self.models.names:
+                choice = None  # its model is gone: the next frame chooses again
         except Exception as exc:  # model no longer installed, or an incomplete meta
             log.warning("skipping stored session %s: %s", session_id, exc)
             return
@@ -562,6 +673,7 @@ class SessionRegistry:
         session = self._session(
             session_id,
             spec,
+            choice=choice,
             created_at=meta["created_at"],
             resident=lost,  # a lost session has nothing on disk to load
             state_lost=lost,

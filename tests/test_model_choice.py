@@ -1,0 +1,124 @@
+"""model=auto's pure parts: the renderer's sample count, the reference-free noise estimate, the
+choice from measured tables (service/model_choice.py)."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from quietframe.bench.noise_calibration import fit, synthetic_points
+from quietframe.service.model_choice import (
+    ModelProfile,
+    NoiseLevel,
+    choose,
+    estimate_spp,
+    noise_statistic,
+    samples_from_header,
+    spp_from_sigma,
+)
+
+ALL = ("color", "albedo", "normal", "depth", "motion")
+
+
+def profile(name, ms, table, required=("color", "albedo", "normal", "depth"), **kw):
+    metrics = {"ms_720p": ms, "by_spp": [{"spp": s, "psnr": p} for s, p in table], **kw}
+    optional = tuple(b for b in ALL if b not in required)
+    return ModelProfile.from_metadata(name, required, optional, metrics)
+
+
+CHEAP = profile("cheap", 10, [(1, 20.0), (16, 29.5)])
+MID = profile("mid", 50, [(1, 25.0), (16, 30.0)])
+BEST = profile("best", 400, [(1, 25.5), (16, 30.1)])
+COLOUR_ONLY = profile("colour", 30, [(1, 24.0), (16, 29.0)], required=("color",),
+                      absent_db={"albedo": -1.0, "normal": -0.5})
+
+
+def test_samples_from_cycles_header():
+    text = {"cycles.ViewLayer.samples": ("string", b"16"), "Frame": ("string", b"2")}
+    assert samples_from_header(text) == NoiseLevel(16.0, "cycles.ViewLayer.samples")
+    binary = {"cycles.A.samples": ("int", struct.pack("<i", 64)),
+              "cycles.B.samples": ("string", b"4")}
+    assert samples_from_header(binary).spp == 4  # no layer chosen: the noisiest one
+    assert samples_from_header(binary, layer="A") == NoiseLevel(64.0, "cycles.A.samples")
+    assert samples_from_header({"cycles.A.samples": ("string", b"lots")}) is None
+    assert samples_from_header({"cycles.A.samples": ("string", b"0")}) is None
+    assert samples_from_header({"vrayInfo/rendertime": ("string", b"0h 1m")}) is None
+
+
+def test_expected_psnr_interpolates_in_log_spp_and_never_extrapolates():
+    assert MID.expected_psnr(4, ALL) == pytest.approx(27.5)  # halfway between 1 and 16 in log2
+    assert MID.expected_psnr(0.5, ALL) == 25.0 and MID.expected_psnr(256, ALL) == 30.0
+    assert COLOUR_ONLY.expected_psnr(1, ALL) == 24.0
+    assert COLOUR_ONLY.expected_psnr(1, ("color", "normal")) == 23.0  # albedo absent: -1 dB
+    assert MID.expected_ms(1280 * 720 * 2) == 100
+
+
+@pytest.mark.parametrize(
+    ("spp", "quality", "expected"),
+    [
+        (1, "balanced", "best"),  # mid is 0.5 dB behind best: beyond 0.3
+        (1, "fast", "mid"),  # within 1 dB, cheaper
+        (16, "balanced", "mid"),  # 0.1 dB behind best
+        (16, "fast", "cheap"),
+        (16, "best", "best"),
+        (16, None, "mid"),  # balanced by default
+    ],
+)
+def test_cheapest_model_within_the_quality_tolerance(spp, quality, expected):
+    choice = choose(ALL, NoiseLevel(spp, "x"), [BEST, MID, CHEAP], "mid", quality=quality)
+    assert choice.model == expected, choice.reason
+    assert choice.spp == spp and choice.buffers == tuple(sorted(ALL))
+
+
+def test_latency_budget_filters_then_quality_applies():
+    profiles = [BEST, MID, CHEAP]
+    at_1spp = NoiseLevel(1, "x")
+    assert choose(ALL, at_1spp, profiles, "mid", quality="best", latency_ms=100).model == "mid"
+    # ms scale with the session's pixels: at 4x 720p mid takes 200 ms
+    large = choose(ALL, at_1spp, profiles, "mid", latency_ms=100, pixels=4 * 1280 * 720)
+    assert large.model == "cheap"
+    none_fits = choose(ALL, at_1spp, profiles, "mid", latency_ms=1)
+    assert none_fits.model == "cheap" and "no model fits" in none_fits.reason
+
+
+def test_buffers_decide_which_models_can_run():
+    profiles = [BEST, MID, CHEAP, COLOUR_ONLY]
+    colour = choose(("color",), NoiseLevel(4, "x"), profiles, "mid")
+    assert colour.model == "colour"
+    nothing = choose(("albedo",), NoiseLevel(4, "x"), [BEST], "best")
+    assert nothing.model == "best" and "no installed model accepts" in nothing.reason
+    unmeasured = ModelProfile("plain", ("color",), ())
+    fallback = choose(ALL, NoiseLevel(4, "x"), [unmeasured], "plain")
+    assert fallback.model == "plain" and "no measured" in fallback.reason
+
+
+def _noisy_frame(spp: int, seed: int = 0, size: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    shading = 0.3 + np.exp(-((xx - 0.4) ** 2 + (yy - 0.6) ** 2) * 6)
+    albedo = rng.uniform(0.1, 0.9, (3, size, size))  # texture the demodulation must remove
+    noise = rng.gamma(spp / 2, 2 / spp, (size, size))  # as bench/noise_calibration draws
+    return (albedo * (shading * noise)[None]).astype(np.float32), albedo.astype(np.float32)
+
+
+def test_noise_statistic_falls_with_spp_and_ignores_albedo_texture():
+    stats = [noise_statistic(*_noisy_frame(spp)) for spp in (1, 2, 4, 8, 16, 32)]
+    assert all(a > b for a, b in zip(stats, stats[1:], strict=False)), stats
+    ratio = stats[0] / stats[-1]
+    assert 16 < ratio < 64  # variance ∝ 1/spp: 32x over five octaves
+    color, albedo = _noisy_frame(1024)
+    assert noise_statistic(color, albedo) < 0.1 * noise_statistic(color)  # texture divided out
+    assert noise_statistic(np.zeros((3, 8, 8)), None) == 0.0
+
+
+def test_estimate_maps_through_the_calibration():
+    slope, intercept, rms = fit(synthetic_points(frames=2, size=64))
+    calibration = {"slope": slope, "intercept": intercept, "max_spp": 64}
+    assert -1.3 < slope < -0.7 and rms < 0.5
+    estimates = [estimate_spp(*_noisy_frame(s, seed=3), calibration).spp for s in (1, 4, 16)]
+    assert estimates[0] < estimates[1] < estimates[2]
+    assert 0.5 < estimates[1] / 4 < 2, estimates
+    assert estimate_spp(*_noisy_frame(4), None) == NoiseLevel(1.0, "unknown")
+    assert spp_from_sigma(0.0, calibration) == 64
