@@ -1,0 +1,312 @@
+"""`model=auto` against every fixed model, on test sequences mixed in spp and in buffers.
+
+    python -m quietframe.bench.auto_choice [--data ~/.cache/quietframe/data] [--split test]
+        [--threads 2] [--max-frames 8] [--out docs] [--model extra.onnx ...] [--synthetic]
+
+A test sequence is (rendered sequence, spp level, buffers present); the set is the cross product
+of the split's sequences (finished or still rendering: the frames on disk), their spp levels,
+and BUFFER_SETS. Every installed model that accepts a sequence's buffers denoises it through the
+runtime (absent optional buffers fed as zeros, as the service does); `auto` makes the service's
+choice (service/model_choice.choose) at the sequence's first frame, once with the spp a Cycles
+header would state and once with the reference-free estimate, and its figures are those of the
+model it chose on that sequence (plus the estimate's own time). Per sequence: PSNR and ms/frame
+of each; the target is auto within 0.3 dB of the best fixed model on every sequence, at ≤ 60 %
+of the average ms/frame of the best model (highest mean PSNR).
+
+The buffer-absence table (`absence` in the JSON, docs/benchmarks.md): each model with each
+buffer absent, fed as zeros (what a dropout-trained model saw in training), PSNR and TRMAE, next
+to OIDN given the same buffers; `absent_db` (PSNR change per absent buffer) is what
+bench/model_metrics.py --absent writes into a model's metadata.
+
+--synthetic: tiny generated sequences instead (proves the harness; the figures mean nothing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.bench.evaluate import AUX
+from quietframe.model import metrics
+from quietframe.runtime import Denoiser, default_model_path, installed_models
+from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
+from quietframe.service.model_choice import (
+    ModelProfile,
+    NoiseLevel,
+    choose,
+    estimate_spp,
+    load_calibration,
+)
+
+BUFFER_SETS: dict[str, tuple[str, ...]] = {
+    "all": ("color", *AUX),
+    "no-motion": ("color", "albedo", "normal", "depth"),
+    "no-albedo": ("color", "normal", "depth", "motion"),
+    "colour-only": ("color",),
+}
+ABSENT = ("albedo", "normal", "depth", "motion")
+TOLERANCE_DB, SPEED_SHARE = 0.3, 0.6  # the issue's acceptance target
+
+Frames = list[tuple[dict[str, np.ndarray], np.ndarray, bool]]  # (buffers HWC, reference, reset)
+
+
+@dataclass
+class Run:
+    psnr: float
+    trmae: float
+    ms: float  # mean per frame
+
+
+def load_frames(folder: Path, spp: int, max_frames: int) -> Frames:
+    from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
+
+    frames = []
+    for path in sorted(folder.glob("frame_*.exr"))[:max_frames]:
+        layers = load_frame(path, [color_layer(spp), "reference", *AUX])
+        buffers = {"color": layers[color_layer(spp)], **{k: layers[k] for k in AUX}}
+        frames.append((buffers, layers["reference"], bool(read_meta(path).get("reset"))))
+    return frames
+
+
+def synthetic_frames(seed: int, spp: int, count: int = 3, size: int = 48) -> Frames:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    albedo = np.repeat(rng.uniform(0.2, 0.9, (size, size, 1)), 3, -1).astype(np.float32)
+    normal = np.dstack([np.zeros((size, size, 2)), np.ones((size, size))]).astype(np.float32)
+    frames = []
+    for t in range(count):
+        shading = 0.3 + np.exp(-((xx - 0.3 - 0.05 * t) ** 2 + (yy - 0.5) ** 2) * 6)
+        reference = (albedo * shading[..., None]).astype(np.float32)
+        noise = rng.gamma(spp / 2, 2 / spp, (size, size, 1))
+        buffers = {"color": (reference * noise).astype(np.float32), "albedo": albedo,
+                   "normal": normal, "depth": np.full((size, size, 1), 3.0, np.float32),
+                   "motion": np.zeros((size, size, 2), np.float32)}
+        frames.append((buffers, reference, t == 0))
+    return frames
+
+
+def run_model(denoise, frames: Frames, present: tuple[str, ...]) -> Run:
+    """One sequence through a per-frame callable (planes, state) -> (HWC image, state)."""
+    state, preds, refs, ms, psnrs = None, [], [], [], []
+    for buffers, reference, reset in frames:
+        if reset:
+            state = None
+        planes = planes_from_hwc({k: v for k, v in buffers.items() if k in present})
+        start = time.perf_counter()
+        pred, state = denoise(planes, state)
+        ms.append(1e3 * (time.perf_counter() - start))
+        psnrs.append(metrics.psnr(pred, reference))
+        preds.append(pred)
+        refs.append(reference)
+    trmae = metrics.trmae(np.stack(preds), np.stack(refs)) if len(preds) > 1 else float("nan")
+    return Run(float(np.mean(psnrs)), trmae, float(np.mean(ms)))
+
+
+def runtime_call(denoiser: Denoiser, zeros_for_required: bool = False):
+    """The runtime as a per-frame callable; `zeros_for_required` feeds zeros for absent
+    required buffers too (the absence table: what the model would see without them)."""
+    def call(planes, state):
+        if zeros_for_required:
+            _, h, w = planes["color"].shape
+            for name in denoiser.info.required_buffers:
+                planes.setdefault(name, np.zeros((BUFFER_CHANNELS[name], h, w), np.float32))
+        result = denoiser.denoise(planes, state)
+        return result.color.transpose(1, 2, 0), result.state
+    return call
+
+
+def oidn_call(present: tuple[str, ...], threads: int):
+    """OIDN (balanced) given the same buffers: colour, + albedo, + normal (OIDN takes a normal
+    only together with an albedo)."""
+    from quietframe.bench.baselines import OIDNDenoiser
+
+    class SameBuffers(OIDNDenoiser):
+        def _new_filter(self, images: dict[str, str]) -> object:
+            if "color" in images:
+                aux = {"albedo"} & set(present)
+                if aux and "normal" in present:
+                    aux.add("normal")
+                images = {k: v for k, v in images.items() if k in ("color", "output", *aux)}
+            return super()._new_filter(images)
+
+    oidn = SameBuffers("balanced", num_threads=threads)
+
+    def call(planes, state):
+        hwc = {k: v.transpose(1, 2, 0) for k, v in planes.items()}
+        for name in ("albedo", "normal"):
+            hwc.setdefault(name, np.zeros_like(hwc["color"]))
+        hwc.setdefault("depth", np.ones_like(hwc["color"][..., :1]))
+        hwc.setdefault("motion", np.zeros_like(hwc["color"][..., :2]))
+        return oidn(hwc), None
+    return call
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="auto_choice", description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=Path("~/.cache/quietframe/data"))
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--max-frames", type=int, default=8)
+    parser.add_argument("--model", type=Path, action="append", default=[])
+    parser.add_argument("--quality", default="balanced")
+    parser.add_argument("--synthetic", action="store_true")
+    parser.add_argument("--no-absence", action="store_true", help="skip the absence table")
+    parser.add_argument("--out", type=Path, default=Path("docs"))
+    args = parser.parse_args(argv)
+
+    paths = {p.stem: p for p in (*installed_models(), *args.model)}
+    denoisers = {name: Denoiser(p, threads=args.threads) for name, p in paths.items()}
+    profiles = [ModelProfile.from_metadata(n, d.info.required_buffers, d.info.optional_buffers,
+                                           d.info.metrics) for n, d in denoisers.items()]
+    default = default_model_path().stem  # the service's fallback for 'auto'
+
+    calibration = load_calibration()
+    sources: list[tuple[str, list[int], object]] = []
+    if args.synthetic:
+        sources = [(f"synthetic-{s}", [1, 4, 16], s) for s in (1, 2)]
+        data_note = "synthetic sequences (48×48, 3 frames): proves the harness, no more"
+    else:
+        root = args.data.expanduser()
+        folders = sorted(p.parent for p in root.glob(f"*/{args.split}/*/manifest.json"))
+        for folder in folders:
+            manifest = json.loads((folder / "manifest.json").read_text())
+            if any(folder.glob("frame_*.exr")):
+                sources.append((folder.name, manifest["config"]["spp_levels"], folder))
+        frames_used = sum(min(len(list(f.glob("frame_*.exr"))), args.max_frames)
+                          for _, _, f in sources)
+        data_note = (f"rendered {args.data}/*/{args.split}: {len(sources)} sequences, "
+                     f"{frames_used} frames in all (at most {args.max_frames} per sequence), "
+                     "each at every spp level of its sequence")
+    rows, absence = [], []
+    for name, levels, where in sources:
+        for spp in levels:
+            frames = (synthetic_frames(where, spp) if args.synthetic  # type: ignore[arg-type]
+                      else load_frames(where, spp, args.max_frames))  # type: ignore[arg-type]
+            for set_name, present in BUFFER_SETS.items():
+                fixed = {m: run_model(runtime_call(d), frames, present)
+                         for m, d in denoisers.items()
+                         if set(d.info.required_buffers) <= set(present)}
+                row = {"sequence": name, "spp": spp, "buffers": set_name,
+                       "fixed": {m: vars(r) for m, r in fixed.items()}}
+                for mode in ("header", "estimate"):
+                    start = time.perf_counter()
+                    if mode == "header":
+                        noise = NoiseLevel(spp, "header")
+                    else:
+                        first = planes_from_hwc(frames[0][0])
+                        noise = estimate_spp(first["color"], first.get("albedo") if "albedo"
+                                             in present else None, calibration)
+                    pick = choose(present, noise, profiles, default, quality=args.quality,
+                                  pixels=frames[0][1].shape[0] * frames[0][1].shape[1])
+                    overhead = 1e3 * (time.perf_counter() - start) / len(frames)
+                    chosen = fixed.get(pick.model)
+                    row[f"auto_{mode}"] = {
+                        "model": pick.model, "spp": noise.spp, "reason": pick.reason,
+                        "psnr": chosen.psnr if chosen else None,
+                        "ms": chosen.ms + overhead if chosen else None,
+                    }
+                rows.append(row)
+                print(json.dumps({k: row[k] for k in ("sequence", "spp", "buffers")}),
+                      {m: round(r.psnr, 2) for m, r in fixed.items()},
+                      row["auto_header"]["model"], row["auto_estimate"]["model"], flush=True)
+            if not args.no_absence:
+                for missing in ("none", *ABSENT, "all-aux"):
+                    gone = set(ABSENT) if missing == "all-aux" else {missing}
+                    present = tuple(b for b in ("color", *ABSENT) if b not in gone)
+                    entry = {"sequence": name, "spp": spp, "absent": missing}
+                    for m, d in denoisers.items():
+                        entry[m] = vars(run_model(runtime_call(d, True), frames, present))
+                    entry["oidn-balanced"] = vars(run_model(oidn_call(present, args.threads),
+                                                            frames, present))
+                    absence.append(entry)
+    summary = summarise(rows, list(denoisers))
+    absent_db = {
+        m: {b: round(float(np.mean([e[m]["psnr"] for e in absence if e["absent"] == b]) -
+                           np.mean([e[m]["psnr"] for e in absence if e["absent"] == "none"])), 3)
+            for b in ABSENT}
+        for m in denoisers} if absence else {}
+    result = {"meta": {"data": data_note, "threads": args.threads, "quality": args.quality,
+                       "calibration": (calibration or {}).get("source"),
+                       "command": "python -m quietframe.bench.auto_choice "
+                                  + " ".join(argv if argv is not None else [])},
+              "summary": summary, "rows": rows, "absence": absence, "absent_db": absent_db}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "auto_choice.json").write_text(json.dumps(result, indent=1) + "\n")
+    (args.out / "auto_choice.md").write_text(report(result, list(denoisers)))
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def summarise(rows: list[dict], models: list[str]) -> dict:
+    """Best model = the highest mean PSNR over the sequences every model runs on."""
+    common = [r for r in rows if len(r["fixed"]) == len(models)]
+    out: dict = {"sequences": len(rows), "sequences_all_models_run": len(common)}
+    if not common:
+        return out
+    mean = {m: float(np.mean([r["fixed"][m]["psnr"] for r in common])) for m in models}
+    best = max(mean, key=mean.__getitem__)
+    best_ms = float(np.mean([r["fixed"][best]["ms"] for r in common]))
+    out.update(best_model=best, best_model_ms=round(best_ms, 2))
+    # When the best model on this data is a cheap one, auto matching it cannot also run at
+    # 60 % of its time: the share of the slowest (quality-tier) model is reported beside it.
+    ms_of = {m: float(np.mean([r["fixed"][m]["ms"] for r in common])) for m in models}
+    out["ms_by_model"] = {m: round(v, 2) for m, v in ms_of.items()}
+    for mode in ("header", "estimate"):
+        runnable = [r for r in rows if r[f"auto_{mode}"]["psnr"] is not None]
+        gaps = [max(f["psnr"] for f in r["fixed"].values()) - r[f"auto_{mode}"]["psnr"]
+                for r in runnable]
+        auto_ms = float(np.mean([r[f"auto_{mode}"]["ms"] for r in common]))
+        out[mode] = {
+            "worst_gap_db": round(max(gaps), 3) if gaps else None,
+            "sequences_within_tolerance": sum(g <= TOLERANCE_DB + 1e-9 for g in gaps),
+            "sequences_runnable": len(runnable),
+            "ms": round(auto_ms, 2), "ms_share_of_best": round(auto_ms / best_ms, 3),
+            "ms_share_of_slowest": round(auto_ms / max(ms_of.values()), 3),
+            "meets_target": bool(gaps) and max(gaps) <= TOLERANCE_DB
+            and auto_ms <= SPEED_SHARE * best_ms,
+        }
+    return out
+
+
+def report(result: dict, models: list[str]) -> str:
+    lines = [f"# model=auto vs fixed models\n\nData: {result['meta']['data']}. "
+             f"Command: `{result['meta']['command']}`.\n",
+             "| sequence | spp | buffers | " + " | ".join(f"{m} dB / ms" for m in models)
+             + " | auto (header) | auto (estimate) |",
+             "|---|---|---|" + "---|" * (len(models) + 2)]
+    for r in result["rows"]:
+        cells = [f"{r['fixed'][m]['psnr']:.2f} / {r['fixed'][m]['ms']:.0f}" if m in r["fixed"]
+                 else "—" for m in models]
+        autos = []
+        for mode in ("header", "estimate"):
+            a = r[f"auto_{mode}"]
+            autos.append(f"{a['model']} @{a['spp']:g} spp: " + (
+                f"{a['psnr']:.2f} / {a['ms']:.0f}" if a["psnr"] is not None else "cannot run"))
+        lines.append(f"| {r['sequence']} | {r['spp']} | {r['buffers']} | "
+                     + " | ".join(cells + autos) + " |")
+    lines += ["", "Summary: `" + json.dumps(result["summary"]) + "`", ""]
+    if result["absence"]:
+        columns = [*models, "oidn-balanced"]
+        lines += ["## Each buffer absent (fed as zeros; OIDN given the same buffers)", "",
+                  "| absent | " + " | ".join(f"{m} PSNR / TRMAE" for m in columns) + " |",
+                  "|---|" + "---|" * len(columns)]
+        for missing in ("none", *ABSENT, "all-aux"):
+            entries = [e for e in result["absence"] if e["absent"] == missing]
+            cells = []
+            for m in columns:
+                psnr = np.mean([e[m]["psnr"] for e in entries])
+                trmae = np.nanmean([e[m]["trmae"] for e in entries]) if any(
+                    np.isfinite(e[m]["trmae"]) for e in entries) else float("nan")
+                cells.append(f"{psnr:.2f} / {trmae:.3f}")
+            lines.append(f"| {missing} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,44 @@
+"""bench/auto_choice.py: the summary's target arithmetic, and a tiny synthetic run end to end."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from quietframe.bench import auto_choice
+
+
+def row(fixed: dict[str, tuple[float, float]], auto: str | None):
+    out = {"fixed": {m: {"psnr": p, "ms": ms} for m, (p, ms) in fixed.items()}}
+    for mode in ("header", "estimate"):
+        chosen = fixed.get(auto) if auto else None
+        out[f"auto_{mode}"] = {"model": auto, "psnr": chosen[0] if chosen else None,
+                               "ms": chosen[1] if chosen else None}
+    return out
+
+
+def test_summary_checks_quality_on_every_sequence_and_speed_against_the_best_model():
+    rows = [row({"slow": (30.0, 100.0), "fast": (29.8, 20.0)}, "fast"),
+            row({"slow": (28.0, 100.0), "fast": (27.9, 20.0)}, "fast")]
+    summary = auto_choice.summarise(rows, ["slow", "fast"])
+    assert summary["best_model"] == "slow" and summary["best_model_ms"] == 100
+    assert summary["header"]["worst_gap_db"] == pytest.approx(0.2)
+    assert summary["header"]["ms_share_of_best"] == 0.2 and summary["header"]["meets_target"]
+    rows.append(row({"slow": (25.0, 100.0), "fast": (24.0, 20.0)}, "fast"))  # 1 dB behind
+    summary = auto_choice.summarise(rows, ["slow", "fast"])
+    assert summary["header"]["sequences_within_tolerance"] == 2
+    assert not summary["header"]["meets_target"]
+    rows = [row({"slow": (30.0, 100.0), "fast": (29.8, 20.0)}, "slow")]  # right but not cheap
+    assert not auto_choice.summarise(rows, ["slow", "fast"])["header"]["meets_target"]
+
+
+def test_synthetic_run_lists_choices_per_sequence(tmp_path):
+    assert auto_choice.main(["--synthetic", "--no-absence", "--threads", "1",
+                             "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "auto_choice.json").read_text())
+    assert "no more" in result["meta"]["data"]
+    assert {r["buffers"] for r in result["rows"]} == set(auto_choice.BUFFER_SETS)
+    runnable = [r for r in result["rows"] if r["fixed"]]
+    assert runnable and all(r["auto_header"]["model"] in r["fixed"] for r in runnable)
+    assert "auto (estimate)" in (tmp_path / "auto_choice.md").read_text()
