@@ -36,6 +36,7 @@ def session_options(args: argparse.Namespace) -> dict:
         "channels": mapping or None,
         "motion_scale": tuple(args.motion_scale) if args.motion_scale else None,
         "quality": args.quality,
+        "latency_ms": args.latency_ms,
         "denoised_layer": args.denoised_layer,
     }
 
@@ -179,7 +180,13 @@ def build_parser() -> argparse.ArgumentParser:
     denoise.add_argument(
         "--quality",
         choices=("fast", "balanced", "best"),
-        help="target for --model auto (recorded by the server; auto is its default model today)",
+        help="target for --model auto: fast (within 1 dB of the best expected), balanced "
+        "(0.3 dB), best",
+    )
+    denoise.add_argument(
+        "--latency-ms",
+        type=float,
+        help="budget for --model auto: expected denoise ms per frame at the frames' size",
     )
     denoise.add_argument(
         "--layer",

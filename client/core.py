@@ -153,6 +153,7 @@ class SessionRequest:
     layer: str | None = None  # view layer to denoise
     denoised_layer: str | None = None  # write the denoised colour as this new layer
     quality: str | None = None
+    latency_ms: float | None = None  # model=auto's budget
 
     def call(self) -> Call:
         body: dict = {
@@ -167,7 +168,7 @@ class SessionRequest:
             body["channels"] = dict(self.channels)
         if self.motion_scale is not None:
             body["motion_scale"] = list(self.motion_scale)
-        for name in ("layer", "denoised_layer", "quality"):  # sent only when set
+        for name in ("layer", "denoised_layer", "quality", "latency_ms"):  # sent only when set
             if getattr(self, name) is not None:
                 body[name] = getattr(self, name)
         return Call("POST", "/v1/sessions", create=True, options={"json": body})

@@ -36,13 +36,18 @@ def _crafted(folder, name: str, ms: float, table: list[tuple[int, float]]) -> No
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    from conftest import close, serve
-
+def models_dir(tmp_path_factory):
     folder = tmp_path_factory.mktemp("models")
     _crafted(folder, "t-quality", 20.0, [(1, 40.0), (16, 45.0)])
     _crafted(folder, "t-fast", 10.0, [(1, 30.0), (16, 44.9)])
-    c, server = serve("testclient", models_dir=str(folder))
+    return str(folder)
+
+
+@pytest.fixture(scope="module")
+def client(models_dir):
+    from conftest import close, serve
+
+    c, server = serve("testclient", models_dir=models_dir)
     yield c
     close(c, server)
 
@@ -108,3 +113,20 @@ def test_latency_budget_and_fixed_models(client):
     assert client.get(f"/v1/sessions/{fixed}").json()["choice"] is None
     bad = client.post("/v1/sessions", json={**SIZE, "latency_ms": 0})
     assert bad.status_code == 422
+
+
+def test_durable_session_keeps_its_choice_across_a_restart(models_dir, tmp_path):
+    from conftest import close, serve
+
+    settings = {"models_dir": models_dir, "state_dir": str(tmp_path)}
+    first, _ = serve("testclient", **settings)
+    sid = first.post("/v1/sessions", json={**SIZE, "latency_ms": 1000.0}).json()["id"]
+    send(first, sid, 0, frame(1))
+    close(first, None)
+    again, _ = serve("testclient", **settings)  # a new server on the same state folder
+    status = again.get(f"/v1/sessions/{sid}").json()
+    assert status["choice"]["model"] == "t-quality" and status["latency_ms"] == 1000.0
+    later = send(again, sid, 1, frame(16, seed=1))  # same shot: same model, history continued
+    assert later.headers[Header.MODEL].startswith("t-quality ")
+    assert later.headers[Header.RESET] == "none"
+    close(again, None)
