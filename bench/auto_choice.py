@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -233,11 +234,13 @@ def main(argv: list[str] | None = None) -> int:
     result = {"meta": {"data": data_note, "threads": args.threads, "quality": args.quality,
                        "calibration": (calibration or {}).get("source"),
                        "command": "python -m quietframe.bench.auto_choice "
-                                  + " ".join(argv if argv is not None else [])},
+                                  + " ".join(argv if argv is not None else sys.argv[1:])},
               "summary": summary, "rows": rows, "absence": absence, "absent_db": absent_db}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "auto_choice.json").write_text(json.dumps(result, indent=1) + "\n")
     (args.out / "auto_choice.md").write_text(report(result, list(denoisers)))
+    if not args.synthetic:
+        update_section(args.out / "benchmarks.md", section(result, list(denoisers)))
     print(json.dumps(summary, indent=1))
     return 0
 
@@ -273,6 +276,63 @@ def summarise(rows: list[dict], models: list[str]) -> dict:
     return out
 
 
+MARK_BEGIN, MARK_END = "<!-- auto_choice: begin -->", "<!-- auto_choice: end -->"
+
+
+def update_section(path: Path, text: str) -> None:
+    """Put `text` between the markers of docs/benchmarks.md (appended when absent: quietframe-eval
+    rewrites that file, so run this after it)."""
+    old = path.read_text() if path.exists() else ""
+    block = f"{MARK_BEGIN}\n{text}{MARK_END}\n"
+    if MARK_BEGIN in old and MARK_END in old:
+        head, rest = old.split(MARK_BEGIN, 1)
+        new = head + block + rest.split(MARK_END, 1)[1].lstrip("\n")
+    else:
+        new = old.rstrip("\n") + "\n\n" + block
+    path.write_text(new)
+
+
+def section(result: dict, models: list[str]) -> str:
+    summary, meta = result["summary"], result["meta"]
+    lines = ["## model=auto and missing buffers (bench/auto_choice.py)", "",
+             f"Data: {meta['data']}; {meta['threads']} threads; quality {meta['quality']}. "
+             f"Command: `{meta['command']}`. Per-sequence figures and the choices: "
+             "[auto_choice.md](auto_choice.md).", ""]
+    for mode in ("header", "estimate"):
+        if mode in summary:
+            s = summary[mode]
+            lines.append(
+                f"- auto, spp from {'the Cycles header' if mode == 'header' else 'the estimate'}:"
+                f" within {TOLERANCE_DB} dB of the best fixed model on "
+                f"{s['sequences_within_tolerance']} of {s['sequences_runnable']} runnable "
+                f"sequences (worst gap {s['worst_gap_db']} dB); {s['ms']} ms/frame = "
+                f"{s['ms_share_of_best']:.0%} of the best model ({summary['best_model']}), "
+                f"{s['ms_share_of_slowest']:.0%} of the slowest; target met: "
+                f"{s['meets_target']}")
+    lines += ["", *absence_table(result, models)]
+    return "\n".join(lines) + "\n"
+
+
+def absence_table(result: dict, models: list[str]) -> list[str]:
+    if not result["absence"]:
+        return []
+    columns = [*models, "oidn-balanced"]
+    lines = ["Each buffer absent, fed as zeros (OIDN balanced given the same buffers: it takes a "
+             "normal only with an albedo, and no depth or motion); PSNR / TRMAE, mean over the "
+             "sequences and spp levels:", "",
+             "| absent | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
+    for missing in ("none", *ABSENT, "all-aux"):
+        entries = [e for e in result["absence"] if e["absent"] == missing]
+        cells = []
+        for m in columns:
+            psnr = np.mean([e[m]["psnr"] for e in entries])
+            finite = [e[m]["trmae"] for e in entries if np.isfinite(e[m]["trmae"])]
+            trmae = np.mean(finite) if finite else float("nan")
+            cells.append(f"{psnr:.2f} / {trmae:.3f}")
+        lines.append(f"| {missing} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
 def report(result: dict, models: list[str]) -> str:
     lines = [f"# model=auto vs fixed models\n\nData: {result['meta']['data']}. "
              f"Command: `{result['meta']['command']}`.\n",
@@ -291,20 +351,7 @@ def report(result: dict, models: list[str]) -> str:
                      + " | ".join(cells + autos) + " |")
     lines += ["", "Summary: `" + json.dumps(result["summary"]) + "`", ""]
     if result["absence"]:
-        columns = [*models, "oidn-balanced"]
-        lines += ["## Each buffer absent (fed as zeros; OIDN given the same buffers)", "",
-                  "| absent | " + " | ".join(f"{m} PSNR / TRMAE" for m in columns) + " |",
-                  "|---|" + "---|" * len(columns)]
-        for missing in ("none", *ABSENT, "all-aux"):
-            entries = [e for e in result["absence"] if e["absent"] == missing]
-            cells = []
-            for m in columns:
-                psnr = np.mean([e[m]["psnr"] for e in entries])
-                trmae = np.nanmean([e[m]["trmae"] for e in entries]) if any(
-                    np.isfinite(e[m]["trmae"]) for e in entries) else float("nan")
-                cells.append(f"{psnr:.2f} / {trmae:.3f}")
-            lines.append(f"| {missing} | " + " | ".join(cells) + " |")
-        lines.append("")
+        lines += ["## Each buffer absent", "", *absence_table(result, models)]
     return "\n".join(lines) + "\n"
 
 

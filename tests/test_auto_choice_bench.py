@@ -42,3 +42,13 @@ def test_synthetic_run_lists_choices_per_sequence(tmp_path):
     runnable = [r for r in result["rows"] if r["fixed"]]
     assert runnable and all(r["auto_header"]["model"] in r["fixed"] for r in runnable)
     assert "auto (estimate)" in (tmp_path / "auto_choice.md").read_text()
+
+
+def test_benchmarks_section_is_replaced_not_repeated(tmp_path):
+    path = tmp_path / "benchmarks.md"
+    path.write_text("# quietframe evaluation\n\n| table |\n")
+    auto_choice.update_section(path, "first\n")
+    auto_choice.update_section(path, "second\n")
+    text = path.read_text()
+    assert text.startswith("# quietframe evaluation\n\n| table |\n")
+    assert "second" in text and "first" not in text and text.count(auto_choice.MARK_BEGIN) == 1
