@@ -180,9 +180,10 @@ def main(argv: list[str] | None = None) -> int:
                 sources.append((folder.name, manifest["config"]["spp_levels"], folder))
         frames_used = sum(min(len(list(f.glob("frame_*.exr"))), args.max_frames)
                           for _, _, f in sources)
+        levels = sorted({spp for _, spps, _ in sources for spp in spps})
         data_note = (f"rendered {args.data}/*/{args.split}: {len(sources)} sequences, "
                      f"{frames_used} frames in all (at most {args.max_frames} per sequence), "
-                     "each at every spp level of its sequence")
+                     f"each at every spp level of its sequence ({levels})")
     rows, absence = [], []
     for name, levels, where in sources:
         for spp in levels:
@@ -319,7 +320,9 @@ def absence_table(result: dict, models: list[str]) -> list[str]:
     columns = [*models, "oidn-balanced"]
     lines = ["Each buffer absent, fed as zeros (OIDN balanced given the same buffers: it takes a "
              "normal only with an albedo, and no depth or motion); PSNR / TRMAE, mean over the "
-             "sequences and spp levels:", "",
+             "sequences and spp levels. A model that lists a buffer as required was not trained "
+             "without it: its row shows the cost of zeros it never saw (buffer dropout, "
+             "docs/training.md, is what lowers it).", "",
              "| absent | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
     for missing in ("none", *ABSENT, "all-aux"):
         entries = [e for e in result["absence"] if e["absent"] == missing]
