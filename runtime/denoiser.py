@@ -18,6 +18,7 @@ import numpy as np
 import onnxruntime as ort
 
 from quietframe.runtime.buffers import BUFFER_CHANNELS, BufferError, check_buffers, check_plane
+from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass, read_prepass
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 
@@ -83,7 +84,11 @@ def make_session(path: Path, threads: int) -> ort.InferenceSession:
 
 
 class Denoiser:
-    """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently)."""
+    """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently).
+
+    A model whose metadata names a prepass (quietframe.prepass, runtime/oidn_prepass.py) is a
+    composition: the runtime runs OIDN on the frame first and feeds its output to the graph.
+    Such a model raises PrepassUnavailable here when pyoidn is not installed."""
 
     def __init__(self, model_path: str | Path, threads: int = 2) -> None:
         path = Path(model_path)
@@ -93,6 +98,9 @@ class Denoiser:
         meta = self.session.get_modelmeta().custom_metadata_map
         self.info = read_model_info(path, meta)
         self._output_names = [o.name for o in self.session.get_outputs()]
+        self._input_names = {i.name for i in self.session.get_inputs()}
+        settings = read_prepass(meta)
+        self.prepass = OIDNPrepass(settings, num_threads=threads) if settings else None
 
     def check(self, present: Iterable[str]) -> tuple[str, ...]:
         """The one check of a frame's buffers against the model: the absent optional ones;
@@ -133,6 +141,11 @@ class Denoiser:
         """Denoise one frame of (C, H, W) float32 planes. `state` is the previous frame's
         `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut)."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
+        if self.prepass is not None:
+            # The sanitised planes, so OIDN sees exactly what a plain graph would.
+            feeds[self.prepass.settings.input] = self.prepass(
+                {name: feeds[name][0] for name in PREPASS_BUFFERS})
+        feeds = {k: v for k, v in feeds.items() if k in self._input_names}
         fresh = state is None
         if state is None:
             state = self.initial_state(height, width)
