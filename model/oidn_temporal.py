@@ -23,7 +23,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from quietframe.model.affinity_kernels import temporal_affinity_filter
-from quietframe.model.nbg import ldr
 from quietframe.model.temporal import backward_warp, history_valid
 
 FEATURES = 8  # f ∈ R^8 (the paper's d)
@@ -31,14 +30,18 @@ FEATURES = 8  # f ∈ R^8 (the paper's d)
 STATE_SLICES = {"output": (0, 3), "history": (3, 6), "features": (6, 6 + FEATURES),
                 "depth": (6 + FEATURES, 7 + FEATURES), "normal": (7 + FEATURES, 10 + FEATURES)}
 STATE_CHANNELS = 10 + FEATURES
-# Net input: ldr(D) 3, albedo 3, normal 3, relative depth 1, ldr(W O)·g 3, ldr(W L̄)·g 3, g 1.
-NET_INPUT_CHANNELS = 17
+# Net input: tonemap(D) 3, albedo 3, normal 3, tonemap(W L̄)·g 3, g 1. Lean on purpose: at 720p
+# every full-frame plane of elementwise work costs ~1 ms and the stage's budget is 15% of OIDN's
+# time (bench/oidn_temporal.py); depth enters through the surface test g, not the net.
+NET_INPUT_CHANNELS = 13
 # Net output: f (8), bandwidth a, centre c, temporal bandwidth b, λ.
 NET_OUTPUT_CHANNELS = FEATURES + 4
-# A warped neighbour whose surface test failed gets this offset in an extra feature channel:
-# ω = exp(-b·OFFSET²) underflows to 0 for any b >= MIN_BANDWIDTH, so the temporal kernel never
-# gathers a sample from another surface (the ghosting case) whatever the learned features say.
-INVALID_FEATURE_OFFSET = 100.0
+# A warped neighbour whose surface test failed has this added to each of its features: its
+# distance to any current feature vector is then ~8·OFFSET² and ω = exp(-b·d²) underflows to 0
+# for any b >= MIN_BANDWIDTH, so the temporal kernel never gathers a sample from another surface
+# (the ghosting case) whatever the learned features say. A broadcast add, not an extra channel:
+# two 9-channel concatenations of a 720p frame cost more than the kernel's taps.
+INVALID_FEATURE_OFFSET = 1000.0
 MIN_BANDWIDTH = 1e-2
 
 
@@ -50,7 +53,7 @@ class OIDNTemporalConfig:
     quality: str = "high"  # the OIDN prepass: high or fast
     prefilter_aux: bool = False  # Blender's "accurate": albedo/normal denoised first
     width: int = 16  # hidden channels of the parameter CNN
-    layers: int = 3  # 3×3 convolutions (>= 2)
+    layers: int = 3  # convolutions (>= 2): 3×3 ones, then a 1×1 output layer
     kernel_size: int = 3  # spatial affinity kernel (eq. 4), dilation 1
     temporal_kernel_size: int = 3  # temporal window over W O_{t-1} (eq. 7)
 
@@ -66,12 +69,12 @@ class OIDNTemporalConfig:
 VARIANTS: dict[str, OIDNTemporalConfig] = {
     "oidn-temporal-high": OIDNTemporalConfig(),
     "oidn-temporal-fast": OIDNTemporalConfig(name="oidn-temporal-fast", quality="fast",
-                                             width=12),
+                                             width=12, layers=2),
 }
 
 
 class ParameterNet(nn.Module):
-    """3×3 CNN: (N, 17, H, W) -> f (N, 8, H, W) and a, c, b, λ (N, 1, H, W) each (eq. 2)."""
+    """3×3 CNN + 1×1 head: (N, 13, H, W) -> f (N, 8, H, W), a, c, b, λ (N, 1, H, W) (eq. 2)."""
 
     def __init__(self, config: OIDNTemporalConfig) -> None:
         super().__init__()
@@ -80,7 +83,7 @@ class ParameterNet(nn.Module):
         widths = [NET_INPUT_CHANNELS] + [config.width] * (config.layers - 1)
         self.hidden = nn.ModuleList(
             nn.Conv2d(i, o, 3, padding=1) for i, o in zip(widths[:-1], widths[1:], strict=True))
-        self.last = nn.Conv2d(config.width, NET_OUTPUT_CHANNELS, 3, padding=1)
+        self.last = nn.Conv2d(config.width, NET_OUTPUT_CHANNELS, 1)
         with torch.no_grad():  # start near "keep half the history, modest bandwidths"
             self.last.bias.zero_()
 
@@ -91,7 +94,7 @@ class ParameterNet(nn.Module):
         features = out[:, :FEATURES]
         bandwidth = out[:, FEATURES:FEATURES + 1].square()  # a >= 0 (the paper squares it)
         center = torch.sigmoid(out[:, FEATURES + 1:FEATURES + 2])  # c ∈ (0, 1)
-        temporal_bandwidth = F.softplus(out[:, FEATURES + 2:FEATURES + 3]) + MIN_BANDWIDTH
+        temporal_bandwidth = out[:, FEATURES + 2:FEATURES + 3].square() + MIN_BANDWIDTH
         blend = torch.sigmoid(out[:, FEATURES + 3:FEATURES + 4])  # λ ∈ (0, 1), eq. 3/5
         return features, bandwidth, center, temporal_bandwidth, blend
 
@@ -106,13 +109,19 @@ def accumulate_history(current: Tensor, warped_history: Tensor, blend: Tensor) -
     return (1 - blend) * current + blend * warped_history
 
 
-def net_input(oidn: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
-              warped_output: Tensor, warped_history: Tensor, valid: Tensor) -> Tensor:
-    """(N, 17, H, W), every channel in about [0, 1]; history planes are zero where invalid."""
-    relative_depth = depth / depth.mean(dim=(2, 3), keepdim=True).clamp_min(1e-6)
-    return torch.cat((ldr(oidn), albedo.clamp(0, 1), (normal.clamp(-1, 1) + 1) * 0.5,
-                      relative_depth / (1 + relative_depth), ldr(warped_output) * valid,
-                      ldr(warped_history) * valid, valid), dim=1)
+def tonemap(x: Tensor) -> Tensor:
+    """HDR radiance -> [0, 1) for the net: sqrt(x / (1 + x)). A square root instead of NBG's
+    x^(1/2.2): a Pow over a 720p frame costs several times a Sqrt."""
+    x = F.relu(x)
+    return torch.sqrt(x / (1 + x))
+
+
+def net_input(oidn: Tensor, albedo: Tensor, normal: Tensor, warped_history: Tensor,
+              valid: Tensor) -> Tensor:
+    """(N, 13, H, W); albedo and normal as the buffers give them ([0, 1] and [-1, 1] by the
+    interface contract), history planes zero where invalid."""
+    return torch.cat((tonemap(oidn), albedo, normal, tonemap(warped_history) * valid, valid),
+                     dim=1)
 
 
 class OIDNTemporal(nn.Module):
@@ -142,17 +151,14 @@ class OIDNTemporal(nn.Module):
         warped_output = _state_part(warped, "output")  # W O_{t-1}
         warped_history = _state_part(warped, "history")  # W L̄_{t-1}
         features, bandwidth, center, temporal_bandwidth, blend = self.net(net_input(
-            oidn, albedo, normal, depth, warped_output, warped_history, valid))
+            oidn, albedo, normal, warped_history, valid))
         history = accumulate_history(oidn, warped_history, blend * valid)  # eq. 5
-        # The extra feature channel: 0 for the current frame, INVALID_FEATURE_OFFSET where a
-        # warped neighbour failed the surface test (see the constant).
-        zero = torch.zeros_like(valid)
-        current_features = torch.cat((features, zero), dim=1)  # (N, 9, H, W)
-        previous_features = torch.cat((_state_part(warped, "features"),
-                                       (1 - valid) * INVALID_FEATURE_OFFSET), dim=1)
+        # W f_{t-1}, pushed far away where the warped sample failed the surface test
+        previous_features = (_state_part(warped, "features")
+                             + (1 - valid) * INVALID_FEATURE_OFFSET)  # (N, 8, H, W)
         # eq. 7 + 8: spatial kernel on L̄_t, temporal kernel on W O_{t-1}, joint normalisation
         output = temporal_affinity_filter(
-            history, current_features, bandwidth, center, warped_output, previous_features,
+            history, features, bandwidth, center, warped_output, previous_features,
             temporal_bandwidth, on.view(-1), self.config.kernel_size, 1,
             self.config.temporal_kernel_size)
         new_state = torch.cat((output, history, features, depth, normal), dim=1)
