@@ -18,7 +18,12 @@ import numpy as np
 import onnxruntime as ort
 
 from quietframe.runtime.buffers import BUFFER_CHANNELS, BufferError, check_buffers, check_plane
-from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass, read_prepass
+from quietframe.runtime.oidn_prepass import (
+    PREPASS_BUFFERS,
+    OIDNPrepass,
+    PrepassUnavailable,
+    read_prepass,
+)
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 
@@ -100,7 +105,11 @@ class Denoiser:
         self._output_names = [o.name for o in self.session.get_outputs()]
         self._input_names = {i.name for i in self.session.get_inputs()}
         settings = read_prepass(meta)
-        self.prepass = OIDNPrepass(settings, num_threads=threads) if settings else None
+        try:
+            self.prepass = OIDNPrepass(settings, num_threads=threads) if settings else None
+        except PrepassUnavailable as exc:
+            exc.model = self.info.name  # for the service's log line and error
+            raise
 
     def check(self, present: Iterable[str]) -> tuple[str, ...]:
         """The one check of a frame's buffers against the model: the absent optional ones;

@@ -35,6 +35,8 @@ SIZES_PER_THREAD = 2  # filter sets kept per thread (a session's size, plus one 
 class PrepassUnavailable(RuntimeError):
     """The model needs a prepass this installation cannot run (pyoidn is not installed)."""
 
+    model: str | None = None  # the model's name, set by the runtime that loads it
+
 
 @dataclass(frozen=True)
 class OIDNSettings:
