@@ -57,7 +57,7 @@ def measure(path: Path, threads: int, repeats: int) -> dict[str, Timing]:
                                                            "motion")},
              "reset": np.zeros(1, np.float32),
              **{f"state_in.{k}": v for k, v in state.items()}}
-    feeds = {k: v for k, v in feeds.items() if k in runtime._input_names}
+    feeds = {k: v for k, v in feeds.items() if k in runtime.input_names}
     return {
         "oidn": time_ms(lambda: runtime.prepass(planes), warmup=1, repeats=repeats),
         "stage": time_ms(lambda: runtime.session.run(None, feeds), warmup=1, repeats=repeats),

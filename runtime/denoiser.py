@@ -103,7 +103,7 @@ class Denoiser:
         meta = self.session.get_modelmeta().custom_metadata_map
         self.info = read_model_info(path, meta)
         self._output_names = [o.name for o in self.session.get_outputs()]
-        self._input_names = {i.name for i in self.session.get_inputs()}
+        self.input_names = {i.name for i in self.session.get_inputs()}
         settings = read_prepass(meta)
         try:
             self.prepass = OIDNPrepass(settings, num_threads=threads) if settings else None
@@ -154,7 +154,7 @@ class Denoiser:
             # The sanitised planes, so OIDN sees exactly what a plain graph would.
             feeds[self.prepass.settings.input] = self.prepass(
                 {name: feeds[name][0] for name in PREPASS_BUFFERS})
-        feeds = {k: v for k, v in feeds.items() if k in self._input_names}
+        feeds = {k: v for k, v in feeds.items() if k in self.input_names}
         fresh = state is None
         if state is None:
             state = self.initial_state(height, width)

@@ -5,6 +5,7 @@ filters reused across frames); without pyoidn the tier is not offered and asking
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 import threading
@@ -285,3 +286,39 @@ def test_moving_edge_leaves_no_ghost(monkeypatch):
     # The measure can fail: without the surface test the same stage drags the square along.
     monkeypatch.setattr(ot, "history_valid", lambda wd, wn, d, n: torch.ones_like(d))
     assert _ghost(model)[0] > 0.1
+
+
+@needs_pyoidn
+def test_trains_on_cached_oidn_outputs(tmp_path, monkeypatch):
+    """quietframe-train --variant oidn-temporal-fast on a tiny dataset: OIDN runs once per
+    (sequence, frame, spp) into the cache, the loss falls, the run resumes its architecture."""
+    from dataset_support import write_sequence
+
+    from quietframe.model import train as qt
+    from quietframe.model.data import list_sequences
+    from quietframe.model.oidn_cache import cache_path, oidn_output
+    from quietframe.scenes.exr_io import color_layer, load_frame
+    from quietframe.scenes.generator import GENERATOR_VERSION
+
+    monkeypatch.setenv("QUIETFRAME_OIDN_CACHE", str(tmp_path / "cache"))
+    for split, seeds in (("train", (11, 12)), ("validation", (21,))):
+        for seed in seeds:
+            write_sequence(tmp_path / "data" / GENERATOR_VERSION / split, seed, frames=3)
+    cfg = qt.TrainConfig(variant="oidn-temporal-fast", width=0, data=str(tmp_path / "data"),
+                         crop=24, frames=3, batch=2, steps=30, eval_every=15, log_every=5,
+                         threads=1, seed=5, lr=3e-3)
+    qt.train(cfg, tmp_path / "run")
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.txt").read_text().splitlines()]
+    losses = [r["loss"] for r in log if "loss" in r]
+    assert losses[-1] < losses[0]
+    checkpoint = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    assert checkpoint["config"]["quality"] == "fast"
+    assert qt.build_model(cfg, checkpoint["config"]).config == ot.VARIANTS["oidn-temporal-fast"]
+    # a cached frame is OIDN of that frame through the runtime's prepass
+    seq = list_sequences(tmp_path / "data" / GENERATOR_VERSION / "validation")[0]
+    settings = OIDNSettings("fast", False)
+    path = cache_path(seq.path, seq.files[2], 1, settings)
+    assert path.exists()
+    layers = load_frame(seq.path / seq.files[2], [color_layer(1), "albedo", "normal"])
+    np.testing.assert_allclose(np.load(path), oidn_output(
+        layers[color_layer(1)], layers["albedo"], layers["normal"], settings), atol=1e-6)
