@@ -9,6 +9,12 @@ one 1280×720 frame with history carried: `oidn` times the prepass alone (Denois
 `Denoiser.denoise` (sanitising, both, copies). Without --model the cases are exported from
 untrained variants (speed does not depend on the weights; needs torch). The target of issue 11:
 stage ≤ 15% of oidn.
+
+    python -m quietframe.bench.oidn_temporal --prefilter ~/.cache/quietframe/data/g2/test
+
+instead compares OIDN with and without prefiltered aux (Blender's "accurate" mode) on every
+finished frame under that folder: PSNR / SSIM against the reference per spp level and quality,
+and the time each costs at 720p — the measurement behind the variants' `prefilter_aux`.
 """
 
 from __future__ import annotations
@@ -65,6 +71,44 @@ def measure(path: Path, threads: int, repeats: int) -> dict[str, Timing]:
     }
 
 
+def compare_prefilter(folder: Path, qualities: list[str], threads: int) -> str:
+    """PSNR/SSIM of OIDN without and with prefiltered aux on the frames under `folder`."""
+    from quietframe.model import metrics
+    from quietframe.model.oidn_cache import oidn_output
+    from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+    from quietframe.scenes.exr_io import color_layer, load_frame
+
+    frames = sorted(folder.glob("*/frame_*.exr"))
+    if not frames:
+        raise SystemExit(f"--prefilter: no frames under {folder}")
+    lines = [f"{len(frames)} frames under {folder}; PSNR / SSIM vs the reference (mean)", "",
+             "| quality | prefilter aux | spp | PSNR | SSIM |", "|---|---|---:|---:|---:|"]
+    timing_lines = []
+    for quality in qualities:
+        for prefilter in (False, True):
+            settings = OIDNSettings(quality, prefilter)
+            levels: dict[int, list[tuple[float, float]]] = {}
+            for path in frames:
+                names = ["albedo", "normal", "reference"]
+                layers = load_frame(path, names + [color_layer(s) for s in (1, 2, 4, 8)])
+                for spp in (1, 2, 4, 8):
+                    if color_layer(spp) not in layers:
+                        continue
+                    out = oidn_output(layers[color_layer(spp)], layers["albedo"],
+                                      layers["normal"], settings)
+                    ref = layers["reference"]
+                    levels.setdefault(spp, []).append((metrics.psnr(out, ref),
+                                                       metrics.ssim(out, ref)))
+            for spp, scores in sorted(levels.items()):
+                psnr, ssim = np.mean(scores, axis=0)
+                lines.append(f"| {quality} | {prefilter} | {spp} | {psnr:.2f} | {ssim:.4f} |")
+            prepass, planes = OIDNPrepass(settings, threads), frame_buffers()
+            t = time_ms(lambda p=prepass, x=planes: p(x), warmup=1, repeats=3)
+            timing_lines.append(f"- {quality}, prefilter aux {prefilter}: {t} at 720p")
+            prepass.close()
+    return "\n".join(lines + ["", *timing_lines])
+
+
 def report(rows: list[tuple[str, dict[str, Timing]]], threads: int) -> str:
     lines = [f"720p, {cpu_peak_gflops(threads)[1]}, load average "
              f"{os.getloadavg()[0]:.1f} at the end; median ms (CPU ms per call in brackets)", "",
@@ -93,7 +137,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="time these exported models instead")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--prefilter", type=Path,
+                        help="compare OIDN without/with prefiltered aux on frames under this")
+    parser.add_argument("--qualities", default="high,fast", help="for --prefilter")
     args = parser.parse_args(argv)
+    if args.prefilter:
+        print(compare_prefilter(args.prefilter.expanduser(), args.qualities.split(","),
+                                args.threads))
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         paths = args.model or export_cases(
             args.variants.split(","), parse_kernels(args.kernels),
