@@ -115,8 +115,8 @@ def load_window(
         from quietframe.model.oidn_cache import cached_oidn_output
 
         out["oidn"] = np.stack([
-            cached_oidn_output(seq.path, seq.files[i], spp, oidn,
-                               lambda f=f: (f[color_layer(spp)], f["albedo"], f["normal"]))
+            cached_oidn_output(seq.path, seq.files[i], spp, oidn, f[color_layer(spp)],
+                               f["albedo"], f["normal"])
             for f, i in zip(frames, idx, strict=True)])
     if with_passes:  # (T, S, H, W, 3)
         out["passes"] = np.stack(

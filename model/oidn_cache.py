@@ -56,13 +56,15 @@ def oidn_output(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray,
 
 
 def cached_oidn_output(sequence_dir: Path, frame_file: str, spp: int, settings: OIDNSettings,
-                       images) -> np.ndarray:
-    """The cached OIDN output of one frame, computing it (from `images()` -> (color, albedo,
-    normal)) and storing it on a miss."""
+                       color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """The cached OIDN output of one frame ((H, W, 3) images in), computing and storing it on a
+    miss. An entry of another size (same seed rendered again at another size) is recomputed."""
     path = cache_path(sequence_dir, frame_file, spp, settings)
     if path.exists():
-        return np.load(path)
-    result = oidn_output(*images(), settings)
+        cached = np.load(path)
+        if cached.shape == (*np.shape(color)[:2], 3):
+            return cached
+    result = oidn_output(color, albedo, normal, settings)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
     with tmp.open("wb") as f:
