@@ -40,7 +40,7 @@ Model = NBGDenoiser | OIDNTemporal
 @dataclasses.dataclass
 class TrainConfig:
     variant: str = "nbg-2l-3g"  # or oidn-temporal-high / oidn-temporal-fast
-    width: int = 20  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own
+    width: int = 0  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own (NBG: 20)
     data: str = "~/.cache/quietframe/data"
     loss: str = "smape+temporal"  # or "l1" (paper §4.4: L1 on the LDR-mapped output)
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
