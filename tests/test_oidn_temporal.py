@@ -322,3 +322,13 @@ def test_trains_on_cached_oidn_outputs(tmp_path, monkeypatch):
     layers = load_frame(seq.path / seq.files[2], [color_layer(1), "albedo", "normal"])
     np.testing.assert_allclose(np.load(path), oidn_output(
         layers[color_layer(1)], layers["albedo"], layers["normal"], settings), atol=1e-6)
+
+
+def test_prepass_metadata_is_checked():
+    assert read_prepass({}) is None
+    spec = '{"oidn": {"quality": "fast", "prefilter_aux": true}, "input": "oidn"}'
+    assert read_prepass({"quietframe.prepass": spec}) == OIDNSettings("fast", True, "oidn")
+    with pytest.raises(ValueError, match="only an 'oidn' prepass"):
+        read_prepass({"quietframe.prepass": '{"optix": {}}'})
+    with pytest.raises(ValueError, match="quality"):
+        read_prepass({"quietframe.prepass": '{"oidn": {"quality": "ultra"}}'})
