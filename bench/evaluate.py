@@ -4,7 +4,10 @@
 
 Methods: the noisy input, temporal accumulation alone (models/accumulation.onnx: the NBG
 pre-stage), an SVGF-style à-trous filter, Open Image Denoise (fast/balanced/high, high with
-prefiltered aux), and every shipped NBG model through the runtime (onnxruntime + custom ops).
+prefiltered aux), and every shipped model through the runtime (onnxruntime + custom ops): NBG,
+the affinity model, and the oidn-temporal tier (OIDN prepass + temporal graph; its 720p time is
+also split into OIDN's share and the temporal stage's, bench/oidn_temporal.py). A model the
+runtime cannot run here (oidn-temporal without pyoidn) is skipped with a line.
 Per method and spp: PSNR, SSIM, SMAPE, relMSE (mean over frames), TRMAE (mean over sequences),
 ms/frame at the evaluation resolution and at 1280×720 — one run, same machine, same threads.
 Writes <out>/benchmarks.md, <out>/psnr_vs_ms.png and <out>/crops.png.
@@ -29,6 +32,7 @@ from quietframe.bench.timing import time_ms
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
 from quietframe.runtime.buffers import planes_from_hwc
+from quietframe.runtime.oidn_prepass import PrepassUnavailable
 
 AUX = ("albedo", "normal", "depth", "motion")
 
@@ -130,6 +134,18 @@ def run_sequence(method, frames, scores: Scores, keep: list | None = None) -> No
         keep.append(preds[-1])
 
 
+def prepass_shares(method, threads: int) -> dict[str, float]:
+    """For a composition (prepass + graph): 720p ms of OIDN alone and of the graph alone."""
+    denoiser = getattr(method, "denoiser", None)
+    if denoiser is None or denoiser.prepass is None:
+        return {}
+    from quietframe.bench.oidn_temporal import measure
+
+    timings = measure(denoiser.info.path, threads, repeats=3)
+    return {"ms_720p_oidn": timings["oidn"].median_ms,
+            "ms_720p_stage": timings["stage"].median_ms}
+
+
 def time_720p(factory, threads: int) -> float:
     """ms/frame at 1280×720 on synthetic buffers, state carried like a real sequence."""
     method = factory()
@@ -204,6 +220,13 @@ def write_report(rows: list[dict], meta: dict, path: Path) -> None:
         lines.append(f"| {r['method']} | {r['spp']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
                      f"{r['smape']:.4f} | {r['relmse']:.4f} | {r['trmae']:.4f} | "
                      f"{r['ms']:.1f} | {r['ms_720p']:.0f} |")
+    shares = {r["method"]: r for r in rows if "ms_720p_oidn" in r}
+    if shares:
+        lines += ["", "720p time of the compositions (OIDN prepass + temporal graph):", "",
+                  "| method | OIDN ms | temporal stage ms | stage / OIDN |", "|---|---|---|---|"]
+        lines += [f"| {m} | {r['ms_720p_oidn']:.0f} | {r['ms_720p_stage']:.0f} | "
+                  f"{100 * r['ms_720p_stage'] / r['ms_720p_oidn']:.1f}% |"
+                  for m, r in shares.items()]
     lines += ["", "![PSNR vs ms](psnr_vs_ms.png)", "", "![crops](crops.png)", ""]
     path.write_text("\n".join(lines))
 
@@ -236,8 +259,13 @@ def main(argv: list[str] | None = None) -> int:
     crop_spp = int(args.spp.split(",")[0])
     for spp in (int(s) for s in args.spp.split(",")):
         sequences = [load_sequence(f, spp) for f in folders]
-        for name, factory in methods.items():
-            method, scores = factory(), Scores()
+        for name, factory in list(methods.items()):
+            try:
+                method, scores = factory(), Scores()
+            except PrepassUnavailable as exc:
+                print(f"skipping {name}: {exc}", flush=True)
+                del methods[name]
+                continue
             for i, frames in enumerate(sequences):
                 keep = crops[name] if spp == crop_spp and i < 3 else None
                 run_sequence(method, frames, scores, keep)
@@ -245,8 +273,9 @@ def main(argv: list[str] | None = None) -> int:
                 crops["reference"] = [s[-1][1] for s in sequences[:3]]
             row = {"method": name, "spp": spp, **scores.summary()}
             if name not in ms_720p:  # speed does not depend on the spp: time once per method
-                ms_720p[name] = time_720p(factory, args.threads)
-            row["ms_720p"] = ms_720p[name]
+                ms_720p[name] = {"ms_720p": time_720p(factory, args.threads),
+                                 **prepass_shares(method, args.threads)}
+            row |= ms_720p[name]
             rows.append(row)
             print(json.dumps({k: round(v, 4) if isinstance(v, float) else v
                               for k, v in row.items()}), flush=True)
@@ -260,7 +289,8 @@ def main(argv: list[str] | None = None) -> int:
     write_report(rows, meta, args.out / "benchmarks.md")
     scatter_plot(rows, args.out / "psnr_vs_ms.png")
     columns = [c for c in ("noisy", "accumulation", "svgf", "oidn-high", *sorted(
-        m for m in methods if m.startswith("nbg")), "reference") if c in crops]
+        m for m in methods if m.startswith(("nbg", "affinity", "oidn-temporal"))),
+        "reference") if c in crops]
     crop_sheet(crops, columns, args.out / "crops.png")
     print(f"wrote {args.out / 'benchmarks.md'}")
     return 0

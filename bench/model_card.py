@@ -50,6 +50,21 @@ def data_lines(training: dict) -> list[str]:
             f"{describe_split(split_dir(data, 'validation'))}", ""]
 
 
+def prepass_lines(runtime: Denoiser, threads: int) -> list[str]:
+    """For a composition (quietframe.prepass): what runs first, and the 720p time split."""
+    if runtime.prepass is None:
+        return []
+    from quietframe.bench.oidn_temporal import measure
+
+    t = measure(runtime.info.path, threads, repeats=3)
+    settings = runtime.prepass.settings
+    return [f"Runs Open Image Denoise first (quality {settings.quality}, prefiltered aux "
+            f"{settings.prefilter_aux}; needs pyoidn), then the graph on its output: OIDN "
+            f"{t['oidn'].median_ms:.0f} ms, temporal stage {t['stage'].median_ms:.0f} ms "
+            f"({100 * t['stage'].median_ms / t['oidn'].median_ms:.0f}% of OIDN), median of 3 "
+            "(bench/oidn_temporal.py).", ""]
+
+
 def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 2) -> Path:
     """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model."""
     runtime = Denoiser(path, threads=threads)
@@ -67,6 +82,7 @@ def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 
         "## Speed", "",
         f"{ms:.0f} ms per 1280×720 frame through quietframe.runtime with {threads} threads on "
         f"{cpu_peak_gflops(threads)[1]}, median of 5 (bench/timing.py).", "",
+        *prepass_lines(runtime, threads),
         "## Validation metrics", "",
     ]
     rows = evaluation or []

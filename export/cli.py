@@ -1,4 +1,5 @@
-"""quietframe-export: write an NBG model (trained checkpoint or seeded untrained) to ONNX."""
+"""quietframe-export: write an NBG or oidn-temporal model (trained checkpoint or seeded untrained)
+to ONNX."""
 
 from __future__ import annotations
 
@@ -26,13 +27,23 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from quietframe.export.onnx_export import export_nbg
+    from quietframe.model import oidn_temporal
     from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
 
     if args.variant == "accumulation" and not args.checkpoint:
         model, training, metrics = AccumulationDenoiser(), {"trained": False}, {}
     elif args.checkpoint:
-        model, checkpoint = load_checkpoint(str(args.checkpoint))
+        saved = torch.load(args.checkpoint, map_location="cpu", weights_only=True)["config"]
+        load = oidn_temporal.load_checkpoint if "quality" in saved else load_checkpoint
+        model, checkpoint = load(str(args.checkpoint))
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
+    elif args.variant in oidn_temporal.VARIANTS:
+        torch.manual_seed(args.seed)
+        config = oidn_temporal.VARIANTS[args.variant]
+        if args.width:
+            config = dataclasses.replace(config, width=args.width)
+        model = oidn_temporal.OIDNTemporal(config)
+        training, metrics = {"trained": False, "seed": args.seed}, {}
     else:
         torch.manual_seed(args.seed)
         config = VARIANTS[args.variant]

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from quietframe.model import affinity_kernels
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
+from quietframe.model.oidn_temporal import OIDNTemporal
 from quietframe.model.temporal import WARP_MODES
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.ops_library import OPS_DOMAIN
@@ -170,7 +171,7 @@ def custom_translation_table() -> dict:
 class _ExportWrapper(nn.Module):
     """Positional signature in the order of the graph inputs."""
 
-    def __init__(self, model: NBGDenoiser | AccumulationDenoiser) -> None:
+    def __init__(self, model: NBGDenoiser | AccumulationDenoiser | OIDNTemporal) -> None:
         super().__init__()
         self.model = model
 
@@ -179,9 +180,10 @@ class _ExportWrapper(nn.Module):
         return self.model(color, albedo, normal, depth, motion, reset, state)
 
 
-def example_inputs(height: int = 48, width: int = 64, seed: int = 0) -> tuple[Tensor, ...]:
+def example_inputs(height: int = 48, width: int = 64, seed: int = 0,
+                   state_channels: int = NBGDenoiser.state_channels) -> tuple[Tensor, ...]:
     """Plausible inputs (used for tracing and tests): (color, albedo, normal, depth, motion,
-    reset, state)."""
+    reset, state); for the oidn-temporal stage the first is OIDN's output instead of color."""
     gen = torch.Generator().manual_seed(seed)
     normal = torch.randn(1, 3, height, width, generator=gen)
     return (
@@ -191,20 +193,24 @@ def example_inputs(height: int = 48, width: int = 64, seed: int = 0) -> tuple[Te
         1 + torch.rand(1, 1, height, width, generator=gen) * 4,
         torch.randn(1, 2, height, width, generator=gen),
         torch.ones(1),
-        torch.zeros(1, NBGDenoiser.state_channels, height, width),
+        torch.zeros(1, state_channels, height, width),
     )
 
 
 def export_nbg(
-    model: NBGDenoiser | AccumulationDenoiser,
+    model: NBGDenoiser | AccumulationDenoiser | OIDNTemporal,
     path: Path,
     *,
     version: str = "0",
     training: Mapping | None = None,
     metrics: Mapping | None = None,
 ) -> Path:
-    """Write `model` (an NBG variant or the accumulation-only pre-stage) as a self-describing
-    ONNX file at `path` and return the path."""
+    """Write `model` (an NBG variant, the accumulation-only pre-stage or an oidn-temporal
+    stage) as a self-describing ONNX file at `path` and return the path.
+
+    A model with `inputs` names its own first graph inputs (oidn-temporal: the prepass result
+    "oidn" instead of "color"); a config with `prepass()` becomes quietframe.prepass, which the
+    runtime carries out before the graph (runtime/oidn_prepass.py)."""
     model = model.eval()
     height = torch.export.Dim("height", min=1, max=8192)
     width = torch.export.Dim("width", min=1, max=8192)
@@ -212,11 +218,13 @@ def export_nbg(
     # In the order of the forward arguments: the exporter matches them by position.
     dynamic = {name: image_dims for name in BUFFER_NAMES} | {"reset": None, "state": image_dims}
     table = custom_translation_table()
+    graph_inputs = tuple(getattr(model, "inputs", BUFFER_NAMES))
     with torch.no_grad():
         program = torch.onnx.export(
-            _ExportWrapper(model).eval(), example_inputs(), dynamo=True, opset_version=OPSET,
-            custom_translation_table=table, dynamic_shapes=dynamic,
-            input_names=[*BUFFER_NAMES, "reset", f"state_in.{STATE_NAME}"],
+            _ExportWrapper(model).eval(),
+            example_inputs(state_channels=model.state_channels), dynamo=True,
+            opset_version=OPSET, custom_translation_table=table, dynamic_shapes=dynamic,
+            input_names=[*graph_inputs, "reset", f"state_in.{STATE_NAME}"],
             output_names=["denoised", f"state_out.{STATE_NAME}"],
             verbose=False,
         )
@@ -234,6 +242,8 @@ def export_nbg(
         "quietframe.training": json.dumps(dict(training or {})),
         "quietframe.metrics": json.dumps(dict(metrics or {})),
     }
+    if hasattr(config, "prepass"):
+        metadata["quietframe.prepass"] = json.dumps(config.prepass())
     onnx.helper.set_model_props(proto, metadata)
     onnx.checker.check_model(proto)
     path = Path(path)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.runtime.oidn_prepass import OIDNSettings
 from quietframe.scenes.exr_io import color_layer, load_frame, pass_layer
 
 # Buffers returned by default: the model inputs (DESIGN.md names), the target, the motion mask.
@@ -96,17 +97,27 @@ def load_window(
     with_passes: bool = False,
     normal_space: str = "world",
     cache: FrameCache | None = None,
+    oidn: OIDNSettings | None = None,
 ) -> dict[str, np.ndarray]:
     """Frames t-history..t as numpy arrays (T, H, W, C); `color` is the `spp`-sample mean.
-    Frames before the sequence start repeat frame 0 (and are flagged as resets)."""
+    Frames before the sequence start repeat frame 0 (and are flagged as resets). With `oidn`,
+    also `oidn`: OIDN's output of each whole frame (model/oidn_cache.py, cached on disk)."""
     cache = cache or FrameCache(history + 1)
     idx = [max(i, 0) for i in range(t - history, t + 1)]
-    names = _disk_layers(buffers, spp, with_passes, seq.passes)
+    disk = (*buffers, "color", "albedo", "normal") if oidn else buffers
+    names = _disk_layers(disk, spp, with_passes, seq.passes)
     frames = [cache.get(seq.path / seq.files[i], names) for i in idx]
     out = {}
     for b in buffers:
         name = color_layer(spp) if b == "color" else b
         out[b] = np.stack([f[name] for f in frames])
+    if oidn is not None:
+        from quietframe.model.oidn_cache import cached_oidn_output
+
+        out["oidn"] = np.stack([
+            cached_oidn_output(seq.path, seq.files[i], spp, oidn, f[color_layer(spp)],
+                               f["albedo"], f["normal"])
+            for f, i in zip(frames, idx, strict=True)])
     if with_passes:  # (T, S, H, W, 3)
         out["passes"] = np.stack(
             [np.stack([f[pass_layer(k)] for k in range(seq.passes)]) for f in frames]
@@ -203,6 +214,7 @@ class CropDataset(_Dataset):
         augment: bool = True,
         normal_space: str = "world",
         cache_frames: int = 16,
+        oidn: OIDNSettings | None = None,
     ) -> None:
         self.sequences = list_sequences(root)
         if not self.sequences:
@@ -212,6 +224,7 @@ class CropDataset(_Dataset):
         self.buffers, self.with_passes = tuple(buffers), with_passes
         self.augment, self.normal_space = augment, normal_space
         self.cache = FrameCache(cache_frames)
+        self.oidn = oidn
 
     def __len__(self) -> int:
         return len(self.items)
@@ -224,7 +237,8 @@ class CropDataset(_Dataset):
         rng = np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
         spp = self.spp or int(rng.choice(seq.spp_levels))
         win = load_window(
-            seq, t, self.history, spp, self.buffers, self.with_passes, self.normal_space, self.cache
+            seq, t, self.history, spp, self.buffers, self.with_passes, self.normal_space,
+            self.cache, self.oidn,
         )
         h, w = win[self.buffers[0]].shape[1:3]
         ch, cw = min(self.crop, h), min(self.crop, w)
@@ -250,9 +264,10 @@ class SequenceDataset(_Dataset):
         buffers: tuple[str, ...] = DEFAULT_BUFFERS,
         with_passes: bool = False,
         normal_space: str = "world",
+        oidn: OIDNSettings | None = None,
     ) -> None:
         self.sequences = list_sequences(root)
-        self.spp, self.buffers = spp, tuple(buffers)
+        self.spp, self.buffers, self.oidn = spp, tuple(buffers), oidn
         self.with_passes, self.normal_space = with_passes, normal_space
 
     def __len__(self) -> int:
@@ -272,6 +287,7 @@ class SequenceDataset(_Dataset):
             self.with_passes,
             self.normal_space,
             FrameCache(n),
+            self.oidn,
         )
         out = _to_tensors(win)
         out["spp"] = torch.tensor(float(self.spp))

@@ -1,4 +1,5 @@
-"""quietframe-train: train an NBG variant on rendered sequences (CPU friendly, resumable).
+"""quietframe-train: train an NBG or oidn-temporal variant on rendered sequences (CPU friendly,
+resumable).
 
 One flat loop in a fixed order (nanoGPT style): sample a batch of short crop sequences, unroll
 the state-in/state-out model over the frames (so reprojection, accumulation and reset are
@@ -6,6 +7,10 @@ trained), loss, step, log; every `eval_every` steps validate and checkpoint.
 
 Run directory (--run): config.json, checkpoint.pt (latest, resumable), best.pt (best val PSNR),
 log.txt (one line per logged step).
+
+oidn-temporal variants (model/oidn_temporal.py) train the temporal stage on OIDN's output of the
+training frames, computed once per (sequence, frame, spp, quality) and cached on disk
+(model/oidn_cache.py); the loop, loss and schedule are the same.
 """
 
 from __future__ import annotations
@@ -24,13 +29,18 @@ from torch import Tensor
 from quietframe.model.losses import l1_tonemapped_loss, smape_loss, temporal_loss
 from quietframe.model.metrics import psnr
 from quietframe.model.nbg import VARIANTS, NBGConfig, NBGDenoiser
+from quietframe.model.oidn_temporal import VARIANTS as OIDN_VARIANTS
+from quietframe.model.oidn_temporal import OIDNTemporal, OIDNTemporalConfig
 from quietframe.runtime.buffers import BUFFER_NAMES
+from quietframe.runtime.oidn_prepass import OIDNSettings
+
+Model = NBGDenoiser | OIDNTemporal
 
 
 @dataclasses.dataclass
 class TrainConfig:
-    variant: str = "nbg-2l-3g"
-    width: int = 20
+    variant: str = "nbg-2l-3g"  # or oidn-temporal-high / oidn-temporal-fast
+    width: int = 0  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own (NBG: 20)
     data: str = "~/.cache/quietframe/data"
     loss: str = "smape+temporal"  # or "l1" (paper §4.4: L1 on the LDR-mapped output)
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
@@ -96,20 +106,41 @@ def drop_buffers(cfg: TrainConfig, batch: dict[str, Tensor], step: int) -> dict[
     return out
 
 
-def unroll(model: NBGDenoiser, batch: dict[str, Tensor]) -> list[Tensor]:
+def build_model(cfg: TrainConfig, checkpoint_config: dict | None = None) -> Model:
+    """The model of a run: the checkpoint's architecture when resuming, else the variant's
+    with --width (0 keeps the variant's own)."""
+    if cfg.variant in OIDN_VARIANTS:
+        config = (OIDNTemporalConfig(**checkpoint_config) if checkpoint_config else
+                  dataclasses.replace(OIDN_VARIANTS[cfg.variant],
+                                      width=cfg.width or OIDN_VARIANTS[cfg.variant].width))
+        return OIDNTemporal(config)
+    config = (NBGConfig(**checkpoint_config) if checkpoint_config else
+              dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width or
+                                  VARIANTS[cfg.variant].width))
+    return NBGDenoiser(config)
+
+
+def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
+    """The prepass whose output an oidn-temporal variant trains on (None for NBG)."""
+    config = OIDN_VARIANTS.get(cfg.variant)
+    return OIDNSettings(config.quality, config.prefilter_aux) if config else None
+
+
+def unroll(model: Model, batch: dict[str, Tensor]) -> list[Tensor]:
     """Run the model over a (B, T, C, h, w) batch, carrying the state; returns T outputs."""
     b, t, _, h, w = batch["color"].shape
     state = model.initial_state(b, h, w)
     outputs = []
+    inputs = getattr(model, "inputs", BUFFER_NAMES)  # oidn-temporal: "oidn" first
     for i in range(t):
         reset = torch.ones(b) if i == 0 else batch["reset"][:, i].float()
-        out, state = model(*(batch[k][:, i] for k in BUFFER_NAMES), reset, state)
+        out, state = model(*(batch[k][:, i] for k in inputs), reset, state)
         outputs.append(out)
     return outputs
 
 
 @torch.no_grad()
-def validate(model: NBGDenoiser, batches: list[dict[str, Tensor]]) -> float:
+def validate(model: Model, batches: list[dict[str, Tensor]]) -> float:
     """Mean PSNR (τ-mapped, model/metrics) of the last frame of each validation sequence."""
     model.eval()
     scores = []
@@ -121,7 +152,7 @@ def validate(model: NBGDenoiser, batches: list[dict[str, Tensor]]) -> float:
     return float(np.mean(scores))
 
 
-def save(path: Path, model: NBGDenoiser, optimizer, step: int, cfg: TrainConfig,
+def save(path: Path, model: Model, optimizer, step: int, cfg: TrainConfig,
          best_psnr: float, metrics: dict) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save({
@@ -146,7 +177,7 @@ class TrainingBatches:
         from quietframe.model.data import CropDataset
 
         self.dataset = CropDataset(split_root(cfg, "train"), crop=cfg.crop,
-                                   history=cfg.frames - 1)
+                                   history=cfg.frames - 1, oidn=oidn_settings(cfg))
         self.batch, self.seed = cfg.batch, cfg.seed
         self.per_epoch = max(len(self.dataset) // cfg.batch, 1)
         self._epoch, self._order = -1, torch.empty(0, dtype=torch.long)
@@ -172,7 +203,7 @@ def validation_batches(cfg: TrainConfig, spp: int = 1) -> list[dict[str, Tensor]
     root = split_root(cfg, "validation")
     if not root.exists():
         return []
-    dataset = SequenceDataset(root, spp=spp)
+    dataset = SequenceDataset(root, spp=spp, oidn=oidn_settings(cfg))
     return [{k: v.unsqueeze(0) for k, v in dataset[i].items()} for i in range(len(dataset))]
 
 
@@ -189,9 +220,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     latest = run / "checkpoint.pt"
     ckpt = torch.load(latest, map_location="cpu", weights_only=False) if latest.exists() else None
     # A resumed run is the checkpoint's own model, whatever the flags say (resume_config).
-    config = (NBGConfig(**ckpt["config"]) if ckpt else
-              dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width))
-    model = NBGDenoiser(config)
+    model = build_model(cfg, ckpt["config"] if ckpt else None)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if ckpt:
         model.load_state_dict(ckpt["model"])

@@ -18,6 +18,12 @@ import numpy as np
 import onnxruntime as ort
 
 from quietframe.runtime.buffers import BUFFER_CHANNELS, BufferError, check_buffers, check_plane
+from quietframe.runtime.oidn_prepass import (
+    PREPASS_BUFFERS,
+    OIDNPrepass,
+    PrepassUnavailable,
+    read_prepass,
+)
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 from quietframe.runtime.tiling import (
@@ -93,7 +99,11 @@ def make_session(path: Path, threads: int) -> ort.InferenceSession:
 class Denoiser:
     """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently).
     Frames above `tile_pixels` run in overlapping tiles (tiling.py) when the model card gives
-    the geometry to make them seamless; None runs every frame whole."""
+    the geometry to make them seamless; None runs every frame whole.
+
+    A model whose metadata names a prepass (quietframe.prepass, runtime/oidn_prepass.py) is a
+    composition: the runtime runs OIDN on the frame first and feeds its output to the graph.
+    Such a model raises PrepassUnavailable here when pyoidn is not installed."""
 
     def __init__(
         self,
@@ -110,6 +120,13 @@ class Denoiser:
         self.geometry = model_geometry(meta)
         self.tile_pixels = tile_pixels
         self._output_names = [o.name for o in self.session.get_outputs()]
+        self.input_names = {i.name for i in self.session.get_inputs()}
+        settings = read_prepass(meta)
+        try:
+            self.prepass = OIDNPrepass(settings, num_threads=threads) if settings else None
+        except PrepassUnavailable as exc:
+            exc.model = self.info.name  # for the service's log line and error
+            raise
 
     def check(self, present: Iterable[str]) -> tuple[str, ...]:
         """The one check of a frame's buffers against the model: the absent optional ones;
@@ -150,6 +167,11 @@ class Denoiser:
         """Denoise one frame of (C, H, W) float32 planes. `state` is the previous frame's
         `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut)."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
+        if self.prepass is not None:
+            # The sanitised planes, so OIDN sees exactly what a plain graph would.
+            feeds[self.prepass.settings.input] = self.prepass(
+                {name: feeds[name][0] for name in PREPASS_BUFFERS})
+        feeds = {k: v for k, v in feeds.items() if k in self.input_names}
         fresh = state is None
         if state is None:
             state = self.initial_state(height, width)

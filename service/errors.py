@@ -82,6 +82,12 @@ class UnknownModel(ServiceError):
     status, code = 422, "unknown_model"
 
 
+class ModelUnavailable(ServiceError):
+    """An installed model this server cannot run (oidn-temporal without pyoidn)."""
+
+    status, code = 422, "model_unavailable"
+
+
 class UnsupportedExr(ServiceError):
     """Deep data, subsampled channels."""
 

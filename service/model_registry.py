@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.runtime import BUFFER_CHANNELS, Denoiser, default_model_path, installed_models
-from quietframe.service.errors import UnknownModel
+from quietframe.runtime.oidn_prepass import PrepassUnavailable
+from quietframe.service.errors import ModelUnavailable, UnknownModel
 from quietframe.service.model_choice import ModelProfile, load_calibration
 from quietframe.service.schemas import BufferSpec, ModelPublic
 from quietframe.service.settings import Settings
@@ -35,8 +36,16 @@ class ModelRegistry:
             raise LookupError("no models installed (quietframe.models) and none in models_dir")
         self._denoisers: dict[str, Denoiser] = {}
         self._aliases: dict[str, str] = {}  # file stem -> model name
+        # Installed models this server cannot run (a prepass without its package): name and
+        # file stem -> why, so that asking for one says what to install.
+        self._unavailable: dict[str, str] = {}
         for path in paths:
-            denoiser = Denoiser(path, threads=settings.model_threads)
+            try:
+                denoiser = Denoiser(path, threads=settings.model_threads)
+            except PrepassUnavailable as exc:
+                log.warning("model %s at %s not offered: %s", exc.model or path.stem, path, exc)
+                self._unavailable.update({path.stem: str(exc), (exc.model or path.stem): str(exc)})
+                continue
             name = denoiser.info.name
             if name in self._denoisers:
                 log.warning("model %s at %s shadows an earlier one with that name", name, path)
@@ -76,6 +85,9 @@ class ModelRegistry:
             return name
         if name in self._aliases:
             return self._aliases[name]
+        if name in self._unavailable:
+            raise ModelUnavailable(f"model {name!r} is installed but not offered by this server: "
+                                   f"{self._unavailable[name]}")
         raise UnknownModel(f"unknown model {name!r}; installed: {self.names} or 'auto'")
 
     def denoiser(self, name: str) -> Denoiser:

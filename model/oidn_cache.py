@@ -1,0 +1,73 @@
+"""OIDN's output of rendered frames, computed once and cached on disk (training of oidn-temporal).
+
+The temporal stage trains on what the runtime will feed it: the same sanitising rule and the
+same prepass code (runtime/oidn_prepass.py) on the full frame (crops come after, as OIDN is not
+crop-equivariant at the borders). One .npy per (sequence, frame, spp, OIDN settings):
+
+    ~/.cache/quietframe/oidn/<generator>/<split>/<seed>/<frame>.spp<N>.<quality>[-cleanaux].npy
+
+(QUIETFRAME_OIDN_CACHE overrides the root). Files are written atomically, so concurrent loader
+processes and killed runs never leave a torn one.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+from quietframe.runtime.sanitize import sanitize_buffer
+
+_prepasses: dict[OIDNSettings, OIDNPrepass] = {}
+_lock = threading.Lock()
+
+
+def cache_root() -> Path:
+    return Path(os.environ.get("QUIETFRAME_OIDN_CACHE", "~/.cache/quietframe/oidn")).expanduser()
+
+
+def cache_path(sequence_dir: Path, frame_file: str, spp: int, settings: OIDNSettings) -> Path:
+    """Keyed by the sequence's last three path parts (generator/split/seed), frame, spp and
+    the OIDN settings."""
+    suffix = f"{settings.quality}{'-cleanaux' if settings.prefilter_aux else ''}"
+    stem = Path(frame_file).stem
+    return cache_root().joinpath(*Path(sequence_dir).parts[-3:], f"{stem}.spp{spp}.{suffix}.npy")
+
+
+def _prepass(settings: OIDNSettings) -> OIDNPrepass:
+    with _lock:
+        if settings not in _prepasses:
+            _prepasses[settings] = OIDNPrepass(settings)
+        return _prepasses[settings]
+
+
+def oidn_output(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray,
+                settings: OIDNSettings) -> np.ndarray:
+    """OIDN of (H, W, 3) images through the runtime's rule and prepass -> (H, W, 3) float32."""
+    planes = {}
+    for name, image in (("color", color), ("albedo", albedo), ("normal", normal)):
+        clean, _ = sanitize_buffer(name, np.ascontiguousarray(
+            np.asarray(image, np.float32)[..., :3].transpose(2, 0, 1)))
+        planes[name] = np.ascontiguousarray(clean)
+    return np.ascontiguousarray(_prepass(settings)(planes)[0].transpose(1, 2, 0))
+
+
+def cached_oidn_output(sequence_dir: Path, frame_file: str, spp: int, settings: OIDNSettings,
+                       color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """The cached OIDN output of one frame ((H, W, 3) images in), computing and storing it on a
+    miss. An entry of another size (same seed rendered again at another size) is recomputed."""
+    path = cache_path(sequence_dir, frame_file, spp, settings)
+    if path.exists():
+        cached = np.load(path)
+        if cached.shape == (*np.shape(color)[:2], 3):
+            return cached
+    result = oidn_output(color, albedo, normal, settings)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+    with tmp.open("wb") as f:
+        np.save(f, result)
+    tmp.replace(path)
+    return result

@@ -1,0 +1,195 @@
+"""A per-frame Open Image Denoise pass that runs before a model's graph (the oidn-temporal tier).
+
+A model asks for it in its metadata (docs/model-interface.md):
+
+    quietframe.prepass = {"oidn": {"quality": "high", "prefilter_aux": false}, "input": "oidn"}
+
+and the runtime (`Denoiser`) runs OIDN's RT filter on the frame's sanitised color, albedo and
+normal and feeds the result to the graph input named by "input". pyoidn is optional: without it
+`OIDNPrepass` raises `PrepassUnavailable`, and the service leaves such models out.
+
+Resources: one OIDN device per worker thread (OIDN devices are not meant to be shared between
+threads that execute concurrently), and per thread the committed filters of the last frame sizes
+seen, so a sequence pays for device and filter creation once. pyoidn binds numpy memory
+zero-copy without keeping it alive: every bound array is held by the filter set that binds it,
+frames are copied into those arrays, and filters are released before their arrays.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections import OrderedDict
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+QUALITIES = {"fast": "OIDN_QUALITY_FAST", "balanced": "OIDN_QUALITY_BALANCED",
+             "high": "OIDN_QUALITY_HIGH"}
+PREPASS_KEY = "quietframe.prepass"
+PREPASS_BUFFERS = ("color", "albedo", "normal")  # what OIDN reads, as (3, H, W) planes
+SIZES_PER_THREAD = 2  # filter sets kept per thread (a session's size, plus one other)
+
+
+class PrepassUnavailable(RuntimeError):
+    """The model needs a prepass this installation cannot run (pyoidn is not installed)."""
+
+    model: str | None = None  # the model's name, set by the runtime that loads it
+
+
+@dataclass(frozen=True)
+class OIDNSettings:
+    quality: str = "high"
+    prefilter_aux: bool = False
+    input: str = "oidn"  # the graph input that receives OIDN's output
+
+    def __post_init__(self) -> None:
+        if self.quality not in QUALITIES:
+            raise ValueError(f"prepass: OIDN quality must be one of {list(QUALITIES)}, "
+                             f"got {self.quality!r}")
+
+
+def read_prepass(metadata: Mapping[str, str]) -> OIDNSettings | None:
+    """The model's prepass from its metadata, or None when it has none."""
+    text = metadata.get(PREPASS_KEY)
+    if not text:
+        return None
+    spec = json.loads(text)
+    if set(spec) - {"oidn", "input"} or "oidn" not in spec:
+        raise ValueError(f"{PREPASS_KEY}: only an 'oidn' prepass is known, got {sorted(spec)}")
+    oidn = spec["oidn"]
+    return OIDNSettings(quality=oidn.get("quality", "high"),
+                        prefilter_aux=bool(oidn.get("prefilter_aux", False)),
+                        input=spec.get("input", "oidn"))
+
+
+def import_pyoidn():
+    """pyoidn, or PrepassUnavailable saying how to get it."""
+    try:
+        import pyoidn
+    except ImportError as exc:
+        raise PrepassUnavailable(
+            "this model runs Open Image Denoise first and needs the pyoidn package "
+            "(pip install 'quietframe[oidn]')") from exc
+    return pyoidn
+
+
+class _FilterSet:
+    """Committed RT filters for one frame size on one device, with the arrays they bind."""
+
+    def __init__(self, pyoidn, device, settings: OIDNSettings, shape: tuple[int, int]) -> None:
+        self._oidn, self._device = pyoidn, device
+        names = ["color", "albedo", "normal", "output"]
+        if settings.prefilter_aux:
+            names += ["clean_albedo", "clean_normal"]
+        # (H, W, 3) interleaved: OIDN's FLOAT3 layout; the runtime's planes are copied in.
+        self.bound = {k: np.zeros((*shape, 3), np.float32) for k in names}
+        self.filters: list = []  # execution order: [albedo, normal,] main
+        aux = {"albedo": "albedo", "normal": "normal"}
+        if settings.prefilter_aux:
+            self._add({"albedo": "albedo", "output": "clean_albedo"}, settings)
+            self._add({"normal": "normal", "output": "clean_normal"}, settings)
+            aux = {"albedo": "clean_albedo", "normal": "clean_normal"}
+        self._add({"color": "color", **aux, "output": "output"}, settings)
+
+    def _add(self, images: dict[str, str], settings: OIDNSettings) -> None:
+        oidn = self._oidn
+        flt = oidn.Filter(self._device, oidn.OIDN_FILTER_TYPE_RT)
+        self.filters.append(flt)  # released by close() even if configuring fails
+        for slot, key in images.items():
+            flt.set_image(slot, self.bound[key], oidn.OIDN_FORMAT_FLOAT3)
+        flt.set_quality(getattr(oidn, QUALITIES[settings.quality]))
+        if "color" in images:
+            flt.set_bool("hdr", True)
+            flt.set_bool("cleanAux", settings.prefilter_aux)
+        flt.commit()
+        _check(self._device, "filter commit")
+
+    def run(self, planes: Mapping[str, np.ndarray], out: np.ndarray) -> None:
+        for name in PREPASS_BUFFERS:
+            np.copyto(self.bound[name], planes[name].transpose(1, 2, 0))  # (3,H,W) -> (H,W,3)
+        for flt in self.filters:
+            flt.execute()
+            _check(self._device, "execute")
+        np.copyto(out, self.bound["output"].transpose(2, 0, 1))
+
+    def close(self) -> None:
+        for flt in self.filters:  # filters first, then (by dropping them) the bound arrays
+            flt.release()
+        self.filters, self.bound = [], {}
+
+
+def _check(device, what: str) -> None:
+    error = device.get_error()
+    if error is not None:
+        raise RuntimeError(f"OIDN prepass: {what} failed: {error}")
+
+
+class _ThreadResources:
+    """One thread's OIDN device and its filter sets by frame size (LRU)."""
+
+    def __init__(self, pyoidn, num_threads: int) -> None:
+        self.device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+        if num_threads:
+            self.device.set_int("numThreads", num_threads)
+        self.device.commit()
+        _check(self.device, "device creation")
+        self.sets: OrderedDict[tuple[int, int], _FilterSet] = OrderedDict()
+
+    def close(self) -> None:
+        for filter_set in self.sets.values():
+            filter_set.close()
+        self.sets.clear()
+        self.device.release()
+
+
+class OIDNPrepass:
+    """OIDN's RT filter on (3, H, W) planes; thread-safe (per-thread device and filters)."""
+
+    def __init__(self, settings: OIDNSettings, num_threads: int = 0) -> None:
+        self._oidn = import_pyoidn()
+        self.settings, self.num_threads = settings, num_threads  # 0: all cores (OIDN default)
+        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._all: list[_ThreadResources] = []  # every thread's, for close()
+        self.devices_created = 0  # counters for tests and logs
+        self.filter_sets_built = 0
+
+    def _resources(self) -> _ThreadResources:
+        resources = getattr(self._local, "resources", None)
+        if resources is None:
+            resources = _ThreadResources(self._oidn, self.num_threads)
+            self._local.resources = resources
+            with self._lock:
+                self._all.append(resources)
+                self.devices_created += 1
+        return resources
+
+    def _filter_set(self, shape: tuple[int, int]) -> _FilterSet:
+        resources = self._resources()
+        filter_set = resources.sets.get(shape)
+        if filter_set is None:
+            filter_set = _FilterSet(self._oidn, resources.device, self.settings, shape)
+            resources.sets[shape] = filter_set
+            with self._lock:
+                self.filter_sets_built += 1
+            while len(resources.sets) > SIZES_PER_THREAD:
+                resources.sets.popitem(last=False)[1].close()
+        resources.sets.move_to_end(shape)
+        return filter_set
+
+    def __call__(self, planes: Mapping[str, np.ndarray]) -> np.ndarray:
+        """OIDN's output (1, 3, H, W) float32 for sanitised color/albedo/normal planes."""
+        _, height, width = planes["color"].shape
+        out = np.empty((1, 3, height, width), np.float32)
+        self._filter_set((height, width)).run(planes, out[0])
+        return out
+
+    def close(self) -> None:
+        """Release every thread's filters and device (no thread may be running a frame)."""
+        with self._lock:
+            for resources in self._all:
+                resources.close()
+            self._all.clear()
+        self._local = threading.local()
