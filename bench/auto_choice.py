@@ -126,16 +126,9 @@ def oidn_call(present: tuple[str, ...], threads: int):
     only together with an albedo)."""
     from quietframe.bench.baselines import OIDNDenoiser
 
-    class SameBuffers(OIDNDenoiser):
-        def _new_filter(self, images: dict[str, str]) -> object:
-            if "color" in images:
-                aux = {"albedo"} & set(present)
-                if aux and "normal" in present:
-                    aux.add("normal")
-                images = {k: v for k, v in images.items() if k in ("color", "output", *aux)}
-            return super()._new_filter(images)
-
-    oidn = SameBuffers("balanced", num_threads=threads)
+    aux = ("albedo", "normal") if {"albedo", "normal"} <= set(present) else (
+        ("albedo",) if "albedo" in present else ())
+    oidn = OIDNDenoiser("balanced", num_threads=threads, aux=aux)
 
     def call(planes, state):
         hwc = {k: v.transpose(1, 2, 0) for k, v in planes.items()}

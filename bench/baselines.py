@@ -20,6 +20,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from quietframe.bench.timing import Timing, time_ms
+from quietframe.runtime.buffers import planes_from_hwc
 
 # --- shared temporal rule (NBG §4.6; equal to model/temporal.py and model/nbg.py) -------------
 DEPTH_REL_TOLERANCE = 0.1  # history kept where |d_prev - d| <= 0.1 d ...
@@ -438,104 +439,43 @@ class SVGFStyleFilter:
 
 # --- Open Image Denoise ----------------------------------------------------------------------
 Quality = Literal["fast", "balanced", "high"]
-_OIDN_QUALITY = {"fast": "OIDN_QUALITY_FAST", "balanced": "OIDN_QUALITY_BALANCED",
-                 "high": "OIDN_QUALITY_HIGH"}
 
 
 class OIDNDenoiser:
-    """Intel Open Image Denoise (RT filter, hdr, albedo + normal), single-frame.
+    """Intel Open Image Denoise alone (RT filter, hdr, albedo + normal), single-frame, on
+    (H, W, C) images. It is the runtime's OIDN prepass (runtime/oidn_prepass.py), so this
+    baseline and the oidn-temporal tier run the same OIDN code with the same settings.
 
     With `prefilter_aux`, albedo and normal are first denoised by their own RT filters and the main
-    filter is told `cleanAux` (OIDN's documented workflow for noisy auxiliary buffers).
-    Device and filters are built and committed once per resolution. pyoidn binds numpy memory
-    zero-copy without keeping it alive, so every bound array is held on `self` (`_bound`) for as
-    long as its filter lives, and frames are copied into those fixed arrays.
+    filter is told `cleanAux` (OIDN's documented workflow for noisy auxiliary buffers). `aux`
+    chooses what OIDN is given besides the colour (a normal only together with an albedo).
     """
 
     def __init__(
-        self, quality: Quality = "high", prefilter_aux: bool = False, num_threads: int = 0
+        self,
+        quality: Quality = "high",
+        prefilter_aux: bool = False,
+        num_threads: int = 0,
+        aux: tuple[str, ...] = ("albedo", "normal"),
     ) -> None:
-        self._device = None
-        self._filters: list = []  # execution order: [albedo, normal,] main
-        self._bound: dict[str, np.ndarray] = {}
-        self._shape: tuple[int, int] | None = None
-        if quality not in _OIDN_QUALITY:
-            raise ValueError(f"OIDNDenoiser: quality must be fast, balanced or high: {quality!r}")
-        import pyoidn  # deferred: an optional dependency of the evaluation
+        from quietframe.runtime.oidn_prepass import QUALITIES, OIDNPrepass, OIDNSettings
 
-        self._oidn = pyoidn
-        self.quality = quality
-        self.prefilter_aux = prefilter_aux
-        self.num_threads = num_threads  # 0: OIDN's default (all cores)
+        if quality not in QUALITIES:
+            raise ValueError(f"OIDNDenoiser: quality must be fast, balanced or high: {quality!r}")
+        self.quality, self.prefilter_aux = quality, prefilter_aux
+        self._prepass = OIDNPrepass(OIDNSettings(quality, prefilter_aux, aux=aux), num_threads)
 
     def reset(self) -> None:
         """Single-frame: nothing to forget (resources are kept for the next frame)."""
 
     def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
         color, albedo, normal, _, _ = _canonical(buffers)
-        if self._shape != color.shape[:2]:
-            self._build(color.shape[:2])
-        np.copyto(self._bound["color"], color)
-        np.copyto(self._bound["albedo"], albedo)
-        np.copyto(self._bound["normal"], normal)
-        for flt in self._filters:
-            flt.execute()
-            self._check("execute")
-        return self._bound["output"].copy()
-
-    def _check(self, what: str) -> None:
-        error = self._device.get_error()
-        if error is not None:
-            raise RuntimeError(f"OIDNDenoiser: {what} failed: {error}")
-
-    def _new_filter(self, images: dict[str, str]) -> object:
-        """An RT filter with images bound by slot → key of `self._bound`, committed."""
-        oidn = self._oidn
-        flt = oidn.Filter(self._device, oidn.OIDN_FILTER_TYPE_RT)
-        self._filters.append(flt)  # released by close() even if configuring fails
-        for slot, key in images.items():
-            flt.set_image(slot, self._bound[key], oidn.OIDN_FORMAT_FLOAT3)
-        flt.set_quality(getattr(oidn, _OIDN_QUALITY[self.quality]))
-        if "color" in images:
-            flt.set_bool("hdr", True)
-            flt.set_bool("cleanAux", self.prefilter_aux)
-        flt.commit()
-        self._check("filter commit")
-        return flt
-
-    def _build(self, shape: tuple[int, int]) -> None:
-        self.close()
-        oidn = self._oidn
-        self._device = oidn.Device(oidn.OIDN_DEVICE_TYPE_CPU)
-        if self.num_threads:
-            self._device.set_int("numThreads", self.num_threads)
-        self._device.commit()
-        self._check("device creation")
-        names = ["color", "albedo", "normal", "output"]
-        if self.prefilter_aux:
-            names += ["clean_albedo", "clean_normal"]
-        self._bound = {k: np.zeros((*shape, 3), np.float32) for k in names}
-        aux = {"albedo": "albedo", "normal": "normal"}
-        if self.prefilter_aux:
-            self._new_filter({"albedo": "albedo", "output": "clean_albedo"})
-            self._new_filter({"normal": "normal", "output": "clean_normal"})
-            aux = {"albedo": "clean_albedo", "normal": "clean_normal"}
-        self._new_filter({"color": "color", **aux, "output": "output"})
-        self._shape = shape
+        planes = planes_from_hwc({"color": color, "albedo": albedo, "normal": normal})
+        return self._prepass(planes)[0].transpose(1, 2, 0)
 
     def close(self) -> None:
         """Release filters, then the device, then the memory they were bound to."""
-        for flt in self._filters:
-            flt.release()
-        self._filters = []
-        if self._device is not None:
-            self._device.release()
-            self._device = None
-        self._bound = {}
-        self._shape = None
-
-    def __del__(self) -> None:
-        self.close()
+        self._prepass.close()
 
 
 # --- speed -----------------------------------------------------------------------------------

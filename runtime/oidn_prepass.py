@@ -43,11 +43,16 @@ class OIDNSettings:
     quality: str = "high"
     prefilter_aux: bool = False
     input: str = "oidn"  # the graph input that receives OIDN's output
+    aux: tuple[str, ...] = ("albedo", "normal")  # what OIDN is given besides the colour
 
     def __post_init__(self) -> None:
         if self.quality not in QUALITIES:
             raise ValueError(f"prepass: OIDN quality must be one of {list(QUALITIES)}, "
                              f"got {self.quality!r}")
+        if set(self.aux) - {"albedo", "normal"} or ("normal" in self.aux
+                                                     and "albedo" not in self.aux):
+            raise ValueError(f"prepass: OIDN aux must be (), ('albedo',) or ('albedo', 'normal') "
+                             f"(a normal only with an albedo), got {self.aux!r}")
 
 
 def read_prepass(metadata: Mapping[str, str]) -> OIDNSettings | None:
@@ -80,17 +85,18 @@ class _FilterSet:
 
     def __init__(self, pyoidn, device, settings: OIDNSettings, shape: tuple[int, int]) -> None:
         self._oidn, self._device = pyoidn, device
-        names = ["color", "albedo", "normal", "output"]
+        self.inputs = ("color", *settings.aux)
+        names = [*self.inputs, "output"]
         if settings.prefilter_aux:
-            names += ["clean_albedo", "clean_normal"]
+            names += [f"clean_{name}" for name in settings.aux]
         # (H, W, 3) interleaved: OIDN's FLOAT3 layout; the runtime's planes are copied in.
         self.bound = {k: np.zeros((*shape, 3), np.float32) for k in names}
         self.filters: list = []  # execution order: [albedo, normal,] main
-        aux = {"albedo": "albedo", "normal": "normal"}
+        aux = {name: name for name in settings.aux}
         if settings.prefilter_aux:
-            self._add({"albedo": "albedo", "output": "clean_albedo"}, settings)
-            self._add({"normal": "normal", "output": "clean_normal"}, settings)
-            aux = {"albedo": "clean_albedo", "normal": "clean_normal"}
+            for name in settings.aux:
+                self._add({name: name, "output": f"clean_{name}"}, settings)
+            aux = {name: f"clean_{name}" for name in settings.aux}
         self._add({"color": "color", **aux, "output": "output"}, settings)
 
     def _add(self, images: dict[str, str], settings: OIDNSettings) -> None:
@@ -107,7 +113,7 @@ class _FilterSet:
         _check(self._device, "filter commit")
 
     def run(self, planes: Mapping[str, np.ndarray], out: np.ndarray) -> None:
-        for name in PREPASS_BUFFERS:
+        for name in self.inputs:
             np.copyto(self.bound[name], planes[name].transpose(1, 2, 0))  # (3,H,W) -> (H,W,3)
         for flt in self.filters:
             flt.execute()
