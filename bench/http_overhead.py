@@ -19,6 +19,7 @@ render: piecewise-constant albedo, smooth normals and depth, a constant camera p
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import os
@@ -28,6 +29,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +163,28 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@contextlib.contextmanager
+def loopback_server(env: dict[str, str]) -> Iterator[tuple[str, subprocess.Popen]]:
+    """A `quietframe serve` process on a free loopback port: (url, process), stopped on exit."""
+    port = free_port()
+    server = start_server(port, env)
+    try:
+        yield f"http://127.0.0.1:{port}", server
+    finally:
+        server.terminate()
+        server.wait(30)
+
+
+def run_threads(threads: list[threading.Thread]) -> float:
+    """Start every thread, wait for all; the wall seconds that took."""
+    start = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return time.perf_counter() - start
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, default=1280)
@@ -243,12 +267,7 @@ def main(argv: list[str] | None = None) -> int:
                 threading.Thread(target=stream, args=(url, size, body, exrs, args.frames, logs[k]))
                 for k in range(n)
             ]
-            start = time.perf_counter()
-            for t in threads:
-                t.start()
-            for t in threads:
-                t.join()
-            wall = time.perf_counter() - start
+            wall = run_threads(threads)
             done = sum(len(entries) for entries in logs)
             throughput[n] = {
                 "frames_per_s": round(done / wall, 3),

@@ -24,9 +24,9 @@ import numpy as np
 
 from quietframe.bench.http_overhead import (
     blender_exr,
-    free_port,
+    loopback_server,
     rss_mib,
-    start_server,
+    run_threads,
     synthetic_buffers,
 )
 
@@ -115,27 +115,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     size = (args.width, args.height)
     frames = frames_for(*size, 4)
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    server = start_server(port, server_env(args.threads, args.workers))
     tally = Tally()
-    try:
+    with loopback_server(server_env(args.threads, args.workers)) as (url, server):
         with httpx.Client(timeout=600) as http:
             session_args = (http, url, size, frames, args.frames, tally)
-            threads = [
+            seconds = run_threads([
                 threading.Thread(target=run_session, args=session_args)
                 for _ in range(args.sessions)
-            ]
-            start = time.perf_counter()
-            for t in threads:
-                t.start()
-            for t in threads:
-                t.join()
-            seconds = time.perf_counter() - start
+            ])
         peak = rss_mib(server.pid, "VmHWM")
-    finally:
-        server.terminate()
-        server.wait(30)
     result = report(
         tally, seconds, peak, size=f"{size[0]}x{size[1]}", sessions=args.sessions,
         frames_per_session=args.frames, exr_mib=round(len(frames[0]) / 2**20, 2),

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from quietframe.bench.http_overhead import free_port, rss_mib, start_server
+from quietframe.bench.http_overhead import loopback_server, rss_mib
 from quietframe.bench.load import Tally, frames_for, report, server_env
 
 
@@ -72,33 +72,27 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     size = (args.width, args.height)
     frames = frames_for(*size, 4)
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
     env = server_env(args.threads, args.workers)
     env["QUIETFRAME_SESSION_TTL_S"] = str(args.ttl)
-    server = start_server(port, env)
     tally, samples = Tally(), []
     deadline = time.monotonic() + 60 * args.minutes
-    try:
-        with httpx.Client(timeout=600) as http:
-            workers = [
-                threading.Thread(
-                    target=churn,
-                    args=(http, url, port, size, frames, args.frames, deadline, tally, i == 0),
-                )
-                for i in range(args.clients)
-            ]
-            start = time.monotonic()
-            for w in workers:
-                w.start()
-            while any(w.is_alive() for w in workers):
-                samples.append((time.monotonic() - start, rss_mib(server.pid)))
-                time.sleep(1)
-            seconds = time.monotonic() - start
+    with loopback_server(env) as (url, server), httpx.Client(timeout=600) as http:
+        port = int(url.rsplit(":", 1)[1])
+        workers = [
+            threading.Thread(
+                target=churn,
+                args=(http, url, port, size, frames, args.frames, deadline, tally, i == 0),
+            )
+            for i in range(args.clients)
+        ]
+        start = time.monotonic()
+        for w in workers:
+            w.start()
+        while any(w.is_alive() for w in workers):
+            samples.append((time.monotonic() - start, rss_mib(server.pid)))
+            time.sleep(1)
+        seconds = time.monotonic() - start
         peak = rss_mib(server.pid, "VmHWM")
-    finally:
-        server.terminate()
-        server.wait(30)
     t, rss = np.array(samples).T
     half = t >= t[-1] / 2
     slope = float(np.polyfit(t[half], rss[half], 1)[0]) * 60 if half.sum() > 2 else float("nan")
