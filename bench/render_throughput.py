@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         load_scene,
         render_reference,
         render_sequence,
-        set_camera,
+        set_frame,
         set_variant,
     )
 
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     scene, path, _ = load_scene(desc, cfg)
     load_s = time.perf_counter() - t0
-    set_camera(scene, Camera(**desc["cameras"][0]))
+    set_frame(scene, Camera(**desc["cameras"][0]), [], 0)
     t0 = time.perf_counter()
     np.array(mi.render(scene, integrator=path, seed=1, spp=4))
     render_reference(scene, path, 1, 4)

@@ -167,7 +167,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     from .camera import Camera
     from .generator import generate, summary
-    from .render import load_scene, render_passes, set_camera, set_variant
+    from .render import load_scene, render_passes, set_frame, set_variant
 
     variant = set_variant(args.variant)
     cfg = _config(args)
@@ -177,13 +177,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         scene, ref, table = load_scene(desc, cfg)
         load_s = time.perf_counter() - t0
-        set_camera(scene, Camera(**desc["cameras"][0]))
+        set_frame(scene, Camera(**desc["cameras"][0]), [], 0)
         t0 = time.perf_counter()
         render_passes(scene, ref, 1, cfg.passes, table)
         np.array(mi.render(scene, integrator=ref, seed=2, spp=1))
         compile_s = time.perf_counter() - t0
         for f in (1, 2):
-            set_camera(scene, Camera(**desc["cameras"][f]))
+            set_frame(scene, Camera(**desc["cameras"][f]), [], f)
             t0 = time.perf_counter()
             render_passes(scene, ref, 10 + f, cfg.passes, table)
             pass_s = time.perf_counter() - t0
