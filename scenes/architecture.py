@@ -125,6 +125,10 @@ def plan(rng: np.random.Generator, courtyard: bool) -> dict:
             if sum(o["kind"] == "window" and o.get("space") == si for o in openings) >= n_windows:
                 break
             _try_window(rng, spaces, si, openings, shared if si == 0 else None)
+    for _ in range(200):  # daylight needs a way in: the main room always has a window
+        if any(o["kind"] == "window" and o.get("space") == 0 for o in openings):
+            break
+        _try_window(rng, spaces, 0, openings, shared)
     return {"kind": "interior", "spaces": spaces, "openings": openings}
 
 

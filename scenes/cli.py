@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import sys
 import time
 import traceback
@@ -106,6 +107,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     from .render import _frame_count
 
+    t_start = time.perf_counter()
     cfg = _config(args)
     root = split_dir(args.out, args.split)
     seeds = split_seeds(args.split, args.sequences, args.start)
@@ -153,7 +155,92 @@ def cmd_render(args: argparse.Namespace) -> int:
     bar.close()
     failed = sum(status.startswith("failed") for _, status in results)
     print(f"finished: {len(jobs) - failed} sequences rendered, {failed} failed", flush=True)
+    write_split_manifest(root, args, cfg, seeds, time.perf_counter() - t_start)
     return 1 if failed else 0
+
+
+def _noise_job(job: tuple[str, int]) -> dict:
+    from .render import reference_noise
+
+    return reference_noise(*job)
+
+
+def write_split_manifest(root: Path, args: argparse.Namespace, cfg, seeds: list[int], wall: float):
+    """<split>/split.json: command, seeds, config, render times and CPU time summed from the
+    sequence manifests, and the reference noise (a second independent reference of frame 1
+    of `--noise-frames` sequences spread over the split; measured once per config)."""
+    path = root / "split.json"
+    old = json.loads(path.read_text()) if path.exists() else {}
+    seqs = [
+        json.loads((root / str(s) / "manifest.json").read_text())
+        for s in seeds
+        if _done_frames(root / str(s))
+    ]
+    frames = [f for m in seqs for f in m["frames"]]
+    noise = old.get("reference_noise") if old.get("config") == cfg.key() else None
+    complete = all(
+        _done_frames(root / str(s)) >= len(m["frames"]) > 0
+        for s, m in zip(seeds, seqs, strict=False)
+    )
+    if noise is None and args.noise_frames > 0 and seqs and complete and len(seqs) == len(seeds):
+        pick = [seqs[int(i)] for i in np.linspace(0, len(seqs) - 1, args.noise_frames)]
+        jobs = [(str(root / str(m["seed"])), 1) for m in pick]
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(
+            min(args.jobs, len(jobs)), _init_worker, (args.variant, 1 if args.jobs > 1 else 0, None)
+        ) as pool:
+            per_frame = pool.map(_noise_job, jobs)
+        med = [r["median_relative_difference"] for r in per_frame]
+        noise = {
+            "median_relative_difference": float(np.median(med)),
+            "frames": per_frame,
+            "eps": 0.01,
+            "definition": "median over pixels of |a-b| / ((a+b)/2 + eps), luminance, two "
+            "independent references of the same spp; the median over the frames",
+        }
+        print(
+            f"reference noise: median relative difference "
+            f"{noise['median_relative_difference']:.4f}",
+            flush=True,
+        )
+    stats = [m.get("lighting_stats", {}) for m in seqs]
+    manifest = {
+        "command": "quietframe-render " + " ".join(sys.argv[1:]),
+        "split": args.split,
+        "seeds": seeds,
+        "config": cfg.key(),
+        "sequences_done": sum(
+            _done_frames(root / str(s)) >= _frame_count_of(root / str(s)) for s in seeds
+        ),
+        "frames_done": len(frames),
+        "render_s": round(
+            sum(m["scene_setup_s"] for m in seqs)
+            + sum(f["passes_s"] + f["reference_s"] + f["write_s"] for f in frames),
+            1,
+        ),
+        "cpu_s": round(sum(f.get("cpu_s", 0.0) for f in frames), 1),
+        "wall_s_last_run": round(wall, 1),
+        "reference_noise": noise,
+        "lighting": {
+            "indirect_sequences": sum(s.get("direct_fraction", 1) < 0.5 for s in stats),
+            "direct_fraction_median": float(np.median([s["direct_fraction"] for s in stats if s]))
+            if any(stats)
+            else None,
+            "black_1spp_fraction_median": float(
+                np.median([s["preview_black_fraction"] for s in stats if s])
+            )
+            if any(stats)
+            else None,
+        },
+    }
+    tmp = path.with_name("split.json.tmp")
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, path)
+
+
+def _frame_count_of(seq_dir: Path) -> int:
+    m = seq_dir / "manifest.json"
+    return json.loads(m.read_text())["frame_count"] if m.exists() else 1 << 30
 
 
 # ---------------------------------------------------------------------------------------------
@@ -250,6 +337,12 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--start", type=int, default=0, help="index of the first sequence")
     r.add_argument("--jobs", type=int, default=1)
     r.add_argument("--threads", type=int, default=None, help="render threads per job")
+    r.add_argument(
+        "--noise-frames",
+        type=int,
+        default=3,
+        help="frames that get a second reference to measure the reference noise (0: none)",
+    )
     b = sub.add_parser("bench", help="measure render throughput on this machine")
     common(b)
     b.add_argument("--seeds", type=int, default=3)

@@ -120,8 +120,9 @@ def _environment(rng: np.random.Generator, layout: dict, mode: str) -> dict:
 
 
 def sun_enters(desc: dict) -> bool:
-    """The sun shines through a window of the main room onto its floor: a ray from the floor
-    point under the window's centre patch towards the sun leaves through the opening."""
+    """The sun shines into the main room: a ray from a window's centre towards the sun gets
+    out through the window's reveal, and with a high sun ("sun" lighting) the patch it makes
+    lands on the room's floor."""
     sun = desc["environment"].get("sun")
     if sun is None or desc["layout"]["kind"] == "courtyard":
         return sun is not None
@@ -130,6 +131,15 @@ def sun_enters(desc: dict) -> bool:
     for o in desc["layout"]["openings"]:
         if o["kind"] != "window" or o.get("space") != 0 or d[1] <= 0:
             continue
+        along = d[0] if o["axis"] == "x" else d[2]
+        out = -o["inward"] * (d[2] if o["axis"] == "x" else d[0])
+        if out <= 0:
+            continue
+        s = architecture.WALL / out  # distance to the outer face of the wall
+        if abs(s * along) > (o["u"][1] - o["u"][0]) / 2 or s * d[1] > (o["v"][1] - o["v"][0]) / 2:
+            continue
+        if desc["lighting"] != "sun":
+            return True
         u = (o["u"][0] + o["u"][1]) / 2
         v = (o["v"][0] + o["v"][1]) / 2
         plane = o["planes"][0]

@@ -475,7 +475,7 @@ def _object_motion(
 
 def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, exposure, cfg, path):
     cam = cams[t]
-    tp = time.perf_counter()
+    tp, cpu0 = time.perf_counter(), time.process_time()
     set_frame(scene, cam, movers, t)
     passes = render_passes(scene, reference, _seed(seed, t), cfg.passes, table)
     t_passes = time.perf_counter() - tp
@@ -542,6 +542,7 @@ def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, e
         "passes_s": round(t_passes, 3),
         "reference_s": round(t_ref, 3),
         "write_s": round(t_write, 3),
+        "cpu_s": round(time.process_time() - cpu0, 2),  # this process, all its threads
         "motion_valid_mean": float(valid.mean()),
         # Non-finite samples replaced by 0 (passes, reference); should stay ~0.
         "dropped_samples": [sum(p["dropped"] for p in passes), ref_dropped],
@@ -549,3 +550,43 @@ def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, e
     prev_next = {k: _half(layers[k]) for k in ("position", "normal")}
     prev_next["depth"] = _half(layers["depth"])[..., None]
     return record, prev_next
+
+
+# ---------------------------------------------------------------------------------------------
+# Reference noise
+
+
+def reference_noise(seq_dir: str | Path, frame: int, eps: float = 0.01) -> dict:
+    """Render a second reference of one finished frame with an independent seed and compare
+    it with the stored one (luminance, after exposure): the median over pixels of
+    |a - b| / ((a + b) / 2 + eps). eps (in units of the exposed image, whose mean is
+    0.15-0.6) keeps black pixels from dominating. For independent references of equal spp
+    this is ~0.95 x the per-pixel relative standard deviation of one reference (Gaussian)."""
+    seq = Path(seq_dir)
+    m = json.loads((seq / MANIFEST).read_text())
+    c = m["config"]
+    cfg = RenderConfig(
+        width=c["width"],
+        height=c["height"],
+        frames=tuple(c["frames"]),
+        spp_levels=tuple(c["spp_levels"]),
+        reference_spp=c["reference_spp"],
+        max_depth=c["max_depth"],
+    )
+    desc = m["scene"]
+    scene, path, _ = load_scene(desc, cfg)
+    movers = movers_of(scene, desc)
+    set_frame(scene, Camera(**desc["cameras"][frame]), movers, frame)
+    t0 = time.perf_counter()
+    second, _ = render_reference(scene, path, _seed(m["seed"], frame, 2_000_003), cfg.reference_spp)
+    seconds = time.perf_counter() - t0
+    stored = exr_io.load_frame(seq / f"frame_{frame:04d}.exr", ["reference"])["reference"]
+    a, b = stored @ LUMA, (second * m["exposure"]) @ LUMA
+    rel = np.abs(a - b) / ((a + b) / 2 + eps)
+    return {
+        "seed": m["seed"],
+        "frame": frame,
+        "median_relative_difference": float(np.median(rel)),
+        "mean_relative_difference": float(np.mean(rel)),
+        "seconds": round(seconds, 1),
+    }

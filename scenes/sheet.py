@@ -1,5 +1,6 @@
 """Contact sheet: one row per sequence (first frame): 1 spp, max spp, reference, albedo,
-normal, motion magnitude of a later frame, and that frame's reference."""
+normal, motion magnitude of a later frame, and that frame's reference. Row labels: seed,
+layout, lighting (+sun), the direct-light share of the preview, camera moves (+moving objects)."""
 
 from __future__ import annotations
 
@@ -69,8 +70,12 @@ def contact_sheet(split_root: Path, output: Path, rows: int = 6) -> Path:
                 ax.set_title(cols[c], fontsize=9)
         sun = "+sun" if s["sun"] else ""
         moves = "/".join(sh["move"] for sh in s["shots"])
+        movers = "".join(f"+{k}" for k in s.get("movers", []))
+        direct = m.get("lighting_stats", {}).get("direct_fraction")
+        share = f" direct {direct:.0%}" if direct is not None else ""
         axes[r, 0].set_ylabel(
-            f"{m['seed']}\n{s['room']} {s['environment']}{sun}\n{moves}", fontsize=8
+            f"{m['seed']}\n{s['layout']} {s['lighting']}{sun}{share}\n{moves}{movers}",
+            fontsize=8,
         )
     fig.tight_layout()
     output.parent.mkdir(parents=True, exist_ok=True)
