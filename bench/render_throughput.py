@@ -8,9 +8,10 @@ compile, previews, S one-sample passes with AOVs, the reference, motion vectors,
 samples/s = frames x pixels x (passes + reference spp) / wall time, with the stages from the
 manifest. Limit: the same scene loaded once more and rendered as one long `mi.render` of
 `--limit-spp` samples per pixel after a warm-up (the kernel compiled; no AOVs, no I/O), and as
-one long launch of the reference path (`render_reference`). The machine is shared, so the load
-average and the process CPU time are printed too: wall time well above CPU time / cores means
-the run waited for a core.
+the reference path (`render_reference`), next to the reference as rendered before the
+restructuring (the AOV pass kernel in ~2M-sample launches), all on the same scene. The
+machine is shared, so the load average and the process CPU time are printed too: wall time
+well above CPU time / cores means the run waited for a core.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     from quietframe.scenes.generator import GENERATOR_VERSION, generate
     from quietframe.scenes.render import (
         RenderConfig,
+        _trace_passes,
         load_scene,
         render_reference,
         render_sequence,
@@ -105,12 +107,25 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     render_reference(scene, path, 3, args.limit_spp)
     launch_s = time.perf_counter() - t0
+    # The reference as rendered before the restructuring: the pass kernel (path + primary AOV
+    # intersection, 15 channels per sample copied to the host), pass-major lanes, ~2M per launch.
+    t0 = time.perf_counter()
+    batch, done = max(1, (1 << 21) // px), 0
+    while done < args.limit_spp:
+        n = min(batch, args.limit_spp - done)
+        _trace_passes(scene, path, 4 + done, n)[..., :3].sum(0)
+        done += n
+    old_s = time.perf_counter() - t0
     lim = px * args.limit_spp
     print(
         f"limit: one long mi.render of {args.limit_spp} spp {long_s:.1f} s: "
         f"{_msps(lim, long_s):.3f} Msamples/s; reference path, {args.limit_spp} spp: "
         f"{launch_s:.1f} s: {_msps(lim, launch_s):.3f} Msamples/s "
         f"(scene load {load_s:.2f} s, warm-up incl. compile {warm_s:.2f} s)"
+    )
+    print(
+        f"reference path before the restructuring (pass kernel with AOVs, 2M-lane launches), "
+        f"{args.limit_spp} spp: {old_s:.1f} s: {_msps(lim, old_s):.3f} Msamples/s"
     )
     best = max(_msps(lim, long_s), _msps(lim, launch_s))
     print(

@@ -119,35 +119,43 @@ def _environment(rng: np.random.Generator, layout: dict, mode: str) -> dict:
     return env
 
 
-def sun_enters(desc: dict) -> bool:
-    """The sun shines into the main room: a ray from a window's centre towards the sun gets
-    out through the window's reveal, and with a high sun ("sun" lighting) the patch it makes
-    lands on the room's floor."""
+def sun_patches(desc: dict) -> list[np.ndarray]:
+    """Where the sun comes in: for each window of the main room that a ray from its centre
+    towards the sun gets out through (past the reveal), the floor point that ray reaches
+    inside the room, or None when it lands on a wall (a low sun)."""
     sun = desc["environment"].get("sun")
-    if sun is None or desc["layout"]["kind"] == "courtyard":
-        return sun is not None
+    if sun is None or desc["layout"]["kind"] == "courtyard" or sun["to_sun"][1] <= 0:
+        return []
     d = np.asarray(sun["to_sun"])
     x0, z0, x1, z1 = desc["layout"]["spaces"][0]["rect"]
+    out = []
     for o in desc["layout"]["openings"]:
-        if o["kind"] != "window" or o.get("space") != 0 or d[1] <= 0:
+        if o["kind"] != "window" or o.get("space") != 0:
             continue
         along = d[0] if o["axis"] == "x" else d[2]
-        out = -o["inward"] * (d[2] if o["axis"] == "x" else d[0])
-        if out <= 0:
+        away = -o["inward"] * (d[2] if o["axis"] == "x" else d[0])
+        if away <= 0:
             continue
-        s = architecture.WALL / out  # distance to the outer face of the wall
+        s = architecture.WALL / away  # distance to the outer face of the wall
         if abs(s * along) > (o["u"][1] - o["u"][0]) / 2 or s * d[1] > (o["v"][1] - o["v"][0]) / 2:
             continue
-        if desc["lighting"] != "sun":
-            return True
-        u = (o["u"][0] + o["u"][1]) / 2
-        v = (o["v"][0] + o["v"][1]) / 2
+        u, v = (o["u"][0] + o["u"][1]) / 2, (o["v"][0] + o["v"][1]) / 2
         plane = o["planes"][0]
         p = np.array([u, v, plane]) if o["axis"] == "x" else np.array([plane, v, u])
         hit = p - d * (v / d[1])  # follow the sunlight from the window centre to the floor
-        if x0 < hit[0] < x1 and z0 < hit[2] < z1:
-            return True
-    return False
+        out.append(hit if x0 < hit[0] < x1 and z0 < hit[2] < z1 else None)
+    return out
+
+
+def sun_enters(desc: dict) -> bool:
+    """The sun shines into the main room through a window, and with a high sun ("sun"
+    lighting) its patch lands on the room's floor. Courtyards: any sun."""
+    if desc["layout"]["kind"] == "courtyard":
+        return "sun" in desc["environment"]
+    patches = sun_patches(desc)
+    if desc["lighting"] == "sun":
+        return any(p is not None for p in patches)
+    return bool(patches)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -589,9 +597,19 @@ def generate(seed: int, n_frames: int, attempt: int = 0) -> dict:
     spaces = layout["spaces"]
     yard = layout["kind"] == "courtyard"
 
+    patch = [p for p in sun_patches(desc) if p is not None]
+    # Shots start in the annex only where light reaches it directly (a window, lamps on):
+    # a windowless corridor in daylight is lit through the door alone, near black.
+    lit = [0] + [
+        i
+        for i in range(1, len(spaces))
+        if mode in ("evening", "night")
+        or any(o["kind"] == "window" and o.get("space") == i for o in layout["openings"])
+    ]
+
     def start(g: np.random.Generator) -> np.ndarray:
         """Eye height; 60% of shots stand near a wall and look across the space."""
-        si = 0 if len(spaces) == 1 or g.random() < 0.8 else int(g.integers(1, len(spaces)))
+        si = 0 if len(lit) == 1 or g.random() < 0.8 else int(g.choice(lit[1:]))
         x0, z0, x1, z1 = spaces[si]["rect"]
         p = np.array([g.uniform(x0 + 0.4, x1 - 0.4), 0, g.uniform(z0 + 0.4, z1 - 0.4)])
         if g.random() < 0.6:
@@ -602,7 +620,8 @@ def generate(seed: int, n_frames: int, attempt: int = 0) -> dict:
         return p
 
     def target(g: np.random.Generator, s: np.ndarray) -> np.ndarray:
-        """A piece of furniture in the same space (65%) or any point of it."""
+        """The sun patch (35%, sunny rooms), a piece of furniture in the same space (65%) or
+        any point of it."""
         si = max(architecture.space_of(layout, s), 0)
         x0, z0, x1, z1 = spaces[si]["rect"]
         near = [
@@ -611,6 +630,8 @@ def generate(seed: int, n_frames: int, attempt: int = 0) -> dict:
             if p["kind"] not in ("pendant", "led", "rug")
             and architecture.space_of(layout, np.asarray(p["transform"])[:3, 3]) == si
         ]
+        if patch and si == 0 and g.random() < 0.35:  # the sun patch: sharp-edged sun patterns
+            return patch[int(g.integers(len(patch)))] + [g.normal(0, 0.3), 0, g.normal(0, 0.3)]
         if near and g.random() < 0.65:
             c = near[int(g.integers(len(near)))]
             return c + [g.normal(0, 0.2), g.uniform(0.2, 0.8), g.normal(0, 0.2)]
