@@ -178,10 +178,7 @@ def write_split_manifest(root: Path, args: argparse.Namespace, cfg, seeds: list[
     ]
     frames = [f for m in seqs for f in m["frames"]]
     noise = old.get("reference_noise") if old.get("config") == cfg.key() else None
-    complete = all(
-        _done_frames(root / str(s)) >= len(m["frames"]) > 0
-        for s, m in zip(seeds, seqs, strict=False)
-    )
+    complete = all(_done_frames(root / str(s)) >= _frame_count_of(root / str(s)) for s in seeds)
     if noise is None and args.noise_frames > 0 and seqs and complete and len(seqs) == len(seeds):
         pick = [seqs[int(i)] for i in np.linspace(0, len(seqs) - 1, args.noise_frames)]
         jobs = [(str(root / str(m["seed"])), 1) for m in pick]
