@@ -180,7 +180,8 @@ def write_split_manifest(root: Path, args: argparse.Namespace, cfg, seeds: list[
     noise = old.get("reference_noise") if old.get("config") == cfg.key() else None
     complete = all(_done_frames(root / str(s)) >= _frame_count_of(root / str(s)) for s in seeds)
     if noise is None and args.noise_frames > 0 and seqs and complete and len(seqs) == len(seeds):
-        pick = [seqs[int(i)] for i in np.linspace(0, len(seqs) - 1, args.noise_frames)]
+        spread = np.linspace(0, len(seqs) - 1, args.noise_frames).round().astype(int)
+        pick = [seqs[i] for i in np.unique(spread)]
         jobs = [(str(root / str(m["seed"])), 1) for m in pick]
         ctx = mp.get_context("spawn")
         with ctx.Pool(
