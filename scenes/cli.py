@@ -299,6 +299,39 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
+# survey
+
+
+def cmd_survey(args: argparse.Namespace) -> int:
+    """How each scene of a split is lit, without rendering it: the same scene choice, exposure
+    and 8-spp previews as `render` (at a small size), then the direct-light share and the black
+    fraction of a 1-spp pass per sequence."""
+    from .generator import summary
+    from .render import _frame_count, choose_scene, set_variant
+
+    set_variant(args.variant)
+    cfg = _config(args)
+    rows = []
+    for seed in split_seeds(args.split, args.sequences, args.start):
+        desc, *_, attempt, _, stats = choose_scene(seed, _frame_count(seed, cfg), cfg)
+        s = summary(desc)
+        rows.append(stats["direct_fraction"])
+        print(
+            f"{seed} attempt {attempt} {s['layout']:9s} {s['lighting']:8s} sun={int(s['sun'])} "
+            f"lights_on={s['lights_on']} movers={','.join(s['movers']) or '-'} "
+            f"direct {stats['direct_fraction']:.2f} black@1spp "
+            f"{stats['preview_black_fraction']:.2f}",
+            flush=True,
+        )
+    indirect = sum(d < 0.5 for d in rows)
+    print(
+        f"{args.split}: {indirect} of {len(rows)} sequences lit mainly indirectly "
+        f"(direct share < 0.5); median direct share {np.median(rows):.2f}"
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
 # sheet
 
 
@@ -344,13 +377,19 @@ def main(argv: list[str] | None = None) -> int:
     b = sub.add_parser("bench", help="measure render throughput on this machine")
     common(b)
     b.add_argument("--seeds", type=int, default=3)
+    v = sub.add_parser("survey", help="how the scenes of a split are lit (previews only)")
+    common(v)
+    v.add_argument("--split", choices=list(SPLIT_BASE), required=True)
+    v.add_argument("--sequences", type=int, required=True)
+    v.add_argument("--start", type=int, default=0)
     s = sub.add_parser("sheet", help="contact sheet PNG of rendered sequences")
     s.add_argument("--split", default="train")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT)
     s.add_argument("--output", default="docs/contact_sheet.png")
     s.add_argument("--rows", type=int, default=6)
     args = ap.parse_args(argv)
-    return {"render": cmd_render, "bench": cmd_bench, "sheet": cmd_sheet}[args.command](args)
+    commands = {"render": cmd_render, "bench": cmd_bench, "survey": cmd_survey, "sheet": cmd_sheet}
+    return commands[args.command](args)
 
 
 if __name__ == "__main__":
