@@ -23,7 +23,7 @@ Y_UP = np.array([0.0, 1.0, 0.0])
 SIDES = {"z0": ("x", 1, 1.0), "z1": ("x", 3, -1.0), "x0": ("z", 0, 1.0), "x1": ("z", 2, -1.0)}
 
 
-def _quad(origin, du, dv, normal, rect: list[float]) -> MeshData:
+def quad(origin, du, dv, normal, rect: list[float]) -> MeshData:
     """A quad origin + u*du + v*dv over rect [u0, u1, v0, v1], UVs in metres."""
     u0, u1, v0, v1 = rect
     corners = [(u0, v0), (u1, v0), (u1, v1), (u0, v1)]
@@ -132,7 +132,7 @@ def plan(rng: np.random.Generator, courtyard: bool) -> dict:
     return {"kind": "interior", "spaces": spaces, "openings": openings}
 
 
-def _wall_span(rect: list[float], side: str) -> tuple[float, float]:
+def wall_span(rect: list[float], side: str) -> tuple[float, float]:
     axis = SIDES[side][0]
     return (rect[0], rect[2]) if axis == "x" else (rect[1], rect[3])
 
@@ -157,7 +157,7 @@ def _try_window(rng, spaces, si, openings, shared) -> None:
     space = spaces[si]
     side = str(rng.choice(list(SIDES)))
     axis, idx, inward = SIDES[side]
-    lo, hi = _wall_span(space["rect"], side)
+    lo, hi = wall_span(space["rect"], side)
     length, h = hi - lo, space["h"]
     ww = _u(rng, 0.7, min(2.6, length - 0.6))
     if ww < 0.6:
@@ -244,7 +244,7 @@ def meshes_of(layout: dict) -> list[tuple[str, MeshData]]:
         h = space["h"]
         for side, (axis, idx, inward) in SIDES.items():
             plane = space["rect"][idx]
-            lo, hi = _wall_span(space["rect"], side)
+            lo, hi = wall_span(space["rect"], side)
             holes = [
                 [o["u"][0], o["u"][1], o["v"][0], o["v"][1]]
                 for o in layout["openings"]
@@ -254,20 +254,20 @@ def meshes_of(layout: dict) -> list[tuple[str, MeshData]]:
             ]
             m = wall_frame(axis, plane, inward)
             for r in _split_rect(lo, hi, 0, h, holes):
-                out.append((f"wall{si}", _quad(m[:3, 3], m[:3, 0], m[:3, 1], m[:3, 2], r)))
+                out.append((f"wall{si}", quad(m[:3, 3], m[:3, 0], m[:3, 1], m[:3, 2], r)))
         # Floors and ceilings reach under/over the walls so no crack lets light in.
         e = WALL
         out.append(
             (
                 f"floor{si}",
-                _quad([0, 0, 0], [1, 0, 0], [0, 0, 1], Y_UP, [x0 - e, x1 + e, z0 - e, z1 + e]),
+                quad([0, 0, 0], [1, 0, 0], [0, 0, 1], Y_UP, [x0 - e, x1 + e, z0 - e, z1 + e]),
             )
         )
         if space["ceiling"]:
             out.append(
                 (
                     f"ceiling{si}",
-                    _quad([0, h, 0], [1, 0, 0], [0, 0, 1], -Y_UP, [x0 - e, x1 + e, z0 - e, z1 + e]),
+                    quad([0, h, 0], [1, 0, 0], [0, 0, 1], -Y_UP, [x0 - e, x1 + e, z0 - e, z1 + e]),
                 )
             )
     for o in layout["openings"]:
@@ -284,12 +284,12 @@ def _opening_meshes(o: dict) -> list[tuple[str, MeshData]]:
     m = wall_frame(o["axis"], o["planes"][0], o["inward"])
     t = WALL
     local = [  # in wall-local (u, v, n) coordinates; the reveal spans n in [-t, 0]
-        _quad([u0, 0, 0], [0, 0, -1], [0, 1, 0], [1, 0, 0], [0, t, v0, v1]),
-        _quad([u1, 0, 0], [0, 0, -1], [0, 1, 0], [-1, 0, 0], [0, t, v0, v1]),
-        _quad([0, v1, 0], [1, 0, 0], [0, 0, -1], [0, -1, 0], [u0, u1, 0, t]),
+        quad([u0, 0, 0], [0, 0, -1], [0, 1, 0], [1, 0, 0], [0, t, v0, v1]),
+        quad([u1, 0, 0], [0, 0, -1], [0, 1, 0], [-1, 0, 0], [0, t, v0, v1]),
+        quad([0, v1, 0], [1, 0, 0], [0, 0, -1], [0, -1, 0], [u0, u1, 0, t]),
     ]
     out = [("reveal", q.transformed(m)) for q in local]
-    sill = _quad([0, v0, 0], [1, 0, 0], [0, 0, -1], [0, 1, 0], [u0, u1, 0, t])
+    sill = quad([0, v0, 0], [1, 0, 0], [0, 0, -1], [0, 1, 0], [u0, u1, 0, t])
     out.append(("floor0" if o["kind"] == "door" else "reveal", sill.transformed(m)))
     if o["kind"] != "window":
         return out
@@ -356,7 +356,7 @@ def _courtyard_meshes(layout: dict) -> list[tuple[str, MeshData]]:
     rng = np.random.default_rng(int(abs(x1 * 1000)) + int(abs(z1 * 1000)))
     for side, (axis, idx, inward) in SIDES.items():
         plane = yard["rect"][idx]
-        lo, hi = _wall_span(yard["rect"], side)
+        lo, hi = wall_span(yard["rect"], side)
         m = wall_frame(axis, plane, inward)
         storey = 3.0
         y = hc + 0.6 if side == "z0" else 0.9

@@ -286,7 +286,7 @@ class _Furnisher:
         for _ in range(30):
             side = str(rng.choice(list(architecture.SIDES)))
             axis, idx, inward = architecture.SIDES[side]
-            lo, hi = architecture._wall_span(space["rect"], side)
+            lo, hi = architecture.wall_span(space["rect"], side)
             if hi - lo < fw + 0.2:
                 continue
             u = rng.uniform(lo + fw / 2 + 0.05, hi - fw / 2 - 0.05)
@@ -370,7 +370,7 @@ class _Furnisher:
         for _ in range(20):
             side = str(rng.choice(list(architecture.SIDES)))
             axis, idx, inward = architecture.SIDES[side]
-            lo, hi = architecture._wall_span(space["rect"], side)
+            lo, hi = architecture.wall_span(space["rect"], side)
             if hi - lo < w + 0.4:
                 continue
             u, y = rng.uniform(lo + w / 2 + 0.2, hi - w / 2 - 0.2), rng.uniform(1.3, 1.8)
@@ -730,7 +730,7 @@ def build(desc: dict) -> tuple[dict, dict[str, list[float]]]:
     groups: dict[int, list[meshes.MeshData]] = {}
     for key, m in architecture.meshes_of(desc["layout"]):
         groups.setdefault(surf[key], []).append(m)
-    ground = architecture._quad([0, -0.02, 0], [1, 0, 0], [0, 0, 1], Y_UP, [-200, 200, -200, 200])
+    ground = architecture.quad([0, -0.02, 0], [1, 0, 0], [0, 0, 1], Y_UP, [-200, 200, -200, 200])
     groups.setdefault(surf["ground"], []).append(ground)
     bulbs: list[tuple[meshes.MeshData, dict]] = []
     for piece in desc["pieces"]:
