@@ -275,13 +275,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
             t0 = time.perf_counter()
             np.array(mi.render(scene, integrator=ref, seed=20 + f, spp=cfg.reference_spp))
             ref_s = time.perf_counter() - t0
-            rows.append((seed, summary(desc)["environment"], load_s, compile_s, pass_s, ref_s))
+            rows.append((seed, summary(desc)["lighting"], load_s, compile_s, pass_s, ref_s))
     px = cfg.width * cfg.height
     print(
         f"variant {variant}, {cfg.width}x{cfg.height}, {cfg.passes} passes, reference "
         f"{cfg.reference_spp} spp, max_depth {cfg.max_depth}"
     )
-    print("seed     env       load_s compile_s passes_s pass_Msps ref_s ref_Msps")
+    print("seed     lighting  load_s compile_s passes_s pass_Msps ref_s ref_Msps")
     for seed, env, load_s, compile_s, pass_s, ref_s in rows:
         print(
             f"{seed} {env:9s} {load_s:6.2f} {compile_s:9.2f} {pass_s:8.2f} "
