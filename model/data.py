@@ -4,7 +4,7 @@ Two torch datasets over a split directory (<data>/<generator>/<split>/<seed>/):
 - `CropDataset`: item = a window of `history + 1` consecutive frames of one sequence, the same
   random crop (default 128x128) in each, one dihedral augmentation (flip, rot90) applied
   consistently to images, motion vectors and normals, and a random spp level per item.
-- `SequenceDataset`: item = a whole sequence, uncropped, unaugmented (validation).
+- `SequenceDataset`: item = a whole sequence, uncropped, unaugmented (validation, test).
 Both return dicts of float32 tensors shaped (T, C, H, W) (T frames, oldest first) plus `reset`
 (T,) = 1 on a sequence's first frame and after a camera cut, and `spp` (). Frames are read
 lazily through a small per-process LRU cache, so memory stays bounded for any dataset size.

@@ -78,7 +78,7 @@ def pixel_directions(cam: Camera, width: int, height: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Animation
 
-MOVES = ("pan", "truck", "dolly", "orbit", "free", "pedestal")
+MOVES = ("pan", "truck", "dolly", "orbit", "free", "pedestal", "handheld")
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -106,10 +106,12 @@ def _path(
     turn = np.radians(rng.uniform(0.5, 5.0)) * rng.choice([-1, 1])  # radians per frame
     tilt = rng.uniform(-0.02, 0.02) * np.linalg.norm(view)  # aim drift, metres per frame
     zoom = rng.uniform(-0.02, 0.02) if rng.random() < 0.15 else 0.0  # relative fov per frame
-    shake = rng.uniform(0.002, 0.01) if rng.random() < 0.3 else 0.0  # hand-held jitter (m)
+    # Hand-held: a slow random walk of the position and the aim (smooth, not white jitter).
+    shake = rng.uniform(0.002, 0.008) if move == "handheld" or rng.random() < 0.3 else 0.0
     heading = _unit(rng.normal(0, 1, 3) * np.array([1, 0.2, 1]))
     end_target = target + rng.normal(0, 0.6, 3) * np.array([1, 0.3, 1])
-    jitter = rng.normal(0, shake, (n, 3))
+    jitter = np.cumsum(rng.normal(0, shake, (n, 3)), 0)
+    aim_jitter = np.cumsum(rng.normal(0, shake * 3, (n, 3)), 0)
     cams = []
     for k in range(n):
         o, t = start.copy(), target.copy()
@@ -123,11 +125,13 @@ def _path(
             o = target - _rotate_y(view, turn * k)
         elif move == "pedestal":
             o = start + np.array([0, speed * 0.5 * k, 0])
+        elif move == "handheld":
+            pass  # only the drift below
         else:  # free flight while the aim drifts to another point
             s = k / max(n - 1, 1)
             o = start + heading * speed * k
             t = target * (1 - s) + end_target * s
-        o = o + jitter[k]
+        o, t = o + jitter[k], t + aim_jitter[k]
         cams.append(Camera(o.tolist(), t.tolist(), [0.0, 1.0, 0.0], float(fov * (1 + zoom) ** k)))
     return move, cams
 
@@ -139,16 +143,18 @@ def animate(
     n_frames: int,
     cut_prob: float = 0.2,
     tries: int = 200,
+    sample_target: Callable[[np.random.Generator, np.ndarray], np.ndarray] | None = None,
 ) -> dict:
     """Camera frames for a sequence, possibly with one cut. `inside(points)` says which points
-    (N, 3) are at a safe distance inside the room; `sample_point(rng)` draws such a point."""
+    (N, 3) are at a safe distance inside the room; `sample_point(rng)` draws such a point (the
+    camera's start), `sample_target(rng, start)` what it looks at (default: sample_point)."""
     cut = int(rng.integers(2, n_frames - 1)) if n_frames >= 6 and rng.random() < cut_prob else 0
     lengths = [cut, n_frames - cut] if cut else [n_frames]
     shots, frames = [], []
     for length in lengths:
         for _ in range(tries):
             start = sample_point(rng)
-            target = sample_point(rng)
+            target = sample_target(rng, start) if sample_target else sample_point(rng)
             if np.linalg.norm(target - start) < 1.5:
                 continue
             fov = float(rng.uniform(35, 90))
@@ -177,10 +183,15 @@ def motion_for_pass(
     prev_position: np.ndarray,
     prev_normal: np.ndarray,
     prev_hit: np.ndarray,
+    position_prev: np.ndarray | None = None,
+    normal_prev: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Backward motion (H, W, 2) and visibility (H, W) of one one-sample pass.
 
-    Each pixel's sample point is reprojected exactly (both cameras are known). Visibility is the
+    Each pixel's sample point is reprojected exactly (both cameras are known). On moving
+    objects the point itself moved: `position_prev` / `normal_prev` are where it was and how it
+    faced at t-1 (the object's rigid motion applied backwards; default: static scene), and the
+    point is projected and compared there. Visibility is the
     paper's test (Isik et al. 2021, 4.1): the point must land inside frame t-1 and agree in
     position and normal with one of the 2x2 pixels of t-1 around where it lands. Environment
     samples move by camera rotation only and are visible where t-1 also saw the environment.
@@ -188,7 +199,9 @@ def motion_for_pass(
     h, w = hit.shape
     # Hit samples: project the sample point into both cameras.
     x_t, y_t, _ = project(position, cam, w, h)
-    x_p, y_p, z_p = project(position, prev_cam, w, h)
+    pos_p = position if position_prev is None else position_prev
+    nrm_p = normal if normal_prev is None else normal_prev
+    x_p, y_p, z_p = project(pos_p, prev_cam, w, h)
     # Misses: directions through pixel centres, carried by the previous camera's rotation.
     d = pixel_directions(cam, w, h)
     far = np.asarray(prev_cam.origin) + d * 1e6
@@ -200,7 +213,7 @@ def motion_for_pass(
     onscreen = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h) & (np.where(hit, z_p, ez) > 0)
 
     tan_x = np.tan(np.radians(prev_cam.fov_x) / 2)
-    dist_prev = np.linalg.norm(position - np.asarray(prev_cam.origin), axis=-1)
+    dist_prev = np.linalg.norm(pos_p - np.asarray(prev_cam.origin), axis=-1)
     # A pixel spans dist*2*tan/W in world space; allow 2 of them plus 1% for depth slope.
     tol = dist_prev * (4 * tan_x / w + 0.01)
     n_len = np.linalg.norm(prev_normal, axis=-1, keepdims=True)
@@ -213,8 +226,8 @@ def motion_for_pass(
         for dx in (0, 1):
             xs = np.clip(x0 + dx, 0, w - 1)
             ys = np.clip(y0 + dy, 0, h - 1)
-            near = np.linalg.norm(prev_position[ys, xs] - position, axis=-1) < tol
-            facing = np.sum(prev_n[ys, xs] * normal, axis=-1) > 0.8
+            near = np.linalg.norm(prev_position[ys, xs] - pos_p, axis=-1) < tol
+            facing = np.sum(prev_n[ys, xs] * nrm_p, axis=-1) > 0.8
             agree |= prev_hit[ys, xs] & near & facing
             env_ok |= ~prev_hit[ys, xs]
     visible = onscreen & np.where(hit, agree, env_ok)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import sys
 import time
 import traceback
@@ -106,6 +107,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     from .render import _frame_count
 
+    t_start = time.perf_counter()
     cfg = _config(args)
     root = split_dir(args.out, args.split)
     seeds = split_seeds(args.split, args.sequences, args.start)
@@ -153,7 +155,90 @@ def cmd_render(args: argparse.Namespace) -> int:
     bar.close()
     failed = sum(status.startswith("failed") for _, status in results)
     print(f"finished: {len(jobs) - failed} sequences rendered, {failed} failed", flush=True)
+    write_split_manifest(root, args, cfg, seeds, time.perf_counter() - t_start)
     return 1 if failed else 0
+
+
+def _noise_job(job: tuple[str, int]) -> dict:
+    from .render import reference_noise
+
+    return reference_noise(*job)
+
+
+def write_split_manifest(root: Path, args: argparse.Namespace, cfg, seeds: list[int], wall: float):
+    """<split>/split.json: command, seeds, config, render times and CPU time summed from the
+    sequence manifests, and the reference noise (a second independent reference of frame 1
+    of `--noise-frames` sequences spread over the split; measured once per config)."""
+    path = root / "split.json"
+    old = json.loads(path.read_text()) if path.exists() else {}
+    seqs = [
+        json.loads((root / str(s) / "manifest.json").read_text())
+        for s in seeds
+        if _done_frames(root / str(s))
+    ]
+    frames = [f for m in seqs for f in m["frames"]]
+    noise = old.get("reference_noise") if old.get("config") == cfg.key() else None
+    complete = all(_done_frames(root / str(s)) >= _frame_count_of(root / str(s)) for s in seeds)
+    if noise is None and args.noise_frames > 0 and seqs and complete and len(seqs) == len(seeds):
+        spread = np.linspace(0, len(seqs) - 1, args.noise_frames).round().astype(int)
+        pick = [seqs[i] for i in np.unique(spread)]
+        jobs = [(str(root / str(m["seed"])), 1) for m in pick]
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(
+            min(args.jobs, len(jobs)), _init_worker, (args.variant, 1 if args.jobs > 1 else 0, None)
+        ) as pool:
+            per_frame = pool.map(_noise_job, jobs)
+        med = [r["median_relative_difference"] for r in per_frame]
+        noise = {
+            "median_relative_difference": float(np.median(med)),
+            "frames": per_frame,
+            "eps": 0.01,
+            "definition": "median over pixels of |a-b| / ((a+b)/2 + eps), luminance, two "
+            "independent references of the same spp; the median over the frames",
+        }
+        print(
+            f"reference noise: median relative difference "
+            f"{noise['median_relative_difference']:.4f}",
+            flush=True,
+        )
+    stats = [m.get("lighting_stats", {}) for m in seqs]
+    manifest = {
+        "command": "quietframe-render " + " ".join(sys.argv[1:]),
+        "split": args.split,
+        "seeds": seeds,
+        "config": cfg.key(),
+        "sequences_done": sum(
+            _done_frames(root / str(s)) >= _frame_count_of(root / str(s)) for s in seeds
+        ),
+        "frames_done": len(frames),
+        "render_s": round(
+            sum(m["scene_setup_s"] for m in seqs)
+            + sum(f["passes_s"] + f["reference_s"] + f["write_s"] for f in frames),
+            1,
+        ),
+        "cpu_s": round(sum(f.get("cpu_s", 0.0) for f in frames), 1),
+        "wall_s_last_run": round(wall, 1),
+        "reference_noise": noise,
+        "lighting": {
+            "indirect_sequences": sum(s.get("direct_fraction", 1) < 0.5 for s in stats),
+            "direct_fraction_median": float(np.median([s["direct_fraction"] for s in stats if s]))
+            if any(stats)
+            else None,
+            "black_1spp_fraction_median": float(
+                np.median([s["preview_black_fraction"] for s in stats if s])
+            )
+            if any(stats)
+            else None,
+        },
+    }
+    tmp = path.with_name("split.json.tmp")
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, path)
+
+
+def _frame_count_of(seq_dir: Path) -> int:
+    m = seq_dir / "manifest.json"
+    return json.loads(m.read_text())["frame_count"] if m.exists() else 1 << 30
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,7 +252,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     from .camera import Camera
     from .generator import generate, summary
-    from .render import load_scene, render_passes, set_camera, set_variant
+    from .render import load_scene, render_passes, set_frame, set_variant
 
     variant = set_variant(args.variant)
     cfg = _config(args)
@@ -177,26 +262,26 @@ def cmd_bench(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         scene, ref, table = load_scene(desc, cfg)
         load_s = time.perf_counter() - t0
-        set_camera(scene, Camera(**desc["cameras"][0]))
+        set_frame(scene, Camera(**desc["cameras"][0]), [], 0)
         t0 = time.perf_counter()
         render_passes(scene, ref, 1, cfg.passes, table)
         np.array(mi.render(scene, integrator=ref, seed=2, spp=1))
         compile_s = time.perf_counter() - t0
         for f in (1, 2):
-            set_camera(scene, Camera(**desc["cameras"][f]))
+            set_frame(scene, Camera(**desc["cameras"][f]), [], f)
             t0 = time.perf_counter()
             render_passes(scene, ref, 10 + f, cfg.passes, table)
             pass_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             np.array(mi.render(scene, integrator=ref, seed=20 + f, spp=cfg.reference_spp))
             ref_s = time.perf_counter() - t0
-            rows.append((seed, summary(desc)["environment"], load_s, compile_s, pass_s, ref_s))
+            rows.append((seed, summary(desc)["lighting"], load_s, compile_s, pass_s, ref_s))
     px = cfg.width * cfg.height
     print(
         f"variant {variant}, {cfg.width}x{cfg.height}, {cfg.passes} passes, reference "
         f"{cfg.reference_spp} spp, max_depth {cfg.max_depth}"
     )
-    print("seed     env       load_s compile_s passes_s pass_Msps ref_s ref_Msps")
+    print("seed     lighting  load_s compile_s passes_s pass_Msps ref_s ref_Msps")
     for seed, env, load_s, compile_s, pass_s, ref_s in rows:
         print(
             f"{seed} {env:9s} {load_s:6.2f} {compile_s:9.2f} {pass_s:8.2f} "
@@ -209,6 +294,39 @@ def cmd_bench(args: argparse.Namespace) -> int:
         f"{a[:, 2].mean():.2f}s reference {a[:, 3].mean():.2f}s; "
         f"{px * (cfg.passes + cfg.reference_spp) / (a[:, 2] + a[:, 3]).mean() / 1e6:.3f} "
         f"Msamples/s overall"
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# survey
+
+
+def cmd_survey(args: argparse.Namespace) -> int:
+    """How each scene of a split is lit, without rendering it: the same scene choice, exposure
+    and 8-spp previews as `render` (at a small size), then the direct-light share and the black
+    fraction of a 1-spp pass per sequence."""
+    from .generator import summary
+    from .render import _frame_count, choose_scene, set_variant
+
+    set_variant(args.variant)
+    cfg = _config(args)
+    rows = []
+    for seed in split_seeds(args.split, args.sequences, args.start):
+        desc, *_, attempt, _, stats = choose_scene(seed, _frame_count(seed, cfg), cfg)
+        s = summary(desc)
+        rows.append(stats["direct_fraction"])
+        print(
+            f"{seed} attempt {attempt} {s['layout']:9s} {s['lighting']:8s} sun={int(s['sun'])} "
+            f"lights_on={s['lights_on']} movers={','.join(s['movers']) or '-'} "
+            f"direct {stats['direct_fraction']:.2f} black@1spp "
+            f"{stats['preview_black_fraction']:.2f}",
+            flush=True,
+        )
+    indirect = sum(d < 0.5 for d in rows)
+    print(
+        f"{args.split}: {indirect} of {len(rows)} sequences lit mainly indirectly "
+        f"(direct share < 0.5); median direct share {np.median(rows):.2f}"
     )
     return 0
 
@@ -250,16 +368,28 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--start", type=int, default=0, help="index of the first sequence")
     r.add_argument("--jobs", type=int, default=1)
     r.add_argument("--threads", type=int, default=None, help="render threads per job")
+    r.add_argument(
+        "--noise-frames",
+        type=int,
+        default=3,
+        help="frames that get a second reference to measure the reference noise (0: none)",
+    )
     b = sub.add_parser("bench", help="measure render throughput on this machine")
     common(b)
     b.add_argument("--seeds", type=int, default=3)
+    v = sub.add_parser("survey", help="how the scenes of a split are lit (previews only)")
+    common(v)
+    v.add_argument("--split", choices=list(SPLIT_BASE), required=True)
+    v.add_argument("--sequences", type=int, required=True)
+    v.add_argument("--start", type=int, default=0)
     s = sub.add_parser("sheet", help="contact sheet PNG of rendered sequences")
     s.add_argument("--split", default="train")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT)
     s.add_argument("--output", default="docs/contact_sheet.png")
     s.add_argument("--rows", type=int, default=6)
     args = ap.parse_args(argv)
-    return {"render": cmd_render, "bench": cmd_bench, "sheet": cmd_sheet}[args.command](args)
+    commands = {"render": cmd_render, "bench": cmd_bench, "survey": cmd_survey, "sheet": cmd_sheet}
+    return commands[args.command](args)
 
 
 if __name__ == "__main__":

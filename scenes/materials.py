@@ -176,3 +176,141 @@ def blackbody_rgb(kelvin: float) -> np.ndarray:
     rgb = np.clip(m @ xyz, 0, None)
     lum = 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
     return (rgb / lum).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Interior materials by role (generator g2): what a surface is decides its BSDF and pattern.
+
+
+def _tex(rng: np.random.Generator, pattern: str, period: float) -> dict:
+    """Texture spec whose pattern repeats every `period` UV units (metres on room surfaces)."""
+    return {
+        "pattern": pattern,
+        "seed": int(rng.integers(2**31)),
+        "color_seed": int(rng.integers(2**31)),
+        "tiling": float(1.0 / period),
+    }
+
+
+def _pale(rng: np.random.Generator) -> list[float]:
+    return (0.45 + 0.4 * textures.random_color(rng, 0.5, 1.0)).clip(0, 0.9).tolist()
+
+
+ROLES = (
+    "paint",
+    "wallpaper",
+    "wall_tiles",
+    "brick",
+    "ceiling",
+    "floor_wood",
+    "floor_tiles",
+    "carpet",
+    "stone",
+    "wood",
+    "fabric",
+    "metal",
+    "glass",
+    "ceramic",
+    "paper",
+    "dark",
+    "leaf",
+)
+
+
+def role_material(rng: np.random.Generator, role: str) -> dict:
+    """A material description for a surface role (walls, floors, furniture parts)."""
+    u = lambda lo, hi: float(np.exp(rng.uniform(np.log(lo), np.log(hi))))  # noqa: E731
+    if role == "paint":
+        if rng.random() < 0.3:  # satin paint: a faint sheen
+            return {"kind": "roughplastic", "color": _pale(rng), "alpha": u(0.15, 0.4)}
+        return {"kind": "diffuse", "color": _pale(rng)}
+    if role == "ceiling":
+        return {"kind": "diffuse", "color": [float(rng.uniform(0.6, 0.85))] * 3}
+    if role == "wallpaper":
+        return {
+            "kind": "diffuse",
+            "color": _pale(rng),
+            "texture": _tex(rng, "wallpaper", u(0.2, 0.8)),
+        }
+    if role == "wall_tiles":
+        return {
+            "kind": str(rng.choice(["plastic", "roughplastic"])),
+            "color": _pale(rng),
+            "alpha": u(0.03, 0.15),
+            "texture": _tex(rng, "tiles", u(0.4, 1.6)),
+        }
+    if role == "brick":
+        return {
+            "kind": "diffuse",
+            "color": [0.5, 0.3, 0.2],
+            "texture": _tex(rng, "bricks", u(1, 2.5)),
+        }
+    if role == "floor_wood":
+        kind = "plastic" if rng.random() < 0.3 else "roughplastic"  # polished: sharp reflections
+        return {
+            "kind": kind,
+            "color": [0.4, 0.25, 0.12],
+            "alpha": u(0.04, 0.25),
+            "texture": _tex(rng, "planks", u(1.2, 3.0)),
+        }
+    if role == "floor_tiles":
+        return {
+            "kind": str(rng.choice(["plastic", "roughplastic"])),
+            "color": _pale(rng),
+            "alpha": u(0.03, 0.2),
+            "texture": _tex(rng, str(rng.choice(["tiles", "checker"])), u(0.8, 3.0)),
+        }
+    if role == "carpet":
+        return {
+            "kind": "diffuse",
+            "color": _pale(rng),
+            "texture": _tex(rng, "fabric", u(0.03, 0.15)),
+        }
+    if role == "stone":
+        return {
+            "kind": "roughplastic",
+            "color": [0.5, 0.48, 0.45],
+            "alpha": u(0.2, 0.5),
+            "texture": _tex(rng, str(rng.choice(["noise", "tiles"])), u(1.0, 4.0)),
+        }
+    if role == "wood":
+        return {
+            "kind": "roughplastic",
+            "color": [0.4, 0.25, 0.12],
+            "alpha": u(0.05, 0.35),
+            "texture": _tex(rng, "wood", u(0.3, 1.2)),
+        }
+    if role == "fabric":
+        return {
+            "kind": "diffuse",
+            "color": textures.random_color(rng).tolist(),
+            "texture": _tex(rng, "fabric", u(0.01, 0.05)),
+        }
+    if role == "metal":
+        mat: dict = {"kind": "conductor" if rng.random() < 0.3 else "roughconductor"}
+        mat["metal"] = str(rng.choice(list(METALS)))
+        if mat["kind"] == "roughconductor":
+            mat["alpha"] = u(0.03, 0.4)
+        return mat
+    if role == "glass":
+        kind = str(
+            rng.choice(["dielectric", "thindielectric", "roughdielectric"], p=[0.4, 0.4, 0.2])
+        )
+        mat = {
+            "kind": kind,
+            "ior": 1.5,
+            "tint": (1 - 0.3 * rng.random(3) * (rng.random() < 0.4)).tolist(),
+        }
+        if kind == "roughdielectric":
+            mat["alpha"] = u(0.03, 0.2)
+        return mat
+    if role == "ceramic":
+        return {"kind": "plastic", "color": textures.random_color(rng).tolist()}
+    if role == "paper":
+        return {"kind": "diffuse", "color": [0.8, 0.8, 0.8], "texture": _tex(rng, "poster", 1.0)}
+    if role == "dark":
+        return {"kind": "roughplastic", "color": [0.03, 0.03, 0.03], "alpha": u(0.05, 0.3)}
+    if role == "leaf":
+        g = rng.uniform(0.05, 0.25)
+        return {"kind": "diffuse", "color": [g * 0.5, g, g * 0.3]}
+    raise ValueError(f"unknown material role {role!r}")

@@ -287,3 +287,45 @@ def to_mitsuba(mesh: MeshData, name: str, bsdf, emitter=None):
     params.update()
     out.set_id(name)
     return out
+
+
+def lathe(radii: list[float], heights: list[float], cols: int = 32) -> MeshData:
+    """Surface of revolution about +Y through the profile (radius, height) points, open at
+    both ends: vases, bowls, pots, lamp shades. Normals point away from the axis."""
+    r, y = np.asarray(radii, np.float64), np.asarray(heights, np.float64)
+    rows = len(r) - 1
+    dr, dy = np.gradient(r), np.gradient(y)
+
+    def fn(u, v):
+        i = np.rint(v * rows).astype(int)
+        ring = np.stack([np.cos(u * 2 * np.pi), np.zeros_like(u), -np.sin(u * 2 * np.pi)], -1)
+        pos = ring * r[i][..., None]
+        pos[..., 1] = y[i]
+        n = ring * dy[i][..., None]  # the profile tangent (dr, dy) turned outwards: (dy, -dr)
+        n[..., 1] = -dr[i]
+        return pos, n
+
+    return _parametric(fn, rows, cols)
+
+
+def leaf(length: float, width: float) -> MeshData:
+    """A flat pointed leaf in the XZ plane along +X from the origin, facing +Y."""
+    pos = np.array(
+        [[0, 0, 0], [length * 0.35, 0, width / 2], [length, 0, 0], [length * 0.35, 0, -width / 2]],
+        np.float32,
+    )
+    nrm = np.tile(np.array([[0, 1, 0]], np.float32), (4, 1))
+    uvs = (pos[:, [0, 2]] + [0, width / 2]).astype(np.float32)
+    return orient(MeshData(pos, nrm, uvs, np.array([[0, 1, 2], [0, 2, 3]], np.uint32)))
+
+
+def box_at(size: tuple[float, float, float], center: tuple[float, float, float]) -> MeshData:
+    """Axis-aligned box of `size` centred at `center`."""
+    return _box_at(size, center)
+
+
+def cylinder_at(radius: float, height: float, base: tuple[float, float, float]) -> MeshData:
+    """Y-axis cylinder standing on `base` (its bottom centre)."""
+    t = np.eye(4)
+    t[:3, 3] = (base[0], base[1] + height / 2, base[2])
+    return cylinder(radius, height, cols=16).transformed(t)

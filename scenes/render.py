@@ -21,7 +21,7 @@ import numpy as np
 
 from . import exr_io
 from .camera import Camera, motion_for_pass
-from .generator import GENERATOR_VERSION, build, generate, summary
+from .generator import GENERATOR_VERSION, build, generate, mover_meshes, summary
 
 MANIFEST = "manifest.json"
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -127,25 +127,50 @@ def load_scene(desc: dict, cfg: RenderConfig):
     scene_dict["integrator"] = {"type": "aov", "aovs": AOVS, "radiance": path}
     scene = mi.load_dict(scene_dict)
     reference = mi.load_dict(path)
-    # shape_index AOV = registry id (JIT variants) or 1-based position (scalar): map to ids.
-    shapes = scene.shapes()
-    if mi.variant().startswith("scalar"):
-        index = {i + 1: s.id() for i, s in enumerate(shapes)}
-    else:
-        import drjit as dr
-
-        ids = np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)))
-        index = {int(i): s.id() for i, s in zip(ids, shapes, strict=True)}
-    table = {k: overrides[name] for k, name in index.items() if name in overrides}
+    table = {k: overrides[name] for k, name in shape_index(scene).items() if name in overrides}
     return scene, reference, table
 
 
-def set_camera(scene, cam: Camera) -> None:
+def shape_index(scene) -> dict[int, str]:
+    """The per-sample shape channel's value -> shape id: the registry id in JIT variants, the
+    1-based position in `scene.shapes()` in scalar ones (what the `aov` integrator writes)."""
+    import mitsuba as mi
+
+    shapes = scene.shapes()
+    if mi.variant().startswith("scalar"):
+        return {i + 1: s.id() for i, s in enumerate(shapes)}
+    import drjit as dr
+
+    ids = np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shapes)))
+    return {int(i): s.id() for i, s in zip(ids, shapes, strict=True)}
+
+
+@dataclass
+class Mover:
+    """A moving part: its shape-channel value, Mitsuba id, object-space mesh, per-frame 4x4."""
+
+    key: int
+    name: str
+    mesh: object
+    frames: list[np.ndarray]
+
+
+def movers_of(scene, desc: dict) -> list[Mover]:
+    names = {name: key for key, name in shape_index(scene).items()}
+    return [Mover(names[n], n, m, f) for n, m, f in mover_meshes(desc) if n in names]
+
+
+def set_frame(scene, cam: Camera, movers: list[Mover], t: int) -> None:
+    """Camera and moving objects of frame t (one parameter update: one BVH rebuild)."""
     import mitsuba as mi
 
     params = mi.traverse(scene)
     params["sensor.to_world"] = mi.Transform4f(cam.to_world())
     params["sensor.x_fov"] = cam.fov_x
+    for m in movers:
+        placed = m.mesh.transformed(m.frames[t])
+        params[f"{m.name}.vertex_positions"] = np.ascontiguousarray(placed.positions).ravel()
+        params[f"{m.name}.vertex_normals"] = np.ascontiguousarray(placed.normals).ravel()
     params.update()
 
 
@@ -181,6 +206,7 @@ def render_passes(
         shape = np.rint(img[..., 13]).astype(np.int64)
         for sid, rgb in albedo_table.items():
             p["albedo"][shape == sid] = rgb
+        p["shape"] = np.where(img[..., 9] > 0, shape, -1)
         p["hit"] = p["depth"] > 0
         p["dropped"] = int(img[..., 14].sum()) if img.shape[-1] > 14 else 0
         out.append(p)
@@ -221,10 +247,44 @@ def _trace_passes(scene, path, seed: int, passes: int) -> np.ndarray:
     return np.stack([np.array(c, np.float32) for c in chans], -1).reshape(passes, h, w, -1)
 
 
+def _trace_radiance(scene, path, seed: int, spp: int) -> tuple[np.ndarray, int]:
+    """Sum over `spp` samples per pixel of the path integrator's radiance, (H, W, 3) float64,
+    and the count of non-finite samples (set to 0). One launch, no AOVs: lanes are pixel-major
+    (lane = pixel * spp + k) so the per-pixel sums are a block reduction inside the kernel and
+    only W*H*4 floats come back to the host instead of 15 channels per sample."""
+    import drjit as dr
+    import mitsuba as mi
+
+    sensor = scene.sensors()[0]
+    w, h = sensor.film().crop_size()
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, w * h * spp)
+    pix = dr.arange(mi.UInt32, w * h * spp) // spp
+    film_pos = mi.Vector2f(mi.Float(pix % w), mi.Float(pix // w)) + sampler.next_2d()
+    ray, _ = sensor.sample_ray_differential(
+        0.0, sampler.next_1d(), film_pos / mi.ScalarVector2f(w, h), sampler.next_2d()
+    )
+    radiance, _, _ = path.sample(scene, sampler, ray, None, True)
+    finite = dr.isfinite(radiance.x) & dr.isfinite(radiance.y) & dr.isfinite(radiance.z)
+    chans = [dr.select(finite, c, 0.0) for c in (radiance.x, radiance.y, radiance.z)]
+    chans.append(dr.select(finite, 0.0, 1.0))
+    dr.eval(*chans)  # one kernel: reducing unevaluated channels one by one re-ran the loop
+    sums = [dr.block_sum(c, spp) for c in chans]
+    dr.eval(*sums)
+    bad = sums.pop()
+    img = np.stack([np.array(c, np.float64) for c in sums], -1).reshape(h, w, 3)
+    return img, int(np.array(bad).sum())
+
+
+# Lanes per reference launch: larger launches amortise the per-launch tracing and set-up
+# (~0.15 s here); the path-only kernel keeps no per-sample buffers, so memory stays small.
+REFERENCE_LANES = 1 << 23
+
+
 def render_reference(scene, path, seed: int, spp: int) -> tuple[np.ndarray, int]:
     """(H, W, 3) mean of `spp` samples and the count of dropped non-finite samples. JIT
-    variants reuse the pass kernel in batches (no second kernel compile per scene, per-sample
-    NaN handling identical to the passes); scalar uses mi.render."""
+    variants: path-only launches of ~8M samples, summed per pixel on the device (see
+    `_trace_radiance`); scalar uses mi.render."""
     import mitsuba as mi
 
     if mi.variant().startswith("scalar"):
@@ -233,13 +293,13 @@ def render_reference(scene, path, seed: int, spp: int) -> tuple[np.ndarray, int]
         img[bad] = 0.0
         return img, int(bad.sum())
     w, h = scene.sensors()[0].film().crop_size()
-    batch = max(1, (1 << 21) // (w * h))  # ~2M lanes per launch bounds memory
+    batch = max(1, REFERENCE_LANES // (w * h))
     total, dropped, done, b = np.zeros((h, w, 3), np.float64), 0, 0, 0
     while done < spp:
         n = min(batch, spp - done)
-        img = _trace_passes(scene, path, _seed(seed, b), n)
-        total += img[..., :3].sum(0)
-        dropped += int(img[..., 14].sum())
+        img, bad = _trace_radiance(scene, path, _seed(seed, b), n)
+        total += img
+        dropped += bad
         done, b = done + n, b + 1
     return (total / spp).astype(np.float32), dropped
 
@@ -265,21 +325,31 @@ def _half(a: np.ndarray) -> np.ndarray:
     return a.astype(np.float16).astype(np.float32)
 
 
+PREVIEW_SPP = 8
+MIN_LIT_FRACTION = 0.2  # of pixels with any light in the 8-spp preview
+
+
 def choose_scene(
     seed: int, n_frames: int, cfg: RenderConfig, tries: int = 8, scene_fn: Callable = generate
 ):
     """Generate and load the scene, rejecting seeds whose shots start blocked or almost black
-    (a cheap 2-spp preview of each shot's first frame). Also fixes the exposure."""
+    (an 8-spp preview of each shot's first frame: < 20% of pixels got any light). Also fixes
+    the exposure and measures how much of the light is direct (paths of one bounce)."""
+    import mitsuba as mi
+
     for attempt in range(tries):
         desc = scene_fn(seed, n_frames, attempt)
         scene, reference, table = load_scene(desc, cfg)
+        movers = movers_of(scene, desc)
         lum, ok = [], True
         for shot in desc["shots"]:
-            set_camera(scene, Camera(**desc["cameras"][shot["first_frame"]]))
-            passes = render_passes(scene, reference, _seed(seed, attempt, 99), 2, table)
+            t = shot["first_frame"]
+            set_frame(scene, Camera(**desc["cameras"][t]), movers, t)
+            passes = render_passes(scene, reference, _seed(seed, attempt, 99), PREVIEW_SPP, table)
             rad = np.mean([p["radiance"] for p in passes], 0) @ LUMA
             depth = np.where(passes[0]["hit"], passes[0]["depth"], np.inf)
-            if np.mean(depth < 0.25) > 0.2 or np.mean(rad > 0) < 0.3:
+            # Sunlit rooms are mostly black at 1 spp by design; reject only the near-black.
+            if np.mean(depth < 0.25) > 0.2 or np.mean(rad > 0) < MIN_LIT_FRACTION:
                 ok = False
                 break
             lum.append(rad)
@@ -288,10 +358,22 @@ def choose_scene(
     else:
         raise RuntimeError(f"seed {seed}: {tries} generated scenes were all blocked or black")
     lum_all = np.concatenate([x.ravel() for x in lum])
-    robust = float(np.mean(np.minimum(lum_all, np.percentile(lum_all, 99))))
+    clip = np.percentile(lum_all, 99)
+    robust = float(np.mean(np.minimum(lum_all, clip)))
     target = float(np.exp(np.random.default_rng([seed, 2]).uniform(np.log(0.15), np.log(0.6))))
     exposure = target / max(robust, 1e-12)
-    return desc, scene, reference, table, attempt, exposure
+    # Direct light only (emitters seen directly or after one bounce) on the last previewed
+    # shot: the share of the image it explains says whether the scene is lit indirectly.
+    direct = mi.load_dict({"type": "path", "max_depth": 2})
+    img = np.array(mi.render(scene, integrator=direct, seed=_seed(seed, 98), spp=PREVIEW_SPP))
+    d_lum = np.nan_to_num(np.asarray(img, np.float32)[..., :3] @ LUMA)
+    stats = {
+        "direct_fraction": float(
+            np.minimum(d_lum, clip).mean() / max(np.minimum(lum[-1], clip).mean(), 1e-12)
+        ),
+        "preview_black_fraction": float(np.mean(passes[0]["radiance"].max(-1) <= 0)),
+    }
+    return desc, scene, reference, table, attempt, exposure, stats
 
 
 def render_sequence(
@@ -317,9 +399,10 @@ def render_sequence(
         return manifest
 
     t0 = time.perf_counter()
-    desc, scene, reference, table, attempt, exposure = choose_scene(
+    desc, scene, reference, table, attempt, exposure, stats = choose_scene(
         seed, n_frames, cfg, scene_fn=scene_fn
     )
+    movers = movers_of(scene, desc)
     if manifest is None or manifest.get("attempt") != attempt:
         manifest = {
             "generator": GENERATOR_VERSION,
@@ -330,6 +413,8 @@ def render_sequence(
             "frame_count": n_frames,
             "exposure": exposure,  # radiance scale applied to passes and reference
             "summary": summary(desc),
+            # 1-bounce share of the preview's light, black 1-spp pixels: indirect lighting.
+            "lighting_stats": stats,
             "cuts": desc["cuts"],
             "scene_setup_s": time.perf_counter() - t0,
             "frames": [],
@@ -349,7 +434,18 @@ def render_sequence(
                 out / f"frame_{t - 1:04d}.exr", ["position", "normal", "depth"]
             )
         record, prev = _render_frame(
-            scene, reference, table, cams, t, t in resets, prev, seed, exposure, cfg, out / fname
+            scene,
+            reference,
+            table,
+            movers,
+            cams,
+            t,
+            t in resets,
+            prev,
+            seed,
+            exposure,
+            cfg,
+            out / fname,
         )
         manifest["frames"] = [f for f in manifest["frames"] if f["index"] != t] + [record]
         manifest["frames"].sort(key=lambda f: f["index"])
@@ -361,10 +457,28 @@ def render_sequence(
     return manifest
 
 
-def _render_frame(scene, reference, table, cams, t, reset, prev, seed, exposure, cfg, path):
+def _object_motion(
+    p: dict, movers: list[Mover], t: int
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Where each pass sample's surface point was at t-1, and its normal then: samples on a
+    moving object are carried back by the object's rigid motion M(t-1) M(t)^-1."""
+    if not movers:
+        return None, None
+    pos, nrm = p["position"].copy(), p["normal"].copy()
+    for m in movers:
+        on = p["shape"] == m.key
+        if not on.any():
+            continue
+        back = m.frames[t - 1] @ np.linalg.inv(m.frames[t])
+        pos[on] = pos[on] @ back[:3, :3].T + back[:3, 3]
+        nrm[on] = nrm[on] @ np.linalg.inv(back[:3, :3])  # normals: inverse transpose
+    return pos, nrm
+
+
+def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, exposure, cfg, path):
     cam = cams[t]
-    tp = time.perf_counter()
-    set_camera(scene, cam)
+    tp, cpu0 = time.perf_counter(), time.process_time()
+    set_frame(scene, cam, movers, t)
     passes = render_passes(scene, reference, _seed(seed, t), cfg.passes, table)
     t_passes = time.perf_counter() - tp
     tr = time.perf_counter()
@@ -399,6 +513,7 @@ def _render_frame(scene, reference, table, cams, t, reset, prev, seed, exposure,
                 prev["position"],
                 prev["normal"],
                 prev["depth"][..., 0] > 0,
+                *_object_motion(p, movers, t),
             )
             for p in passes
         ]
@@ -429,6 +544,7 @@ def _render_frame(scene, reference, table, cams, t, reset, prev, seed, exposure,
         "passes_s": round(t_passes, 3),
         "reference_s": round(t_ref, 3),
         "write_s": round(t_write, 3),
+        "cpu_s": round(time.process_time() - cpu0, 2),  # this process, all its threads
         "motion_valid_mean": float(valid.mean()),
         # Non-finite samples replaced by 0 (passes, reference); should stay ~0.
         "dropped_samples": [sum(p["dropped"] for p in passes), ref_dropped],
@@ -436,3 +552,43 @@ def _render_frame(scene, reference, table, cams, t, reset, prev, seed, exposure,
     prev_next = {k: _half(layers[k]) for k in ("position", "normal")}
     prev_next["depth"] = _half(layers["depth"])[..., None]
     return record, prev_next
+
+
+# ---------------------------------------------------------------------------------------------
+# Reference noise
+
+
+def reference_noise(seq_dir: str | Path, frame: int, eps: float = 0.01) -> dict:
+    """Render a second reference of one finished frame with an independent seed and compare
+    it with the stored one (luminance, after exposure): the median over pixels of
+    |a - b| / ((a + b) / 2 + eps). eps (in units of the exposed image, whose mean is
+    0.15-0.6) keeps black pixels from dominating. For independent references of equal spp
+    this is ~0.95 x the per-pixel relative standard deviation of one reference (Gaussian)."""
+    seq = Path(seq_dir)
+    m = json.loads((seq / MANIFEST).read_text())
+    c = m["config"]
+    cfg = RenderConfig(
+        width=c["width"],
+        height=c["height"],
+        frames=tuple(c["frames"]),
+        spp_levels=tuple(c["spp_levels"]),
+        reference_spp=c["reference_spp"],
+        max_depth=c["max_depth"],
+    )
+    desc = m["scene"]
+    scene, path, _ = load_scene(desc, cfg)
+    movers = movers_of(scene, desc)
+    set_frame(scene, Camera(**desc["cameras"][frame]), movers, frame)
+    t0 = time.perf_counter()
+    second, _ = render_reference(scene, path, _seed(m["seed"], frame, 2_000_003), cfg.reference_spp)
+    seconds = time.perf_counter() - t0
+    stored = exr_io.load_frame(seq / f"frame_{frame:04d}.exr", ["reference"])["reference"]
+    a, b = stored @ LUMA, (second * m["exposure"]) @ LUMA
+    rel = np.abs(a - b) / ((a + b) / 2 + eps)
+    return {
+        "seed": m["seed"],
+        "frame": frame,
+        "median_relative_difference": float(np.median(rel)),
+        "mean_relative_difference": float(np.mean(rel)),
+        "seconds": round(seconds, 1),
+    }

@@ -1,5 +1,6 @@
 """Contact sheet: one row per sequence (first frame): 1 spp, max spp, reference, albedo,
-normal, motion magnitude of a later frame, and that frame's reference."""
+normal, motion magnitude of the last rendered frame, and that frame's reference. Row labels: seed,
+layout, lighting (+sun), the direct-light share of the preview, camera moves (+moving objects)."""
 
 from __future__ import annotations
 
@@ -25,8 +26,11 @@ def contact_sheet(split_root: Path, output: Path, rows: int = 6) -> Path:
 
     seqs = sorted(p.parent for p in Path(split_root).glob("*/manifest.json"))
     manifests = [json.loads((d / "manifest.json").read_text()) for d in seqs]
+    # Sequences with at least two frames on disk (a split may still be rendering).
     picked = [
-        (d, m) for d, m in zip(seqs, manifests, strict=True) if len(m["frames"]) == m["frame_count"]
+        (d, m)
+        for d, m in zip(seqs, manifests, strict=True)
+        if sum((d / f["file"]).exists() for f in m["frames"]) >= 2
     ]
     # Spread the rows over the rendered sequences rather than showing the first few.
     picked = [
@@ -41,7 +45,7 @@ def contact_sheet(split_root: Path, output: Path, rows: int = 6) -> Path:
         "albedo",
         "normal",
         "|motion| (last frame)",
-        "last frame",
+        "last frame (reference)",
     ]
     fig, axes = plt.subplots(len(picked), len(cols), figsize=(2.2 * len(cols), 2.3 * len(picked)))
     axes = np.atleast_2d(axes)
@@ -69,8 +73,12 @@ def contact_sheet(split_root: Path, output: Path, rows: int = 6) -> Path:
                 ax.set_title(cols[c], fontsize=9)
         sun = "+sun" if s["sun"] else ""
         moves = "/".join(sh["move"] for sh in s["shots"])
+        movers = "".join(f"+{k}" for k in s.get("movers", []))
+        direct = m.get("lighting_stats", {}).get("direct_fraction")
+        share = f" direct {direct:.0%}" if direct is not None else ""
         axes[r, 0].set_ylabel(
-            f"{m['seed']}\n{s['room']} {s['environment']}{sun}\n{moves}", fontsize=8
+            f"{m['seed']}\n{s['layout']} {s['lighting']}{sun}{share}\n{moves}{movers}",
+            fontsize=8,
         )
     fig.tight_layout()
     output.parent.mkdir(parents=True, exist_ok=True)

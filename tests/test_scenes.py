@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 
 import numpy as np
 import pytest
 
-from quietframe.scenes import exr_io, meshes, textures
+from quietframe.scenes import architecture, exr_io, furniture, materials, meshes, textures
 from quietframe.scenes.camera import Camera, project
-from quietframe.scenes.generator import generate
+from quietframe.scenes.generator import (
+    GENERATOR_VERSION,
+    camera_clear,
+    generate,
+    summary,
+    sun_enters,
+)
 
 mi = pytest.importorskip("mitsuba")
 
@@ -35,6 +42,10 @@ def test_meshes_are_consistent():
     sphere = meshes.uv_sphere(1.0)
     _mesh_ok(sphere)
     assert np.allclose(np.linalg.norm(sphere.positions, axis=1), 1, atol=1e-5)
+    # An open cylinder as a lathe: area 2 pi r h, normals pointing away from the axis.
+    tube = meshes.lathe([0.5, 0.5], [0.0, 2.0], cols=96)
+    assert np.isclose(_area(tube), 2 * np.pi * 0.5 * 2.0, rtol=2e-3)
+    assert (np.sum(tube.normals[:, [0, 2]] * tube.positions[:, [0, 2]], 1) > 0).all()
     for m in (
         meshes.box((0.3, 0.5, 0.7)),
         meshes.rounded_box((1, 2, 3), 0.3),
@@ -43,8 +54,24 @@ def test_meshes_are_consistent():
         meshes.heightfield(np.random.default_rng(0).random((9, 9))),
         meshes.slats(5, 2.0, 0.1, 0.02, 0.05),
         meshes.table(1.0, 0.6, 0.8, 0.04, 0.04),
+        meshes.leaf(0.2, 0.05),
+        tube,
     ):
         _mesh_ok(m)
+
+
+def test_furniture_parts_are_valid_meshes_on_the_floor():
+    rng = np.random.default_rng(3)
+    for kind in furniture.KINDS:
+        p = furniture.draw(kind, rng)
+        parts = furniture.parts(kind, p)
+        assert parts, kind
+        for role, m in parts:
+            assert role == "bulb" or role in materials.ROLES, (kind, role)
+            _mesh_ok(m)
+        lo = min(float(m.positions[:, 1].min()) for _, m in parts)
+        if kind not in ("pendant", "picture"):  # these hang from the ceiling or a wall
+            assert abs(lo) < 0.02, (kind, lo)  # stands on the floor, does not sink into it
 
 
 def test_textures_deterministic_and_bounded():
@@ -58,23 +85,65 @@ def test_generator_reproducible_and_varied():
     a, b = generate(11, 8), generate(11, 8)
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
     assert json.dumps(generate(12, 8)) != json.dumps(a)
-    descs = [generate(s, 8) for s in range(20, 26)]
+    assert a["generator"] == GENERATOR_VERSION == "g2"
+
+
+SEEDS = range(3_000_900, 3_000_912)
+
+
+@pytest.fixture(scope="module")
+def descs():
+    return [generate(s, 8) for s in SEEDS]
+
+
+def test_generated_scenes_keep_their_invariants(descs):
+    """Cameras inside a space and clear of furniture; a sun that enters through a window;
+    a light path into every scene; moving objects clear of the camera."""
     for d in descs:
-        assert 10 <= len(d["objects"]) <= 40
-        assert len(d["cameras"]) == 8
-        assert d["lights"] or d["environment"]["kind"] != "closed"  # closed rooms are lit
-        # No object sphere swallows a camera position (camera is not blocked).
         origins = np.array([c["origin"] for c in d["cameras"]])
-        for o in d["objects"]:
-            centre = np.asarray(o["transform"])[:3, 3]
-            assert np.linalg.norm(origins - centre, axis=1).min() > o["radius"]
-    kinds = {o["material"]["kind"] for d in descs for o in d["objects"]}
-    assert {"diffuse", "roughconductor", "dielectric", "roughplastic"} <= kinds
+        assert len(origins) == 8
+        assert camera_clear(d, origins).all(), d["seed"]
+        assert architecture.inside(d["layout"], origins, 0.3).all()
+        targets = np.array([c["target"] for c in d["cameras"]])
+        assert (np.linalg.norm(targets - origins, axis=1) > 0.5).all()
+        env, layout = d["environment"], d["layout"]
+        if layout["kind"] == "interior" and "sun" in env:
+            assert sun_enters(d), d["seed"]
+        daylight = env["scale"] > 0 and (
+            layout["kind"] == "courtyard"
+            or any(o["kind"] == "window" and o.get("space") == 0 for o in layout["openings"])
+        )
+        lamps = any(p.get("light", {}).get("on") for p in d["pieces"])
+        assert daylight or lamps, d["seed"]
+        if d["lighting"] in ("evening", "night"):
+            assert any(p.get("light", {}).get("on") and p["kind"] != "led" for p in d["pieces"])
+        for m in d["movers"]:
+            pos = np.array([np.asarray(f)[:3, 3] for f in m["frames"]])
+            assert np.linalg.norm((pos - origins)[:, [0, 2]], axis=1).min() > 0.5
+        for p in d["pieces"]:  # everything stands inside the building
+            c = np.asarray(p["transform"])[:3, 3]
+            assert architecture.space_of(layout, c) >= 0, (d["seed"], p["kind"])
+    summaries = [summary(d) for d in descs]
+    assert {s["layout"] for s in summaries} == {"interior", "courtyard"}
+    assert {s["lighting"] for s in summaries} == {"sun", "overcast", "evening", "night"}
+    assert sum(bool(s["movers"]) for s in summaries) >= len(descs) // 4
+    assert sum(s["blinds"] > 0 for s in summaries) >= 3
+    kinds = {k for s in summaries for k in s["pieces"]}
+    assert {"table", "chair", "bookcase", "plant", "pendant", "picture", "led"} <= kinds
+
+
+@functools.cache
+def _courtyard_seed() -> int:
+    """A test seed whose scene is an open courtyard: bright sky light, so 128-spp references
+    are clean enough to compare warped frames (indirectly lit rooms are far noisier)."""
+    return next(
+        s for s in range(3_000_000, 3_000_100) if generate(s, 2)["layout"]["kind"] == "courtyard"
+    )
 
 
 def _pinned_pan(seed: int, n_frames: int, attempt: int) -> dict:
-    """Generator output with the camera replaced by a fast pan (several pixels per frame)."""
-    d = generate(seed, n_frames, attempt)
+    """A courtyard with the camera replaced by a fast pan (several pixels per frame)."""
+    d = generate(_courtyard_seed(), n_frames, attempt)
     cam = Camera(**d["cameras"][0])
     o, t = np.asarray(cam.origin), np.asarray(cam.target)
     view = t - o
@@ -169,6 +238,70 @@ def test_motion_vectors_warp_reference(tiny):
     err_warp = np.abs(tm(warped) - tm(cur["reference"]))[valid].mean()
     err_none = np.abs(tm(prev) - tm(cur["reference"]))[valid].mean()
     assert err_warp < 0.5 * err_none, (err_warp, err_none)
+
+
+def _moving_ball(seed: int, n_frames: int, attempt: int) -> dict:
+    """A courtyard (bright sky) emptied of furniture; a static camera looks at a textured ball
+    that rolls sideways 0.25 m per frame: all the motion in the image is object motion."""
+    d = generate(_courtyard_seed(), n_frames, attempt)
+    x0, z0, x1, z1 = d["layout"]["spaces"][0]["rect"]
+    eye = np.array([(x0 + x1) / 2, 0.5, z1 - 1.0])
+    ball = np.array([eye[0] - 0.25, 0.0, eye[2] - 2.0])
+    d["pieces"], d["blockers"], d["cuts"] = [], [], []
+    d["cameras"] = [
+        Camera(eye.tolist(), (ball + [0, 0.3, 0]).tolist(), [0.0, 1.0, 0.0], 50.0).as_dict()
+    ] * n_frames
+    d["shots"] = [{"first_frame": 0, "move": "static"}]
+    frames = []
+    for k in range(n_frames):
+        m = np.eye(4)
+        c, sn = np.cos(0.8 * k), np.sin(0.8 * k)  # rolls about z while moving along x
+        m[:3, :3] = [[c, -sn, 0], [sn, c, 0], [0, 0, 1]]
+        m[:3, 3] = ball + [0.25 * k, 0.3, 0]
+        back = np.eye(4)
+        back[1, 3] = -0.3
+        frames.append((m @ back).tolist())
+    d["materials"].append(materials.role_material(np.random.default_rng(0), "paper"))
+    mats = {"ceramic": len(d["materials"]) - 1}  # a printed texture shows the rolling
+    d["movers"] = [
+        {
+            "kind": "ball",
+            "params": {"r": 0.3, "role": "ceramic"},
+            "frames": frames,
+            "transform": frames[0],
+            "materials": mats,
+        }
+    ]
+    return d
+
+
+def test_object_motion_vectors_warp_a_moving_ball(tmp_path):
+    """With a static camera only the ball moves: its pixels get motion, the background none,
+    and warping frame t-1 by the motion reproduces frame t better than not warping."""
+    from quietframe.scenes.render import RenderConfig, render_sequence, set_variant
+
+    set_variant("scalar_rgb")
+    w, h = 40, 30
+    cfg = RenderConfig(
+        width=w, height=h, frames=(2, 2), spp_levels=(1, 2), reference_spp=64, variant="scalar_rgb"
+    )
+    render_sequence(5, tmp_path, cfg, scene_fn=_moving_ball)
+    prev = exr_io.load_frame(tmp_path / "frame_0000.exr", ["reference"])["reference"]
+    cur = exr_io.load_frame(tmp_path / "frame_0001.exr", ["reference", "motion", "motion_valid"])
+    speed = np.linalg.norm(cur["motion"], axis=-1)
+    moving = (speed > 1.0) & (cur["motion_valid"][..., 0] > 0.99)
+    assert 10 < moving.sum() < 0.5 * w * h  # the ball, not the whole frame
+    assert np.median(speed[speed > 0.01]) > 1.0 and (speed < 0.01).mean() > 0.5
+    assert np.median(cur["motion"][..., 0][moving]) < -1.0  # moved right: came from the left
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    warped = _bilinear(prev, jj + cur["motion"][..., 0], ii + cur["motion"][..., 1])
+
+    def tm(x):
+        return x / (1 + x)
+
+    err_warp = np.abs(tm(warped) - tm(cur["reference"]))[moving].mean()
+    err_none = np.abs(tm(prev) - tm(cur["reference"]))[moving].mean()
+    assert err_warp < 0.7 * err_none, (err_warp, err_none)
 
 
 def test_resume_skips_and_reproduces(tiny):
