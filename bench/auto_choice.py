@@ -36,6 +36,7 @@ from quietframe.bench.evaluate import AUX
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, default_model_path, installed_models
 from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
+from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 from quietframe.service.model_choice import (
     ModelProfile,
     NoiseLevel,
@@ -142,9 +143,9 @@ def oidn_call(present: tuple[str, ...], threads: int):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="auto_choice", description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=Path("~/.cache/quietframe/data"))
+    parser.add_argument("--data", type=Path, default=DATA_DIR)
     parser.add_argument("--split", default="test")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
     parser.add_argument("--max-frames", type=int, default=8)
     parser.add_argument("--model", type=Path, action="append", default=[])
     parser.add_argument("--quality", default="balanced")

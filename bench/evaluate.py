@@ -33,6 +33,7 @@ from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
 from quietframe.runtime.buffers import planes_from_hwc
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
+from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
 AUX = ("albedo", "normal", "depth", "motion")
 
@@ -84,7 +85,7 @@ def build_methods(threads: int, extra: list[Path] = ()) -> dict[str, Callable[[]
 
 
 def sequence_dirs(data: Path, split: str) -> list[Path]:
-    from quietframe.scenes.cli import split_dir
+    from quietframe.scenes.layout import split_dir
 
     root = split_dir(data, split)
     return sorted(p.parent for p in root.glob("*/manifest.json"))
@@ -233,10 +234,10 @@ def write_report(rows: list[dict], meta: dict, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-eval", description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=Path("~/.cache/quietframe/data"))
+    parser.add_argument("--data", type=Path, default=DATA_DIR)
     parser.add_argument("--split", default="validation")
     parser.add_argument("--spp", default="1,2,4,8")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
     parser.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
     parser.add_argument("--methods", default="", help="comma list (default: all)")
     parser.add_argument("--model", type=Path, action="append", default=[],

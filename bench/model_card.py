@@ -41,7 +41,7 @@ def describe_split(root: Path) -> str:
 def data_lines(training: dict) -> list[str]:
     if "data" not in training:
         return []
-    from quietframe.scenes.cli import split_dir
+    from quietframe.scenes.layout import split_dir
 
     data = Path(training["data"]).expanduser()
     return ["## Data", "",

@@ -20,13 +20,14 @@ import numpy as np
 
 from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
 from quietframe.runtime.sanitize import sanitize_buffer
+from quietframe.scenes.layout import OIDN_CACHE_DIR
 
 _prepasses: dict[OIDNSettings, OIDNPrepass] = {}
 _lock = threading.Lock()
 
 
 def cache_root() -> Path:
-    return Path(os.environ.get("QUIETFRAME_OIDN_CACHE", "~/.cache/quietframe/oidn")).expanduser()
+    return Path(os.environ.get("QUIETFRAME_OIDN_CACHE", OIDN_CACHE_DIR)).expanduser()
 
 
 def cache_path(sequence_dir: Path, frame_file: str, spp: int, settings: OIDNSettings) -> Path:

@@ -33,6 +33,7 @@ from quietframe.model.oidn_temporal import VARIANTS as OIDN_VARIANTS
 from quietframe.model.oidn_temporal import OIDNTemporal, OIDNTemporalConfig
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.oidn_prepass import OIDNSettings
+from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS, RUNS_DIR, split_dir
 
 Model = NBGDenoiser | OIDNTemporal
 
@@ -41,7 +42,7 @@ Model = NBGDenoiser | OIDNTemporal
 class TrainConfig:
     variant: str = "nbg-2l-3g"  # or oidn-temporal-high / oidn-temporal-fast
     width: int = 0  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own (NBG: 20)
-    data: str = "~/.cache/quietframe/data"
+    data: str = str(DATA_DIR)
     loss: str = "smape+temporal"  # or "l1" (paper §4.4: L1 on the LDR-mapped output)
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
     crop: int = 128
@@ -53,7 +54,7 @@ class TrainConfig:
     eval_every: int = 200
     log_every: int = 20
     seed: int = 0
-    threads: int = 2
+    threads: int = DEFAULT_THREADS
     # Buffer dropout: each listed buffer is absent from a whole training sequence with this
     # probability, fed as the runtime feeds an absent optional buffer (zeros, runtime/buffers.py).
     # The exporter then lists these buffers as optional (a colour-only path when all four are).
@@ -164,9 +165,7 @@ def save(path: Path, model: Model, optimizer, step: int, cfg: TrainConfig,
 
 
 def split_root(cfg: TrainConfig, split: str) -> Path:
-    from quietframe.scenes.cli import split_dir
-
-    return split_dir(Path(cfg.data).expanduser(), split)
+    return split_dir(cfg.data, split)
 
 
 class TrainingBatches:
@@ -300,10 +299,13 @@ def main(argv: list[str] | None = None) -> int:
         default = getattr(defaults, field.name)
         parser.add_argument(f"--{field.name.replace('_', '-')}", type=type(default),
                             default=argparse.SUPPRESS, help=f"default {default}")
-    parser.add_argument("--run", type=Path, required=True, help="run directory (resumes)")
+    parser.add_argument("--run", type=Path,
+                        help=f"run directory, resumed if it holds a checkpoint (default "
+                        f"{RUNS_DIR}/<variant>)")
     parser.add_argument("--stop-at", type=int, help="pause at this step (resume later)")
     flags = vars(parser.parse_args(argv))
     run, stop_at = flags.pop("run"), flags.pop("stop_at")
+    run = run or RUNS_DIR.expanduser() / flags.get("variant", TrainConfig.variant)
     try:
         cfg = resume_config(run, flags)
         dropped_buffers(cfg)

@@ -23,19 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_OUT = Path.home() / ".cache" / "quietframe" / "data"
-SPLIT_BASE = {"train": 1_000_000, "validation": 2_000_000, "test": 3_000_000}
-
-
-def split_seeds(split: str, count: int, start: int = 0) -> list[int]:
-    """Scene seeds of a split: disjoint ranges, so no scene is in two splits."""
-    return [SPLIT_BASE[split] + i for i in range(start, start + count)]
-
-
-def split_dir(out: Path, split: str) -> Path:
-    from .generator import GENERATOR_VERSION
-
-    return Path(out).expanduser() / GENERATOR_VERSION / split
+from quietframe.scenes.layout import DATA_DIR, SPLIT_BASE, split_dir, split_seeds
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -359,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--reference-spp", type=int, default=1024)
         p.add_argument("--max-depth", type=int, default=8)
         p.add_argument("--variant", default="auto", help="auto | llvm_ad_rgb | scalar_rgb")
-        p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+        p.add_argument("--out", type=Path, default=DATA_DIR)
 
     r = sub.add_parser("render", help="render (or finish) sequences of a split")
     common(r)
@@ -384,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--start", type=int, default=0)
     s = sub.add_parser("sheet", help="contact sheet PNG of rendered sequences")
     s.add_argument("--split", default="train")
-    s.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    s.add_argument("--out", type=Path, default=DATA_DIR)
     s.add_argument("--output", default="docs/contact_sheet.png")
     s.add_argument("--rows", type=int, default=6)
     args = ap.parse_args(argv)

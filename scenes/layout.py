@@ -1,0 +1,30 @@
+"""Where quietframe's data and training runs live, and the defaults its command-line tools share
+(quietframe-render, -train, -eval and the benchmarks): one definition each.
+
+Data lands in <data>/<generator version>/<split>/<sequence seed>/. Sequence seeds come from
+disjoint ranges per split, so train, validation and test never share a scene.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+CACHE_DIR = Path("~/.cache/quietframe")  # large data, out of git (expanded where used)
+DATA_DIR = CACHE_DIR / "data"
+RUNS_DIR = CACHE_DIR / "runs"
+OIDN_CACHE_DIR = CACHE_DIR / "oidn"
+DEFAULT_THREADS = 2  # this project's machines have 2 cores
+
+SPLIT_BASE = {"train": 1_000_000, "validation": 2_000_000, "test": 3_000_000}
+
+
+def split_seeds(split: str, count: int, start: int = 0) -> list[int]:
+    """Scene seeds of a split: disjoint ranges, so no scene is in two splits."""
+    return [SPLIT_BASE[split] + i for i in range(start, start + count)]
+
+
+def split_dir(data: Path | str, split: str) -> Path:
+    """The folder of a split rendered by today's generator."""
+    from quietframe.scenes.generator import GENERATOR_VERSION
+
+    return Path(data).expanduser() / GENERATOR_VERSION / split
