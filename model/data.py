@@ -20,7 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.runtime.buffers import BUFFERS
 from quietframe.runtime.oidn_prepass import OIDNSettings
+from quietframe.runtime.sanitize import sanitize_buffer
 from quietframe.scenes.exr_io import color_layer, load_frame, pass_layer
 
 # Buffers returned by default: the model inputs (DESIGN.md names), the target, the motion mask.
@@ -99,7 +101,9 @@ def load_window(
     cache: FrameCache | None = None,
     oidn: OIDNSettings | None = None,
 ) -> dict[str, np.ndarray]:
-    """Frames t-history..t as numpy arrays (T, H, W, C); `color` is the `spp`-sample mean.
+    """Frames t-history..t as numpy arrays (T, H, W, C); `color` is the `spp`-sample mean. The
+    model inputs go through the runtime's sanitising rule, as in serving (e.g. depth 0 where no
+    ray hit becomes the frame's farthest depth).
     Frames before the sequence start repeat frame 0 (and are flagged as resets). With `oidn`,
     also `oidn`: OIDN's output of each whole frame (model/oidn_cache.py, cached on disk)."""
     cache = cache or FrameCache(history + 1)
@@ -111,6 +115,8 @@ def load_window(
     for b in buffers:
         name = color_layer(spp) if b == "color" else b
         out[b] = np.stack([f[name] for f in frames])
+    for b in out.keys() & BUFFERS.keys():  # what serving feeds: the one sanitising rule, per
+        out[b] = np.stack([sanitize_buffer(b, frame)[0] for frame in out[b]])  # whole frame
     if oidn is not None:
         from quietframe.model.oidn_cache import cached_oidn_output
 

@@ -48,10 +48,25 @@ def test_window_matches_disk(root):
     seq = list_sequences(root)[0]
     win = load_window(seq, 1, history=2, spp=2)
     assert win["color"].shape == (3, H, W, 3)
-    frame1 = exr_io.load_frame(seq.path / seq.files[1], ["color_2spp"])
-    assert np.array_equal(win["color"][2], frame1["color_2spp"])
+    frame1 = exr_io.load_frame(seq.path / seq.files[1], ["color_2spp", "depth"])
+    # Model inputs are read through the serving rule (here: negative noisy radiance -> 0).
+    assert (frame1["color_2spp"] < 0).any()
+    assert np.array_equal(win["color"][2], np.maximum(frame1["color_2spp"], 0))
     # t=1 with history 2: the missing frame -1 repeats frame 0 and is flagged as a reset.
     assert win["reset"].tolist() == [1.0, 1.0, 0.0]
+
+
+def test_window_reads_no_hit_depth_as_serving_does(root):
+    from quietframe.runtime.sanitize import sanitize_buffer
+
+    seq = list_sequences(root)[0]
+    path = seq.path / seq.files[0]
+    depth = exr_io.load_frame(path, ["depth"])["depth"]
+    win = load_window(seq, 0, history=0, spp=1)
+    np.testing.assert_array_equal(win["depth"][0], sanitize_buffer("depth", depth)[0])
+    hole = depth.copy()
+    hole[:4] = 0  # rays that hit nothing, as the renderer writes them
+    assert (sanitize_buffer("depth", hole)[0][:4] == hole[4:].max()).all()
 
 
 @pytest.mark.parametrize("flip", [False, True])
@@ -105,8 +120,10 @@ def test_crop_dataset_items(root):
         assert item["reset"].shape == (3,)
         spp = int(item["spp"])
         seen_spp.add(spp)
-        # `color` is the mean of the first `spp` passes, after the same crop and augmentation.
-        assert torch.allclose(item["color"], item["passes"][:, :spp].mean(1), atol=1e-5)
+        # `color` is the mean of the first `spp` passes (through the serving rule: >= 0), after
+        # the same crop and augmentation.
+        mean = item["passes"][:, :spp].mean(1).clamp_min(0)
+        assert torch.allclose(item["color"], mean, atol=1e-5)
     assert seen_spp <= {1, 2, 4} and len(seen_spp) > 1
     loader = torch.utils.data.DataLoader(ds, batch_size=2, num_workers=0)
     batch = next(iter(loader))
