@@ -20,7 +20,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from quietframe.bench.timing import Timing, time_ms
-from quietframe.runtime.buffers import planes_from_hwc
+from quietframe.runtime.buffers import BUFFER_CHANNELS, BUFFER_NAMES, planes_from_hwc
 
 # --- shared temporal rule (NBG §4.6; equal to model/temporal.py and model/nbg.py) -------------
 DEPTH_REL_TOLERANCE = 0.1  # history kept where |d_prev - d| <= 0.1 d ...
@@ -53,10 +53,9 @@ def _canonical(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
         depth = depth[..., None]
     motion = buffers.get("motion")
     motion = np.zeros((h, w, 2), np.float32) if motion is None else np.asarray(motion, np.float32)
-    expected = {"color": 3, "albedo": 3, "normal": 3, "depth": 1, "motion": 2}
-    for name, arr in zip(expected, (color, albedo, normal, depth, motion), strict=True):
-        if arr.shape != (h, w, expected[name]):
-            want = (h, w, expected[name])
+    for name, arr in zip(BUFFER_NAMES, (color, albedo, normal, depth, motion), strict=True):
+        if arr.shape != (h, w, BUFFER_CHANNELS[name]):
+            want = (h, w, BUFFER_CHANNELS[name])
             raise ValueError(f"baseline: {name} has shape {arr.shape}, want {want}")
     if h < 2 or w < 2:
         raise ValueError(f"baseline: frames must be at least 2×2, got {(h, w)}")

@@ -435,13 +435,17 @@ class SessionRegistry:
         async with session.lock:  # let a frame in flight finish (and write its state) first
             if not session.closed:
                 self._remove(session, "deleted")
+                if self.store is not None:  # gone from disk when DELETE answers
+                    await self._on_pool(self.store.delete, session.id)
 
     def _remove(self, session: Session, reason: str) -> None:
+        """Forget the session now; its files (durable) are deleted on the worker pool, off the
+        event loop (DELETE waits for that, expiry does not)."""
         session.closed = True
         session.state, session.reply = None, None
         self.sessions.pop(session.id, None)
-        if self.store is not None:
-            self.store.delete(session.id)
+        if self.store is not None and reason != "deleted":
+            self.pool.submit(self.store.delete, session.id)
         self.metrics.sessions_closed.labels(reason).inc()
         self._update_gauges()
         log.info("session closed", extra={"session": session.id, "reason": reason})
