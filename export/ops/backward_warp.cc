@@ -27,12 +27,15 @@
 // starts on a cache line (W a multiple of 16: 720p, 1080p, 4K) the outputs are written with
 // streaming stores of whole lines, which skip reading each line before writing it.
 #include <algorithm>
+#include <climits>
 #include <cmath>
 #include <cstdint>
 #include <string>
 
-#include "grid_common.h"  // QF_HAVE_AVX2
 #include "kernel_support.h"
+#include "ops.h"
+#include "runtime_support.h"
+#include "simd.h"
 
 namespace qf {
 namespace {
@@ -41,8 +44,9 @@ enum class Mode : int64_t { kBilinear = 0, kNearest = 1 };
 
 constexpr int64_t kSegment = 256;  // pixels whose footprints are kept at once (7 KB, in L1)
 constexpr int64_t kLanes = 8;
+// Output rows per band at least, for band_count (a band re-reads the footprint rows at its
+// edges; the warp is cheap per row, so its bands are thicker than the grid ops').
 constexpr int64_t kMinRowsPerBand = 8;
-constexpr int64_t kBandsPerCpu = 3;
 
 struct WarpJob {
   const float* image;   // (N, C, H, W)
@@ -134,15 +138,47 @@ struct Axis8 {
 inline __m256i iota() { return _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7); }
 #endif
 
-// Footprints of pixels [x, x + count) of row y, and their inside mask (written to `inside`).
-template <bool kStream>
-void footprints(const WarpJob& j, const float* mx, const float* my, int64_t y, int64_t x,
-                int64_t count, float* inside, Footprints& f) {
+// Footprints of pixels [x + begin, x + count) of row y (segment positions begin..count), and
+// their inside mask (written to `inside`).
+void footprints_scalar(const WarpJob& j, const float* mx, const float* my, int64_t y, int64_t x,
+                       int64_t begin, int64_t count, float* inside, Footprints& f) {
   const Axis ax(j.W), ay(j.H);
   const int32_t W = static_cast<int32_t>(j.W), H = static_cast<int32_t>(j.H);
   const bool bilinear = j.mode == Mode::kBilinear;
-  int64_t i = 0;
+  for (int64_t i = begin; i < count; ++i) {
+    const float sx = static_cast<float>(x + i) + mx[i];
+    const float sy = static_cast<float>(y) + my[i];
+    inside[i] = ax.contains(sx) && ay.contains(sy) ? 1.0f : 0.0f;
+    const float ix = ax.index(sx), iy = ay.index(sy);
+    if (bilinear) {
+      const float x0 = std::floor(ix), y0 = std::floor(iy);
+      const float wx = ix - x0, wy = iy - y0;
+      const float ex = 1.0f - wx, ey = 1.0f - wy;
+      f.nw[i] = ey * ex;
+      f.ne[i] = ey * wx;
+      f.sw[i] = wy * ex;
+      f.se[i] = wy * wx;
+      const int32_t x0i = static_cast<int32_t>(x0), y0i = static_cast<int32_t>(y0);
+      f.east[i] = x0i + 1 < W ? -1 : 0;
+      f.south[i] = y0i + 1 < H ? -1 : 0;
+      f.offset[i] = y0i * W + x0i;
+    } else {
+      f.offset[i] = static_cast<int32_t>(std::nearbyint(iy)) * W +
+                    static_cast<int32_t>(std::nearbyint(ix));
+    }
+  }
+}
+
 #if QF_HAVE_AVX2
+// footprints_scalar 8 pixels at a time, from the start of the segment; also sorts each 8 into a
+// Chunk. Returns the pixels done.
+template <bool kStream>
+int64_t footprints_avx2(const WarpJob& j, const float* mx, const float* my, int64_t y,
+                        int64_t x, int64_t count, float* inside, Footprints& f) {
+  const Axis ax(j.W), ay(j.H);  // vectorised as Axis8
+  const int32_t W = static_cast<int32_t>(j.W), H = static_cast<int32_t>(j.H);
+  const bool bilinear = j.mode == Mode::kBilinear;
+  int64_t i = 0;
   const Axis8 vx(ax), vy(ay);
   const __m256 one = _mm256_set1_ps(1.0f), fy = _mm256_set1_ps(static_cast<float>(y));
   const __m256i width = _mm256_set1_epi32(W), lanes = iota();
@@ -186,29 +222,19 @@ void footprints(const WarpJob& j, const float* mx, const float* my, int64_t y, i
         _mm256_testc_si256(_mm256_cmpeq_epi32(offset, expected), _mm256_set1_epi32(-1));
     f.chunk[i / kLanes] = !interior ? kMasked : consecutive ? kConsecutive : kInterior;
   }
+  return i;
+}
 #endif
-  for (; i < count; ++i) {
-    const float sx = static_cast<float>(x + i) + mx[i];
-    const float sy = static_cast<float>(y) + my[i];
-    inside[i] = ax.contains(sx) && ay.contains(sy) ? 1.0f : 0.0f;
-    const float ix = ax.index(sx), iy = ay.index(sy);
-    if (bilinear) {
-      const float x0 = std::floor(ix), y0 = std::floor(iy);
-      const float wx = ix - x0, wy = iy - y0;
-      const float ex = 1.0f - wx, ey = 1.0f - wy;
-      f.nw[i] = ey * ex;
-      f.ne[i] = ey * wx;
-      f.sw[i] = wy * ex;
-      f.se[i] = wy * wx;
-      const int32_t x0i = static_cast<int32_t>(x0), y0i = static_cast<int32_t>(y0);
-      f.east[i] = x0i + 1 < W ? -1 : 0;
-      f.south[i] = y0i + 1 < H ? -1 : 0;
-      f.offset[i] = y0i * W + x0i;
-    } else {
-      f.offset[i] = static_cast<int32_t>(std::nearbyint(iy)) * W +
-                    static_cast<int32_t>(std::nearbyint(ix));
-    }
-  }
+
+// Footprints of pixels [x, x + count) of row y, and their inside mask (written to `inside`).
+template <bool kStream>
+void footprints(const WarpJob& j, const float* mx, const float* my, int64_t y, int64_t x,
+                int64_t count, float* inside, Footprints& f) {
+  int64_t i = 0;
+#if QF_HAVE_AVX2
+  if (simd_enabled()) i = footprints_avx2<kStream>(j, mx, my, y, x, count, inside, f);
+#endif
+  footprints_scalar(j, mx, my, y, x, i, count, inside, f);
 }
 
 #if QF_HAVE_AVX2
@@ -233,12 +259,30 @@ inline void gather_pairs(const float* p, __m256i offset, __m256* first, __m256* 
 }
 #endif
 
-// out[0..count) = bilinear samples of `plane` (one channel, H·W floats) at the footprints.
-template <bool kStream>
-void sample_bilinear(const float* plane, int64_t W, const Footprints& f, int64_t count,
-                     float* out) {
-  int64_t i = 0;
+// out[begin..count) = bilinear samples of `plane` (one channel, H·W floats) at the footprints:
+// corners past the last column or row read 0.
+void sample_bilinear_scalar(const float* plane, int64_t W, const Footprints& f, int64_t begin,
+                            int64_t count, float* out) {
+  for (int64_t i = begin; i < count; ++i) {
+    const float* p = plane + f.offset[i];
+    const bool e = f.east[i] != 0, s = f.south[i] != 0;
+    const float b = e ? p[1] : 0.0f;
+    const float c = s ? p[W] : 0.0f;
+    const float d = e && s ? p[W + 1] : 0.0f;
+    float r = f.nw[i] * p[0];
+    r = std::fma(b, f.ne[i], r);
+    r = std::fma(c, f.sw[i], r);
+    out[i] = std::fma(d, f.se[i], r);
+  }
+}
+
 #if QF_HAVE_AVX2
+// sample_bilinear_scalar 8 pixels at a time (vector loads, pair gathers or masked gathers by
+// Chunk); returns the pixels done.
+template <bool kStream>
+int64_t sample_bilinear_avx2(const float* plane, int64_t W, const Footprints& f, int64_t count,
+                             float* out) {
+  int64_t i = 0;
   const __m256 zero = _mm256_setzero_ps();
   const float* east = plane + 1;
   const float* south = plane + W;
@@ -274,25 +318,32 @@ void sample_bilinear(const float* plane, int64_t W, const Footprints& f, int64_t
     r = _mm256_fmadd_ps(d, _mm256_load_ps(f.se + i), r);
     store8<kStream>(out + i, r);
   }
-#endif
-  for (; i < count; ++i) {
-    const float* p = plane + f.offset[i];
-    const bool e = f.east[i] != 0, s = f.south[i] != 0;
-    const float b = e ? p[1] : 0.0f;
-    const float c = s ? p[W] : 0.0f;
-    const float d = e && s ? p[W + 1] : 0.0f;
-    float r = f.nw[i] * p[0];
-    r = std::fma(b, f.ne[i], r);
-    r = std::fma(c, f.sw[i], r);
-    out[i] = std::fma(d, f.se[i], r);
-  }
+  return i;
 }
+#endif
 
-// out[0..count) = the texels of `plane` at the footprints (nearest).
+// out[0..count) = bilinear samples of `plane` (one channel, H·W floats) at the footprints.
 template <bool kStream>
-void sample_nearest(const float* plane, const Footprints& f, int64_t count, float* out) {
+void sample_bilinear(const float* plane, int64_t W, const Footprints& f, int64_t count,
+                     float* out) {
   int64_t i = 0;
 #if QF_HAVE_AVX2
+  if (simd_enabled()) i = sample_bilinear_avx2<kStream>(plane, W, f, count, out);
+#endif
+  sample_bilinear_scalar(plane, W, f, i, count, out);
+}
+
+// out[begin..count) = the texels of `plane` at the footprints (nearest).
+void sample_nearest_scalar(const float* plane, const Footprints& f, int64_t begin, int64_t count,
+                           float* out) {
+  for (int64_t i = begin; i < count; ++i) out[i] = plane[f.offset[i]];
+}
+
+#if QF_HAVE_AVX2
+// sample_nearest_scalar 8 pixels at a time; returns the pixels done.
+template <bool kStream>
+int64_t sample_nearest_avx2(const float* plane, const Footprints& f, int64_t count, float* out) {
+  int64_t i = 0;
   for (; i + kLanes <= count; i += kLanes) {
     const __m256 v =
         f.chunk[i / kLanes] == kConsecutive
@@ -301,15 +352,25 @@ void sample_nearest(const float* plane, const Footprints& f, int64_t count, floa
                   plane, _mm256_load_si256(reinterpret_cast<const __m256i*>(f.offset + i)), 4);
     store8<kStream>(out + i, v);
   }
+  return i;
+}
 #endif
-  for (; i < count; ++i) out[i] = plane[f.offset[i]];
+
+// out[0..count) = the texels of `plane` at the footprints (nearest).
+template <bool kStream>
+void sample_nearest(const float* plane, const Footprints& f, int64_t count, float* out) {
+  int64_t i = 0;
+#if QF_HAVE_AVX2
+  if (simd_enabled()) i = sample_nearest_avx2<kStream>(plane, f, count, out);
+#endif
+  sample_nearest_scalar(plane, f, i, count, out);
 }
 
 // Task: output rows [ya, yb) of image n.
 template <bool kStream>
 void warp_rows(const WarpJob& j, int64_t task) {
   const int64_t n = task / j.bands, band = task % j.bands;
-  const int64_t ya = band * j.H / j.bands, yb = (band + 1) * j.H / j.bands;
+  const int64_t ya = band_start(band, j.bands, j.H), yb = band_start(band + 1, j.bands, j.H);
   const int64_t plane = j.H * j.W;
   const float* image = j.image + n * j.C * plane;
   float* warped = j.warped + n * j.C * plane;
@@ -394,13 +455,11 @@ class BackwardWarp {
     if (OrtStatus* s = get_float_output(api, kName, ctx, 1, "inside", inside_shape, &inside)) {
       return s;
     }
-    const int64_t wanted = (kBandsPerCpu * cpu_count() + N - 1) / N;
-    const int64_t bands =
-        std::clamp<int64_t>(wanted, 1, std::max<int64_t>(H / kMinRowsPerBand, 1));
+    const int64_t bands = band_count(H, N, kMinRowsPerBand);
     // Streaming stores need whole, aligned cache lines: rows of a multiple of 16 floats (every
     // segment then is one too) from line-aligned tensors.
     const bool stream =
-        QF_HAVE_AVX2 && W % 16 == 0 && line_aligned(warped) && line_aligned(inside);
+        QF_HAVE_AVX2 && simd_enabled() && W % 16 == 0 && line_aligned(warped) && line_aligned(inside);
     const WarpJob job{image, motion, warped, inside, C, H, W, bands, mode_, stream};
     auto task = [&job](size_t i) { warp_band(job, static_cast<int64_t>(i)); };
     if (!parallel_for(ctx, static_cast<size_t>(N * bands), task)) {

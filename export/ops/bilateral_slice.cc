@@ -18,6 +18,9 @@
 
 #include "grid_common.h"
 #include "kernel_support.h"
+#include "ops.h"
+#include "runtime_support.h"
+#include "simd.h"
 
 namespace qf {
 namespace {
@@ -81,41 +84,14 @@ struct SliceScratch {
   }
 };
 
-// Copies blocks [b0, b1) of range cell z of grid row v (image n) into `row` as (grid·m, m)
-// with m = 1[weight > 0]. A cell that is masked out, or holds a non-finite value, contributes 0
-// (never NaN from 0·Inf).
-void copy_blocks(const SliceJob& j, int64_t n, int64_t v, int64_t z, int64_t b0, int64_t b1,
-                 float* row) {
+// Cells [begin, end) of range cell z of grid row v: `grid` and `weight` at their column 0,
+// `cells` the range cell's [gx][P] scratch. Writes (grid·m, m) with m = 1[weight > 0]; a cell
+// that is masked out, or holds a non-finite value, contributes 0 (never NaN from 0·Inf).
+void copy_cells_scalar(const SliceJob& j, const float* grid, const float* weight, int64_t begin,
+                       int64_t end, float* cells) {
   const int64_t P = j.cell_values();
   const int64_t channel = j.D * j.GH * j.GW;  // from one grid channel to the next
-  const int64_t start = b0 * kBlock, end = std::min(b1 * kBlock, j.GW);
-  const float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
-  const float* weight = j.weight + ((n * j.D + z) * j.GH + v) * j.GW;
-  float* cells = row + z * j.GW * P;
-  int64_t gx = start;
-#if QF_HAVE_AVX2
-  if (j.fast) {
-    const __m256 one = _mm256_set1_ps(1.0f);
-    // A new row is copied range cell after range cell: ask for the same columns of the next
-    // but one now (one core alone does not keep enough reads in flight to fill the memory bus).
-    const int64_t ahead = z + kPrefetchLevels < j.D ? kPrefetchLevels * j.GH * j.GW : 0;
-    for (; gx + kBlock <= end; gx += kBlock) {
-      if (ahead != 0) {
-        for (int c = 0; c < 3; ++c) grid::prefetch(grid + c * channel + ahead + gx);
-        grid::prefetch(weight + ahead + gx);
-      }
-      const __m256 m = _mm256_cmp_ps(_mm256_loadu_ps(weight + gx), _mm256_setzero_ps(),
-                                     _CMP_GT_OQ);
-      __m256 t[4];
-      for (int c = 0; c < 3; ++c) {
-        t[c] = _mm256_and_ps(m, grid::finite_or_zero(_mm256_loadu_ps(grid + c * channel + gx)));
-      }
-      t[3] = _mm256_and_ps(m, one);
-      grid::store_cells_4x8(cells + 4 * gx, t);
-    }
-  }
-#endif
-  for (; gx < end; ++gx) {
+  for (int64_t gx = begin; gx < end; ++gx) {
     float* cell = cells + gx * P;
     const bool m = weight[gx] > 0.0f;  // false for NaN
     for (int64_t c = 0; c < j.C; ++c) {
@@ -123,6 +99,49 @@ void copy_blocks(const SliceJob& j, int64_t n, int64_t v, int64_t z, int64_t b0,
     }
     for (int64_t k = j.C; k < P; ++k) cell[k] = m ? 1.0f : 0.0f;
   }
+}
+
+#if QF_HAVE_AVX2
+// copy_cells_scalar for 4-value cells (C = 3), 8 columns at a time; returns where it stopped.
+int64_t copy_cells_avx2(const SliceJob& j, int64_t z, const float* grid, const float* weight,
+                        int64_t begin, int64_t end, float* cells) {
+  const int64_t channel = j.D * j.GH * j.GW;
+  const __m256 one = _mm256_set1_ps(1.0f);
+  // A new row is copied range cell after range cell: ask for the same columns of the next
+  // but one now (one core alone does not keep enough reads in flight to fill the memory bus).
+  const int64_t ahead = z + kPrefetchLevels < j.D ? kPrefetchLevels * j.GH * j.GW : 0;
+  int64_t gx = begin;
+  for (; gx + kBlock <= end; gx += kBlock) {
+    if (ahead != 0) {
+      for (int c = 0; c < 3; ++c) grid::prefetch(grid + c * channel + ahead + gx);
+      grid::prefetch(weight + ahead + gx);
+    }
+    const __m256 m =
+        _mm256_cmp_ps(_mm256_loadu_ps(weight + gx), _mm256_setzero_ps(), _CMP_GT_OQ);
+    __m256 t[4];
+    for (int c = 0; c < 3; ++c) {
+      t[c] = _mm256_and_ps(m, grid::finite_or_zero(_mm256_loadu_ps(grid + c * channel + gx)));
+    }
+    t[3] = _mm256_and_ps(m, one);
+    grid::store_cells_4x8(cells + 4 * gx, t);
+  }
+  return gx;
+}
+#endif
+
+// Copies blocks [b0, b1) of range cell z of grid row v (image n) into `row` (see
+// copy_cells_scalar).
+void copy_blocks(const SliceJob& j, int64_t n, int64_t v, int64_t z, int64_t b0, int64_t b1,
+                 float* row) {
+  const int64_t start = b0 * kBlock, end = std::min(b1 * kBlock, j.GW);
+  const float* grid = j.grid + ((n * j.C * j.D + z) * j.GH + v) * j.GW;  // channel 0
+  const float* weight = j.weight + ((n * j.D + z) * j.GH + v) * j.GW;
+  float* cells = row + z * j.GW * j.cell_values();
+  int64_t gx = start;
+#if QF_HAVE_AVX2
+  if (j.fast) gx = copy_cells_avx2(j, z, grid, weight, start, end, cells);
+#endif
+  copy_cells_scalar(j, grid, weight, gx, end, cells);
 }
 
 // Makes `buffer` hold grid row v with at least the range cells the current pixel row reads
@@ -186,37 +205,14 @@ void ensure_row(const SliceJob& j, SliceScratch& s, int64_t n, int64_t v, RowBuf
 
 // μ and η of one pixel row from grid rows `lo` (its first y-cell, weight ty0) and `hi` (ty1),
 // into s.sums.
-void gather_row(const SliceJob& j, const SliceScratch& s, float ty0, float ty1, const float* lo,
-                const float* hi) {
+void gather_row_scalar(const SliceJob& j, const SliceScratch& s, float ty0, float ty1,
+                       const float* lo, const float* hi) {
   const AxisTaps& xs = *j.xs;
   const int64_t P = j.cell_values();
   const int64_t zstride = j.GW * P;
   const int32_t* offset = s.taps.offset;
   const float* tz0 = s.taps.tz0;
   const float* tz1 = s.taps.tz1;
-#if QF_HAVE_AVX2
-  if (j.fast) {
-    const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
-    const float* xpair = xs.pair.data();
-    float* sums = s.sums;
-    const int64_t W = j.W;
-    for (int64_t x = 0; x < W; ++x) {
-      const float* a = lo + offset[x];
-      const float* b = hi + offset[x];
-      const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
-      // Both x-neighbour cells at once: lanes 0–3 the first, 4–7 the second.
-      const __m256 near = _mm256_fmadd_ps(z1, _mm256_loadu_ps(a + zstride),
-                                          _mm256_mul_ps(z0, _mm256_loadu_ps(a)));
-      const __m256 far = _mm256_fmadd_ps(z1, _mm256_loadu_ps(b + zstride),
-                                         _mm256_mul_ps(z0, _mm256_loadu_ps(b)));
-      __m256 acc = _mm256_fmadd_ps(y1, far, _mm256_mul_ps(y0, near));
-      acc = _mm256_mul_ps(acc, _mm256_loadu_ps(xpair + 8 * x));  // · (tx0, tx1)
-      _mm_store_ps(sums + 4 * x,
-                   _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1)));
-    }
-    return;
-  }
-#endif
   for (int64_t x = 0; x < j.W; ++x) {
     float* sums = s.sums + x * P;
     for (int64_t k = 0; k < P; ++k) sums[k] = 0.0f;
@@ -235,28 +231,51 @@ void gather_row(const SliceJob& j, const SliceScratch& s, float ty0, float ty1, 
   }
 }
 
-// out = μ/η where η > 0 else 0 (as μ · (1/η), like the reference), for pixel row y.
-void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
+#if QF_HAVE_AVX2
+// gather_row_scalar for 4-value cells (C = 3): both x-neighbour cells of a (y, z) corner in one
+// register.
+void gather_row_avx2(const SliceJob& j, const SliceScratch& s, float ty0, float ty1,
+                     const float* lo, const float* hi) {
+  const AxisTaps& xs = *j.xs;
+  const int64_t zstride = j.GW * 4;
+  const int32_t* offset = s.taps.offset;
+  const float* tz0 = s.taps.tz0;
+  const float* tz1 = s.taps.tz1;
+  const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
+  const float* xpair = xs.pair.data();
+  float* sums = s.sums;
+  const int64_t W = j.W;
+  for (int64_t x = 0; x < W; ++x) {
+    const float* a = lo + offset[x];
+    const float* b = hi + offset[x];
+    const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
+    // Both x-neighbour cells at once: lanes 0–3 the first, 4–7 the second.
+    const __m256 near = _mm256_fmadd_ps(z1, _mm256_loadu_ps(a + zstride),
+                                        _mm256_mul_ps(z0, _mm256_loadu_ps(a)));
+    const __m256 far = _mm256_fmadd_ps(z1, _mm256_loadu_ps(b + zstride),
+                                       _mm256_mul_ps(z0, _mm256_loadu_ps(b)));
+    __m256 acc = _mm256_fmadd_ps(y1, far, _mm256_mul_ps(y0, near));
+    acc = _mm256_mul_ps(acc, _mm256_loadu_ps(xpair + 8 * x));  // · (tx0, tx1)
+    _mm_store_ps(sums + 4 * x,
+                 _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1)));
+  }
+}
+#endif
+
+void gather_row(const SliceJob& j, const SliceScratch& s, float ty0, float ty1, const float* lo,
+                const float* hi) {
+#if QF_HAVE_AVX2
+  if (j.fast) return gather_row_avx2(j, s, ty0, ty1, lo, hi);
+#endif
+  gather_row_scalar(j, s, ty0, ty1, lo, hi);
+}
+
+// out = μ/η where η > 0 else 0 (as μ · (1/η), like the reference) for pixels [begin, W) of a
+// row, `out` at its channel-0 value.
+void write_row_scalar(const SliceJob& j, const SliceScratch& s, int64_t begin, float* out) {
   const int64_t P = j.cell_values();
   const int64_t plane = j.H * j.W;
-  float* out = j.out + n * j.C * plane + y * j.W;  // channel 0
-  int64_t x = 0;
-#if QF_HAVE_AVX2
-  if (j.fast) {
-    const __m256 zero = _mm256_setzero_ps();
-    for (; x + 8 <= j.W; x += 8) {
-      __m256 t[4];
-      grid::transpose_cells_4x8(s.sums + 4 * x, t);
-      // 1/η where η > 0, else 0 (the division's Inf/NaN lanes are masked away)
-      const __m256 inverse = _mm256_and_ps(_mm256_cmp_ps(t[3], zero, _CMP_GT_OQ),
-                                           _mm256_div_ps(_mm256_set1_ps(1.0f), t[3]));
-      for (int c = 0; c < 3; ++c) {
-        _mm256_storeu_ps(out + c * plane + x, _mm256_mul_ps(t[c], inverse));
-      }
-    }
-  }
-#endif
-  for (; x < j.W; ++x) {
+  for (int64_t x = begin; x < j.W; ++x) {
     const float* sums = s.sums + x * P;
     const float eta = sums[j.C];
     const float inverse = eta > 0.0f ? 1.0f / eta : 0.0f;
@@ -264,11 +283,41 @@ void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
   }
 }
 
+#if QF_HAVE_AVX2
+// write_row_scalar for 4-value cells (C = 3), 8 pixels at a time; returns the pixels done.
+int64_t write_row_avx2(const SliceJob& j, const SliceScratch& s, float* out) {
+  const int64_t plane = j.H * j.W;
+  const __m256 zero = _mm256_setzero_ps();
+  int64_t x = 0;
+  for (; x + 8 <= j.W; x += 8) {
+    __m256 t[4];
+    grid::transpose_cells_4x8(s.sums + 4 * x, t);
+    // 1/η where η > 0, else 0 (the division's Inf/NaN lanes are masked away)
+    const __m256 inverse = _mm256_and_ps(_mm256_cmp_ps(t[3], zero, _CMP_GT_OQ),
+                                         _mm256_div_ps(_mm256_set1_ps(1.0f), t[3]));
+    for (int c = 0; c < 3; ++c) {
+      _mm256_storeu_ps(out + c * plane + x, _mm256_mul_ps(t[c], inverse));
+    }
+  }
+  return x;
+}
+#endif
+
+// Pixel row y of image n from s.sums.
+void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
+  float* out = j.out + n * j.C * j.H * j.W + y * j.W;  // channel 0
+  int64_t x = 0;
+#if QF_HAVE_AVX2
+  if (j.fast) x = write_row_avx2(j, s, out);
+#endif
+  write_row_scalar(j, s, x, out);
+}
+
 // Task: the pixel rows of image n whose first y-cell is in [va, vb).
 void slice_band(const SliceJob& j, int64_t task) {
   const int64_t n = task / j.bands, band = task % j.bands;
-  const int64_t va = grid::band_start(band, j.bands, j.GH);
-  const int64_t vb = grid::band_start(band + 1, j.bands, j.GH);
+  const int64_t va = band_start(band, j.bands, j.GH);
+  const int64_t vb = band_start(band + 1, j.bands, j.GH);
   grid::Carver measure(nullptr);
   SliceScratch{measure, j};
   grid::Carver carver(grid::thread_scratch().get(measure.used()));
@@ -334,7 +383,7 @@ class BilateralSlice {
       return op_error(api, kName, "weight must be (" + std::to_string(N) + ", 1, " + cells +
                                       because + ", got " + ws.str());
     }
-    const bool fast = QF_HAVE_AVX2 && C == 3;
+    const bool fast = QF_HAVE_AVX2 && C == 3 && simd_enabled();
     if (D * GW * (fast ? 4 : C + 1) > INT32_MAX) {
       return op_error(api, kName, "a grid row of " + gs.str() + " is too large");
     }
@@ -349,7 +398,7 @@ class BilateralSlice {
     ys.build(H, attributes_.sigma_s, GH);
     const grid::RangeAxis range(attributes_.sigma_r, D);
     const SliceJob job{grid, weight, guide, out, C, H, W, D, GH, GW, &range, &xs, &ys,
-                       grid::band_count(GH, N), fast};
+                       band_count(GH, N, grid::kMinRowsPerBand), fast};
     auto task = [&job](size_t i) { slice_band(job, static_cast<int64_t>(i)); };
     if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
       return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);

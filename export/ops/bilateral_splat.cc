@@ -16,6 +16,9 @@
 
 #include "grid_common.h"
 #include "kernel_support.h"
+#include "ops.h"
+#include "runtime_support.h"
+#include "simd.h"
 
 namespace qf {
 namespace {
@@ -65,28 +68,45 @@ struct SplatScratch {
   }
 };
 
-// Pixel row y of image n as [x][P] (non-finite values count as 0), and its taps.
+// Pixels [begin, end) of a row (`image` at its channel-0 value) as [x][P] cells: the values, with
+// non-finite ones counted as 0, then 1.
+void prepare_values_scalar(const SplatJob& j, const float* image, int64_t begin, int64_t end,
+                           float* values) {
+  const int64_t plane = j.H * j.W;
+  const int64_t P = j.cell_values();
+  for (int64_t x = begin; x < end; ++x) {
+    float* cell = values + x * P;
+    for (int64_t c = 0; c < j.C; ++c) cell[c] = grid::finite_or_zero(image[c * plane + x]);
+    for (int64_t k = j.C; k < P; ++k) cell[k] = 1.0f;
+  }
+}
+
+#if QF_HAVE_AVX2
+// prepare_values_scalar for 4-value cells (C = 3), 8 pixels at a time; returns the pixels done.
+int64_t prepare_values_avx2(const SplatJob& j, const float* image, float* values) {
+  const int64_t plane = j.H * j.W;
+  const __m256 one = _mm256_set1_ps(1.0f);
+  int64_t x = 0;
+  for (; x + 8 <= j.W; x += 8) {
+    const __m256 v[4] = {grid::finite_or_zero(_mm256_loadu_ps(image + x)),
+                         grid::finite_or_zero(_mm256_loadu_ps(image + plane + x)),
+                         grid::finite_or_zero(_mm256_loadu_ps(image + 2 * plane + x)), one};
+    grid::store_cells_4x8(values + 4 * x, v);
+  }
+  return x;
+}
+#endif
+
+// Pixel row y of image n as [x][P] cells, and its taps.
 void prepare_row(const SplatJob& j, int64_t n, int64_t y, const SplatScratch& s) {
   const int64_t plane = j.H * j.W;
   const float* image = j.image + n * j.C * plane + y * j.W;
   const int64_t P = j.cell_values();
   int64_t x = 0;
 #if QF_HAVE_AVX2
-  if (j.fast) {
-    const __m256 one = _mm256_set1_ps(1.0f);
-    for (; x + 8 <= j.W; x += 8) {
-      const __m256 v[4] = {grid::finite_or_zero(_mm256_loadu_ps(image + x)),
-                           grid::finite_or_zero(_mm256_loadu_ps(image + plane + x)),
-                           grid::finite_or_zero(_mm256_loadu_ps(image + 2 * plane + x)), one};
-      grid::store_cells_4x8(s.values + 4 * x, v);
-    }
-  }
+  if (j.fast) x = prepare_values_avx2(j, image, s.values);
 #endif
-  for (; x < j.W; ++x) {
-    float* cell = s.values + x * P;
-    for (int64_t c = 0; c < j.C; ++c) cell[c] = grid::finite_or_zero(image[c * plane + x]);
-    for (int64_t k = j.C; k < P; ++k) cell[k] = 1.0f;
-  }
+  prepare_values_scalar(j, image, x, j.W, s.values);
   grid::row_taps(j.guide + n * plane + y * j.W, j.W, *j.range, j.xs->offset.data(), j.GW * P,
                  s.taps);
 }
@@ -94,52 +114,14 @@ void prepare_row(const SplatJob& j, int64_t n, int64_t y, const SplatScratch& s)
 // Adds the prepared pixel row to grid row `lo` (its first y-cell) and/or `hi` (the second); a
 // null row belongs to another task.
 template <bool kLo, bool kHi>
-void scatter_row(const SplatJob& j, const SplatScratch& s, float ty0, float ty1, float* lo,
-                 float* hi) {
+void scatter_row_scalar(const SplatJob& j, const SplatScratch& s, float ty0, float ty1,
+                        float* lo, float* hi) {
   const AxisTaps& xs = *j.xs;
   const int64_t P = j.cell_values();
   const int64_t zstride = j.GW * P;  // from a cell to the next range cell
   const int32_t* offset = s.taps.offset;
   const float* tz0 = s.taps.tz0;
   const float* tz1 = s.taps.tz1;
-#if QF_HAVE_AVX2
-  if (j.fast) {
-    const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
-    const float* values = s.values;
-    const float* xpair = xs.pair.data();
-    auto add_pixel = [=](int64_t x) {
-      // (tx0·v, tx1·v) for the two x-neighbour cells, v = (c0, c1, c2, 1)
-      const __m256 pair =
-          _mm256_mul_ps(_mm256_broadcast_ps(reinterpret_cast<const __m128*>(values + 4 * x)),
-                        _mm256_loadu_ps(xpair + 8 * x));
-      const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
-      const int32_t first = offset[x];
-      if (kLo) {
-        const __m256 p = _mm256_mul_ps(y0, pair);
-        float* a = lo + first;
-        float* b = a + zstride;
-        _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
-        _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
-      }
-      if (kHi) {
-        const __m256 p = _mm256_mul_ps(y1, pair);
-        float* a = hi + first;
-        float* b = a + zstride;
-        _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
-        _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
-      }
-    };
-    // Neighbouring pixels mostly hit the same cells, and each add must wait for the previous
-    // one's store: walk kStreams far-apart stretches of the row in lockstep so that that
-    // many independent chains overlap.
-    const int64_t W = j.W, stretch = W / kStreams;
-    for (int64_t i = 0; i < stretch; ++i) {
-      for (int64_t k = 0; k < kStreams; ++k) add_pixel(k * stretch + i);
-    }
-    for (int64_t x = kStreams * stretch; x < W; ++x) add_pixel(x);
-    return;
-  }
-#endif
   for (int64_t x = 0; x < j.W; ++x) {
     const float* v = s.values + x * P;
     const float tx[2] = {xs.w0[x], xs.w1[x]};
@@ -158,6 +140,62 @@ void scatter_row(const SplatJob& j, const SplatScratch& s, float ty0, float ty1,
   }
 }
 
+#if QF_HAVE_AVX2
+// scatter_row_scalar for 4-value cells (C = 3): a pixel adds to both x-neighbour cells with one
+// register per (y, z) corner.
+template <bool kLo, bool kHi>
+void scatter_row_avx2(const SplatJob& j, const SplatScratch& s, float ty0, float ty1, float* lo,
+                      float* hi) {
+  const AxisTaps& xs = *j.xs;
+  const int64_t zstride = j.GW * 4;  // from a cell to the next range cell
+  const int32_t* offset = s.taps.offset;
+  const float* tz0 = s.taps.tz0;
+  const float* tz1 = s.taps.tz1;
+  const __m256 y0 = _mm256_set1_ps(ty0), y1 = _mm256_set1_ps(ty1);
+  const float* values = s.values;
+  const float* xpair = xs.pair.data();
+  auto add_pixel = [=](int64_t x) {
+    // (tx0·v, tx1·v) for the two x-neighbour cells, v = (c0, c1, c2, 1)
+    const __m256 pair =
+        _mm256_mul_ps(_mm256_broadcast_ps(reinterpret_cast<const __m128*>(values + 4 * x)),
+                      _mm256_loadu_ps(xpair + 8 * x));
+    const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
+    const int32_t first = offset[x];
+    if (kLo) {
+      const __m256 p = _mm256_mul_ps(y0, pair);
+      float* a = lo + first;
+      float* b = a + zstride;
+      _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
+      _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
+    }
+    if (kHi) {
+      const __m256 p = _mm256_mul_ps(y1, pair);
+      float* a = hi + first;
+      float* b = a + zstride;
+      _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
+      _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
+    }
+  };
+  // Neighbouring pixels mostly hit the same cells, and each add must wait for the previous
+  // one's store: walk kStreams far-apart stretches of the row in lockstep so that that
+  // many independent chains overlap.
+  const int64_t W = j.W, stretch = W / kStreams;
+  for (int64_t i = 0; i < stretch; ++i) {
+    for (int64_t k = 0; k < kStreams; ++k) add_pixel(k * stretch + i);
+  }
+  for (int64_t x = kStreams * stretch; x < W; ++x) add_pixel(x);
+}
+#endif
+
+template <bool kLo, bool kHi>
+void scatter_row(const SplatJob& j, const SplatScratch& s, float ty0, float ty1, float* lo,
+                 float* hi) {
+#if QF_HAVE_AVX2
+  if (j.fast) return scatter_row_avx2<kLo, kHi>(j, s, ty0, ty1, lo, hi);
+#endif
+  scatter_row_scalar<kLo, kHi>(j, s, ty0, ty1, lo, hi);
+}
+
 // A grid row in scratch, [z][gx][P], and the range cells [low, high] that pixels have touched
 // (all others are still 0).
 struct RowBuffer {
@@ -174,6 +212,49 @@ struct RowBuffer {
     high = -1;
   }
 };
+
+// Cells [begin, GW) of one range cell of a finished grid row (`cells`, [gx][P]) to `staging`
+// ([C + 1][GW]): grid = α/β where β > 0 else 0 (as α · (1/β), like the reference), then β;
+// the cells are left zeroed.
+void normalise_cells_scalar(const SplatJob& j, float* cells, int64_t begin, float* staging) {
+  const int64_t P = j.cell_values();
+  float* beta_row = staging + j.C * j.GW;
+  for (int64_t gx = begin; gx < j.GW; ++gx) {
+    float* cell = cells + gx * P;
+    const float beta = cell[j.C];
+    const float inverse = beta > 0.0f ? 1.0f / beta : 0.0f;
+    for (int64_t c = 0; c < j.C; ++c) staging[c * j.GW + gx] = cell[c] * inverse;
+    beta_row[gx] = beta;
+    std::memset(cell, 0, sizeof(float) * P);
+  }
+}
+
+#if QF_HAVE_AVX2
+// normalise_cells_scalar for 4-value cells (C = 3), 8 cells at a time; returns the cells done.
+int64_t normalise_cells_avx2(const SplatJob& j, float* cells, float* staging) {
+  const int64_t GW = j.GW;
+  float* beta_row = staging + 3 * GW;
+  const __m256 zero = _mm256_setzero_ps();
+  int64_t gx = 0;
+  for (; gx + 8 <= GW; gx += 8) {
+    __m256 t[4];
+    grid::transpose_cells_4x8(cells + 4 * gx, t);
+    const __m256 filled = _mm256_cmp_ps(t[3], zero, _CMP_GT_OQ);
+    for (int k = 0; k < 4; ++k) _mm256_storeu_ps(cells + 4 * gx + 8 * k, zero);
+    if (_mm256_movemask_ps(filled) == 0) {  // 8 empty cells, the usual case: no division
+      for (int c = 0; c < 4; ++c) _mm256_storeu_ps(staging + c * GW + gx, zero);
+      continue;
+    }
+    // 1/β where β > 0, else 0 (the division's Inf/NaN lanes are masked away)
+    const __m256 inverse = _mm256_and_ps(filled, _mm256_div_ps(_mm256_set1_ps(1.0f), t[3]));
+    for (int c = 0; c < 3; ++c) {
+      _mm256_storeu_ps(staging + c * GW + gx, _mm256_mul_ps(t[c], inverse));
+    }
+    _mm256_storeu_ps(beta_row + gx, t[3]);
+  }
+  return gx;
+}
+#endif
 
 // grid = α/β where β > 0 else 0 (as α · (1/β), like the reference), weight = β, for grid row
 // v; leaves the scratch row zeroed. Each range cell's values go through `staging` ([C + 1][GW]:
@@ -195,36 +276,9 @@ void finish_row(const SplatJob& j, int64_t n, int64_t v, RowBuffer& row, float* 
     float* cells = row.cells + z * j.GW * P;
     int64_t gx = 0;
 #if QF_HAVE_AVX2
-    if (j.fast) {
-      const __m256 zero = _mm256_setzero_ps();
-      const int64_t GW = j.GW;
-      for (; gx + 8 <= GW; gx += 8) {
-        __m256 t[4];
-        grid::transpose_cells_4x8(cells + 4 * gx, t);
-        const __m256 filled = _mm256_cmp_ps(t[3], zero, _CMP_GT_OQ);
-        for (int k = 0; k < 4; ++k) _mm256_storeu_ps(cells + 4 * gx + 8 * k, zero);
-        if (_mm256_movemask_ps(filled) == 0) {  // 8 empty cells, the usual case: no division
-          for (int c = 0; c < 4; ++c) _mm256_storeu_ps(staging + c * GW + gx, zero);
-          continue;
-        }
-        // 1/β where β > 0, else 0 (the division's Inf/NaN lanes are masked away)
-        const __m256 inverse =
-            _mm256_and_ps(filled, _mm256_div_ps(_mm256_set1_ps(1.0f), t[3]));
-        for (int c = 0; c < 3; ++c) {
-          _mm256_storeu_ps(staging + c * GW + gx, _mm256_mul_ps(t[c], inverse));
-        }
-        _mm256_storeu_ps(beta_row + gx, t[3]);
-      }
-    }
+    if (j.fast) gx = normalise_cells_avx2(j, cells, staging);
 #endif
-    for (; gx < j.GW; ++gx) {
-      float* cell = cells + gx * P;
-      const float beta = cell[j.C];
-      const float inverse = beta > 0.0f ? 1.0f / beta : 0.0f;
-      for (int64_t c = 0; c < j.C; ++c) staging[c * j.GW + gx] = cell[c] * inverse;
-      beta_row[gx] = beta;
-      std::memset(cell, 0, sizeof(float) * P);
-    }
+    normalise_cells_scalar(j, cells, gx, staging);
     for (int64_t c = 0; c < j.C; ++c) {
       out.write(c * j.D + z, grid + c * channel, staging + c * j.GW, j.GW);
     }
@@ -236,8 +290,8 @@ void finish_row(const SplatJob& j, int64_t n, int64_t v, RowBuffer& row, float* 
 // Task: grid rows [va, vb) of image n.
 void splat_band(const SplatJob& j, int64_t task) {
   const int64_t n = task / j.bands, band = task % j.bands;
-  const int64_t va = grid::band_start(band, j.bands, j.GH);
-  const int64_t vb = grid::band_start(band + 1, j.bands, j.GH);
+  const int64_t va = band_start(band, j.bands, j.GH);
+  const int64_t vb = band_start(band + 1, j.bands, j.GH);
   grid::Carver measure(nullptr);
   SplatScratch{measure, j};
   grid::Carver carver(grid::thread_scratch().get(measure.used()));
@@ -332,7 +386,7 @@ class BilateralSplat {
       return s;
     }
 
-    const bool fast = QF_HAVE_AVX2 && C == 3;
+    const bool fast = QF_HAVE_AVX2 && C == 3 && simd_enabled();
     if (D * GW * (fast ? 4 : C + 1) > INT32_MAX) {
       return op_error(api, kName, "a grid row of " + grid_shape.str() + " is too large");
     }
@@ -341,7 +395,7 @@ class BilateralSplat {
     ys.build(H, attributes_.sigma_s, GH);
     const grid::RangeAxis range(attributes_.sigma_r, D);
     const SplatJob job{image, guide, grid_data, weight_data, C, H, W, D, GH, GW, &range,
-                       &xs, &ys, grid::band_count(GH, N), fast};
+                       &xs, &ys, band_count(GH, N, grid::kMinRowsPerBand), fast};
     auto task = [&job](size_t i) { splat_band(job, static_cast<int64_t>(i)); };
     if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
       return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);

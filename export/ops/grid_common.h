@@ -22,13 +22,8 @@
 #include <vector>
 
 #include "kernel_support.h"
-
-#if defined(__AVX2__) && defined(__FMA__)
-#include <immintrin.h>
-#define QF_HAVE_AVX2 1
-#else
-#define QF_HAVE_AVX2 0
-#endif
+#include "runtime_support.h"
+#include "simd.h"
 
 namespace qf::grid {
 
@@ -234,13 +229,29 @@ inline __m256 tent8(__m256 d) {
 }
 #endif
 
-// Fills `out` for a pixel row with guide values `guide`; `xoffset[x]` = first column of pixel x
-// times P, `plane` = GW·P (the offset from one range cell to the next).
-inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
-                     const int32_t* xoffset, int64_t plane, const RowTaps& out) {
+// Fills `out` for pixels [begin, end) of a row with guide values `guide`; `xoffset[x]` = first
+// column of pixel x times P, `plane` = GW·P (the offset from one range cell to the next).
+inline void row_taps_scalar(const float* guide, int64_t begin, int64_t end,
+                            const RangeAxis& range, const int32_t* xoffset, int64_t plane,
+                            const RowTaps& out) {
+  const bool exact_inverse = range.exact_inverse;
+  for (int64_t x = begin; x < end; ++x) {
+    // [qf] NaN counts as 0 (it fails `g > 0`), then clamp to [0, 1]; the guide is not biased.
+    const float g = guide[x] > 0.0f ? (guide[x] < 1.0f ? guide[x] : 1.0f) : 0.0f;
+    const float c = exact_inverse ? (kGuideLevels * g) * range.inverse
+                                  : (kGuideLevels * g) / range.sigma_r;
+    taps(c, range.last_first, &out.zfirst[x], &out.tz0[x], &out.tz1[x]);
+    out.offset[x] = static_cast<int32_t>(out.zfirst[x] * plane + xoffset[x]);
+  }
+}
+
+#if QF_HAVE_AVX2
+// row_taps_scalar for pixels [0, count) 8 at a time, the same floats; returns the pixels done
+// (the rest of the row is left to the scalar loop).
+inline int64_t row_taps_avx2(const float* guide, int64_t count, const RangeAxis& range,
+                             const int32_t* xoffset, int64_t plane, const RowTaps& out) {
   int64_t x = 0;
   const bool exact_inverse = range.exact_inverse;
-#if QF_HAVE_AVX2
   const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
   const __m256 levels = _mm256_set1_ps(kGuideLevels), half = _mm256_set1_ps(0.5f);
   const __m256 sigma_r = _mm256_set1_ps(range.sigma_r), inverse = _mm256_set1_ps(range.inverse);
@@ -266,15 +277,18 @@ inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
     _mm256_storeu_si256(reinterpret_cast<__m256i*>(out.offset + x),
                         _mm256_add_epi32(_mm256_mullo_epi32(first, stride), columns));
   }
+  return x;
+}
 #endif
-  for (; x < count; ++x) {
-    // [qf] NaN counts as 0 (it fails `g > 0`), then clamp to [0, 1]; the guide is not biased.
-    const float g = guide[x] > 0.0f ? (guide[x] < 1.0f ? guide[x] : 1.0f) : 0.0f;
-    const float c = exact_inverse ? (kGuideLevels * g) * range.inverse
-                                  : (kGuideLevels * g) / range.sigma_r;
-    taps(c, range.last_first, &out.zfirst[x], &out.tz0[x], &out.tz1[x]);
-    out.offset[x] = static_cast<int32_t>(out.zfirst[x] * plane + xoffset[x]);
-  }
+
+// The taps of pixels [0, count) of a row (see row_taps_scalar).
+inline void row_taps(const float* guide, int64_t count, const RangeAxis& range,
+                     const int32_t* xoffset, int64_t plane, const RowTaps& out) {
+  int64_t x = 0;
+#if QF_HAVE_AVX2
+  if (simd_enabled()) x = row_taps_avx2(guide, count, range, xoffset, plane, out);
+#endif
+  row_taps_scalar(guide, x, count, range, xoffset, plane, out);
 }
 
 constexpr int64_t kBlock = 8;  // grid columns per block: 8 cells, one AVX register per value
@@ -341,19 +355,10 @@ inline void block_ranges(const AxisTaps& xs, const int32_t* zfirst, int32_t top,
   }
 }
 
-// Cuts the `cells` grid rows of each of `images` images into bands, the parallel tasks: a few
-// per CPU for balance, but bands of at least kMinRowsPerBand rows (a band re-reads the pixel rows
-// or grid row at its edge). The results do not depend on the cut: every cell sums its pixels
-// in the same order, every pixel reads the same cells.
+// Grid rows per band at least (a band re-reads the pixel rows or grid row at its edge), for
+// qf::band_count. The results do not depend on the cut: every cell sums its pixels in the same
+// order, every pixel reads the same cells.
 constexpr int64_t kMinRowsPerBand = 4;
-constexpr int64_t kBandsPerCpu = 3;
-inline int64_t band_count(int64_t cells, int64_t images) {
-  const int64_t wanted = (kBandsPerCpu * cpu_count() + images - 1) / images;
-  return std::clamp<int64_t>(wanted, 1, std::max<int64_t>(cells / kMinRowsPerBand, 1));
-}
-inline int64_t band_start(int64_t band, int64_t bands, int64_t cells) {
-  return band * cells / bands;
-}
 
 // ---- per-thread scratch memory ------------------------------------------------------------------
 
@@ -455,9 +460,3 @@ inline OrtStatus* read_attributes(const ort::Api& api, const char* op, const Ort
 }
 
 }  // namespace qf::grid
-
-namespace qf {
-// The ops of this library (bilateral_splat.cc, bilateral_slice.cc).
-const OrtCustomOp* bilateral_splat_op();
-const OrtCustomOp* bilateral_slice_op();
-}  // namespace qf

@@ -1,35 +1,24 @@
-// Plumbing shared by the ops: errors as OrtStatus, tensor access, attributes, parallel-for, and
-// the OrtCustomOp table built from a kernel class.
+// Plumbing shared by the ops: errors as OrtStatus, tensor access, attributes, and the OrtCustomOp
+// table built from a kernel class (threads and bands: runtime_support.h).
 //
 // A kernel class K provides
 //   static constexpr const char* kName;  static constexpr size_t kInputs, kOutputs;
 //   static OrtStatus* Create(const qf::ort::Api&, const OrtKernelInfo*, K** out);  // validates
 //   OrtStatus* Compute(const qf::ort::Api&, OrtKernelContext*) const;  // thread-safe
+// and optionally static ONNXTensorElementDataType input_type(size_t index) (default: float32).
 #pragma once
 
-#include <algorithm>
 #include <array>
-#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 
 #include "ort_abi.h"
+#include "runtime_support.h"
 
 namespace qf {
-
-// Process-wide facts about the loaded onnxruntime, set once by RegisterCustomOps.
-struct RuntimeInfo {
-  ort::Api api;                               // the version-16 table
-  ort::ParallelForFn parallel_for = nullptr;  // KernelContext_ParallelFor, NULL before ORT 1.17
-};
-const RuntimeInfo& runtime_info();
-void init_runtime_info(const OrtApiBase* base);
-
-// The CPUs this process may run on, or QUIETFRAME_OPS_NUM_THREADS: how finely work is cut, and
-// the threads of the std::thread fallback (onnxruntime < 1.17 only).
-int cpu_count();
 
 // ---- errors -----------------------------------------------------------------------------------
 
@@ -103,6 +92,40 @@ inline OrtStatus* get_float_input(const ort::Api& api, const char* op, OrtKernel
   return nullptr;
 }
 
+// An int64 scalar input (shape [] or [1]), e.g. a kernel size that may change between runs.
+inline OrtStatus* get_int64_scalar_input(const ort::Api& api, const char* op,
+                                         OrtKernelContext* ctx, size_t index, const char* name,
+                                         int64_t* out) {
+  const std::string what = std::string("reading input '") + name + "'";
+  const OrtValue* value = nullptr;
+  QF_RETURN_IF_ORT_ERROR(api, op, what, api.KernelContext_GetInput(ctx, index, &value));
+  if (value == nullptr) return op_error(api, op, std::string("input '") + name + "' is missing");
+  OrtTensorTypeAndShapeInfo* info = nullptr;
+  QF_RETURN_IF_ORT_ERROR(api, op, what, api.GetTensorTypeAndShape(value, &info));
+  ONNXTensorElementDataType type = ONNX_TENSOR_ELEMENT_DATA_TYPE_UNDEFINED;
+  Shape shape;
+  OrtStatus* status = api.GetTensorElementType(info, &type);
+  if (status == nullptr) status = api.GetDimensionsCount(info, &shape.rank);
+  if (status == nullptr && shape.rank <= kMaxRank) {
+    status = api.GetDimensions(info, shape.dims.data(), shape.rank);
+  }
+  api.ReleaseTensorTypeAndShapeInfo(info);
+  if (status != nullptr) return op_error_from(api, op, what, status);
+  if (type != ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64) {
+    return op_error(api, op, std::string("input '") + name + "' must be int64");
+  }
+  if (!(shape.rank == 0 || (shape.rank == 1 && shape[0] == 1))) {
+    return op_error(api, op,
+                    std::string("input '") + name +
+                        "' must be one int64 (shape [] or [1]), got " + shape.str());
+  }
+  void* ptr = nullptr;
+  QF_RETURN_IF_ORT_ERROR(api, op, what,
+                         api.GetTensorMutableData(const_cast<OrtValue*>(value), &ptr));
+  *out = *static_cast<const int64_t*>(ptr);
+  return nullptr;
+}
+
 // Allocates output `index` with the given shape and returns its data.
 inline OrtStatus* get_float_output(const ort::Api& api, const char* op, OrtKernelContext* ctx,
                                    size_t index, const char* name, const Shape& shape,
@@ -138,44 +161,17 @@ inline OrtStatus* get_float_attribute(const ort::Api& api, const char* op,
   return nullptr;
 }
 
-// ---- parallel-for -----------------------------------------------------------------------------
-
-void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user);
-
-// Runs fn(i) for i in [0, count), on onnxruntime's intra-op pool when the runtime offers it
-// (>= 1.17), else on our own threads. Returns false if a task threw (only std::bad_alloc of its
-// scratch memory can); the other tasks still run.
-template <class Fn>
-bool parallel_for(OrtKernelContext* ctx, size_t count, const Fn& fn) {
-  std::atomic<bool> failed{false};
-  auto guarded = [&fn, &failed](size_t i) noexcept {
-    try {
-      fn(i);
-    } catch (...) {
-      failed.store(true, std::memory_order_relaxed);
-    }
-  };
-  using Guarded = decltype(guarded);
-  void (*trampoline)(void*, size_t) = [](void* user, size_t i) {
-    (*static_cast<Guarded*>(user))(i);
-  };
-  if (count == 1) {
-    guarded(0);
-  } else if (count > 1) {
-    OrtStatus* status = nullptr;
-    const ort::ParallelForFn pf = runtime_info().parallel_for;
-    // num_batch = 0: onnxruntime schedules each index as one task (ours are coarse).
-    if (pf != nullptr && (status = pf(ctx, trampoline, count, 0, &guarded)) == nullptr) {
-      return !failed.load();
-    }
-    // Fails only up front (a minimal build without the kernel-context API): our own threads.
-    if (status != nullptr) runtime_info().api.ReleaseStatus(status);
-    parallel_for_threads(count, trampoline, &guarded);
-  }
-  return !failed.load();
-}
-
 // ---- the OrtCustomOp table --------------------------------------------------------------------
+
+// K::input_type(i) where the kernel declares it, else float32 for every input.
+template <class K, class = void>
+struct InputTypes {
+  static ONNXTensorElementDataType of(size_t) { return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT; }
+};
+template <class K>
+struct InputTypes<K, std::void_t<decltype(K::input_type(size_t{}))>> {
+  static ONNXTensorElementDataType of(size_t index) { return K::input_type(index); }
+};
 
 template <class K>
 class CustomOp {
@@ -197,9 +193,7 @@ class CustomOp {
     op.CreateKernel = &CreateV1;
     op.GetName = [](const OrtCustomOp*) { return K::kName; };
     op.GetExecutionProviderType = [](const OrtCustomOp*) -> const char* { return nullptr; };
-    op.GetInputType = [](const OrtCustomOp*, size_t) {
-      return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT;
-    };
+    op.GetInputType = [](const OrtCustomOp*, size_t index) { return InputTypes<K>::of(index); };
     op.GetInputTypeCount = [](const OrtCustomOp*) { return K::kInputs; };
     op.GetOutputType = [](const OrtCustomOp*, size_t) {
       return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT;

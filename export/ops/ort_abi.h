@@ -1,8 +1,9 @@
 // The part of the onnxruntime C ABI that the quietframe ops use.
 //
 // The onnxruntime wheel ships no C headers, so by default this file declares the few types and
-// function-table slots we need itself, from the facts in /work/shared/ORT_ABI.md (the ABI is
-// append-only: slots and struct offsets never move). Configure with -DORT_INCLUDE_DIR=<dir> to
+// function-table slots we need itself, from the facts written down in docs/ort-abi.md (which slot,
+// which signature, how each was checked; the ABI is append-only: slots and struct offsets never
+// move). tests/test_ops_abi.py runs every slot listed in Slot below. Configure with -DORT_INCLUDE_DIR=<dir> to
 // compile against the official onnxruntime_c_api.h instead; the static_asserts below then check
 // our slot numbers and the OrtCustomOp layout against it.
 #pragma once
@@ -33,6 +34,7 @@ enum OrtErrorCode { ORT_OK = 0, ORT_FAIL = 1, ORT_INVALID_ARGUMENT = 2 };
 enum ONNXTensorElementDataType {
   ONNX_TENSOR_ELEMENT_DATA_TYPE_UNDEFINED = 0,
   ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT = 1,
+  ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64 = 7,
 };
 
 enum OrtCustomOpInputOutputCharacteristic {
@@ -86,7 +88,7 @@ struct OrtCustomOp {
 
 #endif  // QUIETFRAME_OFFICIAL_ORT_HEADERS
 
-// OrtCustomOp layout on LP64 targets (ORT_ABI.md), checked for both header variants.
+// OrtCustomOp layout on LP64 targets (docs/ort-abi.md), checked for both header variants.
 #if UINTPTR_MAX == UINT64_MAX
 static_assert(offsetof(OrtCustomOp, CreateKernel) == 8, "OrtCustomOp layout");
 static_assert(offsetof(OrtCustomOp, GetInputType) == 32, "OrtCustomOp layout");
@@ -121,8 +123,6 @@ enum Slot : size_t {
   kGetTensorTypeAndShape = 65,
   kKernelInfoGetAttribute_float = 85,
   kKernelInfoGetAttribute_int64 = 86,
-  kKernelContext_GetInputCount = 88,
-  kKernelContext_GetOutputCount = 89,
   kKernelContext_GetInput = 90,
   kKernelContext_GetOutput = 91,
   kReleaseStatus = 93,
@@ -151,8 +151,6 @@ QF_ORT_CHECK_SLOT(GetDimensions);
 QF_ORT_CHECK_SLOT(GetTensorTypeAndShape);
 QF_ORT_CHECK_SLOT(KernelInfoGetAttribute_float);
 QF_ORT_CHECK_SLOT(KernelInfoGetAttribute_int64);
-QF_ORT_CHECK_SLOT(KernelContext_GetInputCount);
-QF_ORT_CHECK_SLOT(KernelContext_GetOutputCount);
 QF_ORT_CHECK_SLOT(KernelContext_GetInput);
 QF_ORT_CHECK_SLOT(KernelContext_GetOutput);
 QF_ORT_CHECK_SLOT(ReleaseStatus);
@@ -163,7 +161,7 @@ QF_ORT_CHECK_SLOT(KernelContext_ParallelFor);
 // Calls through the named member: the compiler checks every signature.
 #define QF_ORT_FN(api, name, type) ((api)->name)
 #else
-// Calls through the slot: the signature is ours, from ORT_ABI.md.
+// Calls through the slot: the signature is ours, from docs/ort-abi.md.
 using AnyFn = void (*)();
 #define QF_ORT_FN(api, name, type) \
   (reinterpret_cast<type>(reinterpret_cast<const ::qf::ort::AnyFn*>(api)[::qf::ort::k##name]))
@@ -211,14 +209,6 @@ class Api {
                                           int64_t* out) const {
     return QF_ORT_FN(api_, KernelInfoGetAttribute_int64,
                      OrtStatus* (*)(const OrtKernelInfo*, const char*, int64_t*))(info, name, out);
-  }
-  OrtStatus* KernelContext_GetInputCount(const OrtKernelContext* ctx, size_t* out) const {
-    return QF_ORT_FN(api_, KernelContext_GetInputCount,
-                     OrtStatus* (*)(const OrtKernelContext*, size_t*))(ctx, out);
-  }
-  OrtStatus* KernelContext_GetOutputCount(const OrtKernelContext* ctx, size_t* out) const {
-    return QF_ORT_FN(api_, KernelContext_GetOutputCount,
-                     OrtStatus* (*)(const OrtKernelContext*, size_t*))(ctx, out);
   }
   OrtStatus* KernelContext_GetInput(const OrtKernelContext* ctx, size_t index,
                                     const OrtValue** out) const {

@@ -1,0 +1,15 @@
+// Every op of the library, one source file each; register.cc adds them to the ai.quietframe
+// domain.
+#pragma once
+
+#include "ort_abi.h"
+
+namespace qf {
+
+const OrtCustomOp* bilateral_splat_op();          // bilateral_splat.cc
+const OrtCustomOp* bilateral_slice_op();          // bilateral_slice.cc
+const OrtCustomOp* backward_warp_op();            // backward_warp.cc
+const OrtCustomOp* affinity_filter_op();          // affinity_filter.cc
+const OrtCustomOp* affinity_temporal_filter_op();  // affinity_temporal_filter.cc
+
+}  // namespace qf
