@@ -1,4 +1,5 @@
-"""torch -> ONNX export of the NBG denoiser with splat/slice/warp as ai.quietframe custom ops.
+"""torch -> ONNX export of the NBG denoiser with splat/slice/warp as ai.quietframe custom ops
+(and the affinity kernels, for models that call quietframe.model.affinity_kernels).
 
 The graph follows docs/model-interface.md: named buffer inputs, a reset flag, state in/out,
 dynamic H and W, and metadata_props that make the file self-describing for the runtime.
@@ -14,8 +15,10 @@ import onnx
 import onnxscript
 import torch
 from onnx.defs import OpSchema
+from onnxscript import opset18 as _op
 from torch import Tensor, nn
 
+from quietframe.model import affinity_kernels
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
 from quietframe.model.temporal import WARP_MODES
@@ -61,6 +64,35 @@ def _register_schemas() -> None:
                                            "0 = bilinear, 1 = nearest")],
         ),
     ]
+    int_t = ("I", ["tensor(int64)"], "a kernel size: one int64, shape [] or [1]")
+    affinity_attrs = [
+        OpSchema.Attribute("dilation", OpSchema.AttrType.INT, "spatial tap spacing, >= 1"),
+        OpSchema.Attribute("epsilon", onnx.helper.make_attribute("epsilon",
+                                                                 affinity_kernels.EPSILON),
+                           "ε of the normalisation (eq. 6, 8)"),
+    ]
+    spatial_inputs = [param("radiance", "T"), param("features", "T"), param("bandwidth", "T"),
+                      param("center", "T")]
+    schemas += [
+        OpSchema(
+            "AffinityFilter", OPS_DOMAIN, 1,
+            doc="one dilated affinity kernel (Işık et al. 2021 eq. 4 + 6); "
+                "quietframe.model.affinity_kernels.spatial_affinity_filter",
+            inputs=[*spatial_inputs, param("kernel_size", "I")],
+            outputs=[param("output", "T")],
+            type_constraints=[*float_t, int_t], attributes=affinity_attrs,
+        ),
+        OpSchema(
+            "AffinityTemporalFilter", OPS_DOMAIN, 1,
+            doc="the last spatial kernel jointly normalised with the temporal kernel (eq. 7 + 8); "
+                "quietframe.model.affinity_kernels.temporal_affinity_filter",
+            inputs=[*spatial_inputs, param("prev_output", "T"), param("prev_features", "T"),
+                    param("temporal_bandwidth", "T"), param("temporal_on", "T"),
+                    param("kernel_size", "I"), param("temporal_kernel_size", "I")],
+            outputs=[param("output", "T")],
+            type_constraints=[*float_t, int_t], attributes=affinity_attrs,
+        ),
+    ]
     for schema in schemas:
         try:
             onnx.defs.get_schema(schema.name, 1, OPS_DOMAIN)
@@ -86,6 +118,39 @@ def _slice_to_onnx(grid, weight, guide, sigma_s: int, sigma_r: float):
 
 def _warp_to_onnx(image, motion, mode: str = "bilinear"):
     return _QF.BackwardWarp(image, motion, mode=WARP_MODES.index(mode))
+
+
+def _kernel_size(size: int):
+    """A kernel size as the int64 [1] input the affinity ops take (so that a graph can also feed
+    it from a graph input and change it per run)."""
+    return _op.Constant(value_ints=[size])
+
+
+def _affinity_to_onnx(radiance, features, bandwidth, center, kernel_size: int, dilation: int,
+                      eps: float = affinity_kernels.EPSILON):
+    return _QF.AffinityFilter(radiance, features, bandwidth, center, _kernel_size(kernel_size),
+                              dilation=dilation, epsilon=eps)
+
+
+def _affinity_temporal_to_onnx(radiance, features, bandwidth, center, prev_output,
+                               prev_features, temporal_bandwidth, temporal_on, kernel_size: int,
+                               dilation: int, temporal_kernel_size: int,
+                               eps: float = affinity_kernels.EPSILON):
+    return _QF.AffinityTemporalFilter(
+        radiance, features, bandwidth, center, prev_output, prev_features, temporal_bandwidth,
+        temporal_on, _kernel_size(kernel_size), _kernel_size(temporal_kernel_size),
+        dilation=dilation, epsilon=eps)
+
+
+def custom_translation_table() -> dict:
+    """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
+    return {
+        torch.ops.quietframe.bilateral_splat.default: _splat_to_onnx,
+        torch.ops.quietframe.bilateral_slice.default: _slice_to_onnx,
+        torch.ops.quietframe.backward_warp.default: _warp_to_onnx,
+        torch.ops.quietframe.affinity_filter.default: _affinity_to_onnx,
+        torch.ops.quietframe.affinity_temporal_filter.default: _affinity_temporal_to_onnx,
+    }
 
 
 class _ExportWrapper(nn.Module):
@@ -132,11 +197,7 @@ def export_nbg(
     image_dims = {2: height, 3: width}
     # In the order of the forward arguments: the exporter matches them by position.
     dynamic = {name: image_dims for name in BUFFER_NAMES} | {"reset": None, "state": image_dims}
-    table = {
-        torch.ops.quietframe.bilateral_splat.default: _splat_to_onnx,
-        torch.ops.quietframe.bilateral_slice.default: _slice_to_onnx,
-        torch.ops.quietframe.backward_warp.default: _warp_to_onnx,
-    }
+    table = custom_translation_table()
     with torch.no_grad():
         program = torch.onnx.export(
             _ExportWrapper(model).eval(), example_inputs(), dynamo=True, opset_version=OPSET,

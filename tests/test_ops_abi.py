@@ -117,10 +117,13 @@ def check_ops_resolve(_api):
     _session(model)
     with pytest.raises(Exception, match="BilateralSplat|ai.quietframe"):
         ort.InferenceSession(model, providers=["CPUExecutionProvider"])
+    from test_ops_affinity import affinity_model
     from test_ops_warp import warp_model
 
     _session(warp_model(0))
     _session(op_model("BilateralSlice", **attrs_for(4, 4.0)))
+    _session(affinity_model("AffinityFilter", dilation=2))
+    _session(affinity_model("AffinityTemporalFilter", dilation=2))
 
 
 def check_attributes(_api):
@@ -159,6 +162,19 @@ def check_tensor_queries(_api):
         None, {"grid": grid, "weight": weight, "guide": guide})
     assert out.shape == image.shape
     np.testing.assert_allclose(out, image, rtol=1e-6)  # a constant image slices back unchanged
+    # an int64 input (the affinity kernel size) next to float32 ones, read as a value
+    from test_ops_affinity import affinity_model
+
+    session = _session(affinity_model("AffinityFilter", dilation=1))
+    feeds = {"radiance": image, "features": np.zeros((2, 2, 12, 20), np.float32),
+             "bandwidth": guide, "center": guide}
+    for size, good in [(np.array(3), True), (np.array([5]), True), (np.array(4), False)]:
+        if good:
+            (out,) = session.run(None, feeds | {"kernel_size": size})
+            np.testing.assert_allclose(out, image, rtol=1e-6)
+        else:
+            with pytest.raises(Exception, match="AffinityFilter: kernel_size .* got 4"):
+                session.run(None, feeds | {"kernel_size": size})
 
 
 def check_parallel_for(_api):
