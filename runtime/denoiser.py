@@ -29,6 +29,24 @@ class StateSpec:
 
 
 @dataclass(frozen=True)
+class InputSpec:
+    """An extra scalar graph input (metadata `quietframe.inputs`), fed from its default or a
+    session/call option: e.g. the affinity model's `kernel_size`."""
+
+    name: str
+    dtype: str  # numpy dtype name, e.g. "int64"
+    shape: tuple[int, ...]
+    default: float | int
+    allowed: tuple[float | int, ...] | None = None  # None: any value
+    doc: str = ""
+
+    def array(self, value: float | int) -> np.ndarray:
+        if self.allowed is not None and value not in self.allowed:
+            raise ValueError(f"{self.name} must be one of {list(self.allowed)}, got {value!r}")
+        return np.full(self.shape, value, dtype=self.dtype)
+
+
+@dataclass(frozen=True)
 class ModelInfo:
     name: str
     version: str
@@ -39,6 +57,7 @@ class ModelInfo:
     metadata: dict[str, str]
     metrics: dict = field(default_factory=dict)
     training: dict = field(default_factory=dict)
+    inputs: tuple[InputSpec, ...] = ()
 
     def state_nbytes(self, height: int, width: int) -> int:
         return sum(4 * s.channels * height * width for s in self.state_specs)
@@ -66,6 +85,12 @@ def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
         metadata=dict(metadata),
         metrics=load("metrics", "{}"),
         training=load("training", "{}"),
+        inputs=tuple(
+            InputSpec(i["name"], i["dtype"], tuple(i["shape"]), i["default"],
+                      tuple(i["allowed"]) if i.get("allowed") is not None else None,
+                      i.get("doc", ""))
+            for i in load("inputs", "[]")
+        ),
     )
 
 
@@ -85,7 +110,10 @@ def make_session(path: Path, threads: int) -> ort.InferenceSession:
 class Denoiser:
     """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently)."""
 
-    def __init__(self, model_path: str | Path, threads: int = 2) -> None:
+    def __init__(self, model_path: str | Path, threads: int = 2,
+                 options: Mapping[str, float | int] | None = None) -> None:
+        """`options`: values for the model's extra inputs (`info.inputs`), e.g.
+        {"kernel_size": 7}; the metadata default for the others."""
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"model file {path} does not exist")
@@ -93,6 +121,20 @@ class Denoiser:
         meta = self.session.get_modelmeta().custom_metadata_map
         self.info = read_model_info(path, meta)
         self._output_names = [o.name for o in self.session.get_outputs()]
+        self._option_feeds = self._options({}, options or {})
+
+    def _options(self, base: Mapping[str, np.ndarray],
+                 options: Mapping[str, float | int]) -> dict[str, np.ndarray]:
+        """Feeds of the extra inputs: `base` (or the defaults) with `options` on top."""
+        specs = {spec.name: spec for spec in self.info.inputs}
+        unknown = sorted(set(options) - set(specs))
+        if unknown:
+            raise ValueError(f"model {self.info.name!r} has no option {unknown}; "
+                             f"its options: {sorted(specs)}")
+        feeds = {name: base[name] if name in base else spec.array(spec.default)
+                 for name, spec in specs.items()}
+        feeds |= {name: specs[name].array(value) for name, value in options.items()}
+        return feeds
 
     def check(self, present: Iterable[str]) -> tuple[str, ...]:
         """The one check of a frame's buffers against the model: the absent optional ones;
@@ -128,11 +170,14 @@ class Denoiser:
         return feeds, sanitized, missing, (height, width)
 
     def denoise(
-        self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None
+        self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
+        options: Mapping[str, float | int] | None = None,
     ) -> DenoiseResult:
         """Denoise one frame of (C, H, W) float32 planes. `state` is the previous frame's
-        `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut)."""
+        `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut).
+        `options` overrides the Denoiser's options for this call."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
+        feeds |= self._options(self._option_feeds, options) if options else self._option_feeds
         fresh = state is None
         if state is None:
             state = self.initial_state(height, width)
