@@ -1,4 +1,5 @@
-"""quietframe-export: write an NBG model (trained checkpoint or seeded untrained) to ONNX."""
+"""quietframe-export: write an NBG or affinity model (trained checkpoint or seeded untrained) to
+ONNX."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-export", description=__doc__)
     parser.add_argument("--variant", default="nbg-2l-3g",
-                        help="architecture when untrained; 'accumulation' = the pre-stage alone")
+                        help="architecture when untrained (nbg-…, affinity-…); 'accumulation' = "
+                             "the pre-stage alone")
     parser.add_argument("--checkpoint", type=Path, help="training checkpoint (.pt)")
     parser.add_argument("--width", type=int, help="GuideNet width (untrained only)")
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
@@ -25,22 +27,30 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
+    from quietframe.export.affinity_export import export_affinity
     from quietframe.export.onnx_export import export_nbg
+    from quietframe.model import affinity
     from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
 
     if args.variant == "accumulation" and not args.checkpoint:
         model, training, metrics = AccumulationDenoiser(), {"trained": False}, {}
     elif args.checkpoint:
-        model, checkpoint = load_checkpoint(str(args.checkpoint))
+        saved = torch.load(args.checkpoint, map_location="cpu", weights_only=True)["config"]
+        load = affinity.load_checkpoint if affinity.is_affinity_config(saved) else load_checkpoint
+        model, checkpoint = load(str(args.checkpoint))
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
     else:
         torch.manual_seed(args.seed)
-        config = VARIANTS[args.variant]
-        if args.width:
-            config = dataclasses.replace(config, width=args.width)
-        model = NBGDenoiser(config)
+        if args.variant in affinity.VARIANTS:
+            model = affinity.AffinityDenoiser(affinity.VARIANTS[args.variant])
+        else:
+            config = VARIANTS[args.variant]
+            if args.width:
+                config = dataclasses.replace(config, width=args.width)
+            model = NBGDenoiser(config)
         training, metrics = {"trained": False, "seed": args.seed}, {}
-    path = export_nbg(model, args.out, version=args.version, training=training, metrics=metrics)
+    export = export_affinity if isinstance(model, affinity.AffinityDenoiser) else export_nbg
+    path = export(model, args.out, version=args.version, training=training, metrics=metrics)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
     if args.card:
         import json

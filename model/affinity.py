@@ -139,6 +139,12 @@ class UNet(nn.Module):
             self.up.append(nn.ModuleList([_conv(cin + w, w), _conv(w, w)]))
             cin = w
         self.out = nn.Conv2d(cin, UNET_OUTPUTS, 1)
+        with torch.no_grad():
+            # a = raw² has zero slope at raw = 0, where the kernels are box filters that ignore
+            # the features: start at a = b = 1 so that the features get a gradient.
+            for k in range(KERNELS):
+                self.out.bias[k * PARAMS_PER_KERNEL + FEATURE_CHANNELS] = 1.0
+            self.out.bias[KERNELS * PARAMS_PER_KERNEL] = 1.0
 
     def forward(self, x: Tensor) -> Tensor:
         skips = []
@@ -226,10 +232,21 @@ class AffinityDenoiser(nn.Module):
         self.config = config or AffinityConfig()
         self.embedding = Embedding()
         self.unet = UNet(self.config.widths)
+        self._init_hidden_layers()
         self.bandwidth_penalty: Tensor | None = None
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)
+
+    def _init_hidden_layers(self) -> None:
+        # He init for the leaky-ReLU layers: PyTorch's default shrinks the signal about 3× per
+        # layer, and after the 3 FC + U-Net layers the features were near-constant over the
+        # image (neighbour ||Δf||² ~ 1e-5), so every kernel was a box filter with no gradient.
+        for module in (*self.embedding.layers, *self.unet.modules()):
+            if isinstance(module, nn.Conv2d) and module is not self.unet.out:
+                nn.init.kaiming_normal_(module.weight, a=LEAK, nonlinearity="leaky_relu")
+                nn.init.zeros_(module.bias)
+        nn.init.kaiming_normal_(self.unet.out.weight, nonlinearity="linear")
 
     def predict(self, embedding: Tensor, warped_embedding: Tensor) -> KernelParams:
         """eq. 2, the U-Net at 1/unet_scale resolution; parameters back at full resolution."""

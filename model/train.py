@@ -1,4 +1,4 @@
-"""quietframe-train: train an NBG variant on rendered sequences (CPU friendly, resumable).
+"""quietframe-train: train an NBG or affinity variant on rendered sequences (CPU, resumable).
 
 One flat loop in a fixed order (nanoGPT style): sample a batch of short crop sequences, unroll
 the state-in/state-out model over the frames (so reprojection, accumulation and reset are
@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
+from quietframe.model import affinity
 from quietframe.model.losses import l1_tonemapped_loss, smape_loss, temporal_loss
 from quietframe.model.metrics import psnr
 from quietframe.model.nbg import VARIANTS, NBGConfig, NBGDenoiser
@@ -29,11 +30,13 @@ from quietframe.runtime.buffers import BUFFER_NAMES
 
 @dataclasses.dataclass
 class TrainConfig:
-    variant: str = "nbg-2l-3g"
-    width: int = 20
+    variant: str = "nbg-2l-3g"  # or affinity-… (model/affinity.py VARIANTS)
+    width: int = 20  # GuideNet width (NBG only: an affinity variant names its U-Net widths)
     data: str = "~/.cache/quietframe/data"
     loss: str = "smape+temporal"  # or "l1" (paper §4.4: L1 on the LDR-mapped output)
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
+    bandwidth_weight: float = 1e-5  # Işık eq. 9: weight of eq. 13 (affinity models only)
+    kernel_size: int = 0  # affinity: spatial kernel size trained with (0: the variant's, 13)
     crop: int = 128
     frames: int = 4  # unrolled sub-sequence length
     batch: int = 4
@@ -63,8 +66,24 @@ def sequence_loss(cfg: TrainConfig, outputs: list[Tensor], refs: list[Tensor]) -
     return spatial + cfg.temporal_weight * temporal
 
 
-def unroll(model: NBGDenoiser, batch: dict[str, Tensor]) -> list[Tensor]:
-    """Run the model over a (B, T, C, h, w) batch, carrying the state; returns T outputs."""
+def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
+    """The model of a checkpoint's config (`saved`), else of cfg.variant (and cfg.width)."""
+    if saved is not None:
+        if affinity.is_affinity_config(saved):
+            return affinity.AffinityDenoiser(affinity.AffinityConfig(**saved))
+        return NBGDenoiser(NBGConfig(**saved))
+    if cfg.variant in affinity.VARIANTS:
+        config = affinity.VARIANTS[cfg.variant]
+        if cfg.kernel_size:  # also the exported graph's default: the size the model knows best
+            config = dataclasses.replace(config, kernel_size=cfg.kernel_size)
+        return affinity.AffinityDenoiser(config)
+    return NBGDenoiser(dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width))
+
+
+def unroll(model: nn.Module, batch: dict[str, Tensor],
+           penalties: list[Tensor] | None = None) -> list[Tensor]:
+    """Run the model over a (B, T, C, h, w) batch, carrying the state; returns T outputs.
+    A model that sets `bandwidth_penalty` (eq. 13) has each frame's appended to `penalties`."""
     b, t, _, h, w = batch["color"].shape
     state = model.initial_state(b, h, w)
     outputs = []
@@ -72,11 +91,13 @@ def unroll(model: NBGDenoiser, batch: dict[str, Tensor]) -> list[Tensor]:
         reset = torch.ones(b) if i == 0 else batch["reset"][:, i].float()
         out, state = model(*(batch[k][:, i] for k in BUFFER_NAMES), reset, state)
         outputs.append(out)
+        if penalties is not None and getattr(model, "bandwidth_penalty", None) is not None:
+            penalties.append(model.bandwidth_penalty)
     return outputs
 
 
 @torch.no_grad()
-def validate(model: NBGDenoiser, batches: list[dict[str, Tensor]]) -> float:
+def validate(model: nn.Module, batches: list[dict[str, Tensor]]) -> float:
     """Mean PSNR (τ-mapped, model/metrics) of the last frame of each validation sequence."""
     model.eval()
     scores = []
@@ -88,7 +109,7 @@ def validate(model: NBGDenoiser, batches: list[dict[str, Tensor]]) -> float:
     return float(np.mean(scores))
 
 
-def save(path: Path, model: NBGDenoiser, optimizer, step: int, cfg: TrainConfig,
+def save(path: Path, model: nn.Module, optimizer, step: int, cfg: TrainConfig,
          best_psnr: float, metrics: dict) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save({
@@ -156,9 +177,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     latest = run / "checkpoint.pt"
     ckpt = torch.load(latest, map_location="cpu", weights_only=False) if latest.exists() else None
     # A resumed run is the checkpoint's own model, whatever the flags say (resume_config).
-    config = (NBGConfig(**ckpt["config"]) if ckpt else
-              dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width))
-    model = NBGDenoiser(config)
+    model = build_model(cfg, ckpt["config"] if ckpt else None)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if ckpt:
         model.load_state_dict(ckpt["model"])
@@ -173,9 +192,12 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
         batch = train_batches(step)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(cfg, step)
-        outputs = unroll(model, batch)
+        penalties: list[Tensor] = []
+        outputs = unroll(model, batch, penalties)
         refs = [batch["reference"][:, i] for i in range(len(outputs))]
         loss = sequence_loss(cfg, outputs, refs)
+        if penalties:  # eq. 9: + 1e-5 · eq. 13, its expectation over frames too
+            loss = loss + cfg.bandwidth_weight * torch.stack(penalties).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
