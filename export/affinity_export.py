@@ -23,7 +23,6 @@ from quietframe.model.affinity import KERNEL_SIZES, AffinityDenoiser
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.ops_library import OPS_DOMAIN
 
-STATE_NAME = "affinity"
 KERNEL_SIZE_INPUT = "kernel_size"
 # Input index of the spatial kernel size in each op (docs/affinity-math.md).
 KERNEL_SIZE_SLOT = {"AffinityFilter": 4, "AffinityTemporalFilter": 8}
@@ -37,16 +36,19 @@ class _ExportWrapper(nn.Module):
         self.model = model
 
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
-                motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
-        return self.model(color, albedo, normal, depth, motion, reset, state)
+                motion: Tensor, reset: Tensor, state: Tensor,
+                embedding: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        denoised, (state, embedding) = self.model(color, albedo, normal, depth, motion, reset,
+                                                  (state, embedding))
+        return denoised, state, embedding
 
 
 def example_inputs(model: AffinityDenoiser, height: int = 48, width: int = 64,
                    seed: int = 0) -> tuple[Tensor, ...]:
     """NBG's example frame with this model's state: (color, albedo, normal, depth, motion,
-    reset, state)."""
+    reset, state, embedding state)."""
     *buffers, reset, _ = onnx_export.example_inputs(height, width, seed)
-    return (*buffers, reset, model.initial_state(1, height, width))
+    return (*buffers, reset, *model.initial_state(1, height, width))
 
 
 def translation_table() -> dict:
@@ -96,14 +98,18 @@ def export_affinity(
     height = torch.export.Dim("height", min=1, max=8192)
     width = torch.export.Dim("width", min=1, max=8192)
     image_dims = {2: height, 3: width}
-    dynamic = {name: image_dims for name in BUFFER_NAMES} | {"reset": None, "state": image_dims}
+    # The embedding state is ⌈H/s⌉×⌈W/s⌉: AUTO lets the exporter derive its size from H and W.
+    low_dims = {2: torch.export.Dim.AUTO, 3: torch.export.Dim.AUTO}
+    dynamic = {name: image_dims for name in BUFFER_NAMES} | {
+        "reset": None, "state": image_dims, "embedding": low_dims}
+    names = [spec["name"] for spec in model.state_specs()]
     with torch.no_grad():
         program = torch.onnx.export(
             _ExportWrapper(model).eval(), example_inputs(model), dynamo=True,
             opset_version=OPSET, custom_translation_table=translation_table(),
             dynamic_shapes=dynamic,
-            input_names=[*BUFFER_NAMES, "reset", f"state_in.{STATE_NAME}"],
-            output_names=["denoised", f"state_out.{STATE_NAME}"],
+            input_names=[*BUFFER_NAMES, "reset", *(f"state_in.{n}" for n in names)],
+            output_names=["denoised", *(f"state_out.{n}" for n in names)],
             verbose=False,
         )
     config = model.config
@@ -114,7 +120,7 @@ def export_affinity(
         "quietframe.architecture": json.dumps(config.to_dict()),
         "quietframe.buffers.required": json.dumps(list(REQUIRED_BUFFERS)),
         "quietframe.buffers.optional": json.dumps(list(OPTIONAL_BUFFERS)),
-        "quietframe.state": json.dumps([{"name": STATE_NAME, "channels": model.state_channels}]),
+        "quietframe.state": json.dumps(model.state_specs()),
         "quietframe.inputs": json.dumps(input_metadata(config.kernel_size)),
         "quietframe.ops_domain": OPS_DOMAIN,
         "quietframe.training": json.dumps(dict(training or {})),

@@ -7,9 +7,12 @@ Frame flow (one call of AffinityDenoiser.forward, state in / state out like NBG)
   (eq. 4, 6), the last jointly normalised with the temporal kernel over W O_{t-1} (eq. 7, 8)
   -> remodulate.
 
-The U-Net may run at half resolution (`unet_scale` 2): the embedding is average-pooled before
-it and the kernel parameters are upsampled bilinearly after it, while the kernels filter at full
-resolution. On a 2-core CPU the U-Net is the cost that scales with width (docs/affinity.md).
+The network may run at half resolution (`unet_scale` s = 2): the pixel-mean buffers are averaged
+over s×s blocks before the FC layers (the paper's "average before FC", over a block instead of a
+pixel), the embedding is accumulated (eq. 3) and fed to the U-Net at that resolution, and the
+kernel parameters are upsampled bilinearly; radiance accumulation and the kernels stay at full
+resolution. The accumulated embedding is then a state tensor of ⌈H/s⌉×⌈W/s⌉ (metadata `scale`),
+which saves warping, pooling and concatenating 64 full-resolution channels per frame.
 
 Kernel math lives in model/affinity_kernels.py (torch custom ops exported as the C++ ops
 ai.quietframe::AffinityFilter / AffinityTemporalFilter). The spatial kernel size is a forward
@@ -46,9 +49,9 @@ LEAK = 0.01  # leaky ReLU slope (the paper does not give one: PyTorch's default)
 DEFAULT_KERNEL_SIZE = 13  # paper §3.5: 13×13 windows
 KERNEL_SIZES = (5, 7, 9, 11, 13)  # the session-time choices (paper §5.5.3)
 
-# State channels, one tensor so one warp serves all of them.
+# The state is two tensors: this full-resolution one (one warp serves all its channels) and the
+# accumulated embedding ē_{t-1} (eq. 3, 32 channels) at the U-Net's resolution.
 _STATE_LAYOUT = (
-    ("embedding", EMBEDDING_CHANNELS),  # ē_{t-1} (eq. 3)
     ("radiance", 3),  # L̄_{t-1}, demodulated (eq. 5)
     ("output", 3),  # O_{t-1}, demodulated (eq. 8)
     ("features", FEATURE_CHANNELS),  # f^K_{t-1} (eq. 7)
@@ -61,6 +64,7 @@ for _name, _channels in _STATE_LAYOUT:
     STATE_SLICES[_name] = slice(_offset, _offset + _channels)
     _offset += _channels
 STATE_CHANNELS = _offset
+State = tuple[Tensor, Tensor]  # (N, STATE_CHANNELS, H, W), (N, 32, ⌈H/s⌉, ⌈W/s⌉)
 
 
 @dataclass(frozen=True)
@@ -221,8 +225,8 @@ class AffinityDenoiser(nn.Module):
     """State-in / state-out affinity denoiser on (N, C, H, W) float tensors.
 
     forward(color, albedo, normal, depth, motion, reset, state, kernel_size) ->
-    (denoised, new_state). After each forward, `bandwidth_penalty` holds eq. 13 of that frame
-    for the training loss.
+    (denoised, new_state), state = (frame state, accumulated embedding) (see State). After each
+    forward, `bandwidth_penalty` holds eq. 13 of that frame for the training loss.
     """
 
     state_channels = STATE_CHANNELS
@@ -235,8 +239,16 @@ class AffinityDenoiser(nn.Module):
         self._init_hidden_layers()
         self.bandwidth_penalty: Tensor | None = None
 
-    def initial_state(self, batch: int, height: int, width: int) -> Tensor:
-        return torch.zeros(batch, STATE_CHANNELS, height, width)
+    def initial_state(self, batch: int, height: int, width: int) -> State:
+        s = self.config.unet_scale
+        return (torch.zeros(batch, STATE_CHANNELS, height, width),
+                torch.zeros(batch, EMBEDDING_CHANNELS, -(-height // s), -(-width // s)))
+
+    def state_specs(self) -> list[dict]:
+        """`quietframe.state` metadata: name, channels and resolution divisor of each tensor."""
+        return [{"name": "affinity", "channels": STATE_CHANNELS, "scale": 1},
+                {"name": "embedding", "channels": EMBEDDING_CHANNELS,
+                 "scale": self.config.unet_scale}]
 
     def _init_hidden_layers(self) -> None:
         # He init for the leaky-ReLU layers: PyTorch's default shrinks the signal about 3× per
@@ -248,44 +260,49 @@ class AffinityDenoiser(nn.Module):
                 nn.init.zeros_(module.bias)
         nn.init.kaiming_normal_(self.unet.out.weight, nonlinearity="linear")
 
-    def predict(self, embedding: Tensor, warped_embedding: Tensor) -> KernelParams:
-        """eq. 2, the U-Net at 1/unet_scale resolution; parameters back at full resolution."""
-        x = torch.cat((embedding, warped_embedding), dim=1)  # (N, 64, H, W)
-        size = x.shape[-2:]
-        if self.config.unet_scale > 1:
-            x = F.avg_pool2d(x, self.config.unet_scale, ceil_mode=True)
-        raw = self.unet(x)  # (N, 32, h, w)
-        if self.config.unet_scale > 1:
-            raw = F.interpolate(raw, size=size, mode="bilinear", align_corners=False)
-        return kernel_params(raw)
+    def _low(self, x: Tensor) -> Tensor:
+        """s×s block means (ceil mode: a partial block averages the pixels it has)."""
+        s = self.config.unet_scale
+        return F.avg_pool2d(x, s, ceil_mode=True) if s > 1 else x
 
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
-                motion: Tensor, reset: Tensor, state: Tensor,
-                kernel_size: int | None = None) -> tuple[Tensor, Tensor]:
+                motion: Tensor, reset: Tensor, state: State,
+                kernel_size: int | None = None) -> tuple[Tensor, State]:
         size = self.config.kernel_size if kernel_size is None else kernel_size
+        frame_state, embedding_state = state
         safe_albedo = demodulation_divisor(albedo)  # NBG's: remodulation undoes it exactly
         radiance = color / safe_albedo  # (N, 3, H, W) demodulated: the kernels filter this
-        embedding = self.embedding(embedding_inputs(color, albedo, normal, depth))  # eq. 1
+        inputs = self._low(embedding_inputs(color, albedo, normal, depth))  # (N, 10, h, w)
+        embedding = self.embedding(inputs)  # eq. 1, (N, 32, h, w)
+        s = STATE_SLICES
         if self.config.temporal:
             # Nearest reprojection (paper §3.3); the state carries no gradient (module doc).
-            warped, inside = backward_warp(state.detach(), motion, mode="nearest")
-            s = STATE_SLICES
+            warped, inside = backward_warp(frame_state.detach(), motion, mode="nearest")
             keep = inside * history_valid(warped[:, s["depth"]], warped[:, s["normal"]],
                                           depth, normal)
             keep = keep * (1 - reset.view(-1, 1, 1, 1))  # (N, 1, H, W)
-            warped_embedding = keep * warped[:, s["embedding"]]
+            # motion in low-resolution pixels: block centres map onto block centres
+            low_motion = self._low(motion) / self.config.unet_scale
+            warped_embedding, low_inside = backward_warp(embedding_state.detach(), low_motion,
+                                                         mode="nearest")
+            low_keep = low_inside * self._low(keep)  # (N, 1, h, w)
+            warped_embedding = low_keep * warped_embedding
             temporal_on = 1 - reset  # (N,) eq. 8: ω = 0 on a first frame or a cut
         else:
-            keep = torch.zeros_like(depth)
+            keep = low_keep = torch.zeros_like(inputs[:, :1])
             warped, warped_embedding = None, torch.zeros_like(embedding)
-        params = self.predict(embedding, warped_embedding)
-        blend = params.blend * keep  # λ: no history where there is none
-        new_embedding = accumulate_embedding(embedding, warped_embedding, blend)  # eq. 3
+        raw = self.unet(torch.cat((embedding, warped_embedding), dim=1))  # eq. 2, (N, 32, h, w)
+        low_blend = torch.sigmoid(raw[:, -1:]) * low_keep  # λ: no history where there is none
+        new_embedding = accumulate_embedding(embedding, warped_embedding, low_blend)  # eq. 3
+        if self.config.unet_scale > 1:
+            raw = F.interpolate(raw, size=color.shape[-2:], mode="bilinear", align_corners=False)
+        params = kernel_params(raw)  # full resolution
         if warped is not None:
-            acc = accumulate_radiance(radiance, warped[:, STATE_SLICES["radiance"]], blend)
+            acc = accumulate_radiance(radiance, warped[:, s["radiance"]],
+                                      params.blend * keep)  # eq. 5
             filtered = spatial_kernels(acc, params, size)  # eq. 4, 6
-            output = final_kernel(filtered, params, warped[:, STATE_SLICES["output"]],
-                                  warped[:, STATE_SLICES["features"]], temporal_on, size,
+            output = final_kernel(filtered, params, warped[:, s["output"]],
+                                  warped[:, s["features"]], temporal_on, size,
                                   self.config.temporal_kernel_size)  # eq. 7, 8
         else:  # single-frame variant: the K-th kernel alone (eq. 4, 6)
             acc = radiance
@@ -294,9 +311,9 @@ class AffinityDenoiser(nn.Module):
                 spatial_kernels(acc, params, size), params.features[k], params.bandwidth[k],
                 params.center[k], size, 2**k, EPSILON)
         self.bandwidth_penalty = bandwidth_penalty_of(params)
-        new_state = torch.cat((new_embedding, acc, output, params.features[-1], depth, normal),
+        new_state = torch.cat((acc, output, params.features[-1], depth, normal),
                               dim=1)  # (N, STATE_CHANNELS, H, W)
-        return output * safe_albedo, new_state
+        return output * safe_albedo, (new_state, new_embedding)
 
 
 def bandwidth_penalty_of(params: KernelParams) -> Tensor:

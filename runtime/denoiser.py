@@ -26,6 +26,10 @@ from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 class StateSpec:
     name: str
     channels: int
+    scale: int = 1  # the tensor is ⌈H/scale⌉ × ⌈W/scale⌉ (e.g. a half-resolution history)
+
+    def shape(self, height: int, width: int) -> tuple[int, int, int, int]:
+        return (1, self.channels, -(-height // self.scale), -(-width // self.scale))
 
 
 @dataclass(frozen=True)
@@ -60,7 +64,7 @@ class ModelInfo:
     inputs: tuple[InputSpec, ...] = ()
 
     def state_nbytes(self, height: int, width: int) -> int:
-        return sum(4 * s.channels * height * width for s in self.state_specs)
+        return sum(4 * int(np.prod(s.shape(height, width))) for s in self.state_specs)
 
 
 @dataclass
@@ -81,7 +85,8 @@ def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
         path=path,
         required_buffers=tuple(load("buffers.required", '["color"]')),
         optional_buffers=tuple(load("buffers.optional", "[]")),
-        state_specs=tuple(StateSpec(s["name"], int(s["channels"])) for s in load("state", "[]")),
+        state_specs=tuple(StateSpec(s["name"], int(s["channels"]), int(s.get("scale", 1)))
+                          for s in load("state", "[]")),
         metadata=dict(metadata),
         metrics=load("metrics", "{}"),
         training=load("training", "{}"),
@@ -145,7 +150,7 @@ class Denoiser:
 
     def initial_state(self, height: int, width: int) -> dict[str, np.ndarray]:
         return {
-            s.name: np.zeros((1, s.channels, height, width), np.float32)
+            s.name: np.zeros(s.shape(height, width), np.float32)
             for s in self.info.state_specs
         }
 
@@ -183,7 +188,7 @@ class Denoiser:
             state = self.initial_state(height, width)
         for spec in self.info.state_specs:
             tensor = state[spec.name]
-            if tensor.shape != (1, spec.channels, height, width):
+            if tensor.shape != spec.shape(height, width):
                 raise BufferError(
                     f"state {spec.name!r} has shape {tensor.shape}, frame is {height}x{width}"
                 )

@@ -56,8 +56,9 @@ def run_both(model, runtime, kernel_size: int):
         result = runtime.denoise({k: b[0].numpy() for k, b in zip(NAMES, buffers, strict=True)},
                                  ort_state, options={"kernel_size": kernel_size})
         ort_state = result.state
-        pairs.append((expected[0].numpy(), result.color, torch_state.numpy(),
-                      ort_state["affinity"]))
+        pairs.append((expected[0].numpy(), result.color,
+                      [t.numpy() for t in torch_state],
+                      [ort_state["affinity"], ort_state["embedding"]]))
     return pairs, buffers, ort_state
 
 
@@ -65,11 +66,12 @@ def run_both(model, runtime, kernel_size: int):
 def test_sequence_matches_pytorch_with_state_carried(exported, kernel_size):
     model, runtime = exported
     pairs, buffers, state = run_both(model, runtime, kernel_size)
-    for expected, color, torch_state, ort_state in pairs:
+    for expected, color, torch_states, ort_states in pairs:
         scale = float(np.abs(expected).max())
         np.testing.assert_allclose(color, expected, rtol=1e-4, atol=1e-4 * scale)
-        np.testing.assert_allclose(ort_state, torch_state, rtol=1e-4,
-                                   atol=1e-4 * float(np.abs(torch_state).max()))
+        for ours, theirs in zip(ort_states, torch_states, strict=True):
+            np.testing.assert_allclose(ours, theirs, rtol=1e-4,
+                                       atol=1e-4 * float(np.abs(theirs).max()))
     planes = {k: b[0].numpy() for k, b in zip(NAMES, buffers, strict=True)}
     fresh = runtime.denoise(planes, None, options={"kernel_size": kernel_size}).color
     used_history = np.abs(fresh - pairs[-1][1]).max() > 1e-3 * scale
@@ -80,7 +82,10 @@ def test_kernel_size_is_a_run_time_input(exported, tmp_path):
     model, runtime = exported
     info = runtime.info
     assert [(i.name, i.default) for i in info.inputs] == [("kernel_size", 13)]
-    assert [(s.name, s.channels) for s in info.state_specs] == [("affinity", 50)]
+    scale = model.config.unet_scale
+    assert [(s.name, s.channels, s.scale) for s in info.state_specs] == [
+        ("affinity", 18, 1), ("embedding", 32, scale)]
+    assert info.state_nbytes(5, 3) == 4 * (18 * 15 + 32 * (-(-5 // scale)) * (-(-3 // scale)))
     assert json.loads(info.metadata["quietframe.architecture"])["family"] == "affinity"
     planes = {k: b[0].numpy() for k, b in zip(NAMES, frame_inputs(0), strict=True)}
     by_size = {k: runtime.denoise(planes, None, options={"kernel_size": k}).color
@@ -107,6 +112,8 @@ def test_dynamic_sizes_and_missing_motion(exported):
         planes = {"color": color[0].numpy(), "albedo": albedo[0].numpy(),
                   "normal": normal[0].numpy(), "depth": depth[0].numpy()}
         first = runtime.denoise(planes, None)
+        low = -(-height // runtime.info.state_specs[1].scale)
+        assert first.state["embedding"].shape[2] == low
         second = runtime.denoise(planes, first.state, options={"kernel_size": 5})
         assert second.color.shape == (3, height, width) and np.isfinite(second.color).all()
         assert second.missing == ("motion",)
