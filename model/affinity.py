@@ -190,6 +190,18 @@ def kernel_params(raw: Tensor) -> KernelParams:
                         torch.sigmoid(tail[:, 1:2]))  # eq. 3: λ in [0, 1]
 
 
+def upsample_params(params: KernelParams, size, scale: int) -> KernelParams:
+    """Bilinear upsampling of every parameter to the frame size (scale 1: as they are)."""
+    def up(x: Tensor) -> Tensor:
+        if scale == 1:
+            return x
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+
+    return KernelParams([up(f) for f in params.features], [up(a) for a in params.bandwidth],
+                        [up(c) for c in params.center], up(params.temporal_bandwidth),
+                        up(params.blend))
+
+
 def accumulate_embedding(embedding: Tensor, warped: Tensor, blend: Tensor) -> Tensor:
     # eq. 3: ē_t = (1 - λ) e_t + λ W ē_{t-1}   (λ = 0 at t = 0, after a cut, where disoccluded)
     return (1 - blend) * embedding + blend * warped
@@ -272,7 +284,8 @@ class AffinityDenoiser(nn.Module):
         frame_state, embedding_state = state
         safe_albedo = demodulation_divisor(albedo)  # NBG's: remodulation undoes it exactly
         radiance = color / safe_albedo  # (N, 3, H, W) demodulated: the kernels filter this
-        inputs = self._low(embedding_inputs(color, albedo, normal, depth))  # (N, 10, h, w)
+        # block means of the raw buffers (cheaper than mapping all pixels, then pooling)
+        inputs = embedding_inputs(*(self._low(b) for b in (color, albedo, normal, depth)))
         embedding = self.embedding(inputs)  # eq. 1, (N, 32, h, w)
         s = STATE_SLICES
         if self.config.temporal:
@@ -292,11 +305,12 @@ class AffinityDenoiser(nn.Module):
             keep = low_keep = torch.zeros_like(inputs[:, :1])
             warped, warped_embedding = None, torch.zeros_like(embedding)
         raw = self.unet(torch.cat((embedding, warped_embedding), dim=1))  # eq. 2, (N, 32, h, w)
-        low_blend = torch.sigmoid(raw[:, -1:]) * low_keep  # λ: no history where there is none
+        low_params = kernel_params(raw)
+        low_blend = low_params.blend * low_keep  # λ: no history where there is none
         new_embedding = accumulate_embedding(embedding, warped_embedding, low_blend)  # eq. 3
-        if self.config.unet_scale > 1:
-            raw = F.interpolate(raw, size=color.shape[-2:], mode="bilinear", align_corners=False)
-        params = kernel_params(raw)  # full resolution
+        # Activations before upsampling: cheaper, and bilinear weights are convex, so a, b >= 0
+        # and c, λ in [0, 1] still hold.
+        params = upsample_params(low_params, color.shape[-2:], self.config.unet_scale)
         if warped is not None:
             acc = accumulate_radiance(radiance, warped[:, s["radiance"]],
                                       params.blend * keep)  # eq. 5
@@ -310,7 +324,7 @@ class AffinityDenoiser(nn.Module):
             output = spatial_affinity_filter(
                 spatial_kernels(acc, params, size), params.features[k], params.bandwidth[k],
                 params.center[k], size, 2**k, EPSILON)
-        self.bandwidth_penalty = bandwidth_penalty_of(params)
+        self.bandwidth_penalty = bandwidth_penalty_of(low_params)
         new_state = torch.cat((acc, output, params.features[-1], depth, normal),
                               dim=1)  # (N, STATE_CHANNELS, H, W)
         return output * safe_albedo, (new_state, new_embedding)
