@@ -83,8 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     _, machine = cpu_peak_gflops(args.threads)
     sizes = args.kernel_sizes
     lines = [f"Machine: {machine}; load average {load_before:.1f} at the start.",
-             f"ms per {WIDTH}×{HEIGHT} frame through quietframe.runtime, median of "
-             f"{args.repeats} (CPU ms per frame, all threads, in brackets).", "",
+             f"Per {WIDTH}×{HEIGHT} frame through quietframe.runtime: median / min wall ms of "
+             f"{args.repeats}, then median CPU ms (all threads; on a shared machine the steadier "
+             "figure).", "",
              "| variant | U-Net widths | U-Net res | params | net GFLOP/frame | "
              + " | ".join(f"ms k={k}" for k in sizes) + " | val PSNR |",
              "|---|---|---|---|---|" + "---|" * len(sizes) + "---|"]
@@ -100,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             cells = []
             for k in sizes:
                 t = time_runtime(runtime, k, args.repeats)
-                cells.append(f"{t.median_ms:.0f} ({t.cpu_ms:.0f})")
+                cells.append(f"{t.median_ms:.0f} / {t.min_ms:.0f} / {t.cpu_ms:.0f}")
             config = model.config
             res = "full" if config.unet_scale == 1 else f"1/{config.unet_scale}"
             lines.append(f"| {name} | {'/'.join(map(str, config.widths))} | {res} | {params:,} | "
