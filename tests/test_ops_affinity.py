@@ -439,14 +439,32 @@ def test_custom_ops_schema_and_fake_shapes():
         kernels.spatial_affinity_filter(*x[:4], 4, 1)
 
 
-def test_reference_memory_stays_per_offset():
-    """No unfold: the forward holds a few image-sized temporaries per offset, whatever k is."""
-    x = [torch.from_numpy(a) for a in inputs(1, 3, 8, 64, 64)]
-    # the custom op keeps only its inputs for backward
-    out = kernels.spatial_affinity_filter(*(t.requires_grad_() for t in x[:4]), 13, 4)
-    assert out.grad_fn is not None
-    out.sum().backward()
-    assert all(t.grad is not None and torch.isfinite(t.grad).all() for t in x[:4])
+def _saved_numel(fn) -> int:
+    """Elements that autograd keeps for backward while fn() runs its forward."""
+    saved = []
+
+    def pack(t):
+        saved.append(t.numel())
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        fn()
+    return sum(saved)
+
+
+def test_reference_keeps_only_its_inputs_for_backward():
+    """Between forward and backward the custom op holds its inputs, not the k² per-offset
+    temporaries that autograd through spatial_math would keep; its gradients are those of
+    spatial_math all the same."""
+    x = [torch.from_numpy(a).requires_grad_() for a in inputs(1, 3, 8, 32, 32)[:4]]
+    held = _saved_numel(lambda: kernels.spatial_affinity_filter(*x, 13, 4))
+    assert held <= sum(t.numel() for t in x)
+    assert _saved_numel(lambda: kernels.spatial_math(*x, 13, 4)) > 20 * held
+    out = kernels.spatial_affinity_filter(*x, 13, 4)
+    grads = torch.autograd.grad(out.square().sum(), x)
+    expected = torch.autograd.grad(kernels.spatial_math(*x, 13, 4).square().sum(), x)
+    for g, e in zip(grads, expected, strict=True):
+        torch.testing.assert_close(g, e)
 
 
 # ---- export --------------------------------------------------------------------------------------

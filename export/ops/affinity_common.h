@@ -146,7 +146,9 @@ inline void filter_pixels_scalar(const Job& j, const Image& im, int64_t y, int64
     const int64_t p = y * j.W + x;
     float* out = im.out + p;
     const float a = non_negative(im.A[p]), c = non_negative(im.Cw[p]);
-    for (int64_t ch = 0; ch < j.C; ++ch) out[ch * plane] = c * im.L[ch * plane + p];  // w_pp = c_p
+    for (int64_t ch = 0; ch < j.C; ++ch) {
+      out[ch * plane] = c * im.L[ch * plane + p];  // w_pp = c_p
+    }
     float den = c;
     for (int64_t i = -r; i <= r; ++i) {  // eq. 4 + 6
       const int64_t yq = y + i * dil;
@@ -193,31 +195,30 @@ inline void filter_pixels_scalar(const Job& j, const Image& im, int64_t y, int64
   }
 }
 
-// ---- AVX2 -----------------------------------------------------------------------------------------
+// ---- AVX2 ---------------------------------------------------------------------------------------
 
 #if QF_HAVE_AVX2
-// weight_of on 8 lanes: exp(-t) = 2^n · e^s with n = round(-t·log2 e), |s| <= ln2/2, e^s by its
-// degree-7 Taylor polynomial (truncation below 6e-9 relative, under float rounding).
+// weight_of on 8 lanes: exp(-t) = 2^-m · e^-u with m = round(t·log2 e), |u| <= ln2/2, e^-u by
+// its degree-7 Taylor polynomial (truncation below 6e-9 relative, under float rounding). Lanes
+// with t >= kExpCutoff or NaN are masked to 0 at the end, whatever the arithmetic made of them.
 inline __m256 weight_of8(__m256 t) {
-  const __m256 cutoff = _mm256_set1_ps(kExpCutoff);
-  const __m256 keep = _mm256_cmp_ps(t, cutoff, _CMP_LT_OQ);  // false for NaN
-  const __m256 x = _mm256_sub_ps(_mm256_setzero_ps(), _mm256_min_ps(t, cutoff));  // [-87, 0]
-  const __m256 n = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
+  const __m256 keep = _mm256_cmp_ps(t, _mm256_set1_ps(kExpCutoff), _CMP_LT_OQ);  // NaN: false
+  const __m256 m = _mm256_round_ps(_mm256_mul_ps(t, _mm256_set1_ps(1.44269504088896341f)),
                                    _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-  // s = x - n·ln2 with ln2 in two parts, so that s keeps its low bits
-  __m256 s = _mm256_fnmadd_ps(n, _mm256_set1_ps(0.693359375f), x);
-  s = _mm256_fnmadd_ps(n, _mm256_set1_ps(-2.12194440e-4f), s);
-  __m256 e = _mm256_set1_ps(1.0f / 5040.0f);
-  e = _mm256_fmadd_ps(e, s, _mm256_set1_ps(1.0f / 720.0f));
-  e = _mm256_fmadd_ps(e, s, _mm256_set1_ps(1.0f / 120.0f));
-  e = _mm256_fmadd_ps(e, s, _mm256_set1_ps(1.0f / 24.0f));
-  e = _mm256_fmadd_ps(e, s, _mm256_set1_ps(1.0f / 6.0f));
-  e = _mm256_fmadd_ps(e, s, _mm256_set1_ps(0.5f));
-  e = _mm256_fmadd_ps(e, s, _mm256_set1_ps(1.0f));
-  e = _mm256_fmadd_ps(e, s, _mm256_set1_ps(1.0f));
-  // 2^n for n in [-126, 0]: the exponent field n + 127
-  const __m256i bits = _mm256_slli_epi32(
-      _mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)), 23);
+  // u = t - m·ln2 with ln2 in two parts, so that u keeps its low bits
+  __m256 u = _mm256_fnmadd_ps(m, _mm256_set1_ps(0.693359375f), t);
+  u = _mm256_fnmadd_ps(m, _mm256_set1_ps(-2.12194440e-4f), u);
+  __m256 e = _mm256_set1_ps(-1.0f / 5040.0f);  // Σ (-u)^k / k!
+  e = _mm256_fmadd_ps(e, u, _mm256_set1_ps(1.0f / 720.0f));
+  e = _mm256_fmadd_ps(e, u, _mm256_set1_ps(-1.0f / 120.0f));
+  e = _mm256_fmadd_ps(e, u, _mm256_set1_ps(1.0f / 24.0f));
+  e = _mm256_fmadd_ps(e, u, _mm256_set1_ps(-1.0f / 6.0f));
+  e = _mm256_fmadd_ps(e, u, _mm256_set1_ps(0.5f));
+  e = _mm256_fmadd_ps(e, u, _mm256_set1_ps(-1.0f));
+  e = _mm256_fmadd_ps(e, u, _mm256_set1_ps(1.0f));
+  // 2^-m for m in [0, 126] (t < 87): the exponent field 127 - m
+  const __m256i bits =
+      _mm256_slli_epi32(_mm256_sub_epi32(_mm256_set1_epi32(127), _mm256_cvtps_epi32(m)), 23);
   return _mm256_and_ps(keep, _mm256_mul_ps(e, _mm256_castsi256_ps(bits)));
 }
 
@@ -248,11 +249,17 @@ inline __m256 load8(const float* base, int64_t offset, bool whole, __m256 mask) 
 
 // Adds the taps of one window (the spatial one: `features`/`values` = F/L, skipping the centre;
 // the temporal one: PF/O with dilation 1 and the weights times `scale`) for the 8 pixels at
-// (y, x) and channels [c0, c0 + G) to num[] and den.
-template <int G, bool kTemporal>
+// (y, x) and channels [c0, c0 + G) to num[] and den. kD > 0: D = kD, the pixels' own features
+// stay in registers; kD = 0: any D, read from the plane at each tap.
+template <int G, int kD, bool kTemporal>
 inline void add_window8(const Job& j, const Image& im, int64_t y, int64_t x, int64_t c0,
                         __m256 bandwidth, __m256 scale, __m256* num, __m256& den) {
   const int64_t plane = j.H * j.W, p = y * j.W + x;
+  const int64_t D = kD > 0 ? kD : j.D;
+  __m256 own[kD > 0 ? kD : 1];
+  if constexpr (kD > 0) {
+    for (int f = 0; f < kD; ++f) own[f] = _mm256_loadu_ps(im.F + f * plane + p);
+  }
   const int64_t r = kTemporal ? j.temporal_radius : j.radius;
   const int64_t dil = kTemporal ? 1 : j.dilation;
   const float* neighbours = kTemporal ? im.PF : im.F;
@@ -267,9 +274,14 @@ inline void add_window8(const Job& j, const Image& im, int64_t y, int64_t x, int
       const __m256 mask = whole ? _mm256_setzero_ps() : lanes_inside(xq, j.W);
       const int64_t q = yq * j.W + xq;
       __m256 d2 = _mm256_setzero_ps();
-      for (int64_t f = 0; f < j.D; ++f) {
-        const __m256 diff = _mm256_sub_ps(_mm256_loadu_ps(im.F + f * plane + p),
-                                          load8(neighbours + f * plane, q, whole, mask));
+      for (int64_t f = 0; f < D; ++f) {
+        __m256 fp;
+        if constexpr (kD > 0) {
+          fp = own[f];
+        } else {
+          fp = _mm256_loadu_ps(im.F + f * plane + p);
+        }
+        const __m256 diff = _mm256_sub_ps(fp, load8(neighbours + f * plane, q, whole, mask));
         d2 = _mm256_fmadd_ps(diff, diff, d2);
       }
       __m256 w = weight_of8(_mm256_mul_ps(bandwidth, d2));
@@ -284,7 +296,7 @@ inline void add_window8(const Job& j, const Image& im, int64_t y, int64_t x, int
 }
 
 // filter_pixels_scalar for the 8 pixels at (y, x), x + 8 <= W, channels [c0, c0 + G).
-template <int G>
+template <int G, int kD>
 inline void filter_chunk_avx2(const Job& j, const Image& im, int64_t y, int64_t x, int64_t c0) {
   const int64_t plane = j.H * j.W, p = y * j.W + x;
   const __m256 zero = _mm256_setzero_ps();
@@ -292,12 +304,14 @@ inline void filter_chunk_avx2(const Job& j, const Image& im, int64_t y, int64_t 
   const __m256 a = _mm256_max_ps(_mm256_loadu_ps(im.A + p), zero);
   const __m256 c = _mm256_max_ps(_mm256_loadu_ps(im.Cw + p), zero);
   __m256 num[G];
-  for (int g = 0; g < G; ++g) num[g] = _mm256_mul_ps(c, _mm256_loadu_ps(im.L + (c0 + g) * plane + p));
+  for (int g = 0; g < G; ++g) {
+    num[g] = _mm256_mul_ps(c, _mm256_loadu_ps(im.L + (c0 + g) * plane + p));  // w_pp = c_p
+  }
   __m256 den = c;
-  add_window8<G, false>(j, im, y, x, c0, a, zero, num, den);
+  add_window8<G, kD, false>(j, im, y, x, c0, a, zero, num, den);
   if (im.on > 0.0f) {
     const __m256 b = _mm256_max_ps(_mm256_loadu_ps(im.B + p), zero);
-    add_window8<G, true>(j, im, y, x, c0, b, _mm256_set1_ps(im.on), num, den);
+    add_window8<G, kD, true>(j, im, y, x, c0, b, _mm256_set1_ps(im.on), num, den);
   }
   const __m256 denominator = _mm256_add_ps(_mm256_set1_ps(j.epsilon), den);
   for (int g = 0; g < G; ++g) {
@@ -308,15 +322,16 @@ inline void filter_chunk_avx2(const Job& j, const Image& im, int64_t y, int64_t 
 
 // Whole groups of 8 pixels of row y, every channel (in groups of up to 4, which keeps the
 // numerators in registers; the weights are recomputed per group). Returns the pixels done.
+template <int kD>
 inline int64_t filter_row_avx2(const Job& j, const Image& im, int64_t y) {
   int64_t x = 0;
   for (; x + 8 <= j.W; x += 8) {
     for (int64_t c0 = 0; c0 < j.C; c0 += 4) {
       switch (std::min<int64_t>(j.C - c0, 4)) {
-        case 1: filter_chunk_avx2<1>(j, im, y, x, c0); break;
-        case 2: filter_chunk_avx2<2>(j, im, y, x, c0); break;
-        case 3: filter_chunk_avx2<3>(j, im, y, x, c0); break;
-        default: filter_chunk_avx2<4>(j, im, y, x, c0); break;
+        case 1: filter_chunk_avx2<1, kD>(j, im, y, x, c0); break;
+        case 2: filter_chunk_avx2<2, kD>(j, im, y, x, c0); break;
+        case 3: filter_chunk_avx2<3, kD>(j, im, y, x, c0); break;
+        default: filter_chunk_avx2<4, kD>(j, im, y, x, c0); break;
       }
     }
   }
@@ -328,7 +343,10 @@ inline int64_t filter_row_avx2(const Job& j, const Image& im, int64_t y) {
 inline void filter_row(const Job& j, const Image& im, int64_t y) {
   int64_t x = 0;
 #if QF_HAVE_AVX2
-  if (simd_enabled()) x = filter_row_avx2(j, im, y);
+  // d = 8, the paper's feature count, with the pixel's own features in registers
+  if (simd_enabled()) {
+    x = j.D == 8 ? filter_row_avx2<8>(j, im, y) : filter_row_avx2<0>(j, im, y);
+  }
 #endif
   filter_pixels_scalar(j, im, y, x, j.W);
 }
@@ -341,7 +359,7 @@ inline void filter_band(const Job& j, int64_t task) {
   for (int64_t y = ya; y < yb; ++y) filter_row(j, im, y);
 }
 
-// ---- inputs ---------------------------------------------------------------------------------------
+// ---- inputs -------------------------------------------------------------------------------------
 
 // "(N, k, H, W)" with N, H, W from `like` and k given.
 inline std::string nchw(const Shape& like, const std::string& channels) {

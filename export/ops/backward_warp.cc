@@ -458,8 +458,8 @@ class BackwardWarp {
     const int64_t bands = band_count(H, N, kMinRowsPerBand);
     // Streaming stores need whole, aligned cache lines: rows of a multiple of 16 floats (every
     // segment then is one too) from line-aligned tensors.
-    const bool stream =
-        QF_HAVE_AVX2 && simd_enabled() && W % 16 == 0 && line_aligned(warped) && line_aligned(inside);
+    const bool stream = QF_HAVE_AVX2 && simd_enabled() && W % 16 == 0 &&
+                        line_aligned(warped) && line_aligned(inside);
     const WarpJob job{image, motion, warped, inside, C, H, W, bands, mode_, stream};
     auto task = [&job](size_t i) { warp_band(job, static_cast<int64_t>(i)); };
     if (!parallel_for(ctx, static_cast<size_t>(N * bands), task)) {
