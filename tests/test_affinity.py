@@ -204,3 +204,4 @@ def test_export_cli_takes_an_affinity_checkpoint(data, tmp_path):
     assert cli.main(["--checkpoint", str(run / "best.pt"), "--out", str(out)]) == 0
     info = Denoiser(out, threads=1).info
     assert info.name == "affinity-h8" and info.training["steps_done"] == 2
+    assert [(i.name, i.default) for i in info.inputs] == [("kernel_size", 5)]  # trained size
