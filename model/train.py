@@ -231,7 +231,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     return run / "best.pt"
 
 
-ARCHITECTURE_FIELDS = ("variant", "width")  # fixed by a run's checkpoint once it exists
+ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size")  # fixed by a run's checkpoint
 
 
 def resume_config(run: Path, flags: dict) -> TrainConfig:

@@ -191,8 +191,9 @@ def test_resumed_run_equals_uninterrupted_run(data, tmp_path):
     assert not torch.equal(a["model"]["unet.out.weight"], paused["model"]["unet.out.weight"])
     model, _ = affinity.load_checkpoint(str(tmp_path / "straight" / "best.pt"))
     assert model.config == dataclasses.replace(affinity.VARIANTS["affinity-h8"], kernel_size=5)
-    with pytest.raises(ValueError, match="cannot change a checkpoint's model"):
-        qt.resume_config(tmp_path / "straight", {"variant": "affinity-h16"})
+    for flag in ({"variant": "affinity-h16"}, {"kernel_size": 9}):
+        with pytest.raises(ValueError, match="cannot change a checkpoint's model"):
+            qt.resume_config(tmp_path / "straight", flag)
 
 
 def test_export_cli_takes_an_affinity_checkpoint(data, tmp_path):
