@@ -206,3 +206,18 @@ def test_export_cli_takes_an_affinity_checkpoint(data, tmp_path):
     info = Denoiser(out, threads=1).info
     assert info.name == "affinity-h8" and info.training["steps_done"] == 2
     assert [(i.name, i.default) for i in info.inputs] == [("kernel_size", 5)]  # trained size
+
+
+def test_extra_inputs_come_from_metadata_alone():
+    from pathlib import Path
+
+    from quietframe.runtime.denoiser import read_model_info
+
+    meta = {"quietframe.inputs": json.dumps([{"name": "strength", "dtype": "float32",
+                                              "shape": [1], "default": 0.5, "allowed": None}]),
+            "quietframe.state": json.dumps([{"name": "h", "channels": 2, "scale": 4}])}
+    info = read_model_info(Path("m.onnx"), meta)
+    (spec,) = info.inputs
+    assert spec.array(spec.default).dtype == np.float32 and spec.array(3.0).tolist() == [3.0]
+    assert info.state_specs[0].shape(9, 8) == (1, 2, 3, 2)  # ⌈9/4⌉ × ⌈8/4⌉
+    assert read_model_info(Path("m.onnx"), {}).inputs == ()  # NBG files: nothing extra to feed
