@@ -37,6 +37,9 @@ class TrainConfig:
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
     bandwidth_weight: float = 1e-5  # Işık eq. 9: weight of eq. 13 (affinity models only)
     kernel_size: int = 0  # affinity: spatial kernel size trained with (0: the variant's, 13)
+    # affinity: e.g. "5,9,13" draws the kernel size per step (a function of seed and step), so
+    # that one model serves every run-time size; empty: always kernel_size
+    kernel_sizes: str = ""
     crop: int = 128
     frames: int = 4  # unrolled sub-sequence length
     batch: int = 4
@@ -80,16 +83,29 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
     return NBGDenoiser(dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width))
 
 
+def step_kernel_size(cfg: TrainConfig, step: int) -> dict[str, int]:
+    """The forward's kernel_size argument at `step`: {} (the model's own) or one drawn from
+    cfg.kernel_sizes, seeded by (seed, step) so a resumed run draws what an uninterrupted one
+    would."""
+    if not cfg.kernel_sizes:
+        return {}
+    sizes = [int(k) for k in cfg.kernel_sizes.split(",")]
+    draw = torch.randint(len(sizes), (), generator=torch.Generator().manual_seed(
+        cfg.seed * 1_000_003 + 7919 * step + 2))
+    return {"kernel_size": sizes[int(draw)]}
+
+
 def unroll(model: nn.Module, batch: dict[str, Tensor],
-           penalties: list[Tensor] | None = None) -> list[Tensor]:
+           penalties: list[Tensor] | None = None, **options: int) -> list[Tensor]:
     """Run the model over a (B, T, C, h, w) batch, carrying the state; returns T outputs.
-    A model that sets `bandwidth_penalty` (eq. 13) has each frame's appended to `penalties`."""
+    A model that sets `bandwidth_penalty` (eq. 13) has each frame's appended to `penalties`;
+    `options` go to every forward call (e.g. an affinity model's kernel_size)."""
     b, t, _, h, w = batch["color"].shape
     state = model.initial_state(b, h, w)
     outputs = []
     for i in range(t):
         reset = torch.ones(b) if i == 0 else batch["reset"][:, i].float()
-        out, state = model(*(batch[k][:, i] for k in BUFFER_NAMES), reset, state)
+        out, state = model(*(batch[k][:, i] for k in BUFFER_NAMES), reset, state, **options)
         outputs.append(out)
         if penalties is not None and getattr(model, "bandwidth_penalty", None) is not None:
             penalties.append(model.bandwidth_penalty)
@@ -193,7 +209,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(cfg, step)
         penalties: list[Tensor] = []
-        outputs = unroll(model, batch, penalties)
+        outputs = unroll(model, batch, penalties, **step_kernel_size(cfg, step))
         refs = [batch["reference"][:, i] for i in range(len(outputs))]
         loss = sequence_loss(cfg, outputs, refs)
         if penalties:  # eq. 9: + 1e-5 · eq. 13, its expectation over frames too
@@ -231,7 +247,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     return run / "best.pt"
 
 
-ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size")  # fixed by a run's checkpoint
+ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes")  # fixed per run
 
 
 def resume_config(run: Path, flags: dict) -> TrainConfig:

@@ -177,8 +177,9 @@ def test_loss_falls_on_a_fixed_batch(data):
     assert min(losses[-3:]) < 0.9 * losses[0], losses
 
 
-def test_resumed_run_equals_uninterrupted_run(data, tmp_path):
-    cfg = config(data)
+@pytest.mark.parametrize("sizes", ["", "3,5"])
+def test_resumed_run_equals_uninterrupted_run(data, tmp_path, sizes):
+    cfg = config(data, kernel_sizes=sizes)
     qt.train(cfg, tmp_path / "straight")
     qt.train(cfg, tmp_path / "paused", stop_at=2)
     paused = torch.load(tmp_path / "paused" / "checkpoint.pt", weights_only=False)
@@ -194,6 +195,14 @@ def test_resumed_run_equals_uninterrupted_run(data, tmp_path):
     for flag in ({"variant": "affinity-h16"}, {"kernel_size": 9}):
         with pytest.raises(ValueError, match="cannot change a checkpoint's model"):
             qt.resume_config(tmp_path / "straight", flag)
+
+
+def test_kernel_size_drawn_per_step_is_a_function_of_seed_and_step(data):
+    cfg = config(data, kernel_sizes="5,9,13")
+    draws = [qt.step_kernel_size(cfg, step)["kernel_size"] for step in range(40)]
+    assert draws == [qt.step_kernel_size(cfg, step)["kernel_size"] for step in range(40)]
+    assert set(draws) == {5, 9, 13}
+    assert qt.step_kernel_size(config(data), 3) == {}  # the model's own size
 
 
 def test_export_cli_takes_an_affinity_checkpoint(data, tmp_path):
