@@ -1,5 +1,5 @@
-"""quietframe-export: write an NBG or oidn-temporal model (trained checkpoint or seeded untrained)
-to ONNX."""
+"""quietframe-export: write an NBG, oidn-temporal or affinity model (trained checkpoint or seeded
+untrained) to ONNX."""
 
 from __future__ import annotations
 
@@ -10,7 +10,9 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-export", description=__doc__)
     parser.add_argument("--variant", default="nbg-2l-3g",
-                        help="architecture when untrained; 'accumulation' = the pre-stage alone")
+                        help="architecture when untrained (nbg-…, oidn-temporal-…, affinity-…); "
+                             "'accumulation' = "
+                             "the pre-stage alone")
     parser.add_argument("--checkpoint", type=Path, help="training checkpoint (.pt)")
     parser.add_argument("--width", type=int, help="GuideNet width (untrained only)")
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
@@ -26,15 +28,21 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
+    from quietframe.export.affinity_export import export_affinity
     from quietframe.export.onnx_export import export_nbg
-    from quietframe.model import oidn_temporal
+    from quietframe.model import affinity, oidn_temporal
     from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
 
     if args.variant == "accumulation" and not args.checkpoint:
         model, training, metrics = AccumulationDenoiser(), {"trained": False}, {}
     elif args.checkpoint:
         saved = torch.load(args.checkpoint, map_location="cpu", weights_only=True)["config"]
-        load = oidn_temporal.load_checkpoint if "quality" in saved else load_checkpoint
+        if affinity.is_affinity_config(saved):
+            load = affinity.load_checkpoint
+        elif "quality" in saved:
+            load = oidn_temporal.load_checkpoint
+        else:
+            load = load_checkpoint
         model, checkpoint = load(str(args.checkpoint))
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
     elif args.variant in oidn_temporal.VARIANTS:
@@ -46,12 +54,16 @@ def main(argv: list[str] | None = None) -> int:
         training, metrics = {"trained": False, "seed": args.seed}, {}
     else:
         torch.manual_seed(args.seed)
-        config = VARIANTS[args.variant]
-        if args.width:
-            config = dataclasses.replace(config, width=args.width)
-        model = NBGDenoiser(config)
+        if args.variant in affinity.VARIANTS:
+            model = affinity.AffinityDenoiser(affinity.VARIANTS[args.variant])
+        else:
+            config = VARIANTS[args.variant]
+            if args.width:
+                config = dataclasses.replace(config, width=args.width)
+            model = NBGDenoiser(config)
         training, metrics = {"trained": False, "seed": args.seed}, {}
-    path = export_nbg(model, args.out, version=args.version, training=training, metrics=metrics)
+    export = export_affinity if isinstance(model, affinity.AffinityDenoiser) else export_nbg
+    path = export(model, args.out, version=args.version, training=training, metrics=metrics)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
     if args.card:
         import json

@@ -38,3 +38,11 @@ def l1_tonemapped_loss(
 ) -> torch.Tensor:
     # NBG eq. 14: mean |S(R) - S(I)| on the LDR-mapped output and ground truth
     return (ldr_gamma(pred, gamma) - ldr_gamma(ref, gamma)).abs().mean()
+
+
+def bandwidth_regulariser(
+    bandwidths: list[torch.Tensor], temporal_bandwidth: torch.Tensor
+) -> torch.Tensor:
+    # Işık eq. 13: Σ_k E ||a^k||² + E ||b||², bandwidths (N, 1, H, W) each; without it the scale
+    # ambiguity between a, b and the feature magnitudes made training unstable (paper §4.2)
+    return sum(a.square().mean() for a in bandwidths) + temporal_bandwidth.square().mean()

@@ -1,5 +1,5 @@
-"""quietframe-train: train an NBG or oidn-temporal variant on rendered sequences (CPU friendly,
-resumable).
+"""quietframe-train: train an NBG, oidn-temporal or affinity variant on rendered sequences (CPU
+friendly, resumable).
 
 One flat loop in a fixed order (nanoGPT style): sample a batch of short crop sequences, unroll
 the state-in/state-out model over the frames (so reprojection, accumulation and reset are
@@ -24,8 +24,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
+from quietframe.model import affinity
 from quietframe.model.losses import l1_tonemapped_loss, smape_loss, temporal_loss
 from quietframe.model.metrics import psnr
 from quietframe.model.nbg import VARIANTS, NBGConfig, NBGDenoiser
@@ -35,16 +36,20 @@ from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.oidn_prepass import OIDNSettings
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS, RUNS_DIR, split_dir
 
-Model = NBGDenoiser | OIDNTemporal
-
 
 @dataclasses.dataclass
 class TrainConfig:
-    variant: str = "nbg-2l-3g"  # or oidn-temporal-high / oidn-temporal-fast
-    width: int = 0  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own (NBG: 20)
+    variant: str = "nbg-2l-3g"  # or oidn-temporal-high/-fast, affinity-… (model/affinity.py)
+    width: int = 0  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own (NBG: 20);
+    # an affinity variant names its U-Net widths
     data: str = str(DATA_DIR)
     loss: str = "smape+temporal"  # or "l1" (paper §4.4: L1 on the LDR-mapped output)
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
+    bandwidth_weight: float = 1e-5  # Işık eq. 9: weight of eq. 13 (affinity models only)
+    kernel_size: int = 0  # affinity: spatial kernel size trained with (0: the variant's, 13)
+    # affinity: e.g. "5,9,13" draws the kernel size per step (a function of seed and step), so
+    # that one model serves every run-time size; empty: always kernel_size
+    kernel_sizes: str = ""
     crop: int = 128
     frames: int = 4  # unrolled sub-sequence length
     batch: int = 4
@@ -107,18 +112,25 @@ def drop_buffers(cfg: TrainConfig, batch: dict[str, Tensor], step: int) -> dict[
     return out
 
 
-def build_model(cfg: TrainConfig, checkpoint_config: dict | None = None) -> Model:
-    """The model of a run: the checkpoint's architecture when resuming, else the variant's
-    with --width (0 keeps the variant's own)."""
+def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
+    """The model of a run: the checkpoint's architecture (`saved`) when resuming, else the
+    variant's with --width (0 keeps the variant's own) and, for affinity, --kernel-size."""
+    if saved is not None:
+        if affinity.is_affinity_config(saved):
+            return affinity.AffinityDenoiser(affinity.AffinityConfig(**saved))
+        if cfg.variant in OIDN_VARIANTS or "quality" in saved:
+            return OIDNTemporal(OIDNTemporalConfig(**saved))
+        return NBGDenoiser(NBGConfig(**saved))
+    if cfg.variant in affinity.VARIANTS:
+        config = affinity.VARIANTS[cfg.variant]
+        if cfg.kernel_size:  # also the exported graph's default: the size the model knows best
+            config = dataclasses.replace(config, kernel_size=cfg.kernel_size)
+        return affinity.AffinityDenoiser(config)
     if cfg.variant in OIDN_VARIANTS:
-        config = (OIDNTemporalConfig(**checkpoint_config) if checkpoint_config else
-                  dataclasses.replace(OIDN_VARIANTS[cfg.variant],
-                                      width=cfg.width or OIDN_VARIANTS[cfg.variant].width))
-        return OIDNTemporal(config)
-    config = (NBGConfig(**checkpoint_config) if checkpoint_config else
-              dataclasses.replace(VARIANTS[cfg.variant], width=cfg.width or
-                                  VARIANTS[cfg.variant].width))
-    return NBGDenoiser(config)
+        base = OIDN_VARIANTS[cfg.variant]
+        return OIDNTemporal(dataclasses.replace(base, width=cfg.width or base.width))
+    base = VARIANTS[cfg.variant]
+    return NBGDenoiser(dataclasses.replace(base, width=cfg.width or base.width))
 
 
 def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
@@ -127,21 +139,38 @@ def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
     return OIDNSettings(config.quality, config.prefilter_aux) if config else None
 
 
-def unroll(model: Model, batch: dict[str, Tensor]) -> list[Tensor]:
-    """Run the model over a (B, T, C, h, w) batch, carrying the state; returns T outputs."""
+def step_kernel_size(cfg: TrainConfig, step: int) -> dict[str, int]:
+    """The forward's kernel_size argument at `step`: {} (the model's own) or one drawn from
+    cfg.kernel_sizes, seeded by (seed, step) so a resumed run draws what an uninterrupted one
+    would."""
+    if not cfg.kernel_sizes:
+        return {}
+    sizes = [int(k) for k in cfg.kernel_sizes.split(",")]
+    draw = torch.randint(len(sizes), (), generator=torch.Generator().manual_seed(
+        cfg.seed * 1_000_003 + 7919 * step + 3))
+    return {"kernel_size": sizes[int(draw)]}
+
+
+def unroll(model: nn.Module, batch: dict[str, Tensor],
+           penalties: list[Tensor] | None = None, **options: int) -> list[Tensor]:
+    """Run the model over a (B, T, C, h, w) batch, carrying the state; returns T outputs.
+    A model that sets `bandwidth_penalty` (eq. 13) has each frame's appended to `penalties`;
+    `options` go to every forward call (e.g. an affinity model's kernel_size)."""
     b, t, _, h, w = batch["color"].shape
     state = model.initial_state(b, h, w)
     outputs = []
     inputs = getattr(model, "inputs", BUFFER_NAMES)  # oidn-temporal: "oidn" first
     for i in range(t):
         reset = torch.ones(b) if i == 0 else batch["reset"][:, i].float()
-        out, state = model(*(batch[k][:, i] for k in inputs), reset, state)
+        out, state = model(*(batch[k][:, i] for k in inputs), reset, state, **options)
         outputs.append(out)
+        if penalties is not None and getattr(model, "bandwidth_penalty", None) is not None:
+            penalties.append(model.bandwidth_penalty)
     return outputs
 
 
 @torch.no_grad()
-def validate(model: Model, batches: list[dict[str, Tensor]]) -> float:
+def validate(model: nn.Module, batches: list[dict[str, Tensor]]) -> float:
     """Mean PSNR (τ-mapped, model/metrics) of the last frame of each validation sequence."""
     model.eval()
     scores = []
@@ -153,7 +182,7 @@ def validate(model: Model, batches: list[dict[str, Tensor]]) -> float:
     return float(np.mean(scores))
 
 
-def save(path: Path, model: Model, optimizer, step: int, cfg: TrainConfig,
+def save(path: Path, model: nn.Module, optimizer, step: int, cfg: TrainConfig,
          best_psnr: float, metrics: dict) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save({
@@ -234,9 +263,12 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
         batch = drop_buffers(cfg, train_batches(step), step)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(cfg, step)
-        outputs = unroll(model, batch)
+        penalties: list[Tensor] = []
+        outputs = unroll(model, batch, penalties, **step_kernel_size(cfg, step))
         refs = [batch["reference"][:, i] for i in range(len(outputs))]
         loss = sequence_loss(cfg, outputs, refs)
+        if penalties:  # eq. 9: + 1e-5 · eq. 13, its expectation over frames too
+            loss = loss + cfg.bandwidth_weight * torch.stack(penalties).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -270,7 +302,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     return run / "best.pt"
 
 
-ARCHITECTURE_FIELDS = ("variant", "width")  # fixed by a run's checkpoint once it exists
+ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes")  # fixed per run
 
 
 def resume_config(run: Path, flags: dict) -> TrainConfig:

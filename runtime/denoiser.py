@@ -40,6 +40,28 @@ from quietframe.runtime.tiling import (
 class StateSpec:
     name: str
     channels: int
+    scale: int = 1  # the tensor is ⌈H/scale⌉ × ⌈W/scale⌉ (e.g. a half-resolution history)
+
+    def shape(self, height: int, width: int) -> tuple[int, int, int, int]:
+        return (1, self.channels, -(-height // self.scale), -(-width // self.scale))
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """An extra scalar graph input (metadata `quietframe.inputs`), fed from its default or a
+    session/call option: e.g. the affinity model's `kernel_size`."""
+
+    name: str
+    dtype: str  # numpy dtype name, e.g. "int64"
+    shape: tuple[int, ...]
+    default: float | int
+    allowed: tuple[float | int, ...] | None = None  # None: any value
+    doc: str = ""
+
+    def array(self, value: float | int) -> np.ndarray:
+        if self.allowed is not None and value not in self.allowed:
+            raise ValueError(f"{self.name} must be one of {list(self.allowed)}, got {value!r}")
+        return np.full(self.shape, value, dtype=self.dtype)
 
 
 @dataclass(frozen=True)
@@ -53,9 +75,10 @@ class ModelInfo:
     metadata: dict[str, str]
     metrics: dict = field(default_factory=dict)
     training: dict = field(default_factory=dict)
+    inputs: tuple[InputSpec, ...] = ()
 
     def state_nbytes(self, height: int, width: int) -> int:
-        return sum(4 * s.channels * height * width for s in self.state_specs)
+        return sum(4 * int(np.prod(s.shape(height, width))) for s in self.state_specs)
 
 
 @dataclass
@@ -76,10 +99,17 @@ def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
         path=path,
         required_buffers=tuple(load("buffers.required", '["color"]')),
         optional_buffers=tuple(load("buffers.optional", "[]")),
-        state_specs=tuple(StateSpec(s["name"], int(s["channels"])) for s in load("state", "[]")),
+        state_specs=tuple(StateSpec(s["name"], int(s["channels"]), int(s.get("scale", 1)))
+                          for s in load("state", "[]")),
         metadata=dict(metadata),
         metrics=load("metrics", "{}"),
         training=load("training", "{}"),
+        inputs=tuple(
+            InputSpec(i["name"], i["dtype"], tuple(i["shape"]), i["default"],
+                      tuple(i["allowed"]) if i.get("allowed") is not None else None,
+                      i.get("doc", ""))
+            for i in load("inputs", "[]")
+        ),
     )
 
 
@@ -103,13 +133,17 @@ class Denoiser:
 
     A model whose metadata names a prepass (quietframe.prepass, runtime/oidn_prepass.py) is a
     composition: the runtime runs OIDN on the frame first and feeds its output to the graph.
-    Such a model raises PrepassUnavailable here when pyoidn is not installed."""
+    Such a model raises PrepassUnavailable here when pyoidn is not installed.
+
+    `options`: values for the model's extra inputs (`info.inputs`), e.g. {"kernel_size": 7};
+    the metadata default for the others."""
 
     def __init__(
         self,
         model_path: str | Path,
         threads: int = 2,
         tile_pixels: int | None = DEFAULT_TILE_PIXELS,
+        options: Mapping[str, float | int] | None = None,
     ) -> None:
         path = Path(model_path)
         if not path.is_file():
@@ -127,6 +161,20 @@ class Denoiser:
         except PrepassUnavailable as exc:
             exc.model = self.info.name  # for the service's log line and error
             raise
+        self._option_feeds = self._options({}, options or {})
+
+    def _options(self, base: Mapping[str, np.ndarray],
+                 options: Mapping[str, float | int]) -> dict[str, np.ndarray]:
+        """Feeds of the extra inputs: `base` (or the defaults) with `options` on top."""
+        specs = {spec.name: spec for spec in self.info.inputs}
+        unknown = sorted(set(options) - set(specs))
+        if unknown:
+            raise ValueError(f"model {self.info.name!r} has no option {unknown}; "
+                             f"its options: {sorted(specs)}")
+        feeds = {name: base[name] if name in base else spec.array(spec.default)
+                 for name, spec in specs.items()}
+        feeds |= {name: specs[name].array(value) for name, value in options.items()}
+        return feeds
 
     def check(self, present: Iterable[str]) -> tuple[str, ...]:
         """The one check of a frame's buffers against the model: the absent optional ones;
@@ -137,7 +185,7 @@ class Denoiser:
 
     def initial_state(self, height: int, width: int) -> dict[str, np.ndarray]:
         return {
-            s.name: np.zeros((1, s.channels, height, width), np.float32)
+            s.name: np.zeros(s.shape(height, width), np.float32)
             for s in self.info.state_specs
         }
 
@@ -162,11 +210,14 @@ class Denoiser:
         return feeds, sanitized, missing, (height, width)
 
     def denoise(
-        self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None
+        self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
+        options: Mapping[str, float | int] | None = None,
     ) -> DenoiseResult:
         """Denoise one frame of (C, H, W) float32 planes. `state` is the previous frame's
-        `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut)."""
+        `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut).
+        `options` overrides the Denoiser's options for this call."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
+        feeds |= self._options(self._option_feeds, options) if options else self._option_feeds
         if self.prepass is not None:
             # The sanitised planes, so OIDN sees exactly what a plain graph would.
             feeds[self.prepass.settings.input] = self.prepass(
@@ -177,7 +228,7 @@ class Denoiser:
             state = self.initial_state(height, width)
         for spec in self.info.state_specs:
             tensor = state[spec.name]
-            if tensor.shape != (1, spec.channels, height, width):
+            if tensor.shape != spec.shape(height, width):
                 raise BufferError(
                     f"state {spec.name!r} has shape {tensor.shape}, frame is {height}x{width}"
                 )

@@ -1,0 +1,366 @@
+"""Affinity-kernel denoiser (Işık et al. 2021, §3): the quality tier.
+
+Frame flow (one call of AffinityDenoiser.forward, state in / state out like NBG):
+  demodulate albedo (NBG's divisor) -> per-pixel embedding e (eq. 1) -> warp the state
+  (nearest, NBG's disocclusion test) -> U-Net on (e, W ē) predicts f^k, a^k, c^k, b, λ (eq. 2)
+  -> accumulate ē and L̄ with λ (eq. 3, 5) -> K = 3 dilated affinity kernels in sequence
+  (eq. 4, 6), the last jointly normalised with the temporal kernel over W O_{t-1} (eq. 7, 8)
+  -> remodulate.
+
+The network may run at half resolution (`unet_scale` s = 2): the pixel-mean buffers are averaged
+over s×s blocks before the FC layers (the paper's "average before FC", over a block instead of a
+pixel), the embedding is accumulated (eq. 3) and fed to the U-Net at that resolution, and the
+kernel parameters are upsampled bilinearly; radiance accumulation and the kernels stay at full
+resolution. The accumulated embedding is then a state tensor of ⌈H/s⌉×⌈W/s⌉ (metadata `scale`),
+which saves warping, pooling and concatenating 64 full-resolution channels per frame.
+
+Kernel math lives in model/affinity_kernels.py (torch custom ops exported as the C++ ops
+ai.quietframe::AffinityFilter / AffinityTemporalFilter). The spatial kernel size is a forward
+argument so the exported graph can take it as an input and a session can change it.
+
+Deviation from the paper, on purpose: the state is detached between frames (truncated
+back-propagation through time, one frame), because the warp op has no gradient; the temporal
+loss still trains λ, b and the features through the current frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from quietframe.model.affinity_kernels import (
+    EPSILON,
+    spatial_affinity_filter,
+    temporal_affinity_filter,
+)
+from quietframe.model.nbg import demodulation_divisor
+from quietframe.model.temporal import backward_warp, history_valid
+
+EMBEDDING_INPUT_CHANNELS = 10  # log radiance (3) + albedo (3) + normal (3) + relative depth (1)
+EMBEDDING_CHANNELS = 32  # paper §3.2: 3 FC layers × 32
+FEATURE_CHANNELS = 8  # d of f^k (paper §3.7: d = 8)
+KERNELS = 3  # K
+PARAMS_PER_KERNEL = FEATURE_CHANNELS + 2  # f^k, a^k, c^k
+UNET_OUTPUTS = KERNELS * PARAMS_PER_KERNEL + 2  # + b, λ
+LEAK = 0.01  # leaky ReLU slope (the paper does not give one: PyTorch's default)
+DEFAULT_KERNEL_SIZE = 13  # paper §3.5: 13×13 windows
+KERNEL_SIZES = (5, 7, 9, 11, 13)  # the session-time choices (paper §5.5.3)
+
+# The state is two tensors: this full-resolution one (one warp serves all its channels) and the
+# accumulated embedding ē_{t-1} (eq. 3, 32 channels) at the U-Net's resolution.
+_STATE_LAYOUT = (
+    ("radiance", 3),  # L̄_{t-1}, demodulated (eq. 5)
+    ("output", 3),  # O_{t-1}, demodulated (eq. 8)
+    ("features", FEATURE_CHANNELS),  # f^K_{t-1} (eq. 7)
+    ("depth", 1),  # surface of t-1 for the disocclusion test
+    ("normal", 3),
+)
+STATE_SLICES: dict[str, slice] = {}
+_offset = 0
+for _name, _channels in _STATE_LAYOUT:
+    STATE_SLICES[_name] = slice(_offset, _offset + _channels)
+    _offset += _channels
+STATE_CHANNELS = _offset
+State = tuple[Tensor, Tensor]  # (N, STATE_CHANNELS, H, W), (N, 32, ⌈H/s⌉, ⌈W/s⌉)
+
+
+@dataclass(frozen=True)
+class AffinityConfig:
+    """Everything needed to rebuild a model; stored in checkpoints and ONNX metadata."""
+
+    name: str = "affinity-h16"
+    family: str = "affinity"  # tells checkpoints of this model from NBG's
+    widths: tuple[int, ...] = (16, 24, 32)  # U-Net channels per level, multiples of 8
+    unet_scale: int = 2  # 1: U-Net at full resolution; 2: at half resolution
+    temporal: bool = True  # False: the single-frame variant (no eq. 3, 5, 7-8 history)
+    temporal_kernel_size: int = 5  # u', v' window of eq. 8 (dilation 1)
+    kernel_size: int = DEFAULT_KERNEL_SIZE  # default of the `kernel_size` input
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "widths", tuple(self.widths))  # JSON round trip gives a list
+        if self.unet_scale not in (1, 2):
+            raise ValueError(f"unet_scale must be 1 or 2, got {self.unet_scale}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def ldr_log(x: Tensor) -> Tensor:
+    """The paper's x -> log(1 + x) compression, for network inputs only (§3.2)."""
+    return torch.log1p(x.clamp_min(0))
+
+
+def embedding_inputs(color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> Tensor:
+    """Pixel-mean buffers as the FC layers see them: (N, 10, H, W)."""
+    depth_scale = depth.mean(dim=(2, 3), keepdim=True).clamp_min(1e-6)
+    relative_depth = depth / depth_scale  # scene-unit free, as NBG's GuideNet input
+    return torch.cat(
+        (ldr_log(color), albedo.clamp(0, 1), normal.clamp(-1, 1),
+         relative_depth / (1 + relative_depth)),
+        dim=1,
+    )
+
+
+class Embedding(nn.Module):
+    """eq. 1, 'average before FC' variant: FC over pixel means, as 1×1 convolutions."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.layers = nn.ModuleList([
+            nn.Conv2d(EMBEDDING_INPUT_CHANNELS, EMBEDDING_CHANNELS, 1),
+            nn.Conv2d(EMBEDDING_CHANNELS, EMBEDDING_CHANNELS, 1),
+            nn.Conv2d(EMBEDDING_CHANNELS, EMBEDDING_CHANNELS, 1),
+        ])
+
+    def forward(self, inputs: Tensor) -> Tensor:
+        x = inputs  # (N, 10, H, W)
+        for layer in self.layers:
+            x = F.leaky_relu(layer(x), LEAK)  # eq. 1: e = FC(r̄)
+        return x  # (N, 32, H, W)
+
+
+def _conv(cin: int, cout: int) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, 3, padding=1)
+
+
+class UNet(nn.Module):
+    """eq. 2: a len(widths)-level U-Net, two 3×3 convolutions per level, 2×2 max-pool down,
+    bilinear up, concatenated skips (the paper's structure, shallower and narrower for a CPU);
+    a 1×1 convolution makes the raw kernel parameters."""
+
+    def __init__(self, widths: tuple[int, ...]) -> None:
+        super().__init__()
+        cin = 2 * EMBEDDING_CHANNELS  # e and W ē
+        self.down = nn.ModuleList()
+        for w in widths:
+            self.down.append(nn.ModuleList([_conv(cin, w), _conv(w, w)]))
+            cin = w
+        self.up = nn.ModuleList()
+        for w in reversed(widths[:-1]):
+            self.up.append(nn.ModuleList([_conv(cin + w, w), _conv(w, w)]))
+            cin = w
+        self.out = nn.Conv2d(cin, UNET_OUTPUTS, 1)
+        with torch.no_grad():
+            # a = raw² has zero slope at raw = 0, where the kernels are box filters that ignore
+            # the features: start at a = b = 1 so that the features get a gradient.
+            for k in range(KERNELS):
+                self.out.bias[k * PARAMS_PER_KERNEL + FEATURE_CHANNELS] = 1.0
+            self.out.bias[KERNELS * PARAMS_PER_KERNEL] = 1.0
+
+    def forward(self, x: Tensor) -> Tensor:
+        skips = []
+        for level, (a, b) in enumerate(self.down):
+            if level:
+                # ceil_mode: odd sizes keep their last row/column, a 1×1 frame stays 1×1
+                x = F.max_pool2d(x, 2, ceil_mode=True)
+            x = F.leaky_relu(b(F.leaky_relu(a(x), LEAK)), LEAK)
+            skips.append(x)
+        for i, (a, b) in enumerate(self.up):
+            skip = skips[-2 - i]
+            x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = torch.cat((x, skip), dim=1)
+            x = F.leaky_relu(b(F.leaky_relu(a(x), LEAK)), LEAK)
+        return self.out(x)  # (N, 32, h, w), raw
+
+
+@dataclass
+class KernelParams:
+    """The U-Net's output after its activations (eq. 2, 4, 7, 3), all at full resolution."""
+
+    features: list[Tensor]  # K × (N, 8, H, W): f^k
+    bandwidth: list[Tensor]  # K × (N, 1, H, W): a^k = raw² >= 0
+    center: list[Tensor]  # K × (N, 1, H, W): c^k = sigmoid(raw) in [0, 1]
+    temporal_bandwidth: Tensor  # (N, 1, H, W): b = raw² >= 0
+    blend: Tensor  # (N, 1, H, W): λ = sigmoid(raw) in [0, 1]
+
+
+def kernel_params(raw: Tensor) -> KernelParams:
+    """eq. 2 outputs with the paper's activations: squares for bandwidths, sigmoids for c, λ."""
+    features, bandwidth, center = [], [], []
+    for k in range(KERNELS):
+        p = raw[:, k * PARAMS_PER_KERNEL : (k + 1) * PARAMS_PER_KERNEL]
+        features.append(p[:, :FEATURE_CHANNELS])
+        bandwidth.append(p[:, FEATURE_CHANNELS : FEATURE_CHANNELS + 1].square())  # eq. 4: a >= 0
+        center.append(torch.sigmoid(p[:, FEATURE_CHANNELS + 1 : FEATURE_CHANNELS + 2]))
+    tail = raw[:, KERNELS * PARAMS_PER_KERNEL :]
+    return KernelParams(features, bandwidth, center, tail[:, 0:1].square(),  # eq. 7: b >= 0
+                        torch.sigmoid(tail[:, 1:2]))  # eq. 3: λ in [0, 1]
+
+
+def upsample_params(params: KernelParams, size, scale: int) -> KernelParams:
+    """Bilinear upsampling of every parameter to the frame size (scale 1: as they are)."""
+    def up(x: Tensor) -> Tensor:
+        if scale == 1:
+            return x
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+
+    return KernelParams([up(f) for f in params.features], [up(a) for a in params.bandwidth],
+                        [up(c) for c in params.center], up(params.temporal_bandwidth),
+                        up(params.blend))
+
+
+def accumulate_embedding(embedding: Tensor, warped: Tensor, blend: Tensor) -> Tensor:
+    # eq. 3: ē_t = (1 - λ) e_t + λ W ē_{t-1}   (λ = 0 at t = 0, after a cut, where disoccluded)
+    return (1 - blend) * embedding + blend * warped
+
+
+def accumulate_radiance(radiance: Tensor, warped: Tensor, blend: Tensor) -> Tensor:
+    # eq. 5: L̄_t = (1 - λ) L_t + λ W L̄_{t-1}   (the same λ as eq. 3)
+    return (1 - blend) * radiance + blend * warped
+
+
+def spatial_kernels(radiance: Tensor, params: KernelParams, kernel_size: int) -> Tensor:
+    # eq. 4 + 6: L^(k) = Σ w^k L^(k-1) / (ε + Σ w^k), k = 1..K-1, dilation 2^(k-1)
+    x = radiance  # (N, 3, H, W) = L^(0) = L̄
+    for k in range(KERNELS - 1):
+        x = spatial_affinity_filter(x, params.features[k], params.bandwidth[k], params.center[k],
+                                    kernel_size, 2**k, EPSILON)
+    return x  # L^(K-1)
+
+
+def final_kernel(radiance: Tensor, params: KernelParams, prev_output: Tensor,
+                 prev_features: Tensor, temporal_on: Tensor, kernel_size: int,
+                 temporal_kernel_size: int) -> Tensor:
+    # eq. 7 + 8: the K-th spatial kernel (dilation 2^(K-1)) jointly normalised with the
+    # temporal kernel ω = exp(-b ||f^K - W f^K_{t-1}||²) over W O_{t-1}; ω = 0 where temporal_on = 0
+    k = KERNELS - 1
+    return temporal_affinity_filter(
+        radiance, params.features[k], params.bandwidth[k], params.center[k], prev_output,
+        prev_features, params.temporal_bandwidth, temporal_on, kernel_size, 2**k,
+        temporal_kernel_size, EPSILON)
+
+
+class AffinityDenoiser(nn.Module):
+    """State-in / state-out affinity denoiser on (N, C, H, W) float tensors.
+
+    forward(color, albedo, normal, depth, motion, reset, state, kernel_size) ->
+    (denoised, new_state), state = (frame state, accumulated embedding) (see State). After each
+    forward, `bandwidth_penalty` holds eq. 13 of that frame for the training loss.
+    """
+
+    state_channels = STATE_CHANNELS
+
+    def __init__(self, config: AffinityConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or AffinityConfig()
+        self.embedding = Embedding()
+        self.unet = UNet(self.config.widths)
+        self._init_hidden_layers()
+        self.bandwidth_penalty: Tensor | None = None
+
+    def initial_state(self, batch: int, height: int, width: int) -> State:
+        s = self.config.unet_scale
+        return (torch.zeros(batch, STATE_CHANNELS, height, width),
+                torch.zeros(batch, EMBEDDING_CHANNELS, -(-height // s), -(-width // s)))
+
+    def state_specs(self) -> list[dict]:
+        """`quietframe.state` metadata: name, channels and resolution divisor of each tensor."""
+        return [{"name": "affinity", "channels": STATE_CHANNELS, "scale": 1},
+                {"name": "embedding", "channels": EMBEDDING_CHANNELS,
+                 "scale": self.config.unet_scale}]
+
+    def _init_hidden_layers(self) -> None:
+        # He init for the leaky-ReLU layers: PyTorch's default shrinks the signal about 3× per
+        # layer, and after the 3 FC + U-Net layers the features were near-constant over the
+        # image (neighbour ||Δf||² ~ 1e-5), so every kernel was a box filter with no gradient.
+        for module in (*self.embedding.layers, *self.unet.modules()):
+            if isinstance(module, nn.Conv2d) and module is not self.unet.out:
+                nn.init.kaiming_normal_(module.weight, a=LEAK, nonlinearity="leaky_relu")
+                nn.init.zeros_(module.bias)
+        nn.init.kaiming_normal_(self.unet.out.weight, nonlinearity="linear")
+
+    def _low(self, x: Tensor) -> Tensor:
+        """s×s block means (ceil mode: a partial block averages the pixels it has)."""
+        s = self.config.unet_scale
+        return F.avg_pool2d(x, s, ceil_mode=True) if s > 1 else x
+
+    def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: State,
+                kernel_size: int | None = None) -> tuple[Tensor, State]:
+        size = self.config.kernel_size if kernel_size is None else kernel_size
+        frame_state, embedding_state = state
+        safe_albedo = demodulation_divisor(albedo)  # NBG's: remodulation undoes it exactly
+        radiance = color / safe_albedo  # (N, 3, H, W) demodulated: the kernels filter this
+        # block means of the raw buffers (cheaper than mapping all pixels, then pooling)
+        inputs = embedding_inputs(*(self._low(b) for b in (color, albedo, normal, depth)))
+        embedding = self.embedding(inputs)  # eq. 1, (N, 32, h, w)
+        s = STATE_SLICES
+        if self.config.temporal:
+            # Nearest reprojection (paper §3.3); the state carries no gradient (module doc).
+            warped, inside = backward_warp(frame_state.detach(), motion, mode="nearest")
+            keep = inside * history_valid(warped[:, s["depth"]], warped[:, s["normal"]],
+                                          depth, normal)
+            keep = keep * (1 - reset.view(-1, 1, 1, 1))  # (N, 1, H, W)
+            # motion in low-resolution pixels: block centres map onto block centres
+            low_motion = self._low(motion) / self.config.unet_scale
+            warped_embedding, low_inside = backward_warp(embedding_state.detach(), low_motion,
+                                                         mode="nearest")
+            low_keep = low_inside * self._low(keep)  # (N, 1, h, w)
+            warped_embedding = low_keep * warped_embedding
+            temporal_on = 1 - reset  # (N,) eq. 8: ω = 0 on a first frame or a cut
+        else:
+            keep = low_keep = torch.zeros_like(inputs[:, :1])
+            warped, warped_embedding = None, torch.zeros_like(embedding)
+        raw = self.unet(torch.cat((embedding, warped_embedding), dim=1))  # eq. 2, (N, 32, h, w)
+        low_params = kernel_params(raw)
+        low_blend = low_params.blend * low_keep  # λ: no history where there is none
+        new_embedding = accumulate_embedding(embedding, warped_embedding, low_blend)  # eq. 3
+        # Activations before upsampling: cheaper, and bilinear weights are convex, so a, b >= 0
+        # and c, λ in [0, 1] still hold.
+        params = upsample_params(low_params, color.shape[-2:], self.config.unet_scale)
+        if warped is not None:
+            acc = accumulate_radiance(radiance, warped[:, s["radiance"]],
+                                      params.blend * keep)  # eq. 5
+            filtered = spatial_kernels(acc, params, size)  # eq. 4, 6
+            output = final_kernel(filtered, params, warped[:, s["output"]],
+                                  warped[:, s["features"]], temporal_on, size,
+                                  self.config.temporal_kernel_size)  # eq. 7, 8
+        else:  # single-frame variant: the K-th kernel alone (eq. 4, 6)
+            acc = radiance
+            k = KERNELS - 1
+            output = spatial_affinity_filter(
+                spatial_kernels(acc, params, size), params.features[k], params.bandwidth[k],
+                params.center[k], size, 2**k, EPSILON)
+        self.bandwidth_penalty = bandwidth_penalty_of(low_params)
+        new_state = torch.cat((acc, output, params.features[-1], depth, normal),
+                              dim=1)  # (N, STATE_CHANNELS, H, W)
+        return output * safe_albedo, (new_state, new_embedding)
+
+
+def bandwidth_penalty_of(params: KernelParams) -> Tensor:
+    from quietframe.model.losses import bandwidth_regulariser
+
+    return bandwidth_regulariser(params.bandwidth, params.temporal_bandwidth)  # eq. 13
+
+
+def _variant(name: str, widths: tuple[int, ...], scale: int, temporal: bool = True
+             ) -> AffinityConfig:
+    return AffinityConfig(name=name, widths=widths, unet_scale=scale, temporal=temporal)
+
+
+# The width sweep (docs/affinity.md): h = U-Net at half resolution, f = full resolution.
+VARIANTS: dict[str, AffinityConfig] = {
+    c.name: c for c in (
+        _variant("affinity-h8", (8, 16, 24), 2),
+        _variant("affinity-h16", (16, 24, 32), 2),
+        _variant("affinity-h24", (24, 32, 48), 2),
+        _variant("affinity-h32", (32, 48, 64), 2),
+        _variant("affinity-f16", (16, 24, 32), 1),
+        _variant("affinity-h16-single", (16, 24, 32), 2, temporal=False),
+    )
+}
+
+
+def is_affinity_config(config: dict) -> bool:
+    return config.get("family") == "affinity"
+
+
+def load_checkpoint(path: str) -> tuple[AffinityDenoiser, dict]:
+    """Rebuild a model from a training checkpoint: {"config", "model", "training", "metrics"}."""
+    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    model = AffinityDenoiser(AffinityConfig(**checkpoint["config"]))
+    model.load_state_dict(checkpoint["model"])
+    return model, checkpoint
