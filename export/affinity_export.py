@@ -9,7 +9,6 @@ runtime feeds it without knowing what it means.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from quietframe.export import onnx_export
-from quietframe.export.onnx_export import OPSET, OPTIONAL_BUFFERS, REQUIRED_BUFFERS
+from quietframe.export.onnx_export import OPSET
 from quietframe.model.affinity import KERNEL_SIZES, AffinityDenoiser
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.ops_library import OPS_DOMAIN
@@ -114,21 +113,8 @@ def export_affinity(
         )
     config = model.config
     proto = kernel_size_as_input(program.model_proto, config.kernel_size)
-    metadata = {
-        "quietframe.name": config.name,
-        "quietframe.version": version,
-        "quietframe.architecture": json.dumps(config.to_dict()),
-        "quietframe.buffers.required": json.dumps(list(REQUIRED_BUFFERS)),
-        "quietframe.buffers.optional": json.dumps(list(OPTIONAL_BUFFERS)),
-        "quietframe.state": json.dumps(model.state_specs()),
-        "quietframe.inputs": json.dumps(input_metadata(config.kernel_size)),
-        "quietframe.ops_domain": OPS_DOMAIN,
-        "quietframe.training": json.dumps(dict(training or {})),
-        "quietframe.metrics": json.dumps(dict(metrics or {})),
-    }
-    onnx.helper.set_model_props(proto, metadata)
-    onnx.checker.check_model(proto)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save_model(proto, str(path))
-    return path
+    metadata = onnx_export.model_metadata(
+        config, version, model.state_specs(), training, metrics,
+        inputs=input_metadata(config.kernel_size),
+    )
+    return onnx_export.save_described(proto, metadata, path)

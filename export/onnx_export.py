@@ -228,8 +228,19 @@ def export_nbg(
             output_names=["denoised", f"state_out.{STATE_NAME}"],
             verbose=False,
         )
-    proto = program.model_proto
     config = model.config
+    extra = {"prepass": config.prepass()} if hasattr(config, "prepass") else {}
+    state = [{"name": STATE_NAME, "channels": model.state_channels}]
+    metadata = model_metadata(config, version, state, training, metrics, **extra)
+    return save_described(program.model_proto, metadata, path)
+
+
+def model_metadata(
+    config, version: str, state: list[dict], training: Mapping | None, metrics: Mapping | None,
+    **extra: object,
+) -> dict[str, str]:
+    """The metadata_props that make an exported model self-describing for the runtime
+    (docs/model-interface.md); `extra` adds quietframe.<key> entries (prepass, inputs)."""
     required, optional = buffer_roles(training)
     metadata = {
         "quietframe.name": config.name,
@@ -237,14 +248,17 @@ def export_nbg(
         "quietframe.architecture": json.dumps(config.to_dict()),
         "quietframe.buffers.required": json.dumps(list(required)),
         "quietframe.buffers.optional": json.dumps(list(optional)),
-        "quietframe.state": json.dumps([{"name": STATE_NAME, "channels": model.state_channels}]),
+        "quietframe.state": json.dumps(state),
         "quietframe.ops_domain": OPS_DOMAIN,
         "quietframe.training": json.dumps(dict(training or {})),
         "quietframe.metrics": json.dumps(dict(metrics or {})),
     }
-    if hasattr(config, "prepass"):
-        metadata["quietframe.prepass"] = json.dumps(config.prepass())
-    onnx.helper.set_model_props(proto, metadata)
+    return metadata | {f"quietframe.{key}": json.dumps(value) for key, value in extra.items()}
+
+
+def save_described(proto: onnx.ModelProto, metadata: Mapping[str, str], path: Path) -> Path:
+    """Attach the metadata, check the graph and write it to `path`."""
+    onnx.helper.set_model_props(proto, dict(metadata))
     onnx.checker.check_model(proto)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

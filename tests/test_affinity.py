@@ -11,6 +11,7 @@ import json
 import numpy as np
 import pytest
 from dataset_support import write_sequence
+from sequence_support import moving_frame
 
 torch = pytest.importorskip("torch")
 
@@ -27,14 +28,7 @@ NAMES = ("color", "albedo", "normal", "depth", "motion")
 
 
 def frame_inputs(index: int) -> tuple:
-    """Scene content shifted one pixel per frame, with sub-pixel motion (nearest-warp ties are
-    avoided: -1.3 and 0.4 round away from .5)."""
-    color, albedo, normal, depth, motion, _, _ = example_inputs(HEIGHT, WIDTH, seed=7)
-    shift = lambda t: torch.roll(t, shifts=index, dims=3)  # noqa: E731
-    motion = torch.zeros_like(motion)
-    motion[:, 0] = -1.3 if index else 0.0
-    motion[:, 1] = 0.4 if index else 0.0
-    return shift(color), shift(albedo), shift(normal), shift(depth), motion
+    return moving_frame(index, HEIGHT, WIDTH)
 
 
 @pytest.fixture(scope="module", params=["affinity-h16", "affinity-f16", "affinity-h16-single"])

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sequence_support import moving_frame
 
 torch = pytest.importorskip("torch")
 
@@ -22,16 +23,8 @@ def planes(tensor) -> np.ndarray:
     return tensor[0].numpy()
 
 
-def frame_inputs(index: int):
-    """A small moving sequence: the same scene content shifted by one pixel per frame."""
-    color, albedo, normal, depth, motion, _, _ = example_inputs(HEIGHT, WIDTH, seed=7)
-    shift = lambda t: torch.roll(t, shifts=index, dims=3)  # noqa: E731
-    motion = torch.zeros_like(motion)
-    # pixel p came from about p - 1 in the previous frame; sub-pixel, so that a bilinear and a
-    # nearest reprojection give different histories and a stale export cannot pass
-    motion[:, 0] = -1.3 if index else 0.0
-    motion[:, 1] = 0.4 if index else 0.0
-    return shift(color), shift(albedo), shift(normal), shift(depth), motion
+def frame_inputs(index: int) -> tuple:
+    return moving_frame(index, HEIGHT, WIDTH)
 
 
 @pytest.fixture(scope="module", params=["nbg-2l-1g", "nbg-2l-3g", "nbg-7l-3g"])
