@@ -1,8 +1,9 @@
 """Errors a client can act on, and their one conversion to HTTP (`{"error", "detail"}`).
 
-Service code raises these exception types; `install_handlers` maps them (and the runtime's
-BufferError, request-validation errors and unexpected exceptions) to JSON responses at the
-boundary, and counts every error response by code.
+Service code raises these exception types; `install_handlers` maps them (and request-validation
+errors and unexpected exceptions) to JSON responses at the boundary, and counts every error
+response by code. A frame's buffers are checked once, from its header (frames.resolve ->
+missing_channels); a runtime BufferError after that would be a bug, so it is a 500.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 from starlette.responses import Response
 
-from quietframe.runtime import BufferError
 
 log = logging.getLogger("quietframe.service")
 
@@ -143,10 +143,6 @@ def install_handlers(app: FastAPI, count_error: Callable[[int, str], None]) -> N
     @app.exception_handler(ServiceError)
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
         return respond(exc.status, exc.code, exc.detail, exc.headers)
-
-    @app.exception_handler(BufferError)
-    async def buffer_error(_: Request, exc: BufferError) -> JSONResponse:
-        return respond(422, "invalid_buffers", str(exc))
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
