@@ -28,6 +28,30 @@ def temporal_loss(
     return smape_loss(torch.diff(preds, dim=dim), torch.diff(refs, dim=dim), eps)
 
 
+def relmse_unbiased_loss(
+    pred: torch.Tensor, ref: torch.Tensor, scale: torch.Tensor | None = None,
+    eps: float = EPS_RELATIVE,
+) -> torch.Tensor:
+    # Noise2Noise (Lehtinen et al. 2018, §3.3 "L_HDR"): (p - r)² / (sg(s) + ε)², s = p unless
+    # given. The weight does not depend on the target, and the loss is quadratic in it, so for a
+    # target r = r* + n with E[n] = 0 the expected gradient is the one against r*: a noisy
+    # Monte Carlo reference trains the same model as a clean one would, only with noisier steps.
+    # SMAPE and L1 have no such property (their minimiser is a median-like, biased statistic).
+    weight = (pred if scale is None else scale).detach().abs() + eps
+    return ((pred - ref) / weight).square().mean()
+
+
+def temporal_relmse_unbiased_loss(
+    preds: torch.Tensor, refs: torch.Tensor, dim: int = 1, eps: float = EPS_RELATIVE
+) -> torch.Tensor:
+    # Işık eq. 12's temporal term with the unbiased loss above: ∂t of output and reference,
+    # weighted by the later output frame (a difference's own magnitude can be ~0)
+    if preds.shape[dim] < 2:
+        raise ValueError(f"temporal_loss: need >= 2 frames along dim {dim}, got {preds.shape}")
+    later = preds.narrow(dim, 1, preds.shape[dim] - 1)
+    return relmse_unbiased_loss(torch.diff(preds, dim=dim), torch.diff(refs, dim=dim), later, eps)
+
+
 def ldr_gamma(x: torch.Tensor, gamma: float = NBG_GAMMA) -> torch.Tensor:
     """NBG's S (§4.4 eq. 14, §5): clamp to [0, 1], then gamma correction x^(1/γ)."""
     return x.clamp(_GAMMA_FLOOR, 1.0).pow(1.0 / gamma)

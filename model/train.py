@@ -27,7 +27,13 @@ import torch
 from torch import Tensor, nn
 
 from quietframe.model import affinity
-from quietframe.model.losses import l1_tonemapped_loss, smape_loss, temporal_loss
+from quietframe.model.losses import (
+    l1_tonemapped_loss,
+    relmse_unbiased_loss,
+    smape_loss,
+    temporal_loss,
+    temporal_relmse_unbiased_loss,
+)
 from quietframe.model.metrics import psnr
 from quietframe.model.nbg import VARIANTS, NBGConfig, NBGDenoiser
 from quietframe.model.oidn_temporal import VARIANTS as OIDN_VARIANTS
@@ -43,7 +49,9 @@ class TrainConfig:
     width: int = 0  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own (NBG: 20);
     # an affinity variant names its U-Net widths
     data: str = str(DATA_DIR)
-    loss: str = "smape+temporal"  # or "l1" (paper §4.4: L1 on the LDR-mapped output)
+    # or "l1" (paper §4.4: L1 on the LDR-mapped output), or "relmse+temporal" (unbiased under
+    # noisy targets, losses.relmse_unbiased_loss)
+    loss: str = "smape+temporal"
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
     bandwidth_weight: float = 1e-5  # Işık eq. 9: weight of eq. 13 (affinity models only)
     kernel_size: int = 0  # affinity: spatial kernel size trained with (0: the variant's, 13)
@@ -73,15 +81,23 @@ def learning_rate(cfg: TrainConfig, step: int) -> float:
 
 
 def sequence_loss(cfg: TrainConfig, outputs: list[Tensor], refs: list[Tensor]) -> Tensor:
-    """Mean per-frame loss plus, for `smape+temporal`, the temporal term on frame differences."""
-    if cfg.loss == "l1":
-        spatial = [l1_tonemapped_loss(o, r) for o, r in zip(outputs, refs, strict=True)]
-        return torch.stack(spatial).mean()
-    spatial = torch.stack([smape_loss(o, r) for o, r in zip(outputs, refs, strict=True)]).mean()
-    if len(outputs) < 2:
+    """Mean per-frame loss plus, for `*+temporal`, the temporal term on frame differences."""
+    if cfg.loss not in LOSSES:
+        raise ValueError(f"loss {cfg.loss!r}: one of {sorted(LOSSES)}")
+    spatial_loss, temporal_term = LOSSES[cfg.loss]
+    spatial = torch.stack([spatial_loss(o, r) for o, r in zip(outputs, refs, strict=True)]).mean()
+    if temporal_term is None or len(outputs) < 2:
         return spatial
-    temporal = temporal_loss(torch.stack(outputs, dim=1), torch.stack(refs, dim=1))
+    temporal = temporal_term(torch.stack(outputs, dim=1), torch.stack(refs, dim=1))
     return spatial + cfg.temporal_weight * temporal
+
+
+# name -> (per-frame loss, temporal loss over (N, T, ...) or None)
+LOSSES = {
+    "smape+temporal": (smape_loss, temporal_loss),
+    "l1": (l1_tonemapped_loss, None),
+    "relmse+temporal": (relmse_unbiased_loss, temporal_relmse_unbiased_loss),
+}
 
 
 def dropped_buffers(cfg: TrainConfig) -> tuple[str, ...]:

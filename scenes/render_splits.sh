@@ -1,17 +1,24 @@
 #!/usr/bin/env bash
-# Render the g2 splits one after the other: test, validation (12 sequences x 8 frames, 256x256,
-# 1,2,4,8 spp, 1024-spp references), then train (256-spp references). Every command resumes:
-# finished frames are skipped, so re-running this script continues where it stopped.
+# Render the g2 splits in stages, a usable minimum of every split first, so training can start
+# while the rest renders: test (12 sequences, 1024-spp references), a first validation slice
+# (VALIDATION_FIRST, default 2), a first train slice (TRAIN_FIRST, default 16, 256-spp
+# references), then the rest of validation (12) and of train (TRAIN_SEQUENCES, default 120).
+# All sequences: 8 frames, 256x256, inputs at 1,2,4,8 spp. Sequence seeds are fixed per split
+# and index, so a slice is the start of the full split. Every command resumes: finished frames
+# are skipped, so re-running this script continues where it stopped.
 #   nohup nice -n 10 scenes/render_splits.sh > ~/.cache/quietframe/logs/render_g2.log 2>&1 &
 # PYTHON / PYTHONPATH select the interpreter and the checkout (default: `python` and the
-# installed quietframe). TRAIN_SEQUENCES (default 120) sizes the train split.
+# installed quietframe).
 set -u
 PY=${PYTHON:-python}
 JOBS=${JOBS:-2}
 common=(--frames 8 --size 256x256 --spp 1,2,4,8 --jobs "$JOBS")
-for split in test validation; do
-    "$PY" -m quietframe.scenes.cli render --split "$split" --sequences 12 --reference-spp 1024 \
-        "${common[@]}" || echo "split $split: some sequences failed (re-run to retry)"
-done
-"$PY" -m quietframe.scenes.cli render --split train --sequences "${TRAIN_SEQUENCES:-120}" \
-    --reference-spp 256 "${common[@]}" || echo "split train: some sequences failed"
+render() {  # split sequences reference_spp
+    "$PY" -m quietframe.scenes.cli render --split "$1" --sequences "$2" --reference-spp "$3" \
+        "${common[@]}" || echo "split $1: some sequences failed (re-run to retry)"
+}
+render test 12 1024
+render validation "${VALIDATION_FIRST:-2}" 1024
+render train "${TRAIN_FIRST:-16}" 256
+render validation 12 1024
+render train "${TRAIN_SEQUENCES:-120}" 256

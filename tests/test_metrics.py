@@ -147,3 +147,48 @@ def test_losses_zero_for_identical_and_backprop():
         fn(a, torch.rand(1, 3, 6, 6)).backward()
         assert torch.isfinite(a.grad).all()
         a.grad = None
+
+
+def _fit_constant(loss, targets: torch.Tensor, steps: int = 1500) -> float:
+    """The constant prediction that minimises `loss` against a set of noisy targets (Adam)."""
+    p = torch.full((1,), float(targets.mean()), requires_grad=True)
+    with torch.no_grad():
+        p.mul_(2.0)  # start away from the answer
+    opt = torch.optim.Adam([p], lr=0.02)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss(p.expand_as(targets), targets).backward()
+        opt.step()
+    return p.item()
+
+
+def test_relmse_unbiased_loss_recovers_the_mean_of_noisy_targets():
+    # Monte Carlo radiance: skewed, heavy-tailed noise around a clean value of 1 (fireflies).
+    # Against such targets the unbiased loss converges to their mean (the clean value); SMAPE
+    # to a median-like value far below it: the bias the noise-robust loss removes.
+    gen = torch.Generator().manual_seed(3)
+    targets = -torch.log(torch.rand(20000, generator=gen))  # Exp(1): mean 1, median ln 2
+    mean = targets.mean().item()
+    assert _fit_constant(losses.relmse_unbiased_loss, targets) == pytest.approx(mean, rel=0.02)
+    assert _fit_constant(losses.smape_loss, targets) < 0.8 * mean
+
+
+def test_relmse_unbiased_loss_weight_is_the_prediction_without_gradient():
+    pred = torch.tensor([2.0, 0.0], requires_grad=True)
+    ref = torch.tensor([1.0, 0.5])
+    loss = losses.relmse_unbiased_loss(pred, ref)
+    eps = metrics.EPS_RELATIVE
+    want = ((1.0 / (2 + eps)) ** 2 + (0.5 / eps) ** 2) / 2
+    assert loss.item() == pytest.approx(want, rel=1e-6)
+    loss.backward()  # d/dp (p - r)² / w² with w fixed
+    assert pred.grad.tolist() == pytest.approx([2 * 1.0 / (2 + eps) ** 2 / 2,
+                                                 2 * -0.5 / eps**2 / 2], rel=1e-6)
+
+
+def test_temporal_relmse_weights_differences_by_the_later_output_frame():
+    preds = torch.tensor([1.0, 3.0]).reshape(1, 2, 1)
+    refs = torch.tensor([1.0, 2.0]).reshape(1, 2, 1)
+    got = losses.temporal_relmse_unbiased_loss(preds, refs).item()
+    assert got == pytest.approx((1.0 / (3 + metrics.EPS_RELATIVE)) ** 2, rel=1e-6)
+    with pytest.raises(ValueError):
+        losses.temporal_relmse_unbiased_loss(preds[:, :1], refs[:, :1])
