@@ -58,8 +58,10 @@ def prepass_lines(runtime: Denoiser, threads: int) -> list[str]:
 
     t = measure(runtime.info.path, threads, repeats=3)
     settings = runtime.prepass.settings
-    return [f"Runs Open Image Denoise first (quality {settings.quality}, prefiltered aux "
-            f"{settings.prefilter_aux}; needs pyoidn), then the graph on its output: OIDN "
+    source = (f"on the output of `{settings.color_from}` (run first, with its own state)"
+              if settings.color_from else "on the frame")
+    return [f"Runs Open Image Denoise first {source} (quality {settings.quality}, prefiltered "
+            f"aux {settings.prefilter_aux}; needs pyoidn), then the graph on its output: OIDN "
             f"{t['oidn'].median_ms:.0f} ms, temporal stage {t['stage'].median_ms:.0f} ms "
             f"({100 * t['stage'].median_ms / t['oidn'].median_ms:.0f}% of OIDN), median of 3 "
             "(bench/oidn_temporal.py).", ""]

@@ -118,12 +118,16 @@ def load_window(
     for b in out.keys() & BUFFERS.keys():  # what serving feeds: the one sanitising rule, per
         out[b] = np.stack([sanitize_buffer(b, frame)[0] for frame in out[b]])  # whole frame
     if oidn is not None:
-        from quietframe.model.oidn_cache import cached_oidn_output
+        from quietframe.model.oidn_cache import cached_oidn_output, cached_sequence_oidn_output
 
-        out["oidn"] = np.stack([
-            cached_oidn_output(seq.path, seq.files[i], spp, oidn, f[color_layer(spp)],
-                               f["albedo"], f["normal"])
-            for f, i in zip(frames, idx, strict=True)])
+        if oidn.color_from:  # frame t's OIDN input depends on frames 0..t
+            out["oidn"] = np.stack([cached_sequence_oidn_output(
+                seq.path, seq.files, seq.resets, i, spp, oidn) for i in idx])
+        else:
+            out["oidn"] = np.stack([
+                cached_oidn_output(seq.path, seq.files[i], spp, oidn, f[color_layer(spp)],
+                                   f["albedo"], f["normal"])
+                for f, i in zip(frames, idx, strict=True)])
     if with_passes:  # (T, S, H, W, 3)
         out["passes"] = np.stack(
             [np.stack([f[pass_layer(k)] for k in range(seq.passes)]) for f in frames]

@@ -4,10 +4,15 @@ The temporal stage trains on what the runtime will feed it: the same sanitising 
 same prepass code (runtime/oidn_prepass.py) on the full frame (crops come after, as OIDN is not
 crop-equivariant at the borders). One .npy per (sequence, frame, spp, OIDN settings):
 
-    ~/.cache/quietframe/oidn/<generator>/<split>/<seed>/<frame>.spp<N>.<quality>[-cleanaux].npy
+    ~/.cache/quietframe/oidn/<generator>/<split>/<seed>/<frame>.spp<N>.<quality>[-cleanaux]
+        [-<color_from stem>].npy
 
-(QUIETFRAME_OIDN_CACHE overrides the root). Files are written atomically, so concurrent loader
-processes and killed runs never leave a torn one.
+(QUIETFRAME_OIDN_CACHE overrides the root). With a prepass `color_from` model (e.g. the
+reprojected accumulation), OIDN's input for frame t depends on frames 0..t: the whole sequence
+goes through that model, from its first frame with resets at cuts exactly as the runtime runs
+it (the runtime's own Denoiser on the shipped .onnx), and every frame is cached at once.
+Files are written atomically, so concurrent loader processes and killed runs never leave a torn
+one.
 """
 
 from __future__ import annotations
@@ -33,7 +38,8 @@ def cache_root() -> Path:
 def cache_path(sequence_dir: Path, frame_file: str, spp: int, settings: OIDNSettings) -> Path:
     """Keyed by the sequence's last three path parts (generator/split/seed), frame, spp and
     the OIDN settings."""
-    suffix = f"{settings.quality}{'-cleanaux' if settings.prefilter_aux else ''}"
+    suffix = (f"{settings.quality}{'-cleanaux' if settings.prefilter_aux else ''}"
+              f"{'-' + Path(settings.color_from).stem if settings.color_from else ''}")
     stem = Path(frame_file).stem
     return cache_root().joinpath(*Path(sequence_dir).parts[-3:], f"{stem}.spp{spp}.{suffix}.npy")
 
@@ -66,9 +72,43 @@ def cached_oidn_output(sequence_dir: Path, frame_file: str, spp: int, settings: 
         if cached.shape == (*np.shape(color)[:2], 3):
             return cached
     result = oidn_output(color, albedo, normal, settings)
+    _save(path, result)
+    return result
+
+
+def _save(path: Path, result: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
     with tmp.open("wb") as f:
         np.save(f, result)
     tmp.replace(path)
-    return result
+
+
+def cached_sequence_oidn_output(sequence_dir: Path, files: list[str], resets: list[bool],
+                                index: int, spp: int, settings: OIDNSettings) -> np.ndarray:
+    """OIDN's output of frame `index` for a prepass with `color_from`: on a miss, the whole
+    sequence (`files` in order, `resets` per frame) runs through the color_from model and OIDN,
+    and every frame is cached."""
+    from quietframe.models import MODELS_DIR
+    from quietframe.runtime.buffers import planes_from_hwc
+    from quietframe.runtime.denoiser import Denoiser
+    from quietframe.scenes.exr_io import color_layer, load_frame
+
+    path = cache_path(sequence_dir, files[index], spp, settings)
+    if path.exists():
+        return np.load(path)
+    first = Denoiser(MODELS_DIR / settings.color_from, threads=1, tile_pixels=None)
+    aux = [b for b in (*first.info.required_buffers, *first.info.optional_buffers)
+           if b != "color"]
+    state, wanted = None, None
+    for i, name in enumerate(files):
+        layers = load_frame(Path(sequence_dir) / name, [color_layer(spp), *aux])
+        buffers = {"color": layers[color_layer(spp)], **{b: layers[b] for b in aux}}
+        result = first.denoise(planes_from_hwc(buffers), None if resets[i] else state)
+        state = result.state
+        color = result.color.transpose(1, 2, 0)
+        output = oidn_output(color, buffers["albedo"], buffers["normal"], settings)
+        _save(cache_path(sequence_dir, name, spp, settings), output)
+        if i == index:
+            wanted = output
+    return wanted

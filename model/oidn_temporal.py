@@ -16,6 +16,7 @@ reset = 1 on a first frame or a cut.
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass
 
 import torch
@@ -24,6 +25,7 @@ from torch import Tensor, nn
 
 from quietframe.model.affinity_kernels import temporal_affinity_filter
 from quietframe.model.temporal import backward_warp, history_valid
+from quietframe.runtime.oidn_prepass import PREPASS_KEY, OIDNSettings, read_prepass
 
 FEATURES = 8  # f ∈ R^8 (the paper's d)
 # State planes: previous output O (3), history L̄ (3), features f (8), depth (1), normal (3).
@@ -56,20 +58,31 @@ class OIDNTemporalConfig:
     layers: int = 3  # convolutions (>= 2): 3×3 ones, then a 1×1 output layer
     kernel_size: int = 3  # spatial affinity kernel (eq. 4), dilation 1
     temporal_kernel_size: int = 3  # temporal window over W O_{t-1} (eq. 7)
+    # "" : OIDN denoises each frame's colour. A model file (shipped in models/, e.g.
+    # "accumulation.onnx"): OIDN denoises that model's output, the reprojected accumulation of
+    # the noisy colour, so it sees several frames' samples (runtime/oidn_prepass.py color_from).
+    color_from: str = ""
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     def prepass(self) -> dict:
         """The model metadata's quietframe.prepass: what the runtime runs before the graph."""
-        return {"oidn": {"quality": self.quality, "prefilter_aux": self.prefilter_aux},
+        spec = {"oidn": {"quality": self.quality, "prefilter_aux": self.prefilter_aux},
                 "input": "oidn"}
+        return {**spec, "color_from": self.color_from} if self.color_from else spec
+
+    def prepass_settings(self) -> OIDNSettings:
+        """The prepass as the runtime reads it back from the metadata (training feeds the same)."""
+        return read_prepass({PREPASS_KEY: json.dumps(self.prepass())})
 
 
 VARIANTS: dict[str, OIDNTemporalConfig] = {
     "oidn-temporal-high": OIDNTemporalConfig(),
     "oidn-temporal-fast": OIDNTemporalConfig(name="oidn-temporal-fast", quality="fast",
                                              width=12, layers=2),
+    "oidn-temporal-acc": OIDNTemporalConfig(name="oidn-temporal-acc",
+                                            color_from="accumulation.onnx"),
 }
 
 

@@ -152,7 +152,7 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
 def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
     """The prepass whose output an oidn-temporal variant trains on (None for NBG)."""
     config = OIDN_VARIANTS.get(cfg.variant)
-    return OIDNSettings(config.quality, config.prefilter_aux) if config else None
+    return config.prepass_settings() if config else None
 
 
 def step_kernel_size(cfg: TrainConfig, step: int) -> dict[str, int]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +89,23 @@ class DenoiseResult:
     missing: tuple[str, ...]  # optional buffers that were absent and fed as zeros
 
 
+COLOR_STAGE_PREFIX = "color_from."  # state names of a prepass's color_from model
+
+
+def compose_info(info: ModelInfo, color_stage: ModelInfo) -> ModelInfo:
+    """A composition's interface: the buffers either part requires or reads, and both parts'
+    state (the color_from model's under COLOR_STAGE_PREFIX), so sessions persist and budget it
+    like any model's."""
+    required = tuple(dict.fromkeys((*info.required_buffers, *color_stage.required_buffers)))
+    optional = tuple(b for b in dict.fromkeys((*info.optional_buffers,
+                                               *color_stage.optional_buffers))
+                     if b not in required)
+    states = tuple(StateSpec(COLOR_STAGE_PREFIX + s.name, s.channels, s.scale)
+                   for s in color_stage.state_specs)
+    return replace(info, required_buffers=required, optional_buffers=optional,
+                   state_specs=(*info.state_specs, *states))
+
+
 def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
     def load(key: str, default: str):
         return json.loads(metadata.get(f"quietframe.{key}", default))
@@ -133,7 +150,8 @@ class Denoiser:
 
     A model whose metadata names a prepass (quietframe.prepass, runtime/oidn_prepass.py) is a
     composition: the runtime runs OIDN on the frame first and feeds its output to the graph.
-    Such a model raises PrepassUnavailable here when pyoidn is not installed.
+    Such a model raises PrepassUnavailable here when pyoidn is not installed. A prepass with
+    `color_from` runs that model (its own Denoiser and state) first and gives OIDN its output.
 
     `options`: values for the model's extra inputs (`info.inputs`), e.g. {"kernel_size": 7};
     the metadata default for the others."""
@@ -161,6 +179,16 @@ class Denoiser:
         except PrepassUnavailable as exc:
             exc.model = self.info.name  # for the service's log line and error
             raise
+        self._graph_states = self.info.state_specs
+        self.color_stage: Denoiser | None = None
+        if settings and settings.color_from:
+            first = path.parent / settings.color_from
+            if not first.is_file():
+                raise FileNotFoundError(f"model {self.info.name!r} denoises the output of "
+                                        f"{settings.color_from}, which is not installed next to "
+                                        f"it ({first})")
+            self.color_stage = Denoiser(first, threads, tile_pixels)
+            self.info = compose_info(self.info, self.color_stage.info)
         self._option_feeds = self._options({}, options or {})
 
     def _options(self, base: Mapping[str, np.ndarray],
@@ -218,15 +246,25 @@ class Denoiser:
         `options` overrides the Denoiser's options for this call."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
         feeds |= self._options(self._option_feeds, options) if options else self._option_feeds
+        fresh = state is None
+        color_state: dict[str, np.ndarray] = {}
         if self.prepass is not None:
             # The sanitised planes, so OIDN sees exactly what a plain graph would.
-            feeds[self.prepass.settings.input] = self.prepass(
-                {name: feeds[name][0] for name in PREPASS_BUFFERS})
+            oidn_planes = {name: feeds[name][0] for name in PREPASS_BUFFERS}
+            if self.color_stage is not None:
+                first = self.color_stage.denoise(
+                    {k: v[0] for k, v in feeds.items() if k in BUFFER_CHANNELS},
+                    None if fresh else {s.name: state[COLOR_STAGE_PREFIX + s.name]
+                                        for s in self.color_stage.info.state_specs})
+                oidn_planes["color"] = first.color
+                color_state = {COLOR_STAGE_PREFIX + k: v for k, v in first.state.items()}
+                if "denoised" in first.sanitized:
+                    sanitized["color_from"] = first.sanitized["denoised"]
+            feeds[self.prepass.settings.input] = self.prepass(oidn_planes)
         feeds = {k: v for k, v in feeds.items() if k in self.input_names}
-        fresh = state is None
         if state is None:
             state = self.initial_state(height, width)
-        for spec in self.info.state_specs:
+        for spec in self._graph_states:
             tensor = state[spec.name]
             if tensor.shape != spec.shape(height, width):
                 raise BufferError(
@@ -240,7 +278,8 @@ class Denoiser:
             sanitized["denoised"] = bad
         return DenoiseResult(
             color=color,
-            state={s.name: outputs[f"state_out.{s.name}"] for s in self.info.state_specs},
+            state={**{s.name: outputs[f"state_out.{s.name}"] for s in self._graph_states},
+                   **color_state},
             sanitized=sanitized,
             missing=missing,
         )

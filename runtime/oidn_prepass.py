@@ -2,10 +2,14 @@
 
 A model asks for it in its metadata (docs/model-interface.md):
 
-    quietframe.prepass = {"oidn": {"quality": "high", "prefilter_aux": false}, "input": "oidn"}
+    quietframe.prepass = {"oidn": {"quality": "high", "prefilter_aux": false}, "input": "oidn",
+                          "color_from": "accumulation.onnx"}
 
 and the runtime (`Denoiser`) runs OIDN's RT filter on the frame's sanitised color, albedo and
-normal and feeds the result to the graph input named by "input". pyoidn is optional: without it
+normal and feeds the result to the graph input named by "input". With "color_from" (optional),
+OIDN denoises the output of that model (a file in the composed model's folder, run with its own
+state, e.g. the reprojected accumulation of the noisy colour) instead of the frame's colour: it
+then sees several frames' samples instead of one. pyoidn is optional: without it
 `OIDNPrepass` raises `PrepassUnavailable`, and the service leaves such models out.
 
 Resources: one OIDN device per worker thread (OIDN devices are not meant to be shared between
@@ -22,6 +26,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -44,8 +49,13 @@ class OIDNSettings:
     prefilter_aux: bool = False
     input: str = "oidn"  # the graph input that receives OIDN's output
     aux: tuple[str, ...] = ("albedo", "normal")  # what OIDN is given besides the colour
+    color_from: str = ""  # a model file (same folder) whose output OIDN denoises; "": the frame
 
     def __post_init__(self) -> None:
+        if self.color_from and (Path(self.color_from).name != self.color_from
+                                or not self.color_from.endswith(".onnx")):
+            raise ValueError(f"prepass: color_from must name an .onnx file in the model's own "
+                             f"folder, got {self.color_from!r}")
         if self.quality not in QUALITIES:
             raise ValueError(f"prepass: OIDN quality must be one of {list(QUALITIES)}, "
                              f"got {self.quality!r}")
@@ -61,12 +71,12 @@ def read_prepass(metadata: Mapping[str, str]) -> OIDNSettings | None:
     if not text:
         return None
     spec = json.loads(text)
-    if set(spec) - {"oidn", "input"} or "oidn" not in spec:
+    if set(spec) - {"oidn", "input", "color_from"} or "oidn" not in spec:
         raise ValueError(f"{PREPASS_KEY}: only an 'oidn' prepass is known, got {sorted(spec)}")
     oidn = spec["oidn"]
     return OIDNSettings(quality=oidn.get("quality", "high"),
                         prefilter_aux=bool(oidn.get("prefilter_aux", False)),
-                        input=spec.get("input", "oidn"))
+                        input=spec.get("input", "oidn"), color_from=spec.get("color_from", ""))
 
 
 def import_pyoidn():

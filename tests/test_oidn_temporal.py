@@ -332,3 +332,108 @@ def test_prepass_metadata_is_checked():
         read_prepass({"quietframe.prepass": '{"optix": {}}'})
     with pytest.raises(ValueError, match="quality"):
         read_prepass({"quietframe.prepass": '{"oidn": {"quality": "ultra"}}'})
+
+
+def test_prepass_color_from_is_read_and_checked():
+    spec = '{"oidn": {"quality": "high"}, "input": "oidn", "color_from": "accumulation.onnx"}'
+    assert read_prepass({"quietframe.prepass": spec}).color_from == "accumulation.onnx"
+    assert ot.VARIANTS["oidn-temporal-acc"].prepass_settings() == OIDNSettings(
+        "high", False, "oidn", color_from="accumulation.onnx")
+    for bad in ("../accumulation.onnx", "/models/accumulation.onnx", "accumulation"):
+        with pytest.raises(ValueError, match="color_from"):
+            OIDNSettings(color_from=bad)
+
+
+@pytest.fixture(scope="module")
+def accumulated_tier(tmp_path_factory) -> Path:
+    """oidn-temporal-acc exported next to the accumulation model it names."""
+    from quietframe.model.nbg import AccumulationDenoiser
+
+    folder = tmp_path_factory.mktemp("acc")
+    export_nbg(AccumulationDenoiser(), folder / "accumulation.onnx")
+    torch.manual_seed(0)
+    model = ot.OIDNTemporal(ot.VARIANTS["oidn-temporal-acc"]).eval()
+    with torch.no_grad():
+        model.net.last.bias.normal_(0, 0.5)
+    return export_nbg(model, folder / "oidn-temporal-acc.onnx", version="t")
+
+
+@needs_pyoidn
+def test_color_from_runs_that_model_first_and_carries_its_state(accumulated_tier):
+    """OIDN gets the accumulation model's output (run with its own state, fresh on a reset),
+    not the frame's colour; both parts' state travel in the one state dict."""
+    runtime = Denoiser(accumulated_tier, threads=1)
+    alone = Denoiser(accumulated_tier.parent / "accumulation.onnx", threads=1)
+    assert [s.name for s in runtime.info.state_specs] == ["accumulation",
+                                                          "color_from.accumulation"]
+    assert runtime.info.state_nbytes(8, 8) == (runtime.color_stage.info.state_nbytes(8, 8)
+                                               + ot.STATE_CHANNELS * 4 * 64)
+    seen = []
+    original = runtime.prepass.__call__
+
+    class Spy:
+        settings = runtime.prepass.settings
+
+        def __call__(self, planes):
+            seen.append(planes["color"].copy())
+            return original(planes)
+
+    runtime.prepass = Spy()
+    state, alone_state, first = None, None, None
+    for index in range(FRAMES):
+        frame = moving_frames(index)
+        result = runtime.denoise(frame, state)
+        expected = alone.denoise(frame, alone_state)
+        state, alone_state = result.state, expected.state
+        first = result.color if first is None else first
+        np.testing.assert_allclose(seen[-1], expected.color, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(state["color_from.accumulation"],
+                                   expected.state["accumulation"], rtol=1e-6, atol=1e-6)
+        assert np.isfinite(result.color).all()
+    assert not np.allclose(seen[-1], moving_frames(FRAMES - 1)["color"], atol=1e-3)
+    again = runtime.denoise(moving_frames(0), None)  # a reset restarts both parts
+    np.testing.assert_allclose(again.color, first, rtol=1e-6, atol=1e-6)
+
+
+def test_color_from_model_missing_is_a_clear_error(accumulated_tier, tmp_path):
+    if not _has_pyoidn():
+        pytest.skip("pyoidn not installed")
+    lonely = tmp_path / accumulated_tier.name
+    lonely.write_bytes(accumulated_tier.read_bytes())
+    with pytest.raises(FileNotFoundError, match="accumulation.onnx, which is not installed"):
+        Denoiser(lonely, threads=1)
+
+
+@needs_pyoidn
+def test_training_cache_of_color_from_matches_the_runtime(tmp_path, monkeypatch):
+    """The cached OIDN input of frame t is what the runtime's prepass sees at frame t when the
+    sequence is served from its first frame (accumulation run from frame 0, reset at cuts)."""
+    from dataset_support import write_sequence
+
+    from quietframe.model.data import list_sequences, load_window
+    from quietframe.models import MODELS_DIR
+    from quietframe.runtime.buffers import planes_from_hwc
+    from quietframe.runtime.oidn_prepass import OIDNPrepass
+    from quietframe.scenes.exr_io import color_layer, load_frame
+
+    monkeypatch.setenv("QUIETFRAME_OIDN_CACHE", str(tmp_path / "cache"))
+    write_sequence(tmp_path / "split", 31, frames=3)
+    seq = list_sequences(tmp_path / "split")[0]
+    settings = ot.VARIANTS["oidn-temporal-acc"].prepass_settings()
+    window = load_window(seq, 2, 1, 2, oidn=settings)  # frames 1 and 2 at 2 spp
+    accumulation = Denoiser(MODELS_DIR / "accumulation.onnx", threads=1, tile_pixels=None)
+    prepass = OIDNPrepass(settings, num_threads=1)
+    state, fed = None, []
+    for i, name in enumerate(seq.files):
+        layers = load_frame(seq.path / name, [color_layer(2), "albedo", "normal", "depth",
+                                              "motion"])
+        planes = planes_from_hwc({"color": layers[color_layer(2)],
+                                  **{b: layers[b] for b in ("albedo", "normal", "depth",
+                                                            "motion")}})
+        result = accumulation.denoise(planes, None if seq.resets[i] else state)
+        state = result.state
+        fed.append(prepass({"color": result.color, "albedo": planes["albedo"],
+                            "normal": planes["normal"]})[0].transpose(1, 2, 0))
+    np.testing.assert_allclose(window["oidn"], np.stack(fed[1:]), rtol=1e-5, atol=1e-5)
+    assert not np.allclose(fed[2], prepass({b: planes[b] for b in PREPASS_BUFFERS})[0]
+                           .transpose(1, 2, 0), atol=1e-4)  # not OIDN of the frame alone
