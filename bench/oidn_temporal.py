@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -29,6 +30,7 @@ import numpy as np
 
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import Timing, time_ms
+from quietframe.models import MODELS_DIR
 from quietframe.runtime import Denoiser
 from quietframe.runtime.denoiser import COLOR_STAGE_PREFIX
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS
@@ -51,6 +53,8 @@ def export_cases(variants: list[str], kernels: list[tuple[int, int]], widths: li
                 torch.manual_seed(0)
                 name = f"{variant}-k{k}-t{kt}-w{width}"
                 paths.append(export_nbg(OIDNTemporal(config), folder / f"{name}.onnx"))
+                if config.color_from:  # the model it composes, installed next to it
+                    shutil.copy(MODELS_DIR / config.color_from, folder / config.color_from)
     return paths
 
 
