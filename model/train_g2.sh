@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# The g2 training runs, two queues side by side (one thread each, one per core), each run
+# resumable from its run directory (re-running this script continues where it stopped):
+#   queue 1: nbg-2l-3g (SMAPE + temporal), then the same with the noise-unbiased loss
+#            (relmse+temporal: the ablation of docs/training.md)
+#   queue 2: oidn-temporal-acc, oidn-temporal-high, nbg-2l-1g
+# NBG runs train with buffer dropout 0.3 (issue 14: missing buffers, the colour-only path).
+#   nohup nice -n 10 model/train_g2.sh > ~/.cache/quietframe/logs/train_g2.log 2>&1 &
+# PYTHON selects the interpreter (default: python); STEPS (default 1000) the schedule length.
+set -u
+PY=${PYTHON:-python}
+R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
+S=${STEPS:-1000}
+mkdir -p "$R"
+run() {  # name, then quietframe-train flags
+    local name=$1
+    shift
+    "$PY" -m quietframe.model.train --run "$R/$name" --steps "$S" --eval-every 250 \
+        --threads 1 "$@" > "$R/$name.out" 2>&1 || echo "run $name failed (see $R/$name.out)"
+    echo "run $name: $(tail -c 300 "$R/$name/log.txt" 2>/dev/null | tail -1)"
+}
+nbg=(--dropout 0.3)
+(
+    run nbg-2l-3g --variant nbg-2l-3g --width 16 "${nbg[@]}"
+    run nbg-2l-3g-relmse --variant nbg-2l-3g --width 16 --loss relmse+temporal "${nbg[@]}"
+) &
+(
+    run oidn-temporal-acc --variant oidn-temporal-acc
+    run oidn-temporal-high --variant oidn-temporal-high
+    run nbg-2l-1g --variant nbg-2l-1g "${nbg[@]}"
+) &
+wait
