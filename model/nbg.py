@@ -37,6 +37,11 @@ class NBGConfig:
     sigma_s: int = 4  # finest grid; grid s uses sigma * 2**s (paper §4.5)
     sigma_r: float = 4.0
     temporal: bool = True
+    # Firefly clamp before accumulation (k of suppress_outliers); 0 = off. On sparse low-spp
+    # frames (a sunlit room at 1 spp: ~90% of pixels black) every lit pixel is an "outlier" of
+    # its black neighbours, and the clamp removed about half of the frame's energy (validation
+    # split, docs/training.md); the g1 models were trained with 3.
+    outlier_sigmas: float = OUTLIER_SIGMAS
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -53,7 +58,7 @@ def luminance(rgb: Tensor) -> Tensor:
     return 0.2126 * r + 0.7152 * g + 0.0722 * b
 
 
-def suppress_outliers(radiance: Tensor, kernel: int = 5) -> Tensor:
+def suppress_outliers(radiance: Tensor, kernel: int = 5, sigmas: float = OUTLIER_SIGMAS) -> Tensor:
     """Clamp firefly pixels to mean + k·std of their neighbours' luminance (KBS15-style).
 
     The pixel itself is left out of its neighbourhood statistics: a single 1e6 sample would
@@ -68,7 +73,7 @@ def suppress_outliers(radiance: Tensor, kernel: int = 5) -> Tensor:
     others = (count - 1).clamp_min(1)
     mean = (sum1 - lum) / others
     var = ((sum2 - lum * lum) / others - mean * mean).clamp_min(0)
-    bound = mean + OUTLIER_SIGMAS * var.sqrt()
+    bound = mean + sigmas * var.sqrt()
     scale = torch.where(lum > bound, bound / lum.clamp_min(1e-12), torch.ones_like(lum))
     return radiance * scale
 
@@ -89,10 +94,14 @@ def prestage(
     reset: Tensor,
     state: Tensor,
     temporal: bool = True,
+    outlier_sigmas: float = OUTLIER_SIGMAS,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Demodulate, suppress outliers, accumulate over time -> (irradiance, safe albedo, state)."""
+    """Demodulate, suppress outliers (unless outlier_sigmas is 0), accumulate over time ->
+    (irradiance, safe albedo, state)."""
     safe_albedo = demodulation_divisor(albedo)
-    irradiance = suppress_outliers(color / safe_albedo)
+    irradiance = color / safe_albedo
+    if outlier_sigmas > 0:
+        irradiance = suppress_outliers(irradiance, sigmas=outlier_sigmas)
     if not temporal:
         return irradiance, safe_albedo, state
     irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state)
@@ -181,7 +190,8 @@ class NBGDenoiser(nn.Module):
         state: Tensor,
     ) -> tuple[Tensor, Tensor]:
         irradiance, safe_albedo, new_state = prestage(
-            color, albedo, normal, depth, motion, reset, state, self.config.temporal
+            color, albedo, normal, depth, motion, reset, state, self.config.temporal,
+            self.config.outlier_sigmas,
         )
         guides, weights = self.guide_net(
             guide_features(irradiance * safe_albedo, albedo, normal, depth)
@@ -199,19 +209,23 @@ class NBGDenoiser(nn.Module):
 
 
 class AccumulationDenoiser(nn.Module):
-    """The NBG pre-stage alone (reprojection + accumulation, no network): a baseline, and a
-    cheap preview model. Same call signature and state as NBGDenoiser."""
+    """The NBG pre-stage alone (reprojection + accumulation, no network): a baseline, a cheap
+    preview model, and the input of oidn-temporal-acc's OIDN pass. Same call signature and state
+    as NBGDenoiser. No firefly clamp by default: alone, nothing after it can give back the
+    energy the clamp takes from a sparse low-spp frame (NBGConfig.outlier_sigmas)."""
 
     state_channels = STATE_CHANNELS
 
-    def __init__(self) -> None:
+    def __init__(self, outlier_sigmas: float = 0.0) -> None:
         super().__init__()
-        self.config = NBGConfig(name="accumulation", layers=0, width=0, grids=0)
+        self.config = NBGConfig(name="accumulation", layers=0, width=0, grids=0,
+                                outlier_sigmas=outlier_sigmas)
 
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
                 motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         irradiance, safe_albedo, new_state = prestage(
-            color, albedo, normal, depth, motion, reset, state
+            color, albedo, normal, depth, motion, reset, state,
+            outlier_sigmas=self.config.outlier_sigmas,
         )
         return irradiance * safe_albedo, new_state
 

@@ -73,6 +73,8 @@ class TrainConfig:
     # The exporter then lists these buffers as optional (a colour-only path when all four are).
     dropout: float = 0.0
     dropout_buffers: str = "albedo,normal,depth,motion"
+    # NBG: firefly clamp of the pre-stage (NBGConfig.outlier_sigmas; 0 = off, -1 = the variant's)
+    outlier_sigmas: float = -1.0
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
@@ -146,7 +148,9 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
         base = OIDN_VARIANTS[cfg.variant]
         return OIDNTemporal(dataclasses.replace(base, width=cfg.width or base.width))
     base = VARIANTS[cfg.variant]
-    return NBGDenoiser(dataclasses.replace(base, width=cfg.width or base.width))
+    sigmas = base.outlier_sigmas if cfg.outlier_sigmas < 0 else cfg.outlier_sigmas
+    return NBGDenoiser(dataclasses.replace(base, width=cfg.width or base.width,
+                                           outlier_sigmas=sigmas))
 
 
 def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
@@ -318,7 +322,8 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     return run / "best.pt"
 
 
-ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes")  # fixed per run
+ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fixed per run
+                       "outlier_sigmas")
 
 
 def resume_config(run: Path, flags: dict) -> TrainConfig:

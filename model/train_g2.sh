@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # The g2 training runs, two queues side by side (one thread each, one per core), each run
 # resumable from its run directory (re-running this script continues where it stopped):
-#   queue 1: nbg-2l-3g (SMAPE + temporal), then the same with the noise-unbiased loss
-#            (relmse+temporal: the ablation of docs/training.md)
-#   queue 2: oidn-temporal-acc, oidn-temporal-high, nbg-2l-1g
+#   queue 1: nbg-2l-3g (SMAPE + temporal), the same with the noise-unbiased loss
+#            (relmse+temporal), nbg-2l-1g
+#   queue 2: oidn-temporal-acc, nbg-2l-3g without the pre-stage's firefly clamp
+#            (--outlier-sigmas 0), oidn-temporal-high
+# (the two nbg-2l-3g ablations of docs/training.md: loss, clamp)
 # NBG runs train with buffer dropout 0.3 (issue 14: missing buffers, the colour-only path).
 #   nohup nice -n 10 model/train_g2.sh > ~/.cache/quietframe/logs/train_g2.log 2>&1 &
 # PYTHON selects the interpreter (default: python); STEPS (default 1000) the schedule length.
@@ -23,10 +25,11 @@ nbg=(--dropout 0.3)
 (
     run nbg-2l-3g --variant nbg-2l-3g --width 16 "${nbg[@]}"
     run nbg-2l-3g-relmse --variant nbg-2l-3g --width 16 --loss relmse+temporal "${nbg[@]}"
+    run nbg-2l-1g --variant nbg-2l-1g "${nbg[@]}"
 ) &
 (
     run oidn-temporal-acc --variant oidn-temporal-acc
+    run nbg-2l-3g-noclamp --variant nbg-2l-3g --width 16 --outlier-sigmas 0 "${nbg[@]}"
     run oidn-temporal-high --variant oidn-temporal-high
-    run nbg-2l-1g --variant nbg-2l-1g "${nbg[@]}"
 ) &
 wait

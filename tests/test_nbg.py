@@ -1,4 +1,4 @@
-"""NBG pre-stage: albedo demodulation rule (model/nbg.py)."""
+"""NBG pre-stage: albedo demodulation rule and the firefly clamp (model/nbg.py)."""
 
 import pytest
 
@@ -40,3 +40,40 @@ def test_prestage_keeps_a_bright_sky_at_its_own_scale():
                                           torch.ones(1), torch.zeros(1, 8, 4, 4), temporal=False)
     assert irradiance[..., :2].max() <= 3.0 + 1e-6
     torch.testing.assert_close(irradiance * divisor, color)  # remodulation inverts it
+
+
+def _sparse_frame(seed: int = 0) -> torch.Tensor:
+    """A 1-spp frame of a sunlit room: ~90% of pixels black, the rest carry all the energy."""
+    gen = torch.Generator().manual_seed(seed)
+    lit = torch.rand(1, 1, 32, 32, generator=gen) < 0.1
+    energy = -torch.log(torch.rand(1, 1, 32, 32, generator=gen)) * 5  # heavy-tailed samples
+    return lit * energy * torch.tensor([1.0, 0.9, 0.7]).view(1, 3, 1, 1)
+
+
+def _prestage_output(color: torch.Tensor, sigmas: float) -> torch.Tensor:
+    n, _, h, w = color.shape
+    albedo = torch.full_like(color, 0.5)
+    irradiance, divisor, _ = nbg.prestage(
+        color, albedo, torch.zeros_like(color), torch.ones(n, 1, h, w), torch.zeros(n, 2, h, w),
+        torch.ones(n), torch.zeros(n, 8, h, w), temporal=False, outlier_sigmas=sigmas)
+    return irradiance * divisor
+
+
+def test_firefly_clamp_takes_the_energy_of_a_sparse_frame_and_off_keeps_it():
+    color = _sparse_frame()
+    clamped = _prestage_output(color, 3.0)
+    assert clamped.mean() < 0.75 * color.mean()  # why the accumulation ships without it
+    torch.testing.assert_close(_prestage_output(color, 0.0), color)
+
+
+def test_accumulation_model_has_no_clamp_and_nbg_variants_keep_theirs():
+    assert nbg.AccumulationDenoiser().config.outlier_sigmas == 0
+    assert nbg.VARIANTS["nbg-2l-3g"].outlier_sigmas == nbg.OUTLIER_SIGMAS
+    off = nbg.NBGDenoiser(nbg.NBGConfig(outlier_sigmas=0))
+    on = nbg.NBGDenoiser(nbg.NBGConfig(outlier_sigmas=3))
+    on.load_state_dict(off.state_dict())
+    color = _sparse_frame(1)
+    args = (torch.full_like(color, 0.5), torch.zeros_like(color), torch.ones(1, 1, 32, 32),
+            torch.zeros(1, 2, 32, 32), torch.ones(1), torch.zeros(1, 8, 32, 32))
+    with torch.no_grad():
+        assert off(color, *args)[0].mean() > on(color, *args)[0].mean() * 1.3

@@ -141,3 +141,12 @@ def test_resumed_run_is_rebuilt_from_its_checkpoint_not_the_flags(data, tmp_path
     assert qt.resume_config(tmp_path / "new", {"width": 8}).width == 8
     with pytest.raises(SystemExit):  # the CLI says so instead of training a different model
         qt.main(["--run", str(run), "--variant", "nbg-7l-3g"])
+
+
+def test_outlier_sigmas_reaches_the_nbg_model_and_is_fixed_per_run(data, tmp_path):
+    cfg = config(data, outlier_sigmas=0.0, steps=2, eval_every=2)
+    assert qt.build_model(cfg).config.outlier_sigmas == 0.0
+    assert qt.build_model(config(data)).config.outlier_sigmas == 3.0  # the variant's own
+    qt.train(cfg, tmp_path / "run")
+    with pytest.raises(ValueError, match="outlier_sigmas"):
+        qt.resume_config(tmp_path / "run", {"outlier_sigmas": 3.0})
