@@ -1,0 +1,76 @@
+"""OIDN on the frame vs OIDN on the reprojected accumulation of the noisy colour (the input
+oidn-temporal-acc's prepass gets), per spp: PSNR / TRMAE against the references.
+
+    python -m quietframe.bench.oidn_accumulated [--split validation] [--spp 1,2,4,8]
+        [--accumulation models/accumulation.onnx] [--quality high] [--threads 2]
+
+Both through the shipped code: the accumulation model through the runtime (`Denoiser`, state
+carried, reset at cuts), OIDN through the runtime's prepass (`bench.baselines.OIDNDenoiser`).
+`--accumulation` takes another export (e.g. `git show a52faac:models/accumulation.onnx`, the
+version with the firefly clamp) to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.bench.baselines import OIDNDenoiser
+from quietframe.bench.evaluate import RuntimeMethod, load_sequence, sequence_dirs
+from quietframe.model import metrics
+from quietframe.models import MODELS_DIR
+from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
+
+
+def compare(folders: list[Path], spp: int, accumulation: Path, oidn: OIDNDenoiser,
+            threads: int) -> dict[str, tuple[float, float]]:
+    """Method -> (mean PSNR over frames, mean TRMAE over sequences)."""
+    psnr: dict[str, list[float]] = {"oidn": [], "accumulation": [], "oidn(accumulation)": []}
+    trmae: dict[str, list[float]] = {k: [] for k in psnr}
+    for folder in folders:
+        acc = RuntimeMethod(accumulation, threads)
+        outputs: dict[str, list[np.ndarray]] = {k: [] for k in psnr}
+        refs = []
+        for buffers, reference, reset in load_sequence(folder, spp):
+            if reset:
+                acc.reset()
+            accumulated = acc(buffers)
+            outputs["oidn"].append(oidn(buffers))
+            outputs["accumulation"].append(accumulated)
+            outputs["oidn(accumulation)"].append(oidn({**buffers, "color": accumulated}))
+            refs.append(reference)
+        for name, frames in outputs.items():
+            psnr[name] += [metrics.psnr(p, r) for p, r in zip(frames, refs, strict=True)]
+            trmae[name].append(metrics.trmae(np.stack(frames), np.stack(refs)))
+    return {k: (float(np.mean(psnr[k])), float(np.mean(trmae[k]))) for k in psnr}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=DATA_DIR)
+    parser.add_argument("--split", default="validation")
+    parser.add_argument("--spp", default="1,2,4,8")
+    parser.add_argument("--accumulation", type=Path, default=MODELS_DIR / "accumulation.onnx")
+    parser.add_argument("--quality", default="high")
+    parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    args = parser.parse_args(argv)
+    folders = sequence_dirs(args.data.expanduser(), args.split)
+    if not folders:
+        raise SystemExit(f"no {args.split} sequences under {args.data}")
+    oidn = OIDNDenoiser(args.quality, num_threads=args.threads)
+    print(f"{len(folders)} {args.split} sequences; accumulation: {args.accumulation}; "
+          f"OIDN {args.quality}; PSNR / TRMAE\n")
+    print("| spp | OIDN on the frame | accumulation alone | OIDN on the accumulation |")
+    print("|---|---|---|---|")
+    for spp in (int(s) for s in args.spp.split(",")):
+        r = compare(folders, spp, args.accumulation, oidn, args.threads)
+        cells = [f"{r[k][0]:.2f} / {r[k][1]:.3f}"
+                 for k in ("oidn", "accumulation", "oidn(accumulation)")]
+        print(f"| {spp} | " + " | ".join(cells) + " |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
