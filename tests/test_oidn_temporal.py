@@ -442,3 +442,37 @@ def test_training_cache_of_color_from_matches_the_runtime(tmp_path, monkeypatch)
     np.testing.assert_allclose(window["oidn"], np.stack(fed[1:]), rtol=1e-5, atol=1e-5)
     assert not np.allclose(fed[2], prepass({b: planes[b] for b in PREPASS_BUFFERS})[0]
                            .transpose(1, 2, 0), atol=1e-4)  # not OIDN of the frame alone
+
+
+@needs_pyoidn
+def test_service_serves_the_accumulated_tier_and_restores_its_state(accumulated_tier, tmp_path):
+    """Both parts' state go through the durable session store: a server restarted on the same
+    state folder continues the sequence (no state-lost reset)."""
+    from conftest import LAYOUTS, make_buffers, write_exr
+    from fastapi.testclient import TestClient
+
+    from quietframe.client.protocol import Header, Reset
+    from quietframe.service.main import create_app
+    from quietframe.service.settings import Settings
+
+    folder = tmp_path / "models"
+    folder.mkdir()
+    for path in accumulated_tier.parent.glob("*.onnx"):
+        (folder / path.name).write_bytes(path.read_bytes())
+    settings = Settings(models_dir=folder, threads=1, workers=2, log_json=False,
+                        default_model="accumulation", state_dir=tmp_path / "state")
+    frames = [write_exr(LAYOUTS["plain-normal"](make_buffers(noise=200 + i))) for i in range(3)]
+    with TestClient(create_app(settings)) as client:
+        r = client.post("/v1/sessions", json={"width": 64, "height": 48,
+                                              "model": "oidn-temporal-acc"})
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        for index in range(2):
+            reply = client.post(f"/v1/sessions/{sid}/frames/{index}", content=frames[index],
+                                headers={"content-type": "image/x-exr"})
+            assert reply.status_code == 200, reply.text
+    with TestClient(create_app(settings)) as client:
+        reply = client.post(f"/v1/sessions/{sid}/frames/2", content=frames[2],
+                            headers={"content-type": "image/x-exr"})
+        assert reply.status_code == 200, reply.text
+        assert reply.headers[Header.RESET] == Reset.NONE.value
