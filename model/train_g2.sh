@@ -2,17 +2,17 @@
 # The g2 training runs, two queues side by side (one thread each, one per core), each run
 # resumable from its run directory (re-running this script continues where it stopped):
 #   queue 1: nbg-2l-3g (SMAPE + temporal), the same with the noise-unbiased loss
-#            (relmse+temporal), nbg-2l-1g
+#            (relmse+temporal), nbg-2l-1g without the clamp (not run yet)
 #   queue 2: oidn-temporal-acc, nbg-2l-3g without the pre-stage's firefly clamp
-#            (--outlier-sigmas 0), oidn-temporal-high
+#            (--outlier-sigmas 0: shipped as nbg-2l-3g v3), oidn-temporal-high (not run yet)
 # (the two nbg-2l-3g ablations of docs/training.md: loss, clamp)
 # NBG runs train with buffer dropout 0.3 (issue 14: missing buffers, the colour-only path).
 #   nohup nice -n 10 model/train_g2.sh > ~/.cache/quietframe/logs/train_g2.log 2>&1 &
-# PYTHON selects the interpreter (default: python); STEPS (default 1000) the schedule length.
+# PYTHON selects the interpreter (default: python); STEPS (default 800) the schedule length.
 set -u
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
-S=${STEPS:-1000}
+S=${STEPS:-800}
 mkdir -p "$R"
 run() {  # name, then quietframe-train flags
     local name=$1
@@ -25,7 +25,7 @@ nbg=(--dropout 0.3)
 (
     run nbg-2l-3g --variant nbg-2l-3g --width 16 "${nbg[@]}"
     run nbg-2l-3g-relmse --variant nbg-2l-3g --width 16 --loss relmse+temporal "${nbg[@]}"
-    run nbg-2l-1g --variant nbg-2l-1g "${nbg[@]}"
+    run nbg-2l-1g --variant nbg-2l-1g --outlier-sigmas 0 "${nbg[@]}"
 ) &
 (
     run oidn-temporal-acc --variant oidn-temporal-acc
