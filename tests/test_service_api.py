@@ -266,7 +266,7 @@ def test_bad_bodies(client):
 
 
 def test_missing_channels_name_found_and_expected(client):
-    sid = new_session(client)
+    sid = new_session(client, model="accumulation")  # needs normal (nbg-2l-3g v3 does not)
     channels = LAYOUTS["arnold"](make_buffers())
     channels = {k: v for k, v in channels.items() if not k.startswith("N.")}
     detail = assert_error(send(client, sid, 0, write_exr(channels)), 422, "missing_channels")
@@ -363,7 +363,7 @@ def test_reservation_grows_to_the_whole_file_reply(make_client):
     import OpenEXR
 
     c = make_client(history_budget_mb=0.6)  # a 64x48 session first reserves ~0.13 MiB
-    sid = new_session(c)
+    sid = new_session(c, model="nbg-2l-3g")
     channels = LAYOUTS["plain-normal"](make_buffers())
     extra = {f"aov{i}.{c}": np.full((48, 64), i, np.float32) for i in range(30) for c in "RGB"}
     big = write_exr({**channels, **extra}, compression=OpenEXR.NO_COMPRESSION)  # ~1.1 MiB of passes
@@ -417,15 +417,15 @@ def test_durable_sessions_are_evicted_to_disk_under_memory_pressure(make_client,
     frames = shot(3)
     # room for one session with its whole-file reply (~0.27 MiB), not for two
     c = make_client(state_dir=str(tmp_path), history_budget_mb=0.4)
-    a = new_session(c)
+    a = new_session(c, model="nbg-2l-3g")  # an NBG-sized state (auto may pick a larger one)
     outputs = [send(c, a, i, frames[i]).content for i in range(2)]
-    b = new_session(c)  # evicts a's state to disk instead of refusing
+    b = new_session(c, model="nbg-2l-3g")  # evicts a's state to disk instead of refusing
     assert c.get(f"/v1/sessions/{a}").json()["reserved_bytes"] == 0
     send(c, b, 0, frames[0])
     third = send(c, a, 2, frames[2])  # a comes back from disk, b goes out
     assert third.headers["x-quietframe-reset"] == "none"
     assert c.get(f"/v1/sessions/{b}").json()["reserved_bytes"] == 0
-    ref = new_session(c)
+    ref = new_session(c, model="nbg-2l-3g")
     for i, f in enumerate(frames):
         expected = send(c, ref, i, f)
     np.testing.assert_array_equal(pixels(third), pixels(expected))
