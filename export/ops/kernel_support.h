@@ -61,10 +61,11 @@ struct Shape {
   }
 };
 
-// A float32 input tensor: data and shape. `name` is used in error messages.
-inline OrtStatus* get_float_input(const ort::Api& api, const char* op, OrtKernelContext* ctx,
-                                  size_t index, const char* name, const float** data,
-                                  Shape* shape) {
+// Input `index` of element type `want` (`type_name` for the error message): data and shape.
+// `name` is used in error messages.
+inline OrtStatus* get_input(const ort::Api& api, const char* op, OrtKernelContext* ctx,
+                            size_t index, const char* name, ONNXTensorElementDataType want,
+                            const char* type_name, const void** data, Shape* shape) {
   const std::string what = std::string("reading input '") + name + "'";
   const OrtValue* value = nullptr;
   QF_RETURN_IF_ORT_ERROR(api, op, what, api.KernelContext_GetInput(ctx, index, &value));
@@ -79,8 +80,8 @@ inline OrtStatus* get_float_input(const ort::Api& api, const char* op, OrtKernel
   }
   api.ReleaseTensorTypeAndShapeInfo(info);
   if (status != nullptr) return op_error_from(api, op, what, status);
-  if (type != ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT) {
-    return op_error(api, op, std::string("input '") + name + "' must be float32");
+  if (type != want) {
+    return op_error(api, op, std::string("input '") + name + "' must be " + type_name);
   }
   if (shape->rank > kMaxRank) {
     return op_error(api, op, std::string("input '") + name + "' has too many dimensions");
@@ -88,6 +89,19 @@ inline OrtStatus* get_float_input(const ort::Api& api, const char* op, OrtKernel
   void* ptr = nullptr;
   QF_RETURN_IF_ORT_ERROR(api, op, what,
                          api.GetTensorMutableData(const_cast<OrtValue*>(value), &ptr));
+  *data = ptr;
+  return nullptr;
+}
+
+// A float32 input tensor: data and shape.
+inline OrtStatus* get_float_input(const ort::Api& api, const char* op, OrtKernelContext* ctx,
+                                  size_t index, const char* name, const float** data,
+                                  Shape* shape) {
+  const void* ptr = nullptr;
+  if (OrtStatus* s = get_input(api, op, ctx, index, name, ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT,
+                               "float32", &ptr, shape)) {
+    return s;
+  }
   *data = static_cast<const float*>(ptr);
   return nullptr;
 }
@@ -96,32 +110,17 @@ inline OrtStatus* get_float_input(const ort::Api& api, const char* op, OrtKernel
 inline OrtStatus* get_int64_scalar_input(const ort::Api& api, const char* op,
                                          OrtKernelContext* ctx, size_t index, const char* name,
                                          int64_t* out) {
-  const std::string what = std::string("reading input '") + name + "'";
-  const OrtValue* value = nullptr;
-  QF_RETURN_IF_ORT_ERROR(api, op, what, api.KernelContext_GetInput(ctx, index, &value));
-  if (value == nullptr) return op_error(api, op, std::string("input '") + name + "' is missing");
-  OrtTensorTypeAndShapeInfo* info = nullptr;
-  QF_RETURN_IF_ORT_ERROR(api, op, what, api.GetTensorTypeAndShape(value, &info));
-  ONNXTensorElementDataType type = ONNX_TENSOR_ELEMENT_DATA_TYPE_UNDEFINED;
+  const void* ptr = nullptr;
   Shape shape;
-  OrtStatus* status = api.GetTensorElementType(info, &type);
-  if (status == nullptr) status = api.GetDimensionsCount(info, &shape.rank);
-  if (status == nullptr && shape.rank <= kMaxRank) {
-    status = api.GetDimensions(info, shape.dims.data(), shape.rank);
-  }
-  api.ReleaseTensorTypeAndShapeInfo(info);
-  if (status != nullptr) return op_error_from(api, op, what, status);
-  if (type != ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64) {
-    return op_error(api, op, std::string("input '") + name + "' must be int64");
+  if (OrtStatus* s = get_input(api, op, ctx, index, name, ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64,
+                               "int64", &ptr, &shape)) {
+    return s;
   }
   if (!(shape.rank == 0 || (shape.rank == 1 && shape[0] == 1))) {
     return op_error(api, op,
                     std::string("input '") + name +
                         "' must be one int64 (shape [] or [1]), got " + shape.str());
   }
-  void* ptr = nullptr;
-  QF_RETURN_IF_ORT_ERROR(api, op, what,
-                         api.GetTensorMutableData(const_cast<OrtValue*>(value), &ptr));
   *out = *static_cast<const int64_t*>(ptr);
   return nullptr;
 }
