@@ -32,7 +32,6 @@ from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import Timing, time_ms
 from quietframe.models import MODELS_DIR
 from quietframe.runtime import Denoiser
-from quietframe.runtime.denoiser import COLOR_STAGE_PREFIX
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS
 
 
@@ -71,8 +70,7 @@ def measure(path: Path, threads: int, repeats: int) -> dict[str, Timing]:
              **{f"state_in.{k}": v for k, v in state.items()}}
     feeds = {k: v for k, v in feeds.items() if k in runtime.input_names}
     first = runtime.color_stage  # a color_from model runs before OIDN: quietframe's time too
-    prefix = COLOR_STAGE_PREFIX
-    first_state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+    first_state = runtime.color_stage_state(state) if first is not None else None
 
     def stage() -> None:
         if first is not None:

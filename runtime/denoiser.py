@@ -217,6 +217,12 @@ class Denoiser:
             for s in self.info.state_specs
         }
 
+    def color_stage_state(self, state: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The color_from model's own state, out of this composition's state dict."""
+        assert self.color_stage is not None
+        return {s.name: state[COLOR_STAGE_PREFIX + s.name]
+                for s in self.color_stage.info.state_specs}
+
     def _feeds(
         self, planes: Mapping[str, np.ndarray]
     ) -> tuple[dict[str, np.ndarray], dict[str, int], tuple[str, ...], tuple[int, int]]:
@@ -254,8 +260,7 @@ class Denoiser:
             if self.color_stage is not None:
                 first = self.color_stage.denoise(
                     {k: v[0] for k, v in feeds.items() if k in BUFFER_CHANNELS},
-                    None if fresh else {s.name: state[COLOR_STAGE_PREFIX + s.name]
-                                        for s in self.color_stage.info.state_specs})
+                    None if fresh else self.color_stage_state(state))
                 oidn_planes["color"] = first.color
                 color_state = {COLOR_STAGE_PREFIX + k: v for k, v in first.state.items()}
                 if "denoised" in first.sanitized:
