@@ -558,12 +558,19 @@ def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, e
 # Reference noise
 
 
-def reference_noise(seq_dir: str | Path, frame: int, eps: float = 0.01) -> dict:
-    """Render a second reference of one finished frame with an independent seed and compare
-    it with the stored one (luminance, after exposure): the median over pixels of
-    |a - b| / ((a + b) / 2 + eps). eps (in units of the exposed image, whose mean is
-    0.15-0.6) keeps black pixels from dominating. For independent references of equal spp
-    this is ~0.95 x the per-pixel relative standard deviation of one reference (Gaussian)."""
+# Salt of the second reference `reference_noise` renders (the stored one uses 1_000_003).
+REFERENCE_NOISE_SALT = 2_000_003
+
+
+def render_second_reference(
+    seq_dir: str | Path, frame: int, salt: int = REFERENCE_NOISE_SALT
+) -> tuple[np.ndarray, float]:
+    """Render another reference of one finished frame, independent of the stored one: the
+    sequence's scene, camera and movers at `frame`, `reference_spp` samples seeded from
+    (sequence seed, frame, `salt`). Returns the (H, W, 3) float32 radiance times the sequence's
+    exposure (comparable with the stored `reference` layer) and the render's seconds. A salt
+    other than 1_000_003 (the stored reference's) and REFERENCE_NOISE_SALT gives a reference
+    independent of both. Needs a Mitsuba variant set (`set_variant`)."""
     seq = Path(seq_dir)
     m = json.loads((seq / MANIFEST).read_text())
     c = m["config"]
@@ -580,10 +587,22 @@ def reference_noise(seq_dir: str | Path, frame: int, eps: float = 0.01) -> dict:
     movers = movers_of(scene, desc)
     set_frame(scene, Camera(**desc["cameras"][frame]), movers, frame)
     t0 = time.perf_counter()
-    second, _ = render_reference(scene, path, _seed(m["seed"], frame, 2_000_003), cfg.reference_spp)
+    second, _ = render_reference(scene, path, _seed(m["seed"], frame, salt), cfg.reference_spp)
     seconds = time.perf_counter() - t0
+    return (second * m["exposure"]).astype(np.float32), seconds
+
+
+def reference_noise(seq_dir: str | Path, frame: int, eps: float = 0.01) -> dict:
+    """Render a second reference of one finished frame with an independent seed and compare
+    it with the stored one (luminance, after exposure): the median over pixels of
+    |a - b| / ((a + b) / 2 + eps). eps (in units of the exposed image, whose mean is
+    0.15-0.6) keeps black pixels from dominating. For independent references of equal spp
+    this is ~0.95 x the per-pixel relative standard deviation of one reference (Gaussian)."""
+    seq = Path(seq_dir)
+    m = json.loads((seq / MANIFEST).read_text())
+    second, seconds = render_second_reference(seq, frame)
     stored = exr_io.load_frame(seq / f"frame_{frame:04d}.exr", ["reference"])["reference"]
-    a, b = stored @ LUMA, (second * m["exposure"]) @ LUMA
+    a, b = stored @ LUMA, second @ LUMA
     rel = np.abs(a - b) / ((a + b) / 2 + eps)
     return {
         "seed": m["seed"],
