@@ -5,7 +5,8 @@ its own and flickers; this stage makes the sequence stable with Işık et al. 20
 mechanisms on top of OIDN's output D_t instead of on noisy radiance:
 
   warp the state (previous output O, accumulated history L̄, features f, depth, normal)
-  -> small CNN on (D_t, aux, warped O and L̄, validity) -> f, a, c, b, λ per pixel (eq. 2)
+  -> small CNN on (D_t, aux, warped O and L̄, validity) -> f, a, c, b, λ per pixel (eq. 2),
+     at full resolution or (net_scale 2) on a 2×2-averaged input, upsampled bilinearly
   -> L̄_t = (1 - λ) D_t + λ W L̄_{t-1}                                  (eq. 5)
   -> O_t = one spatial affinity kernel on L̄_t jointly normalised with the temporal kernel
      over W O_{t-1} (eq. 7 + 8), through temporal_affinity_filter (AffinityTemporalFilter).
@@ -24,6 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from quietframe.model.affinity_kernels import temporal_affinity_filter
+from quietframe.model.losses import bandwidth_regulariser
 from quietframe.model.temporal import backward_warp, history_valid
 from quietframe.runtime.oidn_prepass import PREPASS_KEY, OIDNSettings, read_prepass
 
@@ -58,6 +60,11 @@ class OIDNTemporalConfig:
     layers: int = 3  # convolutions (>= 2): 3×3 ones, then a 1×1 output layer
     kernel_size: int = 3  # spatial affinity kernel (eq. 4), dilation 1
     temporal_kernel_size: int = 3  # temporal window over W O_{t-1} (eq. 7)
+    # 1: the parameter CNN runs at full resolution. 2: on the 2×2 average of its input, its
+    # outputs upsampled bilinearly (the kernels still filter at full resolution): the CNN was
+    # the largest cost of the stage at 720p and the per-pixel parameters are smooth
+    # (docs/oidn-temporal.md, speed).
+    net_scale: int = 1
     # "" : OIDN denoises each frame's colour. A model file (shipped in models/, e.g.
     # "accumulation.onnx"): OIDN denoises that model's output, the reprojected accumulation of
     # the noisy colour, so it sees several frames' samples (runtime/oidn_prepass.py color_from).
@@ -82,17 +89,26 @@ VARIANTS: dict[str, OIDNTemporalConfig] = {
     "oidn-temporal-fast": OIDNTemporalConfig(name="oidn-temporal-fast", quality="fast",
                                              width=12, layers=2),
     "oidn-temporal-acc": OIDNTemporalConfig(name="oidn-temporal-acc",
-                                            color_from="accumulation.onnx"),
+                                            color_from="accumulation.onnx", net_scale=2),
+    # OIDN-fast on the accumulation: within ~0.1 dB of OIDN-high on it (validation,
+    # bench/oidn_accumulated.py --quality fast) at about half of OIDN-high's time.
+    "oidn-temporal-fast-acc": OIDNTemporalConfig(name="oidn-temporal-fast-acc", quality="fast",
+                                                 color_from="accumulation.onnx", net_scale=2),
 }
 
 
 class ParameterNet(nn.Module):
-    """3×3 CNN + 1×1 head: (N, 13, H, W) -> f (N, 8, H, W), a, c, b, λ (N, 1, H, W) (eq. 2)."""
+    """3×3 CNN + 1×1 head: (N, 13, H, W) -> f (N, 8, H, W), a, c, b, λ (N, 1, H, W) (eq. 2).
+    With net_scale 2 the CNN sees the 2×2 average of its input (odd sizes: the last row or
+    column averages what it has) and its raw outputs are upsampled bilinearly to (H, W)."""
 
     def __init__(self, config: OIDNTemporalConfig) -> None:
         super().__init__()
         if config.layers < 2:
             raise ValueError(f"ParameterNet needs >= 2 layers, got {config.layers}")
+        if config.net_scale not in (1, 2):
+            raise ValueError(f"ParameterNet runs at scale 1 or 2, not {config.net_scale}")
+        self.scale = config.net_scale
         widths = [NET_INPUT_CHANNELS] + [config.width] * (config.layers - 1)
         self.hidden = nn.ModuleList(
             nn.Conv2d(i, o, 3, padding=1) for i, o in zip(widths[:-1], widths[1:], strict=True))
@@ -101,9 +117,14 @@ class ParameterNet(nn.Module):
             self.last.bias.zero_()
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        size = x.shape[-2:]
+        if self.scale > 1:
+            x = F.avg_pool2d(x, self.scale, ceil_mode=True, count_include_pad=False)
         for conv in self.hidden:
             x = F.leaky_relu(conv(x), 0.2)
-        out = self.last(x)  # (N, 12, H, W)
+        out = self.last(x)  # (N, 12, H / scale, W / scale)
+        if self.scale > 1:  # before the nonlinearities below, so a, b, c, λ keep their ranges
+            out = F.interpolate(out, size=size, mode="bilinear", align_corners=False)
         features = out[:, :FEATURES]
         bandwidth = out[:, FEATURES:FEATURES + 1].square()  # a >= 0 (the paper squares it)
         center = torch.sigmoid(out[:, FEATURES + 1:FEATURES + 2])  # c ∈ (0, 1)
@@ -141,7 +162,8 @@ class OIDNTemporal(nn.Module):
     """State-in / state-out temporal stage on (N, C, H, W) float tensors.
 
     forward(oidn, albedo, normal, depth, motion, reset, state) -> (denoised, new_state);
-    `oidn` is OIDN's output for this frame, the rest as docs/model-interface.md.
+    `oidn` is OIDN's output for this frame, the rest as docs/model-interface.md. After each
+    forward, `bandwidth_penalty` holds eq. 13 of that frame for the training loss (eq. 9).
     """
 
     state_channels = STATE_CHANNELS
@@ -165,6 +187,7 @@ class OIDNTemporal(nn.Module):
         warped_history = _state_part(warped, "history")  # W L̄_{t-1}
         features, bandwidth, center, temporal_bandwidth, blend = self.net(net_input(
             oidn, albedo, normal, warped_history, valid))
+        self.bandwidth_penalty = bandwidth_regulariser([bandwidth], temporal_bandwidth)  # eq. 13
         history = accumulate_history(oidn, warped_history, blend * valid)  # eq. 5
         # W f_{t-1}, pushed far away where the warped sample failed the surface test
         previous_features = (_state_part(warped, "features")

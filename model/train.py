@@ -53,7 +53,7 @@ class TrainConfig:
     # noisy targets, losses.relmse_unbiased_loss)
     loss: str = "smape+temporal"
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
-    bandwidth_weight: float = 1e-5  # Işık eq. 9: weight of eq. 13 (affinity models only)
+    bandwidth_weight: float = 1e-5  # Işık eq. 9: weight of eq. 13 (affinity, oidn-temporal)
     kernel_size: int = 0  # affinity: spatial kernel size trained with (0: the variant's, 13)
     # affinity: e.g. "5,9,13" draws the kernel size per step (a function of seed and step), so
     # that one model serves every run-time size; empty: always kernel_size

@@ -71,19 +71,53 @@ def test_metadata_names_the_prepass_and_its_graph_input(exported):
 
 def test_graph_matches_pytorch_over_frames_with_state_carried(exported):
     """The temporal stage alone (OIDN's output given), ORT vs PyTorch, state carried."""
+    assert_graph_matches_pytorch(*exported, crop=(HEIGHT, WIDTH))
+
+
+@pytest.mark.parametrize("crop", [(HEIGHT, WIDTH), (HEIGHT - 1, WIDTH - 3)])
+def test_half_resolution_parameter_net_matches_pytorch(crop, tmp_path):
+    """net_scale 2 (the CNN on a 2×2-averaged input, outputs upsampled): ORT's pooling and
+    resize agree with PyTorch's, odd frame sizes included (ceil-mode pooling at the edge)."""
+    torch.manual_seed(1)
+    config = ot.OIDNTemporalConfig(name="half", net_scale=2)
+    model = ot.OIDNTemporal(config).eval()
+    with torch.no_grad():
+        model.net.last.bias.normal_(0, 0.5)
+    assert_graph_matches_pytorch(model, export_nbg(model, tmp_path / "half.onnx", version="t"),
+                                 crop)
+
+
+def test_half_resolution_parameters_are_smooth_upsamplings():
+    """At net_scale 2 the per-pixel parameters vary like a bilinear upsampling of a half-size
+    map: a 2×2 block of constant input gives (nearly) equal parameters in the block's pixels,
+    and the output keeps the frame's size."""
+    torch.manual_seed(2)
+    net = ot.ParameterNet(ot.OIDNTemporalConfig(net_scale=2)).eval()
+    x = torch.rand(1, ot.NET_INPUT_CHANNELS, 9, 13)
+    with torch.no_grad():
+        features, bandwidth, center, temporal_bandwidth, blend = net(x)
+    assert features.shape == (1, ot.FEATURES, 9, 13) and blend.shape == (1, 1, 9, 13)
+    assert torch.all((blend > 0) & (blend < 1)) and torch.all(bandwidth >= 0)
+    with pytest.raises(ValueError, match="scale 1 or 2"):
+        ot.ParameterNet(ot.OIDNTemporalConfig(net_scale=3))
+
+
+def assert_graph_matches_pytorch(model: ot.OIDNTemporal, path: Path,
+                                 crop: tuple[int, int]) -> None:
     import onnxruntime as ort
 
     from quietframe.runtime.ops_library import ops_library_path
 
-    model, path = exported
+    height, width = crop
     options = ort.SessionOptions()
     options.register_custom_ops_library(str(ops_library_path()))
     session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    state_t = model.initial_state(1, HEIGHT, WIDTH)
+    state_t = model.initial_state(1, height, width)
     state_o = state_t.numpy()
     used_history = False
     for index in range(FRAMES):
-        p = moving_frames(index)
+        p = {k: np.ascontiguousarray(v[:, :height, :width])
+             for k, v in moving_frames(index).items()}
         oidn = (p["color"] * 0.8)[None]  # stands in for OIDN's output
         reset = np.array([1.0 if index == 0 else 0.0], np.float32)
         feeds = {"oidn": oidn, **{b: p[b][None] for b in ("albedo", "normal", "depth", "motion")},
