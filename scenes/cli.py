@@ -4,6 +4,7 @@
         --spp 1,2,4,8 --reference-spp 64 --jobs 2
     quietframe-render bench --size 128x128 --seeds 3
     quietframe-render sheet --split train --output docs/contact_sheet.png
+    quietframe-render topup --split test --spp 16
 
 Data lands in <out>/<generator version>/<split>/<sequence seed>/ (default out:
 ~/.cache/quietframe/data). Sequence seeds come from disjoint ranges per split, so train,
@@ -332,6 +333,25 @@ def cmd_sheet(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_topup(args: argparse.Namespace) -> int:
+    """Add a colour level above the stored passes (e.g. 16 spp) to every finished sequence of a
+    split, for evaluation at higher spp (render.topup_sequence); resumable, frames that have it
+    are skipped."""
+    from .render import set_variant, topup_sequence
+
+    set_variant(args.variant)
+    root = split_dir(args.out, args.split)
+    folders = sorted(p for p in root.iterdir() if (p / "manifest.json").exists())
+    t0, cpu0, written = time.perf_counter(), time.process_time(), 0
+    for folder in folders:
+        n = topup_sequence(folder, args.spp)
+        written += n
+        print(f"{folder.name}: {n} frames given {args.spp} spp", flush=True)
+    print(f"{args.split}: {written} frames in {time.perf_counter() - t0:.0f} s wall, "
+          f"{time.process_time() - cpu0:.0f} s CPU", flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="quietframe-render",
@@ -375,8 +395,14 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--out", type=Path, default=DATA_DIR)
     s.add_argument("--output", default="docs/contact_sheet.png")
     s.add_argument("--rows", type=int, default=6)
+    u = sub.add_parser("topup", help="add a colour level above the stored passes (evaluation)")
+    u.add_argument("--split", choices=list(SPLIT_BASE), required=True)
+    u.add_argument("--spp", type=int, default=16)
+    u.add_argument("--variant", default="auto", help="auto | llvm_ad_rgb | scalar_rgb")
+    u.add_argument("--out", type=Path, default=DATA_DIR)
     args = ap.parse_args(argv)
-    commands = {"render": cmd_render, "bench": cmd_bench, "survey": cmd_survey, "sheet": cmd_sheet}
+    commands = {"render": cmd_render, "bench": cmd_bench, "survey": cmd_survey, "sheet": cmd_sheet,
+                "topup": cmd_topup}
     return commands[args.command](args)
 
 

@@ -562,6 +562,45 @@ def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, e
 REFERENCE_NOISE_SALT = 2_000_003
 
 
+def _config_of(manifest: dict) -> RenderConfig:
+    c = manifest["config"]
+    return RenderConfig(
+        width=c["width"],
+        height=c["height"],
+        frames=tuple(c["frames"]),
+        spp_levels=tuple(c["spp_levels"]),
+        reference_spp=c["reference_spp"],
+        max_depth=c["max_depth"],
+    )
+
+
+class SequenceScene:
+    """A finished sequence's scene loaded again (one load, then any of its frames): what a
+    second reference or extra passes of a stored frame are rendered from. Needs a Mitsuba
+    variant set (`set_variant`)."""
+
+    def __init__(self, seq_dir: str | Path) -> None:
+        self.dir = Path(seq_dir)
+        self.manifest = json.loads((self.dir / MANIFEST).read_text())
+        self.config = _config_of(self.manifest)
+        desc = self.manifest["scene"]
+        self.scene, self.path, self.albedo_table = load_scene(desc, self.config)
+        self._cameras = desc["cameras"]
+        self._movers = movers_of(self.scene, desc)
+
+    @property
+    def seed(self) -> int:
+        return self.manifest["seed"]
+
+    @property
+    def exposure(self) -> float:
+        return self.manifest["exposure"]
+
+    def at(self, frame: int) -> SequenceScene:
+        set_frame(self.scene, Camera(**self._cameras[frame]), self._movers, frame)
+        return self
+
+
 def render_second_reference(
     seq_dir: str | Path, frame: int, salt: int = REFERENCE_NOISE_SALT
 ) -> tuple[np.ndarray, float]:
@@ -571,25 +610,12 @@ def render_second_reference(
     exposure (comparable with the stored `reference` layer) and the render's seconds. A salt
     other than 1_000_003 (the stored reference's) and REFERENCE_NOISE_SALT gives a reference
     independent of both. Needs a Mitsuba variant set (`set_variant`)."""
-    seq = Path(seq_dir)
-    m = json.loads((seq / MANIFEST).read_text())
-    c = m["config"]
-    cfg = RenderConfig(
-        width=c["width"],
-        height=c["height"],
-        frames=tuple(c["frames"]),
-        spp_levels=tuple(c["spp_levels"]),
-        reference_spp=c["reference_spp"],
-        max_depth=c["max_depth"],
-    )
-    desc = m["scene"]
-    scene, path, _ = load_scene(desc, cfg)
-    movers = movers_of(scene, desc)
-    set_frame(scene, Camera(**desc["cameras"][frame]), movers, frame)
+    seq = SequenceScene(seq_dir).at(frame)
     t0 = time.perf_counter()
-    second, _ = render_reference(scene, path, _seed(m["seed"], frame, salt), cfg.reference_spp)
+    second, _ = render_reference(seq.scene, seq.path, _seed(seq.seed, frame, salt),
+                                 seq.config.reference_spp)
     seconds = time.perf_counter() - t0
-    return (second * m["exposure"]).astype(np.float32), seconds
+    return (second * seq.exposure).astype(np.float32), seconds
 
 
 def reference_noise(seq_dir: str | Path, frame: int, eps: float = 0.01) -> dict:
@@ -611,3 +637,46 @@ def reference_noise(seq_dir: str | Path, frame: int, eps: float = 0.01) -> dict:
         "mean_relative_difference": float(np.mean(rel)),
         "seconds": round(seconds, 1),
     }
+
+
+# ---------------------------------------------------------------------------------------------
+# Colour levels above the stored passes (evaluation at higher spp)
+
+TOPUP_SALT = 4_000_037  # extra passes' seeds: independent of the stored passes and references
+TOPUP_KEY = "topup_spp_levels"
+
+
+def topup_sequence(seq_dir: str | Path, spp: int) -> int:
+    """Add a colour level of `spp` samples (more than the stored passes, e.g. 16 over 8) to
+    every frame of a finished sequence: spp − passes further one-sample passes, seeded from
+    (sequence seed, frame, TOPUP_SALT), averaged with the stored passes into `color_<spp>spp`.
+    The aux buffers and motion stay those of the stored passes (means over 8 samples: nearly
+    noise-free already). Frames that have the level are skipped; the level is listed under
+    `topup_spp_levels` in the manifest and the frames' metadata, not in `config.spp_levels`,
+    so the render config (and resuming `render`) is unchanged and training never draws it.
+    Returns the number of frames written."""
+    seq_dir = Path(seq_dir)
+    manifest = json.loads((seq_dir / MANIFEST).read_text())
+    stored = max(manifest["config"]["spp_levels"])
+    if spp <= stored:
+        raise ValueError(f"{seq_dir}: {spp} spp is stored already (passes: {stored})")
+    layer = exr_io.color_layer(spp)
+    todo = [f for f in sorted(seq_dir.glob("frame_*.exr")) if layer not in exr_io.frame_layers(f)]
+    seq = SequenceScene(seq_dir) if todo else None
+    for path in todo:
+        meta = exr_io.read_meta(path)
+        frame = int(meta["frame"])
+        layers = exr_io.load_frame(path)
+        extra = render_passes(seq.at(frame).scene, seq.path, _seed(seq.seed, frame, TOPUP_SALT),
+                              spp - stored, seq.albedo_table)
+        total = layers[exr_io.color_layer(stored)].astype(np.float64) * stored
+        total += np.sum([p["radiance"] for p in extra], 0, dtype=np.float64) * seq.exposure
+        layers[layer] = (total / spp).astype(np.float32)
+        meta[TOPUP_KEY] = sorted({*meta.get(TOPUP_KEY, []), spp})
+        exr_io.write_frame(path, layers, meta)
+    if todo or spp not in manifest.get(TOPUP_KEY, []):
+        manifest[TOPUP_KEY] = sorted({*manifest.get(TOPUP_KEY, []), spp})
+        tmp = seq_dir / (MANIFEST + ".tmp")
+        tmp.write_text(json.dumps(manifest, indent=1))
+        os.replace(tmp, seq_dir / MANIFEST)
+    return len(todo)

@@ -320,6 +320,38 @@ def test_resume_skips_and_reproduces(tiny):
         assert np.array_equal(before[name], after[name]), name
 
 
+def test_topup_adds_a_higher_spp_level_from_independent_passes(tiny, tmp_path):
+    """`topup` (evaluation above the stored passes): the new level averages the stored passes
+    with new, independent ones; every stored layer and the render config stay as they were;
+    a second run writes nothing; a level the passes already give is refused."""
+    import json
+    import shutil
+
+    from quietframe.scenes.render import TOPUP_KEY, set_variant, topup_sequence
+
+    out, cfg, _ = tiny
+    seq = tmp_path / out.name
+    shutil.copytree(out, seq)
+    set_variant("scalar_rgb")
+    before = {p.name: exr_io.load_frame(p) for p in sorted(seq.glob("frame_*.exr"))}
+    assert topup_sequence(seq, 4) == 2
+    for name, layers in before.items():
+        after = exr_io.load_frame(seq / name)
+        assert set(after) == set(layers) | {"color_4spp"}
+        for layer, arr in layers.items():
+            assert np.array_equal(arr, after[layer]), layer
+        extra = 4 * after["color_4spp"] - 2 * layers["color_2spp"]  # the 2 new samples' sum
+        assert np.isfinite(extra).all() and extra.min() > -1e-4
+        assert not np.allclose(extra, 2 * layers["color_2spp"])  # new samples, not a copy
+        assert 0.5 < extra.mean() / (2 * layers["color_2spp"].mean()) < 2  # same scene, exposure
+        assert exr_io.read_meta(seq / name)[TOPUP_KEY] == [4]
+    manifest = json.loads((seq / "manifest.json").read_text())
+    assert manifest[TOPUP_KEY] == [4] and manifest["config"]["spp_levels"] == [1, 2]
+    assert topup_sequence(seq, 4) == 0
+    with pytest.raises(ValueError, match="stored already"):
+        topup_sequence(seq, 2)
+
+
 def test_reader_reads_rendered_sequence(tiny):
     torch = pytest.importorskip("torch")
     from quietframe.model.data import SequenceDataset
