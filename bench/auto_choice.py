@@ -4,14 +4,15 @@
         [--threads 2] [--max-frames 8] [--out docs] [--model extra.onnx ...] [--synthetic]
 
 A test sequence is (rendered sequence, spp level, buffers present); the set is the cross product
-of the split's sequences (finished or still rendering: the frames on disk), their spp levels,
-and BUFFER_SETS. Every installed model that accepts a sequence's buffers denoises it through the
-runtime (absent optional buffers fed as zeros, as the service does); `auto` makes the service's
-choice (service/model_choice.choose) at the sequence's first frame, once with the spp a Cycles
-header would state and once with the reference-free estimate, and its figures are those of the
-model it chose on that sequence (plus the estimate's own time). Per sequence: PSNR and ms/frame
-of each; the target is auto within 0.3 dB of the best fixed model on every sequence, at ≤ 60 %
-of the average ms/frame of the best model (highest mean PSNR).
+of the split's sequences (finished or still rendering: the frames on disk), their spp levels
+(the stored 1–8 and any added by `quietframe-render topup`, e.g. 16), and BUFFER_SETS. Every
+installed model that accepts a sequence's buffers denoises it through the runtime (absent
+optional buffers fed as zeros, as the service does); `auto` makes the service's choice
+(service/model_choice.choose) at the sequence's first frame, once with the spp a Cycles header
+would state and once with the reference-free estimate, and its figures are those of the model it
+chose on that sequence (plus the estimate's own time). Per sequence: PSNR and ms/frame of each;
+the target is auto within 0.3 dB of the best fixed model on every sequence, at ≤ 60 % of the
+average ms/frame of the best model (highest mean PSNR).
 
 The buffer-absence table (`absence` in the JSON, docs/benchmarks.md): each model with each
 buffer absent, fed as zeros (what a dropout-trained model saw in training), PSNR and TRMAE, next
@@ -37,6 +38,7 @@ from quietframe.model import metrics
 from quietframe.runtime import Denoiser, default_model_path, installed_models
 from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
+from quietframe.scenes.render import TOPUP_KEY
 from quietframe.service.model_choice import (
     ModelProfile,
     NoiseLevel,
@@ -170,8 +172,10 @@ def main(argv: list[str] | None = None) -> int:
         folders = sorted(p.parent for p in root.glob(f"*/{args.split}/*/manifest.json"))
         for folder in folders:
             manifest = json.loads((folder / "manifest.json").read_text())
-            if any(folder.glob("frame_*.exr")):
-                sources.append((folder.name, manifest["config"]["spp_levels"], folder))
+            if any(folder.glob("frame_*.exr")):  # stored levels + topped-up ones (16 spp)
+                levels = sorted({*manifest["config"]["spp_levels"],
+                                 *manifest.get(TOPUP_KEY, [])})
+                sources.append((folder.name, levels, folder))
         frames_used = sum(min(len(list(f.glob("frame_*.exr"))), args.max_frames)
                           for _, _, f in sources)
         levels = sorted({spp for _, spps, _ in sources for spp in spps})
