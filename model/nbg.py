@@ -42,6 +42,12 @@ class NBGConfig:
     # its black neighbours, and the clamp removed about half of the frame's energy (validation
     # split, docs/training.md); the g1 models were trained with 3.
     outlier_sigmas: float = OUTLIER_SIGMAS
+    # The clamp's bound never goes below this multiple of the frame's mean luminance (0: no
+    # floor). With a floor only pixels that are outliers of their neighbours AND far above the
+    # frame's level are pulled back: a 1-spp frame's sparse lit pixels (~10× the mean) pass,
+    # LED fireflies (100–1000×) do not. Probe on 24 validation frames (docs/training.md): the
+    # 3σ clamp kept 61% of the 1-spp energy, with a floor of 128 means 88%, none 100%.
+    outlier_floor: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -58,8 +64,10 @@ def luminance(rgb: Tensor) -> Tensor:
     return 0.2126 * r + 0.7152 * g + 0.0722 * b
 
 
-def suppress_outliers(radiance: Tensor, kernel: int = 5, sigmas: float = OUTLIER_SIGMAS) -> Tensor:
-    """Clamp firefly pixels to mean + k·std of their neighbours' luminance (KBS15-style).
+def suppress_outliers(radiance: Tensor, kernel: int = 5, sigmas: float = OUTLIER_SIGMAS,
+                      floor: float = 0.0) -> Tensor:
+    """Clamp firefly pixels to mean + k·std of their neighbours' luminance (KBS15-style), but
+    never below `floor` × the frame's mean luminance (0: no floor).
 
     The pixel itself is left out of its neighbourhood statistics: a single 1e6 sample would
     otherwise inflate the std enough to pass its own test.
@@ -74,6 +82,8 @@ def suppress_outliers(radiance: Tensor, kernel: int = 5, sigmas: float = OUTLIER
     mean = (sum1 - lum) / others
     var = ((sum2 - lum * lum) / others - mean * mean).clamp_min(0)
     bound = mean + sigmas * var.sqrt()
+    if floor > 0:
+        bound = torch.maximum(bound, floor * lum.mean(dim=(2, 3), keepdim=True))
     scale = torch.where(lum > bound, bound / lum.clamp_min(1e-12), torch.ones_like(lum))
     return radiance * scale
 
@@ -95,13 +105,14 @@ def prestage(
     state: Tensor,
     temporal: bool = True,
     outlier_sigmas: float = OUTLIER_SIGMAS,
+    outlier_floor: float = 0.0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Demodulate, suppress outliers (unless outlier_sigmas is 0), accumulate over time ->
     (irradiance, safe albedo, state)."""
     safe_albedo = demodulation_divisor(albedo)
     irradiance = color / safe_albedo
     if outlier_sigmas > 0:
-        irradiance = suppress_outliers(irradiance, sigmas=outlier_sigmas)
+        irradiance = suppress_outliers(irradiance, sigmas=outlier_sigmas, floor=outlier_floor)
     if not temporal:
         return irradiance, safe_albedo, state
     irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state)
@@ -191,7 +202,7 @@ class NBGDenoiser(nn.Module):
     ) -> tuple[Tensor, Tensor]:
         irradiance, safe_albedo, new_state = prestage(
             color, albedo, normal, depth, motion, reset, state, self.config.temporal,
-            self.config.outlier_sigmas,
+            self.config.outlier_sigmas, self.config.outlier_floor,
         )
         guides, weights = self.guide_net(
             guide_features(irradiance * safe_albedo, albedo, normal, depth)

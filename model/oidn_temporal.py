@@ -89,11 +89,13 @@ VARIANTS: dict[str, OIDNTemporalConfig] = {
     "oidn-temporal-fast": OIDNTemporalConfig(name="oidn-temporal-fast", quality="fast",
                                              width=12, layers=2),
     "oidn-temporal-acc": OIDNTemporalConfig(name="oidn-temporal-acc",
-                                            color_from="accumulation.onnx", net_scale=2),
+                                            color_from="accumulation.onnx"),
     # OIDN-fast on the accumulation: within ~0.1 dB of OIDN-high on it (validation,
-    # bench/oidn_accumulated.py --quality fast) at about half of OIDN-high's time.
+    # bench/oidn_accumulated.py --quality fast) at about half of OIDN-high's time. Full-
+    # resolution CNN: with net_scale 2 the stage trained (800 steps) to 0.45-0.65 dB below
+    # oidn-temporal-acc on validation, below OIDN-fast alone at 4 spp (docs/oidn-temporal.md).
     "oidn-temporal-fast-acc": OIDNTemporalConfig(name="oidn-temporal-fast-acc", quality="fast",
-                                                 color_from="accumulation.onnx", net_scale=2),
+                                                 color_from="accumulation.onnx"),
 }
 
 

@@ -75,6 +75,8 @@ class TrainConfig:
     dropout_buffers: str = "albedo,normal,depth,motion"
     # NBG: firefly clamp of the pre-stage (NBGConfig.outlier_sigmas; 0 = off, -1 = the variant's)
     outlier_sigmas: float = -1.0
+    outlier_floor: float = -1.0  # NBG: NBGConfig.outlier_floor (-1 = the variant's)
+    net_scale: int = 0  # oidn-temporal: OIDNTemporalConfig.net_scale (0 = the variant's)
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
@@ -146,11 +148,13 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
         return affinity.AffinityDenoiser(config)
     if cfg.variant in OIDN_VARIANTS:
         base = OIDN_VARIANTS[cfg.variant]
-        return OIDNTemporal(dataclasses.replace(base, width=cfg.width or base.width))
+        return OIDNTemporal(dataclasses.replace(base, width=cfg.width or base.width,
+                                                net_scale=cfg.net_scale or base.net_scale))
     base = VARIANTS[cfg.variant]
     sigmas = base.outlier_sigmas if cfg.outlier_sigmas < 0 else cfg.outlier_sigmas
+    floor = base.outlier_floor if cfg.outlier_floor < 0 else cfg.outlier_floor
     return NBGDenoiser(dataclasses.replace(base, width=cfg.width or base.width,
-                                           outlier_sigmas=sigmas))
+                                           outlier_sigmas=sigmas, outlier_floor=floor))
 
 
 def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
@@ -323,7 +327,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
 
 
 ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fixed per run
-                       "outlier_sigmas")
+                       "outlier_sigmas", "outlier_floor", "net_scale")
 
 
 def resume_config(run: Path, flags: dict) -> TrainConfig:

@@ -2,9 +2,12 @@
 # The g2 training runs, two queues side by side (one thread each, one per core), each run
 # resumable from its run directory (re-running this script continues where it stopped):
 #   queue 1: nbg-2l-3g (SMAPE + temporal), the same with the noise-unbiased loss
-#            (relmse+temporal), nbg-2l-1g without the clamp (not run yet)
+#            (relmse+temporal), nbg-2l-1g and nbg-7l-3g without the clamp (the other two
+#            shipped NBG models on g2)
 #   queue 2: oidn-temporal-acc, nbg-2l-3g without the pre-stage's firefly clamp
-#            (--outlier-sigmas 0: shipped as nbg-2l-3g v3), oidn-temporal-high (not run yet)
+#            (--outlier-sigmas 0: shipped as nbg-2l-3g v3), oidn-temporal-fast-acc with the
+#            half-resolution parameter CNN (--net-scale 2, ablation), then the same at full
+#            resolution (500 steps), and nbg-2l-3g with the floored clamp (--outlier-floor 128)
 # (the two nbg-2l-3g ablations of docs/training.md: loss, clamp)
 # NBG runs train with buffer dropout 0.3 (issue 14: missing buffers, the colour-only path).
 #   nohup nice -n 10 model/train_g2.sh > ~/.cache/quietframe/logs/train_g2.log 2>&1 &
@@ -26,10 +29,14 @@ nbg=(--dropout 0.3)
     run nbg-2l-3g --variant nbg-2l-3g --width 16 "${nbg[@]}"
     run nbg-2l-3g-relmse --variant nbg-2l-3g --width 16 --loss relmse+temporal "${nbg[@]}"
     run nbg-2l-1g --variant nbg-2l-1g --outlier-sigmas 0 "${nbg[@]}"
+    run nbg-7l-3g --variant nbg-7l-3g --outlier-sigmas 0 "${nbg[@]}"
 ) &
 (
     run oidn-temporal-acc --variant oidn-temporal-acc
     run nbg-2l-3g-noclamp --variant nbg-2l-3g --width 16 --outlier-sigmas 0 "${nbg[@]}"
-    run oidn-temporal-high --variant oidn-temporal-high
+    run oidn-temporal-fast-acc-half --variant oidn-temporal-fast-acc --net-scale 2
+    S=500 run oidn-temporal-fast-acc --variant oidn-temporal-fast-acc
+    run nbg-2l-3g-floor --variant nbg-2l-3g --width 16 --outlier-sigmas 3 --outlier-floor 128 \
+        "${nbg[@]}"
 ) &
 wait

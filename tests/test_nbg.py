@@ -50,13 +50,29 @@ def _sparse_frame(seed: int = 0) -> torch.Tensor:
     return lit * energy * torch.tensor([1.0, 0.9, 0.7]).view(1, 3, 1, 1)
 
 
-def _prestage_output(color: torch.Tensor, sigmas: float) -> torch.Tensor:
+def _prestage_output(color: torch.Tensor, sigmas: float, floor: float = 0.0) -> torch.Tensor:
     n, _, h, w = color.shape
     albedo = torch.full_like(color, 0.5)
     irradiance, divisor, _ = nbg.prestage(
         color, albedo, torch.zeros_like(color), torch.ones(n, 1, h, w), torch.zeros(n, 2, h, w),
-        torch.ones(n), torch.zeros(n, 8, h, w), temporal=False, outlier_sigmas=sigmas)
+        torch.ones(n), torch.zeros(n, 8, h, w), temporal=False, outlier_sigmas=sigmas,
+        outlier_floor=floor)
     return irradiance * divisor
+
+
+def test_clamp_floor_keeps_a_sparse_frame_and_still_pulls_back_a_firefly():
+    """With a floor (a multiple of the frame's mean luminance) the sparse lit pixels of a
+    1-spp frame pass, while a 10^4× firefly is pulled back to the floor."""
+    color = _sparse_frame()
+    floored = _prestage_output(color, 3.0, floor=128.0)
+    assert floored.mean() > 0.97 * color.mean()
+    hot = color.clone()
+    hot[..., 5, 7] = hot.mean() * 1e4
+    out = _prestage_output(hot, 3.0, floor=128.0)
+    bound = 128.0 * nbg.luminance(hot).mean()  # a constant albedo scales frame and pixel alike
+    assert nbg.luminance(out)[..., 5, 7] == pytest.approx(float(bound), rel=1e-3)
+    # (the firefly lifts the frame's mean too: in 32×32 pixels the floor is 1/8 of it)
+    assert nbg.luminance(out)[..., 5, 7] < 0.2 * nbg.luminance(hot)[..., 5, 7]
 
 
 def test_firefly_clamp_takes_the_energy_of_a_sparse_frame_and_off_keeps_it():
