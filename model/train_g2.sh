@@ -7,7 +7,8 @@
 #   queue 2: oidn-temporal-acc, nbg-2l-3g without the pre-stage's firefly clamp
 #            (--outlier-sigmas 0: shipped as nbg-2l-3g v3), oidn-temporal-fast-acc with the
 #            half-resolution parameter CNN (--net-scale 2, ablation), then the same at full
-#            resolution (500 steps), and nbg-2l-3g with the floored clamp (--outlier-floor 128)
+#            resolution (500 steps), and nbg-2l-3g / nbg-2l-1g with the floored clamp
+#            (--outlier-floor 128)
 # (the two nbg-2l-3g ablations of docs/training.md: loss, clamp)
 # NBG runs train with buffer dropout 0.3 (issue 14: missing buffers, the colour-only path).
 #   nohup nice -n 10 model/train_g2.sh > ~/.cache/quietframe/logs/train_g2.log 2>&1 &
@@ -38,5 +39,6 @@ nbg=(--dropout 0.3)
     S=500 run oidn-temporal-fast-acc --variant oidn-temporal-fast-acc
     run nbg-2l-3g-floor --variant nbg-2l-3g --width 16 --outlier-sigmas 3 --outlier-floor 128 \
         "${nbg[@]}"
+    run nbg-2l-1g-floor --variant nbg-2l-1g --outlier-sigmas 3 --outlier-floor 128 "${nbg[@]}"
 ) &
 wait
