@@ -1,7 +1,8 @@
 """`model=auto` against every fixed model, on test sequences mixed in spp and in buffers.
 
     python -m quietframe.bench.auto_choice [--data ~/.cache/quietframe/data] [--split test]
-        [--threads 2] [--max-frames 8] [--out docs] [--model extra.onnx ...] [--synthetic]
+        [--threads 2] [--max-frames 8] [--sequences N] [--spp 1,4,16] [--out docs]
+        [--model extra.onnx ...] [--synthetic]
 
 A test sequence is (rendered sequence, spp level, buffers present); the set is the cross product
 of the split's sequences (finished or still rendering: the frames on disk), their spp levels
@@ -149,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split", default="test")
     parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
     parser.add_argument("--max-frames", type=int, default=8)
+    parser.add_argument("--sequences", type=int, default=0,
+                        help="the split's first N sequences only (0: all)")
+    parser.add_argument("--spp", default="", help="spp levels to use, e.g. 1,4,16 (default: all)")
     parser.add_argument("--model", type=Path, action="append", default=[])
     parser.add_argument("--quality", default="balanced")
     parser.add_argument("--synthetic", action="store_true")
@@ -170,11 +174,13 @@ def main(argv: list[str] | None = None) -> int:
     else:
         root = args.data.expanduser()
         folders = sorted(p.parent for p in root.glob(f"*/{args.split}/*/manifest.json"))
-        for folder in folders:
+        wanted = {int(v) for v in args.spp.split(",")} if args.spp else None
+        for folder in folders[:args.sequences or None]:
             manifest = json.loads((folder / "manifest.json").read_text())
             if any(folder.glob("frame_*.exr")):  # stored levels + topped-up ones (16 spp)
-                levels = sorted({*manifest["config"]["spp_levels"],
-                                 *manifest.get(TOPUP_KEY, [])})
+                levels = sorted(spp for spp in {*manifest["config"]["spp_levels"],
+                                                *manifest.get(TOPUP_KEY, [])}
+                                if wanted is None or spp in wanted)
                 sources.append((folder.name, levels, folder))
         frames_used = sum(min(len(list(f.glob("frame_*.exr"))), args.max_frames)
                           for _, _, f in sources)

@@ -67,8 +67,10 @@ def prepass_lines(runtime: Denoiser, threads: int) -> list[str]:
             "(bench/oidn_temporal.py).", ""]
 
 
-def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 2) -> Path:
-    """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model."""
+def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 2,
+                     split: str = "") -> Path:
+    """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model,
+    measured on `split` (named in the card: test figures are reported, validation ones chose)."""
     runtime = Denoiser(path, threads=threads)
     info = runtime.info
     ms = measure_720p_ms(runtime)
@@ -85,14 +87,15 @@ def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 
         f"{ms:.0f} ms per 1280×720 frame through quietframe.runtime with {threads} threads on "
         f"{cpu_peak_gflops(threads)[1]}, median of 5 (bench/timing.py).", "",
         *prepass_lines(runtime, threads),
-        "## Validation metrics", "",
+        f"## Quality ({split} split)" if split else "## Quality", "",
     ]
     rows = evaluation or []
     if rows:
         lines += ["| spp | PSNR | SSIM | SMAPE | relMSE | TRMAE |", "|---|---|---|---|---|---|"]
         lines += [f"| {r['spp']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['smape']:.4f} | "
                   f"{r['relmse']:.4f} | {r['trmae']:.4f} |" for r in rows]
-        lines += ["", "From `quietframe-eval` (docs/benchmarks.md)."]
+        lines += ["", f"From `quietframe-eval`{f' on the {split} split' if split else ''} "
+                  "(docs/benchmarks.md)."]
     else:
         lines.append(f"Metadata metrics: `{json.dumps(info.metrics)}` (no evaluation run given).")
     card = path.with_suffix(".md")

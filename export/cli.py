@@ -70,15 +70,16 @@ def main(argv: list[str] | None = None) -> int:
 
         from quietframe.bench.model_card import write_model_card
 
-        rows = []
+        rows, split = [], ""
         if args.evaluation:
             from quietframe.bench.model_metrics import metrics_from_rows, stamp
 
             evaluation = json.loads(args.evaluation.read_text())
             rows = [r for r in evaluation["rows"] if r["method"] == path.stem]
+            split = evaluation.get("meta", {}).get("split", "")
             if rows:  # the speed/error table `model=auto` reads (docs/model-interface.md)
                 stamp(path, metrics_from_rows(rows, evaluation.get("meta", {})))
-        print(f"wrote {write_model_card(path, rows)}")
+        print(f"wrote {write_model_card(path, rows, split=split)}")
     return 0
 
 
