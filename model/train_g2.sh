@@ -2,8 +2,8 @@
 # The g2 training runs, two queues side by side (one thread each, one per core), each run
 # resumable from its run directory (re-running this script continues where it stopped):
 #   queue 1: nbg-2l-3g (SMAPE + temporal), the same with the noise-unbiased loss
-#            (relmse+temporal), nbg-2l-1g and nbg-7l-3g without the clamp (the other two
-#            shipped NBG models on g2)
+#            (relmse+temporal), nbg-2l-1g and nbg-7l-3g without the clamp, nbg-7l-3g with
+#            the floored clamp (--outlier-floor 128; not finished yet)
 #   queue 2: oidn-temporal-acc, nbg-2l-3g without the pre-stage's firefly clamp
 #            (--outlier-sigmas 0: shipped as nbg-2l-3g v3), oidn-temporal-fast-acc with the
 #            half-resolution parameter CNN (--net-scale 2, ablation), then the same at full
@@ -31,6 +31,7 @@ nbg=(--dropout 0.3)
     run nbg-2l-3g-relmse --variant nbg-2l-3g --width 16 --loss relmse+temporal "${nbg[@]}"
     run nbg-2l-1g --variant nbg-2l-1g --outlier-sigmas 0 "${nbg[@]}"
     run nbg-7l-3g --variant nbg-7l-3g --outlier-sigmas 0 "${nbg[@]}"
+    run nbg-7l-3g-floor --variant nbg-7l-3g --outlier-sigmas 3 --outlier-floor 128 "${nbg[@]}"
 ) &
 (
     run oidn-temporal-acc --variant oidn-temporal-acc
