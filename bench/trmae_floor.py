@@ -42,13 +42,13 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from quietframe.model import metrics
+from quietframe.model.oidn_cache import save_array
 from quietframe.scenes.layout import CACHE_DIR, DATA_DIR, DEFAULT_THREADS, split_dir
 
 # Salt of the second references here: the stored reference uses 1_000_003 and
@@ -72,18 +72,6 @@ def cache_path(root: Path, split: str, seed: int, frame: int) -> Path:
     return Path(root).expanduser() / split / str(seed) / f"frame_{frame:04d}.npy"
 
 
-def _save_atomic(path: Path, array: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, array)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def _render(seq_dir: Path, frame: int) -> np.ndarray:
     from quietframe.scenes.render import render_second_reference
 
@@ -105,7 +93,7 @@ def second_reference(
     if path.is_file():
         return np.load(path)
     image = np.asarray(render(seq_dir, frame), np.float32)
-    _save_atomic(path, image)
+    save_array(path, image)
     return image
 
 

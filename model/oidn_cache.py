@@ -72,16 +72,22 @@ def cached_oidn_output(sequence_dir: Path, frame_file: str, spp: int, settings: 
         if cached.shape == (*np.shape(color)[:2], 3):
             return cached
     result = oidn_output(color, albedo, normal, settings)
-    _save(path, result)
+    save_array(path, result)
     return result
 
 
-def _save(path: Path, result: np.ndarray) -> None:
+def save_array(path: Path, array: np.ndarray) -> None:
+    """np.save to `path` atomically (a temp file per process and thread, then a rename): a
+    killed or concurrent writer never leaves a torn cache file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-    with tmp.open("wb") as f:
-        np.save(f, result)
-    tmp.replace(path)
+    try:
+        with tmp.open("wb") as f:
+            np.save(f, array)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def cached_sequence_oidn_output(sequence_dir: Path, files: list[str], resets: list[bool],
@@ -108,7 +114,7 @@ def cached_sequence_oidn_output(sequence_dir: Path, files: list[str], resets: li
         state = result.state
         color = result.color.transpose(1, 2, 0)
         output = oidn_output(color, buffers["albedo"], buffers["normal"], settings)
-        _save(cache_path(sequence_dir, name, spp, settings), output)
+        save_array(cache_path(sequence_dir, name, spp, settings), output)
         if i == index:
             wanted = output
     return wanted

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import os
 import sys
 import time
 import traceback
@@ -220,9 +219,9 @@ def write_split_manifest(root: Path, args: argparse.Namespace, cfg, seeds: list[
             else None,
         },
     }
-    tmp = path.with_name("split.json.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, path)
+    from .render import write_json
+
+    write_json(path, manifest)
 
 
 def _frame_count_of(seq_dir: Path) -> int:

@@ -376,6 +376,14 @@ def choose_scene(
     return desc, scene, reference, table, attempt, exposure, stats
 
 
+def write_json(path: Path, data: dict) -> None:
+    """Write a manifest atomically (temp file, then rename): a killed render never leaves a
+    torn one."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
 def render_sequence(
     seed: int,
     out_dir: str | Path,
@@ -449,9 +457,7 @@ def render_sequence(
         )
         manifest["frames"] = [f for f in manifest["frames"] if f["index"] != t] + [record]
         manifest["frames"].sort(key=lambda f: f["index"])
-        tmp = mpath.with_name(MANIFEST + ".tmp")
-        tmp.write_text(json.dumps(manifest, indent=1))
-        os.replace(tmp, mpath)
+        write_json(mpath, manifest)
         if on_frame:
             on_frame(t, record)
     return manifest
@@ -676,7 +682,5 @@ def topup_sequence(seq_dir: str | Path, spp: int) -> int:
         exr_io.write_frame(path, layers, meta)
     if todo or spp not in manifest.get(TOPUP_KEY, []):
         manifest[TOPUP_KEY] = sorted({*manifest.get(TOPUP_KEY, []), spp})
-        tmp = seq_dir / (MANIFEST + ".tmp")
-        tmp.write_text(json.dumps(manifest, indent=1))
-        os.replace(tmp, seq_dir / MANIFEST)
+        write_json(seq_dir / MANIFEST, manifest)
     return len(todo)
