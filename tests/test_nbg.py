@@ -93,3 +93,16 @@ def test_accumulation_model_has_no_clamp_and_nbg_variants_keep_theirs():
             torch.zeros(1, 2, 32, 32), torch.ones(1), torch.zeros(1, 8, 32, 32))
     with torch.no_grad():
         assert off(color, *args)[0].mean() > on(color, *args)[0].mean() * 1.3
+
+
+def test_clamp_energy_bench_measures_the_pre_stage_clamp():
+    """bench/clamp_energy.py: no clamp keeps the frame; the floored clamp keeps more of a
+    sparse frame's energy than the plain 3σ one; a frame scored against itself is exact."""
+    from quietframe.bench.clamp_energy import clamped, figures
+
+    color = _sparse_frame(2)
+    albedo = torch.full_like(color, 0.5)
+    assert figures(clamped(color, albedo, None), color) == (pytest.approx(1.0), 0.0)
+    plain = figures(clamped(color, albedo, 0.0), color)[0]
+    floored = figures(clamped(color, albedo, 128.0), color)[0]
+    assert plain < 0.75 < 0.97 < floored
