@@ -2,7 +2,7 @@
 
     python -m quietframe.bench.auto_choice [--data ~/.cache/quietframe/data] [--split test]
         [--threads 2] [--max-frames 8] [--sequences N] [--spp 1,4,16] [--out docs]
-        [--model extra.onnx ...] [--synthetic]
+        [--model extra.onnx ...] [--buffer-sets all,no-albedo] [--no-absence] [--synthetic]
 
 A test sequence is (rendered sequence, spp level, buffers present); the set is the cross product
 of the split's sequences (finished or still rendering: the frames on disk), their spp levels
@@ -13,7 +13,13 @@ optional buffers fed as zeros, as the service does); `auto` makes the service's 
 would state and once with the reference-free estimate, and its figures are those of the model it
 chose on that sequence (plus the estimate's own time). Per sequence: PSNR and ms/frame of each;
 the target is auto within 0.3 dB of the best fixed model on every sequence, at ≤ 60 % of the
-average ms/frame of the best model (highest mean PSNR).
+average ms/frame of the best model (highest mean PSNR). The summary adds an oracle (the cheapest
+model within 0.3 dB of each sequence's best): the floor of the ms share any rule can reach.
+
+Run on the validation split (`--split validation --out docs/evaluation/auto_validation`), its
+rows are what `bench/model_metrics.py --noise-points` stamps as each model's `by_noise` points
+(the first frame's noise statistic, the model's PSNR on the sequence); only a test run updates
+docs/benchmarks.md.
 
 The buffer-absence table (`absence` in the JSON, docs/benchmarks.md): each model with each
 buffer absent, fed as zeros (what a dropout-trained model saw in training), PSNR and TRMAE, next
@@ -46,6 +52,8 @@ from quietframe.service.model_choice import (
     choose,
     estimate_spp,
     load_calibration,
+    log2_statistic,
+    noise_statistic,
 )
 
 BUFFER_SETS: dict[str, tuple[str, ...]] = {
@@ -93,6 +101,14 @@ def synthetic_frames(seed: int, spp: int, count: int = 3, size: int = 48) -> Fra
                    "motion": np.zeros((size, size, 2), np.float32)}
         frames.append((buffers, reference, t == 0))
     return frames
+
+
+def frame_noise(buffers: dict[str, np.ndarray]) -> dict[str, float | None]:
+    """The first frame's noise statistic (log2), demodulated and of the colour alone: what
+    bench/model_metrics.py --noise-points stamps as a model's by_noise points."""
+    color, albedo = (buffers[k].transpose(2, 0, 1) for k in ("color", "albedo"))
+    return {"log2_sigma": log2_statistic(noise_statistic(color, albedo)),
+            "log2_sigma_colour": log2_statistic(noise_statistic(color, None))}
 
 
 def run_model(denoise, frames: Frames, present: tuple[str, ...]) -> Run:
@@ -157,8 +173,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quality", default="balanced")
     parser.add_argument("--synthetic", action="store_true")
     parser.add_argument("--no-absence", action="store_true", help="skip the absence table")
+    parser.add_argument("--buffer-sets", default=",".join(BUFFER_SETS),
+                        help=f"comma list of {list(BUFFER_SETS)}")
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args(argv)
+    buffer_sets = {name: BUFFER_SETS[name] for name in args.buffer_sets.split(",")
+                   if name in BUFFER_SETS or parser.error(f"--buffer-sets: unknown {name!r}")}
 
     paths = {p.stem: p for p in (*installed_models(), *args.model)}
     denoisers = {name: Denoiser(p, threads=args.threads) for name, p in paths.items()}
@@ -193,20 +213,19 @@ def main(argv: list[str] | None = None) -> int:
         for spp in levels:
             frames = (synthetic_frames(where, spp) if args.synthetic  # type: ignore[arg-type]
                       else load_frames(where, spp, args.max_frames))  # type: ignore[arg-type]
-            for set_name, present in BUFFER_SETS.items():
+            looks = frame_noise(frames[0][0])
+            for set_name, present in buffer_sets.items():
                 fixed = {m: run_model(runtime_call(d), frames, present)
                          for m, d in denoisers.items()
                          if set(d.info.required_buffers) <= set(present)}
-                row = {"sequence": name, "spp": spp, "buffers": set_name,
+                row = {"sequence": name, "spp": spp, "buffers": set_name, "noise": looks,
                        "fixed": {m: vars(r) for m, r in fixed.items()}}
                 for mode in ("header", "estimate"):
-                    start = time.perf_counter()
-                    if mode == "header":
-                        noise = NoiseLevel(spp, "header")
-                    else:
-                        first = planes_from_hwc(frames[0][0])
-                        noise = estimate_spp(first["color"], first.get("albedo") if "albedo"
-                                             in present else None, calibration)
+                    start = time.perf_counter()  # the service measures the statistic either way
+                    first = planes_from_hwc(frames[0][0])
+                    albedo = first["albedo"] if "albedo" in present else None
+                    stated = NoiseLevel(spp, "header") if mode == "header" else None
+                    noise = estimate_spp(first["color"], albedo, calibration, header=stated)
                     pick = choose(present, noise, profiles, default, quality=args.quality,
                                   pixels=frames[0][1].shape[0] * frames[0][1].shape[1])
                     overhead = 1e3 * (time.perf_counter() - start) / len(frames)
@@ -244,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "auto_choice.json").write_text(json.dumps(result, indent=1) + "\n")
     (args.out / "auto_choice.md").write_text(report(result, list(denoisers)))
-    if not args.synthetic:
+    if not args.synthetic and args.split == "test":  # reported figures: the test split only
         update_section(args.out / "benchmarks.md", section(result, list(denoisers)))
     print(json.dumps(summary, indent=1))
     return 0
@@ -264,6 +283,14 @@ def summarise(rows: list[dict], models: list[str]) -> dict:
     # 60 % of its time: the share of the slowest (quality-tier) model is reported beside it.
     ms_of = {m: float(np.mean([r["fixed"][m]["ms"] for r in common])) for m in models}
     out["ms_by_model"] = {m: round(v, 2) for m, v in ms_of.items()}
+    # What a choice that knew every sequence's PSNRs would reach: the cheapest model within the
+    # tolerance of each row's best. If this misses the speed target, no rule can meet it with
+    # these models.
+    oracle = [min((f["ms"] for f in r["fixed"].values()
+                   if f["psnr"] >= max(g["psnr"] for g in r["fixed"].values()) - TOLERANCE_DB),
+                  default=float("nan")) for r in common]
+    out["oracle"] = {"ms": round(float(np.mean(oracle)), 2),
+                     "ms_share_of_best": round(float(np.mean(oracle)) / best_ms, 3)}
     for mode in ("header", "estimate"):
         runnable = [r for r in rows if r[f"auto_{mode}"]["psnr"] is not None]
         gaps = [max(f["psnr"] for f in r["fixed"].values()) - r[f"auto_{mode}"]["psnr"]
@@ -303,6 +330,11 @@ def section(result: dict, models: list[str]) -> str:
              f"Data: {meta['data']}; {meta['threads']} threads; quality {meta['quality']}. "
              f"Command: `{meta['command']}`. Per-sequence figures and the choices: "
              "[auto_choice.md](auto_choice.md).", ""]
+    if "oracle" in summary:
+        lines.append(f"- an oracle (the cheapest model within {TOLERANCE_DB} dB of each "
+                     f"sequence's best, knowing the PSNRs): {summary['oracle']['ms']} ms/frame = "
+                     f"{summary['oracle']['ms_share_of_best']:.0%} of the best model: the "
+                     "floor any choice rule has with these models")
     for mode in ("header", "estimate"):
         if mode in summary:
             s = summary[mode]

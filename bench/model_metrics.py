@@ -5,8 +5,11 @@
 The rows of one `quietframe-eval` run (benchmarks.json: method = model file stem) become
 `by_spp` (spp, PSNR, TRMAE) and `ms_720p` (the same run's 1280×720 timing), with the run's
 command and machine as `measured`; `--absent` adds `absent_db` from bench/auto_choice.py's
-buffer-absence rows. Existing keys (training's validation score) are kept. Nothing here is
-typed in: `model=auto` reads what a measurement wrote (docs/model-interface.md).
+buffer-absence rows; `--noise-points` adds `by_noise` from a validation run of
+bench/auto_choice.py (rows with every buffer: the first frame's log2 noise statistic,
+demodulated and not, and the model's PSNR on the sequence; service/model_choice.py).
+Existing keys (training's validation score) are kept. Nothing here is typed in: `model=auto`
+reads what a measurement wrote (docs/model-interface.md).
 """
 
 from __future__ import annotations
@@ -32,6 +35,19 @@ def metrics_from_rows(rows: list[dict], meta: dict) -> dict:
     return out
 
 
+def noise_points(result: dict, model: str) -> dict | None:
+    """`by_noise` for one model from a bench/auto_choice.py run (its rows with all buffers)."""
+    points = [[round(r["noise"]["log2_sigma"], 4), round(r["noise"]["log2_sigma_colour"], 4),
+               round(r["fixed"][model]["psnr"], 3)]
+              for r in result["rows"]
+              if r["buffers"] == "all" and model in r["fixed"] and r.get("noise")
+              and None not in r["noise"].values()]
+    if not points:
+        return None
+    return {"points": points, "measured": {"command": result["meta"]["command"],
+                                           "data": result["meta"]["data"]}}
+
+
 def stamp(path: Path, additions: dict) -> dict:
     """Merge `additions` into the file's `quietframe.metrics` (rewrites the file in place)."""
     model = onnx.load(str(path))
@@ -50,9 +66,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--evaluation", type=Path, required=True, help="benchmarks.json")
     parser.add_argument("--absent", type=Path,
                         help="auto_choice.json: per-model PSNR change with each buffer absent")
+    parser.add_argument("--noise-points", type=Path,
+                        help="auto_choice.json of a validation run: by_noise points per model")
     args = parser.parse_args(argv)
     evaluation = json.loads(args.evaluation.read_text())
     absent = json.loads(args.absent.read_text()).get("absent_db", {}) if args.absent else {}
+    choice_run = json.loads(args.noise_points.read_text()) if args.noise_points else None
+    if choice_run and "validation" not in choice_run["meta"]["data"]:
+        parser.error(f"--noise-points {args.noise_points}: not a validation run (model "
+                     "selection never reads the test split)")
     for path in args.models:
         rows = [r for r in evaluation["rows"] if r["method"] == path.stem]
         if not rows:
@@ -61,6 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         additions = metrics_from_rows(rows, evaluation.get("meta", {}))
         if path.stem in absent:
             additions["absent_db"] = absent[path.stem]
+        by_noise = noise_points(choice_run, path.stem) if choice_run else None
+        if by_noise:
+            additions["by_noise"] = by_noise
         metrics = stamp(path, additions)
         print(f"{path}: {json.dumps(metrics)[:200]}")
     return 0

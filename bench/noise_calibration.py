@@ -2,7 +2,7 @@
 
     python -m quietframe.bench.noise_calibration [--data ~/.cache/quietframe/data] [--synthetic]
 
-Every rendered frame under <data>/*/{validation,test}/*/frame_*.exr (finished sequences or not)
+Every rendered frame under <data>/*/validation/*/frame_*.exr (finished sequences or not)
 at each of its spp levels gives a point (log2 σ, log2 spp), σ = model_choice.noise_statistic
 (a relative variance) of the noisy colour with its albedo; a least-squares line through them
 is the mapping. Without rendered frames (or with --synthetic) the points come from synthetic
@@ -21,7 +21,7 @@ import numpy as np
 from quietframe.scenes.layout import DATA_DIR
 from quietframe.service.model_choice import CALIBRATION_FILE, noise_statistic
 
-SPLITS = ("validation", "test")
+SPLITS = ("validation",)  # model selection data; the test split only reports
 
 
 def rendered_points(data: Path, max_frames: int) -> tuple[list[tuple[float, float]], list[str]]:

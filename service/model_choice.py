@@ -8,12 +8,18 @@ session's first frame and of a cut, and nowhere else, so a shot never switches m
 - its noise level as an equivalent spp: the renderer's own count where the header has one
   (`samples_from_header`), else estimated from the decoded colour without a reference
   (`estimate_spp`, calibrated on rendered frames by `bench/noise_calibration.py`);
+- how noisy the frame looks (`noise_statistic`, always measured when the service can decode
+  the colour): the same spp is a clean frame in a sunlit room and a speckled one in a room lit
+  through a window, and which model is good enough depends on that, not on the spp;
 - the session's target: `quality` (fast | balanced | best) and/or `latency_ms`;
 - each model's measured table (`ModelProfile.from_info`: `quietframe.metrics` in the ONNX
   metadata, written by measurements, docs/model-interface.md).
 
 The cheapest model whose expected PSNR is within the quality's tolerance of the best expected
-PSNR (among the models that fit the latency budget) wins.
+PSNR (among the models that fit the latency budget) wins. Expected PSNR comes from each model's
+`by_noise` points (validation sequences: the statistic of their first frame, the model's PSNR
+on them) weighted by closeness in log2 of the statistic, when every candidate has them and the
+frame's statistic is known; otherwise from the `by_spp` table at the frame's spp.
 """
 
 from __future__ import annotations
@@ -42,10 +48,20 @@ CYCLES_PREFIX, CYCLES_SUFFIX = "cycles.", ".samples"
 CALIBRATION_FILE = Path(__file__).with_name("noise_calibration.json")
 
 
+# Width (in log2 of the noise statistic) of the Gaussian weights over a model's by_noise points:
+# about the statistic's spread between frames of one sequence at one spp, and the step between
+# two spp levels (σ ∝ 1/spp^0.5 on rendered frames, service/noise_calibration.json).
+NOISE_BANDWIDTH_LOG2 = 0.75
+
+
 @dataclass(frozen=True)
 class NoiseLevel:
     spp: float
     source: str  # the header attribute it came from, "estimate" or "unknown"
+    # log2 of noise_statistic of the deciding frame (None: not measured), and whether it was
+    # demodulated by the frame's albedo (by_noise points carry both kinds).
+    log2_sigma: float | None = None
+    demodulated: bool = True
 
 
 @dataclass(frozen=True)
@@ -58,6 +74,8 @@ class ModelProfile:
     ms_720p: float | None = None
     psnr_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, PSNR), spp ascending
     absent_db: Mapping[str, float] = field(default_factory=dict)  # PSNR change, buffer absent
+    # (log2 σ demodulated, log2 σ of the colour alone, PSNR) per validation (sequence, spp)
+    psnr_by_noise: tuple[tuple[float, float, float], ...] = ()
 
     @classmethod
     def from_metadata(
@@ -67,6 +85,7 @@ class ModelProfile:
         rows = sorted((float(r["spp"]), float(r["psnr"])) for r in table if "psnr" in r)
         absent = metrics.get("absent_db") or {}
         ms = metrics.get("ms_720p")
+        points = (metrics.get("by_noise") or {}).get("points") or []
         return cls(
             name=name,
             required=tuple(required),
@@ -74,6 +93,7 @@ class ModelProfile:
             ms_720p=float(ms) if ms is not None else None,
             psnr_by_spp=tuple(rows),
             absent_db={k: float(v) for k, v in absent.items()},
+            psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in points),
         )
 
     @property
@@ -83,12 +103,24 @@ class ModelProfile:
     def accepts(self, present: Iterable[str]) -> bool:
         return set(self.required) <= set(present)
 
-    def expected_psnr(self, spp: float, present: Iterable[str]) -> float:
-        """PSNR at `spp`, linear in log2(spp) between measured levels and flat beyond them (no
-        extrapolation: a model is never credited with more than was measured), plus the
-        measured change for each optional buffer the frame lacks (0 where unmeasured)."""
-        levels = np.log2([s for s, _ in self.psnr_by_spp])
-        psnr = float(np.interp(math.log2(max(spp, 1e-3)), levels, [p for _, p in self.psnr_by_spp]))
+    def expected_psnr(self, spp: float, present: Iterable[str],
+                      noise: NoiseLevel | None = None) -> float:
+        """With `noise` (a measured statistic) and by_noise points: their PSNR weighted by
+        closeness of the statistic (Gaussian in log2 σ, NOISE_BANDWIDTH_LOG2), so a frame is
+        compared with validation sequences that looked as noisy. Otherwise the PSNR at `spp`,
+        linear in log2(spp) between measured levels and flat beyond them (no extrapolation: a
+        model is never credited with more than was measured). Either way plus the measured
+        change for each optional buffer the frame lacks (0 where unmeasured)."""
+        if noise is not None and noise.log2_sigma is not None and self.psnr_by_noise:
+            points = np.array(self.psnr_by_noise)
+            x = points[:, 0 if noise.demodulated else 1]
+            z = (x - noise.log2_sigma) / NOISE_BANDWIDTH_LOG2
+            weights = np.exp(-0.5 * (z**2 - np.min(z**2)))  # the nearest point weighs 1
+            psnr = float(weights @ points[:, 2] / weights.sum())
+        else:
+            levels = np.log2([s for s, _ in self.psnr_by_spp])
+            psnr = float(np.interp(math.log2(max(spp, 1e-3)), levels,
+                                   [p for _, p in self.psnr_by_spp]))
         have = set(present)
         return psnr + sum(self.absent_db.get(b, 0.0) for b in self.optional if b not in have)
 
@@ -104,6 +136,7 @@ class Choice:
     spp: float | None
     noise_source: str
     buffers: tuple[str, ...]  # what the deciding frame carried
+    log2_sigma: float | None = None  # the deciding frame's noise statistic (NoiseLevel)
     expected_psnr: float | None = None
     expected_ms: float | None = None
 
@@ -197,13 +230,23 @@ def spp_from_sigma(sigma: float, calibration: Mapping) -> float:
     return float(min(max(2.0**log_spp, lo), hi))
 
 
+def log2_statistic(sigma: float) -> float | None:
+    return math.log2(sigma) if sigma > 0 and math.isfinite(sigma) else None
+
+
 def estimate_spp(
-    color: np.ndarray, albedo: np.ndarray | None, calibration: Mapping | None
+    color: np.ndarray, albedo: np.ndarray | None, calibration: Mapping | None,
+    header: NoiseLevel | None = None,
 ) -> NoiseLevel:
+    """The frame's noise: the header's spp where given (`header`), else the calibrated estimate,
+    and in both cases the statistic itself (the choice's by_noise lookup)."""
+    sigma = noise_statistic(color, albedo)
+    measured = {"log2_sigma": log2_statistic(sigma), "demodulated": albedo is not None}
+    if header is not None:
+        return NoiseLevel(header.spp, header.source, **measured)
     if calibration is None:  # no fit shipped: the choice then plans for the noisiest input
-        return NoiseLevel(1.0, "unknown")
-    sigma = noise_statistic(color, albedo if calibration.get("demodulated", True) else None)
-    return NoiseLevel(round(spp_from_sigma(sigma, calibration), 2), "estimate")
+        return NoiseLevel(1.0, "unknown", **measured)
+    return NoiseLevel(round(spp_from_sigma(sigma, calibration), 2), "estimate", **measured)
 
 
 # ---- the choice -----------------------------------------------------------------------------
@@ -220,7 +263,8 @@ def choose(
 ) -> Choice:
     """The cheapest model expected to meet the target (see the module docstring)."""
     have = tuple(sorted(set(present)))
-    base = {"spp": noise.spp, "noise_source": noise.source, "buffers": have}
+    sigma = None if noise.log2_sigma is None else round(noise.log2_sigma, 3)
+    base = {"spp": noise.spp, "noise_source": noise.source, "buffers": have, "log2_sigma": sigma}
     accepting = [p for p in profiles if p.accepts(have)]
     if not accepting:  # the frame check then names the buffers and the models that take them
         return Choice(default, f"no installed model accepts buffers {list(have)}", **base)
@@ -229,7 +273,12 @@ def choose(
         name = default if any(p.name == default for p in accepting) else accepting[0].name
         return Choice(name, "no measured speed/error table: the default model", **base)
     quality = quality or DEFAULT_QUALITY
-    scored = [(p, p.expected_psnr(noise.spp, have), p.expected_ms(pixels)) for p in measured]
+    # by_noise only when every candidate has it: absolute PSNRs from different tables (or
+    # different validation points) are not comparable.
+    by_noise = noise.log2_sigma is not None and all(p.psnr_by_noise for p in measured)
+    lookup = noise if by_noise else None
+    scored = [(p, p.expected_psnr(noise.spp, have, lookup), p.expected_ms(pixels))
+              for p in measured]
     pool, budget_note = scored, ""
     if latency_ms is not None:
         fits = [s for s in scored if s[2] <= latency_ms]
@@ -253,8 +302,9 @@ def choose(
         "the best expected" if profile.name == best_name
         else f"within {tolerance:g} dB of {best_name}"
     )
+    looks = (f", looks like log2 σ {noise.log2_sigma:.2f} (by_noise)" if by_noise else "")
     reason = (
-        f"{quality}: cheapest within tolerance at {noise.spp:g} spp ({noise.source}); "
+        f"{quality}: cheapest within tolerance at {noise.spp:g} spp ({noise.source}{looks}); "
         f"{psnr:.2f} dB expected, {relation}{budget_note}"
     )
     return Choice(

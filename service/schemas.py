@@ -121,6 +121,8 @@ class ChoicePublic(BaseModel):
     spp: float | None = Field(description="noise level as equivalent samples per pixel")
     noise_source: str = Field(description="header attribute read, 'estimate' or 'unknown'")
     buffers: list[str] = Field(description="buffers the deciding frame carried")
+    log2_sigma: float | None = Field(
+        None, description="log2 of the deciding frame's measured noise statistic")
     expected_psnr: float | None = None
     expected_ms: float | None = None
 

@@ -546,11 +546,11 @@ class SessionRegistry:
         sources: dict[str, frames.Source],
     ) -> Choice:
         """model=auto for a shot: the renderer's sample count from the header where it wrote
-        one, else estimated from the decoded colour (and albedo) on the worker pool."""
+        one, else estimated from the decoded colour (and albedo) on the worker pool, which
+        also measures how noisy the frame looks (model_choice.noise_statistic)."""
         spec = session.spec
-        noise = model_choice.samples_from_header(header.attributes, spec.layer)
-        if noise is None:
-            noise = await self._on_pool(self._estimate_noise, body, sources)
+        stated = model_choice.samples_from_header(header.attributes, spec.layer)
+        noise = await self._on_pool(self._estimate_noise, body, sources, stated)
         return model_choice.choose(
             sources,
             noise,
@@ -562,11 +562,15 @@ class SessionRegistry:
         )
 
     def _estimate_noise(
-        self, body: bytes | bytearray, sources: dict[str, frames.Source]
+        self,
+        body: bytes | bytearray,
+        sources: dict[str, frames.Source],
+        stated: model_choice.NoiseLevel | None,
     ) -> model_choice.NoiseLevel:
         planes = frames.decode(body, {b: sources[b] for b in ("color", "albedo") if b in sources})
         return model_choice.estimate_spp(
-            planes.buffers["color"], planes.buffers.get("albedo"), self.models.calibration
+            planes.buffers["color"], planes.buffers.get("albedo"), self.models.calibration,
+            header=stated,
         )
 
     def _reserve_reply(self, session: Session, reply_bytes: int, info: ModelInfo) -> None:

@@ -120,5 +120,54 @@ def test_estimate_maps_through_the_calibration():
     estimates = [estimate_spp(*_noisy_frame(s, seed=3), calibration).spp for s in (1, 4, 16)]
     assert estimates[0] < estimates[1] < estimates[2]
     assert 0.5 < estimates[1] / 4 < 2, estimates
-    assert estimate_spp(*_noisy_frame(4), None) == NoiseLevel(1.0, "unknown")
+    unknown = estimate_spp(*_noisy_frame(4), None)
+    assert (unknown.spp, unknown.source) == (1.0, "unknown")
     assert spp_from_sigma(0.0, calibration) == 64
+
+
+def _with_points(name, ms, points, required=("color", "albedo", "normal", "depth")):
+    """A profile whose by_noise points are (log2 σ, PSNR); the colour-only σ one unit higher."""
+    return profile(name, ms, [(1, 25.0), (16, 30.0)], required=required,
+                   by_noise={"points": [[x, x + 1, p] for x, p in points]})
+
+
+# On clean-looking validation sequences (low σ) the expensive model is 1 dB ahead; on noisy-
+# looking ones both are limited by the noise and 0.1 dB apart.
+QUALITY = _with_points("quality", 100, [(-6, 36.0), (-5, 35.0), (2, 21.0), (3, 20.0)])
+QUICK = _with_points("quick", 60, [(-6, 35.0), (-5, 34.0), (2, 20.9), (3, 19.9)])
+
+
+@pytest.mark.parametrize(("log2_sigma", "expected"), [(-5.5, "quality"), (2.5, "quick")])
+def test_by_noise_points_decide_at_the_same_spp(log2_sigma, expected):
+    noise = NoiseLevel(4, "cycles.ViewLayer.samples", log2_sigma=log2_sigma)
+    choice = choose(ALL, noise, [QUALITY, QUICK], "quick", quality="balanced")
+    assert choice.model == expected, choice.reason
+    assert "by_noise" in choice.reason and choice.log2_sigma == log2_sigma
+    # without the statistic both fall back to the by_spp tables, which are equal: the cheaper
+    assert choose(ALL, NoiseLevel(4, "x"), [QUALITY, QUICK], "quick").model == "quick"
+
+
+def test_by_noise_weights_nearby_points_and_uses_the_matching_statistic():
+    demodulated = NoiseLevel(1, "x", log2_sigma=-5.5)
+    assert QUALITY.expected_psnr(1, ALL, demodulated) == pytest.approx(35.5, abs=0.01)
+    far = NoiseLevel(1, "x", log2_sigma=40.0)  # far beyond every point: the nearest decides
+    assert QUALITY.expected_psnr(1, ALL, far) == pytest.approx(20.0, abs=0.01)
+    colour = NoiseLevel(1, "x", log2_sigma=-4.5, demodulated=False)  # = demodulated -5.5
+    assert QUALITY.expected_psnr(1, ALL, colour) == pytest.approx(35.5, abs=0.01)
+
+
+def test_by_noise_needs_every_candidate_to_have_points():
+    # CHEAP has only a by_spp table: mixing the two kinds of figures would compare unrelated
+    # absolute PSNRs, so the by_spp tables decide for all.
+    choice = choose(ALL, NoiseLevel(16, "x", log2_sigma=-5.5), [QUALITY, CHEAP], "cheap",
+                    quality="fast")
+    assert "by_noise" not in choice.reason and choice.model == "cheap"
+
+
+def test_estimate_keeps_the_stated_spp_and_measures_the_statistic():
+    color, albedo = _noisy_frame(4)
+    stated = estimate_spp(color, albedo, None, header=NoiseLevel(16, "cycles.A.samples"))
+    assert (stated.spp, stated.source) == (16, "cycles.A.samples")
+    assert stated.log2_sigma == pytest.approx(np.log2(noise_statistic(color, albedo)))
+    assert stated.demodulated
+    assert estimate_spp(color, None, None).demodulated is False
