@@ -11,8 +11,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-export", description=__doc__)
     parser.add_argument("--variant", default="nbg-2l-3g",
                         help="architecture when untrained (nbg-…, oidn-temporal-…, affinity-…); "
-                             "'accumulation' = "
-                             "the pre-stage alone")
+                             "'accumulation' = the pre-stage alone; oidn-acc, oidn-fast-acc = "
+                             "OIDN on the accumulation, no learned stage")
     parser.add_argument("--checkpoint", type=Path, help="training checkpoint (.pt)")
     parser.add_argument("--width", type=int, help="GuideNet width (untrained only)")
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
@@ -33,6 +33,13 @@ def main(argv: list[str] | None = None) -> int:
     from quietframe.model import affinity, oidn_temporal
     from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
 
+    if args.variant in oidn_temporal.OIDN_ONLY_VARIANTS and not args.checkpoint:
+        from quietframe.export.onnx_export import export_oidn_only
+
+        path = export_oidn_only(oidn_temporal.OIDN_ONLY_VARIANTS[args.variant], args.out,
+                                version=args.version)
+        print(f"wrote {path}")
+        return card(path, args)
     if args.variant == "accumulation" and not args.checkpoint:
         model, training, metrics = AccumulationDenoiser(), {"trained": False}, {}
     elif args.checkpoint:
@@ -65,6 +72,11 @@ def main(argv: list[str] | None = None) -> int:
     export = export_affinity if isinstance(model, affinity.AffinityDenoiser) else export_nbg
     path = export(model, args.out, version=args.version, training=training, metrics=metrics)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
+    return card(path, args)
+
+
+def card(path: Path, args: argparse.Namespace) -> int:
+    """--card: the model card, with --evaluation's rows stamped into the metadata first."""
     if args.card:
         import json
 

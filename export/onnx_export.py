@@ -21,9 +21,10 @@ from torch import Tensor, nn
 from quietframe.model import affinity_kernels
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
-from quietframe.model.oidn_temporal import OIDNTemporal
+from quietframe.model.oidn_temporal import OIDNOnlyConfig, OIDNTemporal
 from quietframe.model.temporal import WARP_MODES
 from quietframe.runtime.buffers import BUFFER_NAMES
+from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS
 from quietframe.runtime.ops_library import OPS_DOMAIN
 
 OPSET = 18
@@ -233,6 +234,23 @@ def export_nbg(
     state = [{"name": STATE_NAME, "channels": model.state_channels}]
     metadata = model_metadata(config, version, state, training, metrics, **extra)
     return save_described(program.model_proto, metadata, path)
+
+
+def export_oidn_only(config: OIDNOnlyConfig, path: Path, *, version: str = "0") -> Path:
+    """Write a prepass-only composition (model/oidn_temporal.OIDNOnlyConfig): a graph that
+    passes the prepass result `oidn` through as `denoised`, with no state of its own (the
+    color_from model keeps its own); the runtime does the rest from the metadata."""
+    dims = [1, 3, "height", "width"]
+    graph = onnx.helper.make_graph(
+        [onnx.helper.make_node("Identity", ["oidn"], ["denoised"])], config.name,
+        [onnx.helper.make_tensor_value_info("oidn", onnx.TensorProto.FLOAT, dims)],
+        [onnx.helper.make_tensor_value_info("denoised", onnx.TensorProto.FLOAT, dims)])
+    proto = onnx.helper.make_model(graph, opset_imports=[onnx.helper.make_opsetid("", OPSET)])
+    metadata = model_metadata(config, version, [], {"trained": False, "learned_stage": False},
+                              {}, prepass=config.prepass())
+    metadata["quietframe.buffers.required"] = json.dumps(list(PREPASS_BUFFERS))
+    metadata["quietframe.buffers.optional"] = json.dumps([])
+    return save_described(proto, metadata, path)
 
 
 def model_metadata(

@@ -75,13 +75,42 @@ class OIDNTemporalConfig:
 
     def prepass(self) -> dict:
         """The model metadata's quietframe.prepass: what the runtime runs before the graph."""
-        spec = {"oidn": {"quality": self.quality, "prefilter_aux": self.prefilter_aux},
-                "input": "oidn"}
-        return {**spec, "color_from": self.color_from} if self.color_from else spec
+        return prepass_spec(self.quality, self.prefilter_aux, self.color_from)
 
     def prepass_settings(self) -> OIDNSettings:
         """The prepass as the runtime reads it back from the metadata (training feeds the same)."""
         return read_prepass({PREPASS_KEY: json.dumps(self.prepass())})
+
+
+def prepass_spec(quality: str, prefilter_aux: bool, color_from: str) -> dict:
+    spec = {"oidn": {"quality": quality, "prefilter_aux": prefilter_aux}, "input": "oidn"}
+    return {**spec, "color_from": color_from} if color_from else spec
+
+
+@dataclass(frozen=True)
+class OIDNOnlyConfig:
+    """A composition without a learned stage: the prepass (OIDN on a color_from model's output)
+    is the whole denoiser, and the graph passes OIDN's output through. On the reprojected
+    accumulation the learned stage of oidn-temporal-acc converged to the identity (λ = 0, delta
+    kernels; docs/training.md), so its cost bought nothing there: these variants drop it, and
+    their temporal stability is the accumulation's."""
+
+    name: str
+    quality: str = "high"
+    prefilter_aux: bool = False
+    color_from: str = "accumulation.onnx"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def prepass(self) -> dict:
+        return prepass_spec(self.quality, self.prefilter_aux, self.color_from)
+
+
+OIDN_ONLY_VARIANTS: dict[str, OIDNOnlyConfig] = {
+    "oidn-acc": OIDNOnlyConfig(name="oidn-acc"),
+    "oidn-fast-acc": OIDNOnlyConfig(name="oidn-fast-acc", quality="fast"),
+}
 
 
 VARIANTS: dict[str, OIDNTemporalConfig] = {

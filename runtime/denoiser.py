@@ -276,7 +276,8 @@ class Denoiser:
                     f"state {spec.name!r} has shape {tensor.shape}, frame is {height}x{width}"
                 )
             feeds[f"state_in.{spec.name}"] = tensor
-        feeds["reset"] = np.array([1.0 if fresh else 0.0], np.float32)
+        if "reset" in self.input_names:  # a prepass-only graph has no history of its own
+            feeds["reset"] = np.array([1.0 if fresh else 0.0], np.float32)
         outputs = self._run(feeds, height, width)
         color, bad = sanitize_output(outputs["denoised"][0])
         if bad:

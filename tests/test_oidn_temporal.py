@@ -510,3 +510,31 @@ def test_service_serves_the_accumulated_tier_and_restores_its_state(accumulated_
                             headers={"content-type": "image/x-exr"})
         assert reply.status_code == 200, reply.text
         assert reply.headers[Header.RESET] == Reset.NONE.value
+
+
+@needs_pyoidn
+def test_oidn_only_composition_is_oidn_of_the_accumulation(accumulated_tier):
+    """oidn-acc: no learned stage and no state of its own; its output is OIDN of the
+    accumulation model's output, frame after frame, and a reset restarts the accumulation."""
+    from quietframe.export.onnx_export import export_oidn_only
+
+    path = export_oidn_only(ot.OIDN_ONLY_VARIANTS["oidn-acc"],
+                            accumulated_tier.parent / "oidn-acc.onnx", version="t")
+    runtime = Denoiser(path, threads=1)
+    alone = Denoiser(accumulated_tier.parent / "accumulation.onnx", threads=1)
+    assert [s.name for s in runtime.info.state_specs] == ["color_from.accumulation"]
+    assert set(runtime.info.required_buffers) == {"color", "albedo", "normal", "depth"}
+    assert json.loads(runtime.info.metadata["quietframe.prepass"])["color_from"] == \
+        "accumulation.onnx"
+    state, alone_state = None, None
+    for index in range(FRAMES):
+        frame = moving_frames(index)
+        result = runtime.denoise(frame, state)
+        expected = alone.denoise(frame, alone_state)
+        state, alone_state = result.state, expected.state
+        oidn = runtime.prepass({"color": expected.color, "albedo": frame["albedo"],
+                                "normal": frame["normal"]})[0]
+        np.testing.assert_allclose(result.color, oidn, rtol=1e-6, atol=1e-6)
+    assert state["color_from.accumulation"][0, 7].max() > 1  # history did accumulate
+    fresh = runtime.denoise(moving_frames(0), None)
+    assert fresh.state["color_from.accumulation"][0, 7].max() == 1
