@@ -60,9 +60,12 @@ def prepass_lines(runtime: Denoiser, threads: int) -> list[str]:
     settings = runtime.prepass.settings
     source = (f"on the output of `{settings.color_from}` (run first, with its own state)"
               if settings.color_from else "on the frame")
-    return [f"Runs Open Image Denoise first {source} (quality {settings.quality}, prefiltered "
-            f"aux {settings.prefilter_aux}; needs pyoidn), then the graph on its output: OIDN "
-            f"{t['oidn'].median_ms:.0f} ms, temporal stage {t['stage'].median_ms:.0f} ms "
+    graph = ("then the graph on its output" if "reset" in runtime.input_names
+             else "and returns its output (no learned stage)")
+    return [f"Runs Open Image Denoise {source} (quality {settings.quality}, prefiltered "
+            f"aux {settings.prefilter_aux}; needs pyoidn), {graph}: OIDN "
+            f"{t['oidn'].median_ms:.0f} ms, quietframe's part (the `color_from` model and the "
+            f"graph) {t['stage'].median_ms:.0f} ms "
             f"({100 * t['stage'].median_ms / t['oidn'].median_ms:.0f}% of OIDN), median of 3 "
             "(bench/oidn_temporal.py).", ""]
 

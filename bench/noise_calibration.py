@@ -75,7 +75,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     data = args.data.expanduser()
     points, used = ([], []) if args.synthetic else rendered_points(data, args.max_frames)
-    source = f"rendered: {len(used)} frames under {args.data}: {used}"
+    sequences = sorted({path.split("/")[-2] for path in used})
+    source = (f"rendered: {len(used)} frames of {len(sequences)} validation sequences under "
+              f"{args.data} ({', '.join(sequences)})")
     if len(points) < 4:
         points = synthetic_points()
         source = "synthetic (no rendered frames): figures not meaningful"

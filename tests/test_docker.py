@@ -157,6 +157,9 @@ def test_image_recipe_in_a_fresh_virtualenv(tmp_path):
     probe = (
         "import importlib.util as u, pathlib, quietframe.models as m;"
         "assert u.find_spec('torch') is None, 'torch in the serving image';"
+        "import platform, sys;"
+        "x86 = sys.platform == 'linux' and platform.machine() == 'x86_64';"
+        "assert u.find_spec('pyoidn') is not None or not x86, 'no OIDN in the serving image';"
         "print(len(list(pathlib.Path(m.MODELS_DIR).glob('*.onnx'))))"
     )
     shipped = subprocess.run([python, "-c", probe], capture_output=True, text=True, env=env)
@@ -181,6 +184,9 @@ def test_image_recipe_in_a_fresh_virtualenv(tmp_path):
         from quietframe.client import Client
 
         with Client(f"http://127.0.0.1:{port}") as client:
+            offered = {m["name"] for m in client.models()["models"]}
+            if sys.platform == "linux" and os.uname().machine == "x86_64":
+                assert "oidn-temporal-acc" in offered, offered  # the OIDN tiers are served
             session = client.create_session(64, 48)
             assert (
                 client.send_frame(session["id"], 0, frame_bytes("blender")).reset == "first-frame"
