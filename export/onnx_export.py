@@ -248,8 +248,10 @@ def export_oidn_only(config: OIDNOnlyConfig, path: Path, *, version: str = "0") 
     proto = onnx.helper.make_model(graph, opset_imports=[onnx.helper.make_opsetid("", OPSET)])
     metadata = model_metadata(config, version, [], {"trained": False, "learned_stage": False},
                               {}, prepass=config.prepass())
-    metadata["quietframe.buffers.required"] = json.dumps(list(PREPASS_BUFFERS))
-    metadata["quietframe.buffers.optional"] = json.dumps([])
+    # OIDN runs with the colour alone when albedo/normal are absent (runtime/oidn_prepass.py);
+    # a color_from model adds its own requirements (runtime/denoiser.compose_info).
+    metadata["quietframe.buffers.required"] = json.dumps(list(PREPASS_BUFFERS[:1]))
+    metadata["quietframe.buffers.optional"] = json.dumps(list(PREPASS_BUFFERS[1:]))
     return save_described(proto, metadata, path)
 
 

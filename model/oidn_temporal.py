@@ -89,8 +89,9 @@ def prepass_spec(quality: str, prefilter_aux: bool, color_from: str) -> dict:
 
 @dataclass(frozen=True)
 class OIDNOnlyConfig:
-    """A composition without a learned stage: the prepass (OIDN on a color_from model's output)
-    is the whole denoiser, and the graph passes OIDN's output through. On the reprojected
+    """A composition without a learned stage: the prepass (OIDN on the frame, or on a
+    color_from model's output) is the whole denoiser, and the graph passes OIDN's output
+    through. On the reprojected
     accumulation the learned stage of oidn-temporal-acc converged to the identity (λ = 0, delta
     kernels; docs/training.md), so its cost bought nothing there: these variants drop it, and
     their temporal stability is the accumulation's."""
@@ -110,6 +111,10 @@ class OIDNOnlyConfig:
 OIDN_ONLY_VARIANTS: dict[str, OIDNOnlyConfig] = {
     "oidn-acc": OIDNOnlyConfig(name="oidn-acc"),
     "oidn-fast-acc": OIDNOnlyConfig(name="oidn-fast-acc", quality="fast"),
+    # OIDN on each frame alone: for frames without the depth/normal the accumulation's surface
+    # test needs (colour only, no albedo, ...), where it is well ahead of NBG in PSNR and in
+    # flicker (docs/benchmarks.md, buffer absence); it runs with whatever aux the frame has.
+    "oidn-frame": OIDNOnlyConfig(name="oidn-frame", color_from=""),
 }
 
 

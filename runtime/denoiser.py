@@ -255,8 +255,10 @@ class Denoiser:
         fresh = state is None
         color_state: dict[str, np.ndarray] = {}
         if self.prepass is not None:
-            # The sanitised planes, so OIDN sees exactly what a plain graph would.
-            oidn_planes = {name: feeds[name][0] for name in PREPASS_BUFFERS}
+            # The sanitised planes, so OIDN sees exactly what a plain graph would; an absent
+            # aux buffer is left out (OIDN then runs without it), not given as zeros.
+            oidn_planes = {name: feeds[name][0] for name in PREPASS_BUFFERS
+                           if name not in missing}
             if self.color_stage is not None:
                 first = self.color_stage.denoise(
                     {k: v[0] for k, v in feeds.items() if k in BUFFER_CHANNELS},

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -90,24 +90,35 @@ def import_pyoidn():
     return pyoidn
 
 
-class _FilterSet:
-    """Committed RT filters for one frame size on one device, with the arrays they bind."""
+def usable_aux(wanted: tuple[str, ...], present: Iterable[str]) -> tuple[str, ...]:
+    """The aux images OIDN gets for a frame: those wanted that the frame has, a normal only
+    together with an albedo (OIDN's rule)."""
+    have = set(present)
+    if "albedo" not in have:
+        return ()
+    return tuple(name for name in wanted if name in have)
 
-    def __init__(self, pyoidn, device, settings: OIDNSettings, shape: tuple[int, int]) -> None:
+
+class _FilterSet:
+    """Committed RT filters for one frame size and aux set on one device, with the arrays they
+    bind."""
+
+    def __init__(self, pyoidn, device, settings: OIDNSettings, shape: tuple[int, int],
+                 aux: tuple[str, ...]) -> None:
         self._oidn, self._device = pyoidn, device
-        self.inputs = ("color", *settings.aux)
+        self.inputs = ("color", *aux)
         names = [*self.inputs, "output"]
         if settings.prefilter_aux:
-            names += [f"clean_{name}" for name in settings.aux]
+            names += [f"clean_{name}" for name in aux]
         # (H, W, 3) interleaved: OIDN's FLOAT3 layout; the runtime's planes are copied in.
         self.bound = {k: np.zeros((*shape, 3), np.float32) for k in names}
         self.filters: list = []  # execution order: [albedo, normal,] main
-        aux = {name: name for name in settings.aux}
+        images = {name: name for name in aux}
         if settings.prefilter_aux:
-            for name in settings.aux:
+            for name in aux:
                 self._add({name: name, "output": f"clean_{name}"}, settings)
-            aux = {name: f"clean_{name}" for name in settings.aux}
-        self._add({"color": "color", **aux, "output": "output"}, settings)
+            images = {name: f"clean_{name}" for name in aux}
+        self._add({"color": "color", **images, "output": "output"}, settings)
 
     def _add(self, images: dict[str, str], settings: OIDNSettings) -> None:
         oidn = self._oidn
@@ -151,7 +162,7 @@ class _ThreadResources:
             self.device.set_int("numThreads", num_threads)
         self.device.commit()
         _check(self.device, "device creation")
-        self.sets: OrderedDict[tuple[int, int], _FilterSet] = OrderedDict()
+        self.sets: OrderedDict[tuple, _FilterSet] = OrderedDict()  # by (H, W, aux)
 
     def close(self) -> None:
         for filter_set in self.sets.values():
@@ -182,24 +193,28 @@ class OIDNPrepass:
                 self.devices_created += 1
         return resources
 
-    def _filter_set(self, shape: tuple[int, int]) -> _FilterSet:
+    def _filter_set(self, shape: tuple[int, int], aux: tuple[str, ...]) -> _FilterSet:
         resources = self._resources()
-        filter_set = resources.sets.get(shape)
+        key = (*shape, aux)
+        filter_set = resources.sets.get(key)
         if filter_set is None:
-            filter_set = _FilterSet(self._oidn, resources.device, self.settings, shape)
-            resources.sets[shape] = filter_set
+            filter_set = _FilterSet(self._oidn, resources.device, self.settings, shape, aux)
+            resources.sets[key] = filter_set
             with self._lock:
                 self.filter_sets_built += 1
             while len(resources.sets) > SIZES_PER_THREAD:
                 resources.sets.popitem(last=False)[1].close()
-        resources.sets.move_to_end(shape)
+        resources.sets.move_to_end(key)
         return filter_set
 
     def __call__(self, planes: Mapping[str, np.ndarray]) -> np.ndarray:
-        """OIDN's output (1, 3, H, W) float32 for sanitised color/albedo/normal planes."""
+        """OIDN's output (1, 3, H, W) float32 for sanitised (3, H, W) planes: the colour, and
+        the settings' aux images the frame has (absent ones are not given to OIDN: it filters
+        the colour alone, or with the albedo alone, rather than read zeros as a black albedo)."""
         _, height, width = planes["color"].shape
         out = np.empty((1, 3, height, width), np.float32)
-        self._filter_set((height, width)).run(planes, out[0])
+        aux = usable_aux(self.settings.aux, planes)
+        self._filter_set((height, width), aux).run(planes, out[0])
         return out
 
     def close(self) -> None:

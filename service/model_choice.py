@@ -15,8 +15,9 @@ session's first frame and of a cut, and nowhere else, so a shot never switches m
 - each model's measured table (`ModelProfile.from_info`: `quietframe.metrics` in the ONNX
   metadata, written by measurements, docs/model-interface.md).
 
-The cheapest model whose expected PSNR is within the quality's tolerance of the best expected
-PSNR (among the models that fit the latency budget) wins. Expected PSNR comes from each model's
+Among the models that fit the latency budget and flicker no more than STABILITY_SLACK above the
+steadiest of them (measured TRMAE), the cheapest whose expected PSNR is within the quality's
+tolerance of the best expected PSNR wins. Expected PSNR comes from each model's
 `by_noise` points (validation sequences: the statistic of their first frame, the model's PSNR
 on them) weighted by closeness in log2 of the statistic, when every candidate has them and the
 frame's statistic is known; otherwise from the `by_spp` table at the frame's spp.
@@ -36,6 +37,11 @@ import numpy as np
 # dB below the best expected PSNR a quality accepts in exchange for speed. "balanced" matches
 # the acceptance target of bench/auto_choice.py (within 0.3 dB of the best fixed model).
 QUALITY_TOLERANCE_DB = {"fast": 1.0, "balanced": 0.3, "best": 0.0}
+# Stability first: a model whose measured TRMAE is more than this fraction above the steadiest
+# candidate's is not chosen, whatever its PSNR. quietframe's promise is a stable sequence; OIDN
+# on each frame alone can beat the accumulated tiers in PSNR at 8-16 spp while flickering more
+# (docs/benchmarks.md), and auto must not trade that away.
+STABILITY_SLACK = 0.10
 DEFAULT_QUALITY = "balanced"
 REFERENCE_PIXELS = 1280 * 720  # `ms_720p` is per 1280×720 frame
 
@@ -73,6 +79,7 @@ class ModelProfile:
     optional: tuple[str, ...]
     ms_720p: float | None = None
     psnr_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, PSNR), spp ascending
+    trmae_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, TRMAE) where measured
     absent_db: Mapping[str, float] = field(default_factory=dict)  # PSNR change, buffer absent
     # (log2 σ demodulated, log2 σ of the colour alone, PSNR) per validation (sequence, spp)
     psnr_by_noise: tuple[tuple[float, float, float], ...] = ()
@@ -83,6 +90,8 @@ class ModelProfile:
     ) -> ModelProfile:
         table = metrics.get("by_spp") or []
         rows = sorted((float(r["spp"]), float(r["psnr"])) for r in table if "psnr" in r)
+        flicker = sorted((float(r["spp"]), float(r["trmae"])) for r in table
+                         if isinstance(r.get("trmae"), (int, float)) and math.isfinite(r["trmae"]))
         absent = metrics.get("absent_db") or {}
         ms = metrics.get("ms_720p")
         points = (metrics.get("by_noise") or {}).get("points") or []
@@ -92,6 +101,7 @@ class ModelProfile:
             optional=tuple(optional),
             ms_720p=float(ms) if ms is not None else None,
             psnr_by_spp=tuple(rows),
+            trmae_by_spp=tuple(flicker),
             absent_db={k: float(v) for k, v in absent.items()},
             psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in points),
         )
@@ -123,6 +133,14 @@ class ModelProfile:
                                    [p for _, p in self.psnr_by_spp]))
         have = set(present)
         return psnr + sum(self.absent_db.get(b, 0.0) for b in self.optional if b not in have)
+
+    def expected_trmae(self, spp: float) -> float | None:
+        """Measured flicker (TRMAE, all buffers) at `spp`, as expected_psnr interpolates."""
+        if not self.trmae_by_spp:
+            return None
+        levels = np.log2([s for s, _ in self.trmae_by_spp])
+        return float(np.interp(math.log2(max(spp, 1e-3)), levels,
+                               [t for _, t in self.trmae_by_spp]))
 
     def expected_ms(self, pixels: int) -> float:
         assert self.ms_720p is not None
@@ -293,6 +311,15 @@ def choose(
                 expected_psnr=round(fastest[1], 2),
                 expected_ms=round(fastest[2], 3),
             )
+    flicker = {s[0].name: s[0].expected_trmae(noise.spp) for s in pool}
+    steadiest = min((t for t in flicker.values() if t is not None), default=None)
+    if steadiest is not None:
+        steady = [s for s in pool if flicker[s[0].name] is None
+                  or flicker[s[0].name] <= (1 + STABILITY_SLACK) * steadiest]
+        if len(steady) < len(pool):
+            budget_note += (f", {len(pool) - len(steady)} flickering more than "
+                            f"{1 + STABILITY_SLACK:g}× the steadiest left out")
+        pool = steady
     best_psnr = max(s[1] for s in pool)
     tolerance = QUALITY_TOLERANCE_DB[quality]
     good = [s for s in pool if s[1] >= best_psnr - tolerance - 1e-9]

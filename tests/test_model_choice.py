@@ -171,3 +171,26 @@ def test_estimate_keeps_the_stated_spp_and_measures_the_statistic():
     assert stated.log2_sigma == pytest.approx(np.log2(noise_statistic(color, albedo)))
     assert stated.demodulated
     assert estimate_spp(color, None, None).demodulated is False
+
+
+def _flicker(name, ms, psnr, trmae, required=("color",)):
+    metrics = {"ms_720p": ms, "by_spp": [{"spp": s, "psnr": psnr, "trmae": trmae} for s in (1, 16)]}
+    return ModelProfile.from_metadata(name, required, (), metrics)
+
+
+def test_a_model_that_flickers_more_is_not_chosen_for_its_psnr():
+    steady = _flicker("accumulated", 100, 30.0, 0.80)
+    per_frame = _flicker("per-frame", 90, 30.4, 1.00)  # higher PSNR, cheaper, 25% more flicker
+    for quality in ("fast", "balanced", "best"):
+        choice = choose(ALL, NoiseLevel(16, "x"), [steady, per_frame], "accumulated",
+                        quality=quality)
+        assert choice.model == "accumulated", choice.reason
+        assert "flickering more" in choice.reason
+    # within the slack both stay candidates: then the cheaper within tolerance wins
+    close = _flicker("per-frame", 90, 30.1, 0.85)
+    assert choose(ALL, NoiseLevel(16, "x"), [steady, close], "accumulated").model == "per-frame"
+    # the guard never leaves the pool empty, and a model without TRMAE is not judged by it
+    assert choose(("color",), NoiseLevel(4, "x"), [per_frame], "x").model == "per-frame"
+    unmeasured_flicker = profile("no-trmae", 200, [(1, 31.0), (16, 31.0)])
+    assert choose(ALL, NoiseLevel(4, "x"), [steady, unmeasured_flicker], "x",
+                  quality="best").model == "no-trmae"

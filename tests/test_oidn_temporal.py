@@ -538,3 +538,31 @@ def test_oidn_only_composition_is_oidn_of_the_accumulation(accumulated_tier):
     assert state["color_from.accumulation"][0, 7].max() > 1  # history did accumulate
     fresh = runtime.denoise(moving_frames(0), None)
     assert fresh.state["color_from.accumulation"][0, 7].max() == 1
+
+
+@needs_pyoidn
+def test_absent_aux_buffers_are_left_out_of_oidn_not_given_as_zeros(tmp_path):
+    """oidn-frame takes any frame with a colour: without albedo OIDN filters the colour alone
+    (a normal only counts together with an albedo), with the albedo alone colour + albedo; each
+    aux set gets filters of its own."""
+    from quietframe.bench.baselines import OIDNDenoiser
+    from quietframe.export.onnx_export import export_oidn_only
+
+    path = export_oidn_only(ot.OIDN_ONLY_VARIANTS["oidn-frame"], tmp_path / "oidn-frame.onnx")
+    runtime = Denoiser(path, threads=1)
+    assert runtime.info.required_buffers == ("color",)
+    assert runtime.info.optional_buffers == ("albedo", "normal") and not runtime.info.state_specs
+    frame = moving_frames(2)
+    hwc = {b: frame[b].transpose(1, 2, 0) for b in (*PREPASS_BUFFERS, "depth", "motion")}
+    cases = [((), ("color",)), ((), ("color", "normal")), (("albedo",), ("color", "albedo")),
+             (("albedo", "normal"), PREPASS_BUFFERS)]
+    for aux, present in cases:
+        result = runtime.denoise({b: frame[b] for b in present}, None)
+        reference = OIDNDenoiser("high", num_threads=1, aux=aux)(hwc)
+        np.testing.assert_allclose(result.color.transpose(1, 2, 0), reference, rtol=1e-5,
+                                   atol=1e-5, err_msg=f"{present}")
+        assert result.missing == tuple(b for b in ("albedo", "normal") if b not in present)
+    zeros = OIDNDenoiser("high", num_threads=1)(hwc | {"albedo": 0 * hwc["albedo"],
+                                                      "normal": 0 * hwc["normal"]})
+    colour_only = runtime.denoise({"color": frame["color"]}, None).color.transpose(1, 2, 0)
+    assert np.abs(colour_only - zeros).max() > 1e-3  # what feeding zeros would have given
