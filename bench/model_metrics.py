@@ -4,9 +4,10 @@
 
 The rows of one `quietframe-eval` run (benchmarks.json: method = model file stem) become
 `by_spp` (spp, PSNR, TRMAE) and `ms_720p` (the same run's 1280×720 timing), with the run's
-command and machine as `measured`; `--absent` adds `absent_db` from bench/auto_choice.py's
-buffer-absence rows; `--noise-points` adds `by_noise` from a validation run of
-bench/auto_choice.py (rows with every buffer: the first frame's log2 noise statistic,
+command and machine as `measured`; `--absent` adds `absent_db` (mean PSNR change per absent
+buffer) and `absent_db_worst` (the largest loss over the run's sequences) from
+bench/auto_choice.py's buffer-absence rows; `--noise-points` adds `by_noise` from a validation
+run of bench/auto_choice.py (rows with every buffer: the first frame's log2 noise statistic,
 demodulated and not, and the model's PSNR on the sequence; service/model_choice.py).
 Existing keys (training's validation score) are kept. Nothing here is typed in: `model=auto`
 reads what a measurement wrote (docs/model-interface.md).
@@ -48,6 +49,22 @@ def noise_points(result: dict, model: str) -> dict | None:
                                            "data": result["meta"]["data"]}}
 
 
+def worst_absent_db(result: dict, model: str) -> dict[str, float]:
+    """Per absent buffer, the largest PSNR loss over the run's (sequence, spp) entries: what
+    `model=auto` plans for (a missing motion buffer costs an accumulating model ~0 on a static
+    shot and 2-3 dB on a moving camera; the mean hides that)."""
+    none = {(e["sequence"], e["spp"]): e[model]["psnr"] for e in result["absence"]
+            if e["absent"] == "none" and model in e}
+    worst: dict[str, float] = {}
+    for e in result["absence"]:
+        key = (e["sequence"], e["spp"])
+        if e["absent"] in ("none", "all-aux") or model not in e or key not in none:
+            continue
+        change = e[model]["psnr"] - none[key]
+        worst[e["absent"]] = round(min(worst.get(e["absent"], 0.0), change), 3)
+    return worst
+
+
 def stamp(path: Path, additions: dict) -> dict:
     """Merge `additions` into the file's `quietframe.metrics` (rewrites the file in place)."""
     model = onnx.load(str(path))
@@ -70,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="auto_choice.json of a validation run: by_noise points per model")
     args = parser.parse_args(argv)
     evaluation = json.loads(args.evaluation.read_text())
-    absent = json.loads(args.absent.read_text()).get("absent_db", {}) if args.absent else {}
+    absence_run = json.loads(args.absent.read_text()) if args.absent else {}
+    absent = absence_run.get("absent_db", {})
     choice_run = json.loads(args.noise_points.read_text()) if args.noise_points else None
     if choice_run and "validation" not in choice_run["meta"]["data"]:
         parser.error(f"--noise-points {args.noise_points}: not a validation run (model "
@@ -83,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         additions = metrics_from_rows(rows, evaluation.get("meta", {}))
         if path.stem in absent:
             additions["absent_db"] = absent[path.stem]
+            additions["absent_db_worst"] = worst_absent_db(absence_run, path.stem)
         by_noise = noise_points(choice_run, path.stem) if choice_run else None
         if by_noise:
             additions["by_noise"] = by_noise

@@ -125,7 +125,9 @@ VARIANTS: dict[str, OIDNTemporalConfig] = {
     "oidn-temporal-acc": OIDNTemporalConfig(name="oidn-temporal-acc",
                                             color_from="accumulation.onnx"),
     # OIDN-fast on the accumulation: within ~0.1 dB of OIDN-high on it (validation,
-    # bench/oidn_accumulated.py --quality fast) at about half of OIDN-high's time. Full-
+    # bench/oidn_accumulated.py --quality fast) at about half of OIDN-high's time. Shipped as v1
+    # until oidn-fast-acc (no learned stage) measured better and faster on the full validation
+    # split (docs/oidn-temporal.md); kept for that comparison. Full-
     # resolution CNN: with net_scale 2 the stage trained (800 steps) to 0.45-0.65 dB below
     # oidn-temporal-acc on validation, below OIDN-fast alone at 4 spp (docs/oidn-temporal.md).
     "oidn-temporal-fast-acc": OIDNTemporalConfig(name="oidn-temporal-fast-acc", quality="fast",

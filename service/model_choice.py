@@ -81,6 +81,8 @@ class ModelProfile:
     psnr_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, PSNR), spp ascending
     trmae_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, TRMAE) where measured
     absent_db: Mapping[str, float] = field(default_factory=dict)  # PSNR change, buffer absent
+    # The largest loss measured per absent buffer; planned for when stamped (see expected_psnr)
+    absent_db_worst: Mapping[str, float] = field(default_factory=dict)
     # (log2 σ demodulated, log2 σ of the colour alone, PSNR) per validation (sequence, spp)
     psnr_by_noise: tuple[tuple[float, float, float], ...] = ()
 
@@ -103,6 +105,8 @@ class ModelProfile:
             psnr_by_spp=tuple(rows),
             trmae_by_spp=tuple(flicker),
             absent_db={k: float(v) for k, v in absent.items()},
+            absent_db_worst={k: float(v)
+                             for k, v in (metrics.get("absent_db_worst") or {}).items()},
             psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in points),
         )
 
@@ -131,8 +135,12 @@ class ModelProfile:
             levels = np.log2([s for s, _ in self.psnr_by_spp])
             psnr = float(np.interp(math.log2(max(spp, 1e-3)), levels,
                                    [p for _, p in self.psnr_by_spp]))
+        # Absent buffers: the worst measured loss where stamped, else the mean. Risk-averse on
+        # purpose: without motion vectors an accumulating model loses nothing on a static shot
+        # and 2-3 dB on a moving camera (validation), and auto cannot tell which this shot is.
+        change = {**self.absent_db, **self.absent_db_worst}
         have = set(present)
-        return psnr + sum(self.absent_db.get(b, 0.0) for b in self.optional if b not in have)
+        return psnr + sum(change.get(b, 0.0) for b in self.optional if b not in have)
 
     def expected_trmae(self, spp: float) -> float | None:
         """Measured flicker (TRMAE, all buffers) at `spp`, as expected_psnr interpolates."""

@@ -194,3 +194,15 @@ def test_a_model_that_flickers_more_is_not_chosen_for_its_psnr():
     unmeasured_flicker = profile("no-trmae", 200, [(1, 31.0), (16, 31.0)])
     assert choose(ALL, NoiseLevel(4, "x"), [steady, unmeasured_flicker], "x",
                   quality="best").model == "no-trmae"
+
+
+def test_an_absent_buffer_costs_its_worst_measured_loss():
+    metrics = {"ms_720p": 50, "by_spp": [{"spp": 1, "psnr": 25.0}],
+               "absent_db": {"motion": -0.4}, "absent_db_worst": {"motion": -2.9}}
+    accumulating = ModelProfile.from_metadata("acc", ("color",), ("motion",), metrics)
+    per_frame = profile("frame", 60, [(1, 24.5), (16, 24.5)], required=("color",))
+    assert accumulating.expected_psnr(1, ("color",)) == pytest.approx(22.1)
+    assert accumulating.expected_psnr(1, ("color", "motion")) == 25.0
+    assert choose(("color",), NoiseLevel(1, "x"), [accumulating, per_frame], "acc").model == "frame"
+    assert choose(("color", "motion"), NoiseLevel(1, "x"), [accumulating, per_frame],
+                  "acc").model == "acc"
