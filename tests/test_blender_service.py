@@ -143,11 +143,12 @@ def test_all_zero_vector_is_missing_and_sky_depth_is_sanitized(live_server):
 
 
 def test_colour_only_frame_is_served_or_gets_a_422_that_says_what_would_work(live_server):
-    """A colour-only Cycles frame: `auto` serves it with a model trained without the other
-    buffers (buffer dropout); a session on a model that needs them gets a 422 that names them,
-    the models that would accept the frame, and the channel mapping."""
+    """A colour-only Cycles frame: `auto` serves it with a model that takes the colour alone
+    (oidn-frame, or an NBG model trained with buffer dropout), reporting the optional buffers it
+    lacks; a session on a model that needs them gets a 422 that names them, the models that
+    would accept the frame, and the channel mapping."""
     created, result = frame(live_server, "plain_rgba.0002.exr")
-    assert set(result.missing) >= {"albedo", "normal", "depth"}
+    assert set(result.missing) >= {"albedo", "normal"}
     with pytest.raises(QuietframeError) as err:
         frame(live_server, "plain_rgba.0002.exr", model="accumulation")
     assert err.value.status == 422 and err.value.code == "missing_channels"

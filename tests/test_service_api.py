@@ -274,7 +274,7 @@ def test_missing_channels_name_found_and_expected(client):
 
 
 def test_missing_motion_is_reported(client):
-    sid = new_session(client)
+    sid = new_session(client, model="nbg-2l-3g")  # a model that reads motion, optional
     r = send(client, sid, 0, frame_bytes("renderman-ci", motion=False))
     assert r.status_code == 200 and r.headers["x-quietframe-missing"] == "motion"
     r = send(client, sid, 1, frame_bytes("renderman-ci"))
@@ -315,7 +315,8 @@ def test_session_channel_mapping(client):
         "normal": "nrm",
         "depth": "dist",
     }
-    sid = new_session(client, channels=mapping, precision="half", compression="none")
+    sid = new_session(client, channels=mapping, precision="half", compression="none",
+                      model="nbg-2l-3g")  # reads depth (auto may pick a model that does not)
     r = send(client, sid, 0, write_exr(channels))
     assert r.status_code == 200, r.text
     header, out = read_exr(r.content)
