@@ -246,22 +246,22 @@ def export_oidn_only(config: OIDNOnlyConfig, path: Path, *, version: str = "0") 
         [onnx.helper.make_tensor_value_info("oidn", onnx.TensorProto.FLOAT, dims)],
         [onnx.helper.make_tensor_value_info("denoised", onnx.TensorProto.FLOAT, dims)])
     proto = onnx.helper.make_model(graph, opset_imports=[onnx.helper.make_opsetid("", OPSET)])
-    metadata = model_metadata(config, version, [], {"trained": False, "learned_stage": False},
-                              {}, prepass=config.prepass())
     # OIDN runs with the colour alone when albedo/normal are absent (runtime/oidn_prepass.py);
     # a color_from model adds its own requirements (runtime/denoiser.compose_info).
-    metadata["quietframe.buffers.required"] = json.dumps(list(PREPASS_BUFFERS[:1]))
-    metadata["quietframe.buffers.optional"] = json.dumps(list(PREPASS_BUFFERS[1:]))
+    roles = (PREPASS_BUFFERS[:1], PREPASS_BUFFERS[1:])
+    metadata = model_metadata(config, version, [], {"trained": False, "learned_stage": False},
+                              {}, roles=roles, prepass=config.prepass())
     return save_described(proto, metadata, path)
 
 
 def model_metadata(
     config, version: str, state: list[dict], training: Mapping | None, metrics: Mapping | None,
-    **extra: object,
+    roles: tuple[tuple[str, ...], tuple[str, ...]] | None = None, **extra: object,
 ) -> dict[str, str]:
     """The metadata_props that make an exported model self-describing for the runtime
-    (docs/model-interface.md); `extra` adds quietframe.<key> entries (prepass, inputs)."""
-    required, optional = buffer_roles(training)
+    (docs/model-interface.md); `roles` = (required, optional) buffers, by default from the
+    training config (buffer_roles); `extra` adds quietframe.<key> entries (prepass, inputs)."""
+    required, optional = roles or buffer_roles(training)
     metadata = {
         "quietframe.name": config.name,
         "quietframe.version": version,

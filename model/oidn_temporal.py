@@ -91,10 +91,9 @@ def prepass_spec(quality: str, prefilter_aux: bool, color_from: str) -> dict:
 class OIDNOnlyConfig:
     """A composition without a learned stage: the prepass (OIDN on the frame, or on a
     color_from model's output) is the whole denoiser, and the graph passes OIDN's output
-    through. On the reprojected
-    accumulation the learned stage of oidn-temporal-acc converged to the identity (λ = 0, delta
-    kernels; docs/training.md), so its cost bought nothing there: these variants drop it, and
-    their temporal stability is the accumulation's."""
+    through. On the reprojected accumulation the learned stage of oidn-temporal-acc converged
+    to the identity (λ = 0, delta kernels; docs/training.md), so its cost bought nothing there:
+    these variants drop it, and their temporal stability is the accumulation's."""
 
     name: str
     quality: str = "high"

@@ -34,7 +34,7 @@ QUALITIES = {"fast": "OIDN_QUALITY_FAST", "balanced": "OIDN_QUALITY_BALANCED",
              "high": "OIDN_QUALITY_HIGH"}
 PREPASS_KEY = "quietframe.prepass"
 PREPASS_BUFFERS = ("color", "albedo", "normal")  # what OIDN reads, as (3, H, W) planes
-SIZES_PER_THREAD = 2  # filter sets kept per thread (a session's size, plus one other)
+SIZES_PER_THREAD = 2  # filter sets kept per thread, by (size, aux set): a session's, plus one
 
 
 class PrepassUnavailable(RuntimeError):
