@@ -8,6 +8,8 @@ prefiltered aux), and every shipped model through the runtime (onnxruntime + cus
 the affinity model, and the oidn-temporal tier (OIDN prepass + temporal graph; its 720p time is
 also split into OIDN's share and the temporal stage's, bench/oidn_temporal.py). A model the
 runtime cannot run here (oidn-temporal without pyoidn) is skipped with a line.
+`--kernel-sizes 5,9,13` adds rows `<model>@k<size>` for models with a run-time kernel size (the
+affinity tier); `--single-frame <model>` adds `<model>/frame`, its history cleared every frame.
 Per method and spp: PSNR, SSIM, SMAPE, relMSE (mean over frames), TRMAE (mean over sequences),
 ms/frame at the evaluation resolution and at 1280×720 — one run, same machine, same threads.
 Writes <out>/benchmarks.md, <out>/psnr_vs_ms.png and <out>/crops.png.
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 import time
 from collections import defaultdict
@@ -39,10 +42,14 @@ AUX = ("albedo", "normal", "depth", "motion")
 
 
 class RuntimeMethod:
-    """A shipped model as a per-sequence method: keeps the state between frames."""
+    """A shipped model as a per-sequence method: keeps the state between frames, unless
+    `single_frame` (every frame starts from an empty history, as after a cut: the temporal
+    model's single-frame behaviour). `options`: the model's run-time inputs (kernel_size)."""
 
-    def __init__(self, path: Path, threads: int) -> None:
-        self.denoiser = Denoiser(path, threads=threads)
+    def __init__(self, path: Path, threads: int, options: dict | None = None,
+                 single_frame: bool = False) -> None:
+        self.denoiser = Denoiser(path, threads=threads, options=options)
+        self.single_frame = single_frame
         self.state: dict | None = None
 
     def reset(self) -> None:
@@ -50,9 +57,29 @@ class RuntimeMethod:
 
     def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
         """(H, W, C) images like the other methods; the runtime takes and returns planes."""
+        if self.single_frame:
+            self.state = None
         result = self.denoiser.denoise(planes_from_hwc(buffers), self.state)
         self.state = result.state
         return result.color.transpose(1, 2, 0)
+
+
+def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
+                   single_frame: bool) -> dict[str, Callable[[], object]]:
+    """Extra methods of one model: `<name>@k<size>` per requested kernel size the model accepts
+    other than its default (models without a kernel_size input get none), and `<name>/frame`
+    (history cleared every frame) when `single_frame` and the model keeps state."""
+    info = Denoiser(path, threads=1).info
+    spec = next((i for i in info.inputs if i.name == "kernel_size"), None)
+    methods: dict[str, Callable[[], object]] = {}
+    if spec is not None:
+        for k in kernel_sizes:
+            if k != spec.default and (spec.allowed is None or k in spec.allowed):
+                methods[f"{path.stem}@k{k}"] = lambda k=k: RuntimeMethod(
+                    path, threads, {"kernel_size": k})
+    if single_frame and info.state_specs:
+        methods[f"{path.stem}/frame"] = lambda: RuntimeMethod(path, threads, single_frame=True)
+    return methods
 
 
 class Noisy:
@@ -63,9 +90,11 @@ class Noisy:
         return buffers["color"]
 
 
-def build_methods(threads: int, extra: list[Path] = ()) -> dict[str, Callable[[], object]]:
+def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int, ...] = (),
+                  single_frame: tuple[str, ...] = ()) -> dict[str, Callable[[], object]]:
     """Method name -> factory (each sequence gets fresh state through reset()). `extra`: more
-    .onnx files (e.g. fresh training runs), named by file stem."""
+    .onnx files (e.g. fresh training runs), named by file stem. `kernel_sizes` and
+    `single_frame` (model names) add model_variants."""
     from quietframe.bench import baselines
 
     models = {p.stem: p for p in (*installed_models(), *extra)}
@@ -81,6 +110,8 @@ def build_methods(threads: int, extra: list[Path] = ()) -> dict[str, Callable[[]
     for name, path in models.items():
         if name != "accumulation":
             methods[name] = lambda p=path: RuntimeMethod(p, threads)
+        if kernel_sizes or name in single_frame:
+            methods |= model_variants(path, threads, kernel_sizes, name in single_frame)
     return methods
 
 
@@ -245,6 +276,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", default="", help="comma list (default: all)")
     parser.add_argument("--model", type=Path, action="append", default=[],
                         help="also evaluate this .onnx (named by its file stem); repeatable")
+    parser.add_argument("--kernel-sizes", default="",
+                        help="comma list: also rows <model>@k<size> for models with a run-time "
+                             "kernel size (the affinity tier)")
+    parser.add_argument("--single-frame", default="",
+                        help="comma list of models: also rows <model>/frame, history cleared "
+                             "every frame")
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args(argv)
     missing = [str(p) for p in args.model if not p.is_file()]
@@ -256,9 +293,12 @@ def main(argv: list[str] | None = None) -> int:
         folders = folders[: args.sequences]
     if not folders:
         raise SystemExit(f"no {args.split} sequences under {args.data} (run quietframe-render)")
-    methods = build_methods(args.threads, args.model)
-    if args.methods:
-        methods = {k: v for k, v in methods.items() if k in args.methods.split(",")}
+    kernel_sizes = tuple(int(k) for k in args.kernel_sizes.split(",") if k)
+    single_frame = tuple(m for m in args.single_frame.split(",") if m)
+    methods = build_methods(args.threads, args.model, kernel_sizes, single_frame)
+    if args.methods:  # a listed model keeps its @k / /frame rows
+        wanted = args.methods.split(",")
+        methods = {k: v for k, v in methods.items() if re.split("[@/]", k)[0] in wanted}
     rows, crops, ms_720p = [], defaultdict(list), {}
     crop_spp = int(args.spp.split(",")[0])
     for spp in (int(s) for s in args.spp.split(",")):
@@ -293,7 +333,8 @@ def main(argv: list[str] | None = None) -> int:
     write_report(rows, meta, args.out / "benchmarks.md")
     scatter_plot(rows, args.out / "psnr_vs_ms.png", args.split)
     columns = [c for c in ("noisy", "accumulation", "svgf", "oidn-high", *sorted(
-        m for m in methods if m.startswith(("nbg", "affinity", "oidn-temporal"))),
+        m for m in methods if m.startswith(("nbg", "affinity", "oidn-temporal"))
+        and not re.search("[@/]", m)),
         "reference") if c in crops]
     crop_sheet(crops, columns, args.out / "crops.png")
     print(f"wrote {args.out / 'benchmarks.md'}")

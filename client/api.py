@@ -72,8 +72,8 @@ class Client(_ClientBase):
 
     def create_session(self, width: int, height: int, model: str = "auto", **options) -> dict:
         """Start a sequence; options are core.SessionRequest's (channels, precision,
-        motion_scale, compression, layer, denoised_layer, quality), the API's SessionCreate
-        fields."""
+        motion_scale, compression, layer, denoised_layer, quality, latency_ms, model_options
+        such as {"kernel_size": 9}), the API's SessionCreate fields."""
         return self._send(core.SessionRequest(width, height, model, **options).call()).json()
 
     def session(self, session_id: str) -> dict:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from importlib.metadata import entry_points
@@ -15,6 +16,21 @@ from pathlib import Path
 
 EXIT_FAILURE, EXIT_USAGE = 1, 2
 COMMANDS_GROUP = "quietframe.commands"
+
+
+def model_option(text: str) -> tuple[str, int | float]:
+    """One --model-option NAME=VALUE: the value an int when integral (kernel_size=9), else a
+    float; argparse turns the ArgumentTypeError into a usage error."""
+    name, sep, raw = text.partition("=")
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not sep or not name.strip() or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(
+            f"expected NAME=VALUE with a number as VALUE, e.g. kernel_size=9; got {text!r}"
+        )
+    return name.strip(), int(value) if value.is_integer() else value
 
 
 def session_options(args: argparse.Namespace) -> dict:
@@ -38,6 +54,7 @@ def session_options(args: argparse.Namespace) -> dict:
         "quality": args.quality,
         "latency_ms": args.latency_ms,
         "denoised_layer": args.denoised_layer,
+        "model_options": dict(args.model_option or ()),  # a repeated name: the last one
     }
 
 
@@ -160,8 +177,18 @@ def _models(args: argparse.Namespace) -> int:
             f"  needs: {', '.join(m['required_buffers'])}; "
             f"optional: {', '.join(m['optional_buffers']) or '-'}"
         )
+        if m.get("options"):  # run-time options a session can set (--model-option)
+            print(f"  options: {'; '.join(_option_text(o) for o in m['options'])}")
         print(f"  figures: {figures or 'none recorded (untrained export)'}")
     return 0
+
+
+def _option_text(option: dict) -> str:
+    """A listed model option: 'kernel_size (default 13; one of 5, 7, 9, 11, 13): <doc>'."""
+    allowed = option.get("allowed")
+    values = f"; one of {', '.join(map(str, allowed))}" if allowed else ""
+    doc = f": {option['doc']}" if option.get("doc") else ""
+    return f"{option['name']} (default {option['default']}{values}){doc}"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -187,6 +214,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--latency-ms",
         type=float,
         help="budget for --model auto: expected denoise ms per frame at the frames' size",
+    )
+    denoise.add_argument(
+        "--model-option",
+        type=model_option,
+        action="append",
+        metavar="NAME=VALUE",
+        help="a run-time option of the model, repeatable, e.g. kernel_size=9 for an affinity "
+        "model (`quietframe models` lists each model's options)",
     )
     denoise.add_argument(
         "--layer",

@@ -154,6 +154,7 @@ class SessionRequest:
     denoised_layer: str | None = None  # write the denoised colour as this new layer
     quality: str | None = None
     latency_ms: float | None = None  # model=auto's budget
+    model_options: Mapping[str, int | float] | None = None  # e.g. {"kernel_size": 9}
 
     def call(self) -> Call:
         body: dict = {
@@ -166,6 +167,8 @@ class SessionRequest:
             body["compression"] = self.compression
         if self.channels:
             body["channels"] = dict(self.channels)
+        if self.model_options:
+            body["model_options"] = dict(self.model_options)
         if self.motion_scale is not None:
             body["motion_scale"] = list(self.motion_scale)
         for name in ("layer", "denoised_layer", "quality", "latency_ms"):  # sent only when set

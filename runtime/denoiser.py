@@ -58,10 +58,21 @@ class InputSpec:
     allowed: tuple[float | int, ...] | None = None  # None: any value
     doc: str = ""
 
-    def array(self, value: float | int) -> np.ndarray:
+    def check(self, value: float | int) -> None:
+        """ValueError for a value this input does not take."""
         if self.allowed is not None and value not in self.allowed:
             raise ValueError(f"{self.name} must be one of {list(self.allowed)}, got {value!r}")
+        if np.dtype(self.dtype).kind in "iu" and not float(value).is_integer():
+            raise ValueError(f"{self.name} is an integer, got {value!r}")  # not truncated
+
+    def array(self, value: float | int) -> np.ndarray:
+        self.check(value)
         return np.full(self.shape, value, dtype=self.dtype)
+
+    def describe(self) -> str:
+        """E.g. 'kernel_size (one of [5, 7, 9], default 5)', for messages and listings."""
+        values = f"one of {list(self.allowed)}, " if self.allowed is not None else ""
+        return f"{self.name} ({values}default {self.default})"
 
 
 @dataclass(frozen=True)
@@ -104,6 +115,25 @@ def compose_info(info: ModelInfo, color_stage: ModelInfo) -> ModelInfo:
                    for s in color_stage.state_specs)
     return replace(info, required_buffers=required, optional_buffers=optional,
                    state_specs=(*info.state_specs, *states))
+
+
+def check_options(info: ModelInfo, options: Mapping[str, float | int]) -> None:
+    """The one check of run-time options against a model's extra inputs: ValueError naming
+    what is wrong (an option the model does not declare, a value it does not take) and what
+    the model takes instead."""
+    specs = {spec.name: spec for spec in info.inputs}
+    unknown = sorted(set(options) - set(specs))
+    if unknown and not specs:
+        raise ValueError(f"model {info.name!r} has no option {', '.join(unknown)}: "
+                         "it takes no run-time options")
+    if unknown:
+        raise ValueError(f"model {info.name!r} has no option {', '.join(unknown)}; its options: "
+                         + "; ".join(spec.describe() for spec in specs.values()))
+    for name, value in options.items():
+        try:
+            specs[name].check(value)
+        except ValueError as exc:
+            raise ValueError(f"model {info.name!r}: {exc}") from None
 
 
 def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
@@ -194,11 +224,8 @@ class Denoiser:
     def _options(self, base: Mapping[str, np.ndarray],
                  options: Mapping[str, float | int]) -> dict[str, np.ndarray]:
         """Feeds of the extra inputs: `base` (or the defaults) with `options` on top."""
+        check_options(self.info, options)
         specs = {spec.name: spec for spec in self.info.inputs}
-        unknown = sorted(set(options) - set(specs))
-        if unknown:
-            raise ValueError(f"model {self.info.name!r} has no option {unknown}; "
-                             f"its options: {sorted(specs)}")
         feeds = {name: base[name] if name in base else spec.array(spec.default)
                  for name, spec in specs.items()}
         feeds |= {name: specs[name].array(value) for name, value in options.items()}

@@ -87,6 +87,12 @@ class ModelUnavailable(ServiceError):
     status, code = 422, "model_unavailable"
 
 
+class InvalidModelOptions(ServiceError):
+    """A session's model_options that its model (or, for auto, no installed model) takes."""
+
+    status, code = 422, "invalid_model_options"
+
+
 class UnsupportedExr(ServiceError):
     """Deep data, subsampled channels."""
 

@@ -4,15 +4,23 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
-from quietframe.runtime import BUFFER_CHANNELS, Denoiser, default_model_path, installed_models
+from quietframe.runtime import (
+    BUFFER_CHANNELS,
+    Denoiser,
+    ModelInfo,
+    default_model_path,
+    installed_models,
+)
+from quietframe.runtime.denoiser import check_options
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
-from quietframe.service.errors import ModelUnavailable, UnknownModel
+from quietframe.service.errors import InvalidModelOptions, ModelUnavailable, UnknownModel
 from quietframe.service.model_choice import ModelProfile, load_calibration
-from quietframe.service.schemas import BufferSpec, ModelPublic
+from quietframe.service.schemas import BufferSpec, ModelOption, ModelPublic
 from quietframe.service.settings import Settings
 
 log = logging.getLogger("quietframe.service")
@@ -25,6 +33,13 @@ def _json_or_text(value: str | None) -> dict | str | None:
         return json.loads(value) if value else None
     except ValueError:
         return value
+
+
+def options_for(info: ModelInfo, options: Mapping[str, float | int]) -> dict[str, float | int]:
+    """The session options a model takes: those it declares (model=auto switches between
+    models, and one without an option ignores it)."""
+    names = {spec.name for spec in info.inputs}
+    return {name: value for name, value in options.items() if name in names}
 
 
 class ModelRegistry:
@@ -90,6 +105,45 @@ class ModelRegistry:
                                    f"{self._unavailable[name]}")
         raise UnknownModel(f"unknown model {name!r}; installed: {self.names} or 'auto'")
 
+    def check_options(self, model: str, options: Mapping[str, float | int]) -> None:
+        """InvalidModelOptions unless the session's model (a name `requested` returned) takes
+        every option. For 'auto' each option must be declared by some installed model, with a
+        value that every model declaring it takes (any of them may be chosen for a shot)."""
+        if not options:
+            return
+        infos = [d.info for d in self._denoisers.values()]
+        declared: dict[str, list[str]] = {}  # option -> the models that have it
+        for info in infos:
+            for spec in info.inputs:
+                declared.setdefault(spec.name, []).append(info.name)
+        try:
+            if model != AUTO:
+                check_options(self.denoiser(model).info, options)
+                return
+            unknown = sorted(set(options) - set(declared))
+            if unknown:
+                raise ValueError(f"no installed model has option {', '.join(unknown)} (model "
+                                 "'auto' gives an option to the models that have it)")
+            for info in infos:
+                check_options(info, options_for(info, options))
+        except ValueError as exc:
+            hint = self._options_hint(model, options, declared)
+            raise InvalidModelOptions(f"model_options: {exc}; {hint}") from None
+
+    def _options_hint(
+        self, model: str, options: Mapping[str, float | int], declared: dict[str, list[str]]
+    ) -> str:
+        """How to fix refused options: which models have them, or that none has any."""
+        if not declared:
+            return "no installed model takes run-time options: leave model_options out"
+        own = set(declared) if model == AUTO else {
+            spec.name for spec in self.denoiser(model).info.inputs}
+        hints = [f"models with {name}: {', '.join(declared[name])}"
+                 for name in sorted(options) if name in declared and name not in own]
+        if model == AUTO and set(options) - set(declared):
+            hints.append(f"options of the installed models: {', '.join(sorted(declared))}")
+        return "; ".join([*hints, "GET /v1/models lists each model's options and allowed values"])
+
     def denoiser(self, name: str) -> Denoiser:
         """The loaded model of a name that `resolve` returned."""
         return self._denoisers[name]
@@ -123,6 +177,11 @@ class ModelRegistry:
                 required_buffers=list(d.info.required_buffers),
                 optional_buffers=list(d.info.optional_buffers),
                 state=[BufferSpec(name=s.name, channels=s.channels) for s in d.info.state_specs],
+                options=[
+                    ModelOption(name=i.name, default=i.default, doc=i.doc,
+                                allowed=list(i.allowed) if i.allowed is not None else None)
+                    for i in d.info.inputs
+                ],
                 metrics=d.info.metrics,
                 training=d.info.training,
             )

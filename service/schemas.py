@@ -18,6 +18,8 @@ Compression = Literal[
 # A finite number, not a boolean (strict: JSON true is not 1.0) nor NaN/Infinity (Python's json
 # reads those literals).
 Factor = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+# A model option's value: an integer stays one (kernel_size 9), else a finite number.
+OptionValue = Annotated[int, Field(strict=True)] | Factor
 
 
 class SessionCreate(BaseModel):
@@ -87,6 +89,13 @@ class SessionCreate(BaseModel):
         "attribute) unless it is lossy (dwaa, dwab, b44, b44a, pxr24: then zip, so passed-through "
         "data keep their values), 'none' is the fastest to write",
     )
+    model_options: dict[str, OptionValue] = Field(
+        default_factory=dict,
+        description="run-time options of the model, name -> value, e.g. {'kernel_size': 9} for "
+        "an affinity model; GET /v1/models lists each model's options and allowed values. With "
+        "'auto' an option must be one some installed model has, and is given only to models "
+        "that have it",
+    )
 
     @field_validator("layer", "denoised_layer")
     @classmethod
@@ -141,6 +150,8 @@ class SessionPublic(BaseModel):
     denoised_layer: str | None = None
     quality: Quality | None = None
     latency_ms: float | None = None
+    model_options: dict[str, int | float] = Field(
+        default_factory=dict, description="as created: the model's run-time options")
     requested_model: str = Field(description="as created: a model name or 'auto'")
     choice: ChoicePublic | None = Field(
         None, description="model 'auto': the current shot's choice and why (None: no frame yet)"
@@ -166,6 +177,13 @@ class BufferSpec(BaseModel):
     channels: int
 
 
+class ModelOption(BaseModel):
+    name: str = Field(description="the key in a session's model_options")
+    default: int | float = Field(description="the value when a session does not set it")
+    allowed: list[int | float] | None = Field(description="the values it takes; None: any")
+    doc: str = ""
+
+
 class ModelPublic(BaseModel):
     name: str
     version: str
@@ -175,6 +193,8 @@ class ModelPublic(BaseModel):
     required_buffers: list[str]
     optional_buffers: list[str]
     state: list[BufferSpec]
+    options: list[ModelOption] = Field(
+        default_factory=list, description="run-time options a session can set (model_options)")
     metrics: dict = Field(description="validation error and speed figures from the model card")
     training: dict = Field(description="training data and settings from the model card")
 

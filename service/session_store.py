@@ -6,8 +6,10 @@ this module only knows the file format. All calls do disk I/O: run them off the 
 
 Reading verifies the file: every member is read whole, so the zip format's CRC-32 of each one is
 checked; the meta lists every member with its shape (`manifest`), its id must be the file's
-name, and state tensors must be of the session's frame size. Anything else raises StateDamaged;
-`quarantine` moves such a file aside (`quarantine/`), where it is never read again.
+name, and state tensors must have the shapes the session's model gives them at its frame size
+(the registry says which: a half-resolution history is not the frame's size). Anything else
+raises StateDamaged; `quarantine` moves such a file aside (`quarantine/`), where it is never
+read again.
 
 Beside it, `<id>.json` holds the session's settings, written once at creation: when the .npz
 is damaged (or gone), the session can still continue from a fresh history.
@@ -129,14 +131,15 @@ class SessionStore:
             raise
 
     def read(
-        self, session_id: str, height: int, width: int
+        self, session_id: str, shapes: Mapping[str, tuple[int, ...]]
     ) -> tuple[dict[str, np.ndarray] | None, Reply | None]:
-        """The state tensors and the last reply of a stored session, verified (StateDamaged)."""
+        """The state tensors and the last reply of a stored session, verified (StateDamaged);
+        `shapes`: each state tensor's shape for the session's model and frame size."""
         try:
             with np.load(self.path(session_id)) as z:
                 arrays = {name: z[name] for name in z.files}  # whole reads check each CRC-32
             meta = json.loads(arrays.pop("meta").tobytes())
-            _verify(meta, arrays, session_id, height, width)
+            _verify(meta, arrays, session_id, shapes)
             state = {k[6:]: v for k, v in arrays.items() if k.startswith("state.")} or None
             r, reply = meta["reply"], None
             if r is not None and "reply" in arrays:
@@ -186,7 +189,9 @@ class SessionStore:
         self.spec_path(session_id).unlink(missing_ok=True)
 
 
-def _verify(meta: dict, arrays: dict, session_id: str, height: int, width: int) -> None:
+def _verify(
+    meta: dict, arrays: dict, session_id: str, shapes: Mapping[str, tuple[int, ...]]
+) -> None:
     if meta.get("id") != session_id:
         raise ValueError(f"the file holds session {meta.get('id')!r}, not {session_id!r}")
     manifest = meta.get("manifest")
@@ -195,5 +200,6 @@ def _verify(meta: dict, arrays: dict, session_id: str, height: int, width: int) 
         if listed != {name: array.shape for name, array in arrays.items()}:
             raise ValueError("the file's members do not match its manifest")
     for name, array in arrays.items():
-        if name.startswith("state.") and (array.ndim != 4 or array.shape[2:] != (height, width)):
-            raise ValueError(f"{name} has shape {array.shape}; frames are {width}x{height}")
+        if name.startswith("state.") and array.shape != shapes.get(name[6:]):
+            raise ValueError(f"{name} has shape {array.shape}; the session's model expects "
+                             f"{shapes.get(name[6:], 'no such state')}")

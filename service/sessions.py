@@ -45,7 +45,7 @@ from quietframe.service.errors import (
 )
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_choice import Choice
-from quietframe.service.model_registry import AUTO, ModelRegistry
+from quietframe.service.model_registry import AUTO, ModelRegistry, options_for
 from quietframe.service.schemas import (
     ChoicePublic,
     ModelRef,
@@ -81,6 +81,9 @@ class SessionSpec:
     denoised_layer: str | None = None
     quality: str | None = None
     latency_ms: float | None = None
+    # Run-time options (e.g. kernel_size), checked at creation; each model that runs gets those
+    # it declares (options_for).
+    model_options: dict[str, float | int] = field(default_factory=dict)
 
 
 # A choice is revisited only where the history starts afresh for a new shot anyway: switching
@@ -213,6 +216,7 @@ class Session:
             layer=spec.layer,
             denoised_layer=spec.denoised_layer,
             quality=spec.quality,  # type: ignore[arg-type]
+            model_options=dict(spec.model_options),
             created_at=datetime.fromtimestamp(self.created_at, timezone.utc).isoformat(),
             frames_done=self.frames_done,
             last_index=self.last_index,
@@ -260,7 +264,8 @@ def process_frame(
     start = time.perf_counter()
     frame = frames.decode(body, sources)
     decoded = time.perf_counter()
-    result = denoiser.denoise(frame.buffers, state)
+    options = options_for(denoiser.info, spec.model_options)  # auto: this model's, if any
+    result = denoiser.denoise(frame.buffers, state, options)
     denoised = time.perf_counter()
     info = denoiser.info
     model = f"{info.name} {info.version}"
@@ -419,7 +424,9 @@ class SessionRegistry:
             denoised_layer=request.denoised_layer,
             quality=request.quality,
             latency_ms=request.latency_ms,
+            model_options=dict(request.model_options),
         )
+        self.models.check_options(spec.model, spec.model_options)  # before anything is kept
         session = self._session(secrets.token_urlsafe(16), spec)
         self._make_room(session.reserve_bytes)
         if self.store is not None:
@@ -595,9 +602,11 @@ class SessionRegistry:
             session.resident = True
             return
         assert self.store is not None  # only durable sessions leave memory
+        spec = session.spec
+        shapes = {s.name: s.shape(spec.height, spec.width) for s in session.info.state_specs}
         try:
             session.state, session.reply = await self._on_pool(
-                self.store.read, session.id, session.spec.height, session.spec.width
+                self.store.read, session.id, shapes
             )
         except StateDamaged as exc:
             # Continue the sequence from a fresh history, said so in X-Quietframe-Reset; the
@@ -668,7 +677,9 @@ class SessionRegistry:
                 denoised_layer=meta.get("denoised_layer"),
                 quality=meta.get("quality"),
                 latency_ms=meta.get("latency_ms"),
+                model_options=dict(meta.get("model_options") or {}),  # absent in older files
             )
+            self.models.check_options(spec.model, spec.model_options)  # the models may differ
             choice = Choice.from_dict(meta["choice"]) if meta.get("choice") else None
             if choice is not None and choice.model not in self.models.names:
                 choice = None  # its model is gone: the next frame chooses again

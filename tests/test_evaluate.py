@@ -53,3 +53,27 @@ def test_eval_writes_table_plot_and_crops(data, tmp_path):
 def test_eval_rejects_a_missing_model_file(data, tmp_path):
     with pytest.raises(SystemExit, match="no such file"):
         evaluate.main(["--data", str(data), "--model", str(tmp_path / "nope.onnx")])
+
+
+def test_eval_rows_per_kernel_size_and_single_frame(data, tmp_path):
+    """--kernel-sizes adds a row per run-time kernel size of a model that has one (and none for
+    models without); --single-frame adds the model with its history cleared every frame."""
+    torch = pytest.importorskip("torch")
+    from quietframe.export.affinity_export import export_affinity
+    from quietframe.model import affinity
+
+    torch.manual_seed(0)
+    model = affinity.AffinityDenoiser(affinity.VARIANTS["affinity-h8"]).eval()
+    extra = export_affinity(model, tmp_path / "aff.onnx")  # default kernel size 13
+    out = tmp_path / "report"
+    evaluate.main(["--data", str(data), "--spp", "1", "--threads", "1", "--methods",
+                   "noisy,accumulation,nbg-2l-3g,aff", "--model", str(extra), "--kernel-sizes",
+                   "5,13,6", "--single-frame", "accumulation", "--out", str(out)])
+    rows = {r["method"]: r for r in json.loads((out / "benchmarks.json").read_text())["rows"]}
+    # 13 is the default (the plain row), 6 is not an allowed size; NBG has no kernel size
+    assert set(rows) == {"noisy", "accumulation", "accumulation/frame", "nbg-2l-3g", "aff",
+                         "aff@k5"}
+    assert rows["aff@k5"]["psnr"] != pytest.approx(rows["aff"]["psnr"], abs=1e-6)
+    # the accumulation without its history is the noisy input again, several dB below itself
+    assert rows["accumulation/frame"]["psnr"] == pytest.approx(rows["noisy"]["psnr"], abs=0.5)
+    assert rows["accumulation/frame"]["psnr"] < rows["accumulation"]["psnr"] - 1

@@ -69,6 +69,7 @@ async def create_session(
             "session": session.id,
             "model": session.spec.model,
             "size": f"{spec.width}x{spec.height}",
+            "model_options": session.spec.model_options,
         },
     )
     return session.public(settings.session_ttl_s)

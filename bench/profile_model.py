@@ -1,0 +1,84 @@
+"""Where a shipped model's time goes: onnxruntime's node profile per op type at 1280×720.
+
+    python -m quietframe.bench.profile_model models/affinity-h24.onnx [--option kernel_size=5]
+
+Runs the model through quietframe.runtime with its history carried, on a session built like the
+runtime's (same threads, optimisation level, custom ops) but with profiling on, and prints per
+op type the summed node time per frame and its share. On a shared machine read the shares, not
+the milliseconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import onnxruntime as ort
+
+from quietframe.bench.synthetic import frame_buffers
+from quietframe.runtime import Denoiser
+from quietframe.runtime.ops_library import ops_library_path
+
+
+def profiling_session(path: Path, threads: int, prefix: Path) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.register_custom_ops_library(str(ops_library_path()))
+    options.enable_profiling = True
+    options.profile_file_prefix = str(prefix)
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def node_ms_by_op(trace: list[dict]) -> dict[str, float]:
+    """Summed 'Node' event durations per op type, in ms per run, leaving out the session's
+    first run (allocations, first-touch)."""
+    runs = sorted(e["ts"] for e in trace if e.get("name") == "model_run")
+    if len(runs) < 2:
+        raise ValueError("the profile needs at least two runs")
+    totals: dict[str, float] = defaultdict(float)
+    for event in trace:
+        if (event.get("cat") == "Node" and event.get("name", "").endswith("_kernel_time")
+                and event["ts"] >= runs[1]):
+            totals[event["args"]["op_name"]] += event["dur"] / 1e3 / (len(runs) - 1)
+    return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
+
+
+def parse_option(text: str) -> tuple[str, int | float]:
+    name, _, value = text.partition("=")
+    if not name or not value:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    number = float(value)
+    return name, int(number) if number.is_integer() else number
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="quietframe-profile", description=__doc__.split("\n")[0])
+    parser.add_argument("model", type=Path)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--frames", type=int, default=3, help="profiled frames (after a warm-up)")
+    parser.add_argument("--option", type=parse_option, action="append", default=[],
+                        help="a run-time input, e.g. kernel_size=5; repeatable")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/quietframe-profile"))
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    denoiser = Denoiser(args.model, threads=args.threads, options=dict(args.option))
+    buffers = frame_buffers()
+    state = denoiser.denoise(buffers, None).state  # a history, as in a running sequence
+    denoiser.session = profiling_session(args.model, args.threads, args.out / args.model.stem)
+    for _ in range(args.frames + 1):  # the first run is left out (node_ms_by_op)
+        state = denoiser.denoise(buffers, state).state
+    totals = node_ms_by_op(json.loads(Path(denoiser.session.end_profiling()).read_text()))
+    total = sum(totals.values())
+    print(f"{args.model.name} at 1280×720, {args.threads} threads, options {dict(args.option)}: "
+          f"{total:.0f} ms of node time per frame")
+    for op, ms in totals.items():
+        print(f"  {op:28s} {ms:8.1f} ms  {100 * ms / total:5.1f}%")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
