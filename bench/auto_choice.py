@@ -175,12 +175,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-absence", action="store_true", help="skip the absence table")
     parser.add_argument("--buffer-sets", default=",".join(BUFFER_SETS),
                         help=f"comma list of {list(BUFFER_SETS)}")
+    parser.add_argument("--only", default="",
+                        help="comma list: run only these models (to measure a new model's "
+                             "tables for bench/model_metrics.py; auto then chooses among them)")
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args(argv)
     buffer_sets = {name: BUFFER_SETS[name] for name in args.buffer_sets.split(",")
                    if name in BUFFER_SETS or parser.error(f"--buffer-sets: unknown {name!r}")}
 
     paths = {p.stem: p for p in (*installed_models(), *args.model)}
+    if args.only:
+        unknown = sorted(set(args.only.split(",")) - set(paths))
+        if unknown:
+            parser.error(f"--only: no model {unknown}; known: {sorted(paths)}")
+        paths = {name: paths[name] for name in args.only.split(",")}
     denoisers = {name: Denoiser(p, threads=args.threads) for name, p in paths.items()}
     profiles = [ModelProfile.from_metadata(n, d.info.required_buffers, d.info.optional_buffers,
                                            d.info.metrics) for n, d in denoisers.items()]

@@ -76,3 +76,13 @@ def test_benchmarks_section_is_replaced_not_repeated(tmp_path):
     text = path.read_text()
     assert text.startswith("# quietframe evaluation\n\n| table |\n")
     assert "second" in text and "first" not in text and text.count(auto_choice.MARK_BEGIN) == 1
+
+
+def test_only_runs_the_named_models(tmp_path):
+    assert auto_choice.main(["--synthetic", "--no-absence", "--threads", "1", "--buffer-sets",
+                             "all", "--only", "accumulation,nbg-2l-1g", "--out",
+                             str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "auto_choice.json").read_text())
+    assert all(set(r["fixed"]) == {"accumulation", "nbg-2l-1g"} for r in result["rows"])
+    with pytest.raises(SystemExit):
+        auto_choice.main(["--synthetic", "--only", "no-such-model", "--out", str(tmp_path)])
