@@ -18,7 +18,7 @@ from onnx.defs import OpSchema
 from onnxscript import opset18 as _op
 from torch import Tensor, nn
 
-from quietframe.model import affinity_kernels
+from quietframe.model import affinity_kernels, resample  # noqa: F401 (registers the op)
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
 from quietframe.model.oidn_temporal import OIDNOnlyConfig, OIDNTemporal
@@ -109,6 +109,14 @@ def _register_schemas() -> None:
             type_constraints=[*float_t, int_t], attributes=affinity_attrs,
         ),
     ]
+    schemas.append(OpSchema(
+        "UpsampleBilinear", OPS_DOMAIN, 1,
+        doc="image resampled to the height and width of `like` (only its shape is read) as "
+            "F.interpolate(mode='bilinear', align_corners=False); "
+            "quietframe.model.resample.upsample_bilinear",
+        inputs=[param("image", "T"), param("like", "T")], outputs=[param("output", "T")],
+        type_constraints=float_t,
+    ))
     for schema in schemas:
         try:
             onnx.defs.get_schema(schema.name, 1, OPS_DOMAIN)
@@ -158,6 +166,10 @@ def _affinity_temporal_to_onnx(radiance, features, bandwidth, center, prev_outpu
         dilation=dilation, epsilon=eps)
 
 
+def _upsample_to_onnx(image, like):
+    return _QF.UpsampleBilinear(image, like)
+
+
 def custom_translation_table() -> dict:
     """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
     return {
@@ -166,6 +178,7 @@ def custom_translation_table() -> dict:
         torch.ops.quietframe.backward_warp.default: _warp_to_onnx,
         torch.ops.quietframe.affinity_filter.default: _affinity_to_onnx,
         torch.ops.quietframe.affinity_temporal_filter.default: _affinity_temporal_to_onnx,
+        torch.ops.quietframe.upsample_bilinear.default: _upsample_to_onnx,
     }
 
 

@@ -37,6 +37,7 @@ from quietframe.model.affinity_kernels import (
     temporal_affinity_filter,
 )
 from quietframe.model.nbg import demodulation_divisor
+from quietframe.model.resample import upsample_bilinear
 from quietframe.model.temporal import backward_warp, history_valid
 
 EMBEDDING_INPUT_CHANNELS = 10  # log radiance (3) + albedo (3) + normal (3) + relative depth (1)
@@ -160,7 +161,7 @@ class UNet(nn.Module):
             skips.append(x)
         for i, (a, b) in enumerate(self.up):
             skip = skips[-2 - i]
-            x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = upsample_bilinear(x, skip)
             x = torch.cat((x, skip), dim=1)
             x = F.leaky_relu(b(F.leaky_relu(a(x), LEAK)), LEAK)
         return self.out(x)  # (N, 32, h, w), raw
@@ -190,12 +191,10 @@ def kernel_params(raw: Tensor) -> KernelParams:
                         torch.sigmoid(tail[:, 1:2]))  # eq. 3: λ in [0, 1]
 
 
-def upsample_params(params: KernelParams, size, scale: int) -> KernelParams:
-    """Bilinear upsampling of every parameter to the frame size (scale 1: as they are)."""
+def upsample_params(params: KernelParams, like: Tensor, scale: int) -> KernelParams:
+    """Bilinear upsampling of every parameter to the size of `like` (scale 1: as they are)."""
     def up(x: Tensor) -> Tensor:
-        if scale == 1:
-            return x
-        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        return x if scale == 1 else upsample_bilinear(x, like)
 
     return KernelParams([up(f) for f in params.features], [up(a) for a in params.bandwidth],
                         [up(c) for c in params.center], up(params.temporal_bandwidth),
@@ -310,7 +309,7 @@ class AffinityDenoiser(nn.Module):
         new_embedding = accumulate_embedding(embedding, warped_embedding, low_blend)  # eq. 3
         # Activations before upsampling: cheaper, and bilinear weights are convex, so a, b >= 0
         # and c, λ in [0, 1] still hold.
-        params = upsample_params(low_params, color.shape[-2:], self.config.unet_scale)
+        params = upsample_params(low_params, color, self.config.unet_scale)
         if warped is not None:
             acc = accumulate_radiance(radiance, warped[:, s["radiance"]],
                                       params.blend * keep)  # eq. 5

@@ -118,12 +118,14 @@ def check_ops_resolve(_api):
     with pytest.raises(Exception, match="BilateralSplat|ai.quietframe"):
         ort.InferenceSession(model, providers=["CPUExecutionProvider"])
     from test_ops_affinity import affinity_model
+    from test_ops_upsample import upsample_model
     from test_ops_warp import warp_model
 
     _session(warp_model(0))
     _session(op_model("BilateralSlice", **attrs_for(4, 4.0)))
     _session(affinity_model("AffinityFilter", dilation=2))
     _session(affinity_model("AffinityTemporalFilter", dilation=2))
+    _session(upsample_model())
 
 
 def check_attributes(_api):

@@ -11,5 +11,6 @@ const OrtCustomOp* bilateral_slice_op();          // bilateral_slice.cc
 const OrtCustomOp* backward_warp_op();            // backward_warp.cc
 const OrtCustomOp* affinity_filter_op();          // affinity_filter.cc
 const OrtCustomOp* affinity_temporal_filter_op();  // affinity_temporal_filter.cc
+const OrtCustomOp* upsample_bilinear_op();          // upsample_bilinear.cc
 
 }  // namespace qf

@@ -57,7 +57,8 @@ OrtStatus* register_ops(OrtSessionOptions* options, const OrtApiBase* base) {
   if (OrtStatus* s = api.CreateCustomOpDomain(kDomain, &domain)) return s;
   OrtStatus* status = nullptr;
   for (const OrtCustomOp* op : {bilateral_splat_op(), bilateral_slice_op(), backward_warp_op(),
-                                affinity_filter_op(), affinity_temporal_filter_op()}) {
+                                affinity_filter_op(), affinity_temporal_filter_op(),
+                                upsample_bilinear_op()}) {
     if (status == nullptr) status = api.CustomOpDomain_Add(domain, op);
   }
   if (status == nullptr) status = api.AddCustomOpDomain(options, domain);
