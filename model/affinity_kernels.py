@@ -11,6 +11,11 @@ custom ops (so that torch.export keeps them whole and the ONNX exporter maps the
 ops); their backward recomputes the forward with autograd, so training keeps only the inputs
 between the passes and builds the k×k graph one filter at a time.
 
+Native kernels: with QUIETFRAME_TRAIN_KERNELS=native (the default is affinity_native.
+DEFAULT_KERNELS) the custom ops' forward and backward on float32 CPU tensors run the C++ code of
+the served ops and its analytic gradients instead (quietframe.model.affinity_native); the
+functions below stay the reference they are tested against.
+
 Rules beyond the paper's equations (the C++ ops follow them too):
 - bandwidths, the centre weight and temporal_on below 0 or NaN count as 0;
 - a weight exp(-a·d²) that is NaN (a = Inf with d² = 0, NaN features) counts as 0;
@@ -24,6 +29,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from quietframe.model import affinity_native as native
 
 EPSILON = 1e-10  # ε of eq. 6 and 8
 MAX_KERNEL_SIZE = 31  # the C++ ops accept odd kernel sizes 1..31
@@ -145,6 +152,9 @@ def spatial_affinity_filter(radiance: Tensor, features: Tensor, bandwidth: Tenso
     """One dilated affinity kernel (eq. 4 + 6): out = Σ_q w_pq L_q / (ε + Σ_q w_pq).
 
     Exported as ai.quietframe::AffinityFilter (kernel_size becomes an int64 input)."""
+    if native.enabled(radiance, features, bandwidth, center):
+        return native.spatial_forward(radiance, features, bandwidth, center, kernel_size,
+                                      dilation, eps)
     with torch.no_grad():
         return spatial_math(radiance, features, bandwidth, center, kernel_size, dilation, eps)
 
@@ -161,7 +171,17 @@ def _spatial_setup(ctx, inputs, output) -> None:
     ctx.settings = inputs[4:]
 
 
+def _native_backward(backward, ctx, grad: Tensor) -> tuple[Tensor | None, ...]:
+    """The native gradients, None where no input needs one (temporal_on never gets one)."""
+    grads = backward(grad, *ctx.saved_tensors, *ctx.settings)
+    needed = ctx.needs_input_grad
+    return tuple(g if needed[i] else None for i, g in enumerate(grads)) + (None,) * (
+        len(needed) - len(grads))
+
+
 def _spatial_backward(ctx, grad: Tensor):
+    if native.enabled(grad, *ctx.saved_tensors):
+        return _native_backward(native.spatial_backward, ctx, grad)
     return _recompute_backward(spatial_math, ctx, grad)
 
 
@@ -179,6 +199,11 @@ def temporal_affinity_filter(radiance: Tensor, features: Tensor, bandwidth: Tens
     prev_output and prev_features are already warped to this frame (W_t O_{t-1}, W_t f_{t-1});
     temporal_on (N,) is 0 on a first frame or after a cut (ω = 0), 1 otherwise.
     Exported as ai.quietframe::AffinityTemporalFilter."""
+    if native.enabled(radiance, features, bandwidth, center, prev_output, prev_features,
+                      temporal_bandwidth, temporal_on):
+        return native.temporal_forward(radiance, features, bandwidth, center, prev_output,
+                                       prev_features, temporal_bandwidth, temporal_on,
+                                       kernel_size, dilation, temporal_kernel_size, eps)
     with torch.no_grad():
         return temporal_math(radiance, features, bandwidth, center, prev_output, prev_features,
                              temporal_bandwidth, temporal_on, kernel_size, dilation,
@@ -201,6 +226,8 @@ def _temporal_setup(ctx, inputs, output) -> None:
 
 
 def _temporal_backward(ctx, grad: Tensor):
+    if native.enabled(grad, *ctx.saved_tensors):
+        return _native_backward(native.temporal_backward, ctx, grad)
     return _recompute_backward(temporal_math, ctx, grad)
 
 

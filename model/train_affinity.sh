@@ -1,18 +1,20 @@
 #!/usr/bin/env bash
 # The affinity quality tier's g2 runs (issue 15), two queues side by side (one thread each,
 # one per core), each resumable from its run directory (re-running continues where it stopped):
-#   queue 1: affinity-h24, the shipped run: 128² crops, 4 frames, batch 4, trained at
-#            kernel size 5 (the run-time default; other sizes are measured, docs/affinity.md)
-#   queue 2: the width sweep: affinity-h8/h16/h24/h32 with equal short schedules on 64² crops,
-#            for validation PSNR per width at equal steps (bench/affinity_sweep.py --runs)
+#   queue 1: affinity-h24, the shipped run: 128² crops, 4 frames, batch 4, the kernel size
+#            drawn per step from 5, 9, 13 (one model for the run-time knob), 5 the default
+#   queue 2: the width sweep: affinity-h8/h16/h24/h32 with equal short schedules at kernel
+#            size 5, for validation PSNR per width at equal steps (bench/affinity_sweep.py --runs)
+# The affinity filters run natively (model/affinity_native.py; 3.5-11x faster steps than the
+# PyTorch reference loop, docs/affinity-training-kernels.md).
 #   nohup nice -n 10 model/train_affinity.sh > ~/.cache/quietframe/logs/train_affinity.log 2>&1 &
-# PYTHON selects the interpreter (default: python); STEPS (default 1600) the shipped schedule,
-# SWEEP_STEPS (default 400) the sweep's.
+# PYTHON selects the interpreter (default: python); STEPS (default 3000) the shipped schedule,
+# SWEEP_STEPS (default 600) the sweep's.
 set -u
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
-S=${STEPS:-1600}
-W=${SWEEP_STEPS:-400}
+S=${STEPS:-3000}
+W=${SWEEP_STEPS:-600}
 mkdir -p "$R/sweep"
 run() {  # run directory, then quietframe-train flags
     local dir=$1
@@ -22,11 +24,12 @@ run() {  # run directory, then quietframe-train flags
     echo "run $dir: $(tail -c 300 "$dir/log.txt" 2>/dev/null | tail -1)"
 }
 (
-    run "$R/affinity-h24" --variant affinity-h24 --crop 128 --steps "$S" --eval-every 200
+    run "$R/affinity-h24" --variant affinity-h24 --crop 128 --steps "$S" --eval-every 250 \
+        --kernel-sizes 5,9,13
 ) &
 (
     for v in affinity-h8 affinity-h16 affinity-h24 affinity-h32; do
-        run "$R/sweep/$v" --variant "$v" --crop 64 --steps "$W" --eval-every 100
+        run "$R/sweep/$v" --variant "$v" --crop 128 --steps "$W" --eval-every 200
     done
 ) &
 wait

@@ -96,6 +96,9 @@ struct Job {
   const float* temporal_bandwidth = nullptr;  // (N, 1, H, W)
   const float* temporal_on = nullptr;         // (N)
   float* out;                                 // (N, C, H, W)
+  // (N, 1, H, W): ε + Σ weights, the denominator of eq. 6 / 8, for training's backward
+  // (affinity_backward.h); null when serving.
+  float* denominator = nullptr;
   int64_t C = 0, D = 0, H = 0, W = 0;
   int64_t radius = 0, dilation = 1, temporal_radius = -1;  // -1: no temporal kernel
   float epsilon = kDefaultEpsilon;
@@ -108,6 +111,7 @@ struct Image {
   const float *O, *PF, *B;      // previous output, previous features, temporal bandwidth
   float on;                     // temporal_on, sanitised; 0: no temporal term
   float* out;
+  float* den;                   // ε + Σ weights, or null (Job::denominator)
 
   Image(const Job& j, int64_t n) {
     const int64_t plane = j.H * j.W;
@@ -121,6 +125,7 @@ struct Image {
     B = temporal ? j.temporal_bandwidth + n * plane : nullptr;
     on = temporal && j.temporal_on[n] > 0.0f ? j.temporal_on[n] : 0.0f;  // NaN -> 0
     out = j.out + n * j.C * plane;
+    den = j.denominator ? j.denominator + n * plane : nullptr;
   }
 };
 
@@ -192,6 +197,7 @@ inline void filter_pixels_scalar(const Job& j, const Image& im, int64_t y, int64
     for (int64_t ch = 0; ch < j.C; ++ch) {
       out[ch * plane] = finite_result(out[ch * plane] / denominator);
     }
+    if (im.den != nullptr) im.den[p] = denominator;
   }
 }
 
@@ -318,6 +324,7 @@ inline void filter_chunk_avx2(const Job& j, const Image& im, int64_t y, int64_t 
     _mm256_storeu_ps(im.out + (c0 + g) * plane + p,
                      finite_result8(_mm256_div_ps(num[g], denominator)));
   }
+  if (im.den != nullptr && c0 == 0) _mm256_storeu_ps(im.den + p, denominator);
 }
 
 // Whole groups of 8 pixels of row y, every channel (in groups of up to 4, which keeps the

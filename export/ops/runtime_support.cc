@@ -72,8 +72,9 @@ bool simd_enabled() {
   return enabled;
 }
 
-void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user) {
-  const size_t threads = std::min(count, static_cast<size_t>(cpu_count()));
+void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user, int max_threads) {
+  const int wanted = max_threads > 0 ? std::min(max_threads, kMaxThreads) : cpu_count();
+  const size_t threads = std::min(count, static_cast<size_t>(wanted));
   std::atomic<size_t> next{0};
   auto work = [&] {
     for (size_t i = next.fetch_add(1); i < count; i = next.fetch_add(1)) fn(user, i);

@@ -50,13 +50,16 @@ inline int64_t band_start(int64_t band, int64_t bands, int64_t rows) {
 
 // ---- parallel-for ----------------------------------------------------------------------------
 
-void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user);
+// fn(user, i) for i in [0, count) on up to `threads` std::threads (<= 0: cpu_count()).
+void parallel_for_threads(size_t count, void (*fn)(void*, size_t), void* user, int threads = 0);
 
 // Runs fn(i) for i in [0, count), on onnxruntime's intra-op pool when the runtime offers it
-// (>= 1.17), else on our own threads. Returns false if a task threw (only std::bad_alloc of its
-// scratch memory can); the other tasks still run.
+// (>= 1.17) and there is a kernel context, else on our own threads (up to `threads`, <= 0:
+// cpu_count()): training's C ABI (affinity_train_abi.cc) passes no context, and must not reach
+// onnxruntime's pool even when a session in the same process registered the ops. Returns false
+// if a task threw (only std::bad_alloc of its scratch memory can); the other tasks still run.
 template <class Fn>
-bool parallel_for(OrtKernelContext* ctx, size_t count, const Fn& fn) {
+bool parallel_for(OrtKernelContext* ctx, size_t count, const Fn& fn, int threads = 0) {
   std::atomic<bool> failed{false};
   auto guarded = [&fn, &failed](size_t i) noexcept {
     try {
@@ -73,14 +76,14 @@ bool parallel_for(OrtKernelContext* ctx, size_t count, const Fn& fn) {
     guarded(0);
   } else if (count > 1) {
     OrtStatus* status = nullptr;
-    const ort::ParallelForFn pf = runtime_info().parallel_for;
+    const ort::ParallelForFn pf = ctx != nullptr ? runtime_info().parallel_for : nullptr;
     // num_batch = 0: onnxruntime schedules each index as one task (ours are coarse).
     if (pf != nullptr && (status = pf(ctx, trampoline, count, 0, &guarded)) == nullptr) {
       return !failed.load();
     }
     // Fails only up front (a minimal build without the kernel-context API): our own threads.
     if (status != nullptr) runtime_info().api.ReleaseStatus(status);
-    parallel_for_threads(count, trampoline, &guarded);
+    parallel_for_threads(count, trampoline, &guarded, threads);
   }
   return !failed.load();
 }
