@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from quietframe.export.onnx_export import example_inputs  # noqa: E402
 from quietframe.model import affinity  # noqa: E402
 from quietframe.model import train as qt  # noqa: E402
 from quietframe.model.losses import bandwidth_regulariser  # noqa: E402
-from quietframe.runtime import Denoiser  # noqa: E402
+from quietframe.runtime import Denoiser, find_model, installed_models  # noqa: E402
 from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
 
 HEIGHT, WIDTH, FRAMES = 32, 40, 3
@@ -224,3 +225,23 @@ def test_extra_inputs_come_from_metadata_alone():
     assert spec.array(spec.default).dtype == np.float32 and spec.array(3.0).tolist() == [3.0]
     assert info.state_specs[0].shape(9, 8) == (1, 2, 3, 2)  # ⌈9/4⌉ × ⌈8/4⌉
     assert read_model_info(Path("m.onnx"), {}).inputs == ()  # NBG files: nothing extra to feed
+
+
+SHIPPED = [p.stem for p in installed_models() if p.stem.startswith("affinity")]
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_model_is_the_export_of_its_shipped_checkpoint(name):
+    """models/<name>.onnx is what quietframe-export makes of models/training/<name>/best.pt with
+    today's model code (a stale export fails), at its default and another kernel size."""
+    checkpoint_path = Path(__file__).resolve().parents[1] / "models" / "training" / name / "best.pt"
+    model, checkpoint = affinity.load_checkpoint(str(checkpoint_path))
+    runtime = Denoiser(find_model(name), threads=2)
+    assert runtime.info.training["steps_done"] == checkpoint["training"]["steps_done"]
+    default = next(i.default for i in runtime.info.inputs if i.name == "kernel_size")
+    assert default == model.config.kernel_size
+    for kernel_size in (default, 9):
+        pairs, _, _ = run_both(model.eval(), runtime, kernel_size)
+        for expected, color, _, _ in pairs:
+            np.testing.assert_allclose(color, expected, rtol=1e-4,
+                                       atol=1e-4 * float(np.abs(expected).max()))
