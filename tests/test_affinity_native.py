@@ -309,7 +309,9 @@ def data(tmp_path_factory):
     return root
 
 
-def training_losses(data, kernel_size: int, steps: int = 4) -> list[float]:
+def training_run(data, kernel_size: int, steps: int = 4) -> tuple[list[float], torch.Tensor]:
+    """Losses of `steps` Adam steps of a small model, and the first step's parameter gradient
+    (flattened)."""
     from quietframe.model import train as qt
 
     cfg = qt.TrainConfig(variant="affinity-h8", data=str(data), crop=24, frames=3, batch=2,
@@ -318,7 +320,7 @@ def training_losses(data, kernel_size: int, steps: int = 4) -> list[float]:
     model = qt.build_model(cfg)
     batches = qt.TrainingBatches(cfg)
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    losses = []
+    losses, first_grad = [], None
     for step in range(steps):
         batch = batches(step)
         penalties: list = []
@@ -328,16 +330,23 @@ def training_losses(data, kernel_size: int, steps: int = 4) -> list[float]:
             penalties).mean()
         optimizer.zero_grad()
         loss.backward()
+        if first_grad is None:
+            first_grad = torch.cat([p.grad.flatten() for p in model.parameters()])
         optimizer.step()
         losses.append(loss.item())
-    return losses
+    return losses, first_grad
 
 
 @pytest.mark.parametrize("kernel_size", [5, 13])
 def test_training_steps_match_the_reference(data, monkeypatch, kernel_size):
+    """The first step's loss and parameter gradient equal the reference's to float rounding;
+    the next steps stay close (Adam amplifies rounding differences step by step, so the later
+    losses get a looser bound)."""
     monkeypatch.setenv(native.KERNELS_ENV, "reference")
-    reference = training_losses(data, kernel_size)
+    reference, reference_grad = training_run(data, kernel_size)
     monkeypatch.setenv(native.KERNELS_ENV, "native")
-    ours = training_losses(data, kernel_size)
+    ours, our_grad = training_run(data, kernel_size)
     assert len(set(reference)) == len(reference)  # the model does move
-    np.testing.assert_allclose(ours, reference, rtol=1e-4)
+    assert ours[0] == pytest.approx(reference[0], rel=1e-5)
+    assert float((our_grad - reference_grad).norm()) < 1e-3 * float(reference_grad.norm())
+    np.testing.assert_allclose(ours, reference, rtol=2e-3)
