@@ -1,24 +1,40 @@
 #!/usr/bin/env bash
-# Ship the affinity quality tier from its training run (model/train_affinity.sh), issue 15:
-# export, keep the run's files, measure its tables on the validation split (for model=auto and
-# the card), then the test-split evaluation next to OIDN and NBG and the auto bench (reports).
-#   PYTHON=.venv/bin/python model/ship_affinity.sh [validation|test|all]
-# Writes models/affinity-h24.{onnx,md}, models/training/affinity-h24/, docs/evaluation/
-# {validation,auto_validation,absence_validation}_affinity.json, docs/benchmarks.{md,json},
-# docs/psnr_vs_ms.png, docs/crops.png, docs/auto_choice.*, docs/affinity-sweep.md.
+# The affinity tier from a training run (model/train_affinity.sh), issue 15:
+#   evaluate: keep the run's files in models/training/affinity-h24/, export it outside models/,
+#             the test-split evaluation next to OIDN and NBG (docs/benchmarks.*, the scatter,
+#             the crops) and the width table (docs/affinity-sweep.md);
+#   ship:     install it in models/ with its measured validation tables (model=auto, the card)
+#             — for a run that earns its place next to NBG and OIDN (docs/affinity.md).
+#   RUN=~/.cache/quietframe/runs/g2/affinity-h24-relmse PYTHON=.venv/bin/python \
+#       model/ship_affinity.sh evaluate|ship
 set -eu
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
-RUN=$R/affinity-h24
+RUN=${RUN:-$R/affinity-h24}
 NAME=affinity-h24
 VERSION=${VERSION:-1}
-STAGE=${1:-all}
+STAGE=${1:?evaluate or ship}
 T=${TMPDIR:-/tmp}/ship-$NAME
 mkdir -p "$T"
 
-if [ "$STAGE" = validation ] || [ "$STAGE" = all ]; then
+if [ "$STAGE" = evaluate ]; then
     mkdir -p models/training/$NAME
     cp "$RUN"/{best.pt,checkpoint.pt,config.json,log.txt} models/training/$NAME/
+    "$PY" -m quietframe.export.cli --checkpoint models/training/$NAME/best.pt \
+        --out "$T/$NAME.onnx" --version "$VERSION"
+    "$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --methods \
+        noisy,accumulation,oidn-fast,oidn-high,nbg-2l-1g,nbg-2l-3g,nbg-7l-3g,oidn-temporal-acc,oidn-acc,oidn-fast-acc,oidn-frame,$NAME \
+        --model "$T/$NAME.onnx" --kernel-sizes 9,13 --single-frame $NAME --out "$T/test"
+    cp "$T"/test/{benchmarks.md,benchmarks.json,psnr_vs_ms.png,crops.png} docs/
+    # the auto bench's section (its own run, docs/auto_choice.json) goes back into the report
+    "$PY" -c "import json, pathlib; from quietframe.bench import auto_choice as a; \
+r = json.loads(pathlib.Path('docs/auto_choice.json').read_text()); \
+a.update_section(pathlib.Path('docs/benchmarks.md'), a.section(r, list(r['rows'][0]['fixed'])))"
+    "$PY" -m quietframe.bench.affinity_sweep --kernel-sizes 5 9 13 --repeats 3 \
+        --runs "$R/sweep" --out docs/affinity-sweep.md
+fi
+
+if [ "$STAGE" = ship ]; then
     "$PY" -m quietframe.export.cli --checkpoint models/training/$NAME/best.pt \
         --out models/$NAME.onnx --version "$VERSION"
     # validation: per-spp PSNR/TRMAE and 720p ms (model=auto, the card), each kernel size and
@@ -38,14 +54,4 @@ if [ "$STAGE" = validation ] || [ "$STAGE" = all ]; then
     "$PY" -m quietframe.bench.model_metrics --evaluation docs/evaluation/validation_affinity.json \
         --noise-points docs/evaluation/auto_validation_affinity.json \
         --absent docs/evaluation/absence_validation_affinity.json models/$NAME.onnx
-fi
-
-if [ "$STAGE" = test ] || [ "$STAGE" = all ]; then
-    "$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --methods \
-        noisy,accumulation,oidn-fast,oidn-high,nbg-2l-1g,nbg-2l-3g,nbg-7l-3g,oidn-temporal-acc,oidn-acc,oidn-fast-acc,oidn-frame,$NAME \
-        --kernel-sizes 9,13 --single-frame $NAME --out docs
-    "$PY" -m quietframe.bench.auto_choice --split test --threads 2 --max-frames 3 --sequences 6 \
-        --spp 1,4,16 --out docs
-    "$PY" -m quietframe.bench.affinity_sweep --kernel-sizes 5 9 13 --repeats 3 \
-        --runs "$R/sweep" --out docs/affinity-sweep.md
 fi
