@@ -452,10 +452,11 @@ def _saved_numel(fn) -> int:
     return sum(saved)
 
 
-def test_reference_keeps_only_its_inputs_for_backward():
+def test_reference_keeps_only_its_inputs_for_backward(monkeypatch):
     """Between forward and backward the custom op holds its inputs, not the k² per-offset
     temporaries that autograd through spatial_math would keep; its gradients are those of
-    spatial_math all the same."""
+    spatial_math all the same (the reference path; the native one: test_affinity_native)."""
+    monkeypatch.setenv("QUIETFRAME_TRAIN_KERNELS", "reference")
     x = [torch.from_numpy(a).requires_grad_() for a in inputs(1, 3, 8, 32, 32)[:4]]
     held = _saved_numel(lambda: kernels.spatial_affinity_filter(*x, 13, 4))
     assert held <= sum(t.numel() for t in x)
