@@ -45,11 +45,7 @@ def synthetic_batch(batch: int, frames: int, crop: int, seed: int = 0) -> dict[s
 def step(cfg: qt.TrainConfig, model: torch.nn.Module, batch: dict[str, torch.Tensor]) -> None:
     """One training step's forward + backward (the optimizer update left out)."""
     model.zero_grad(set_to_none=True)
-    penalties: list = []
-    outputs = qt.unroll(model, batch, penalties)
-    refs = [batch["reference"][:, i] for i in range(len(outputs))]
-    loss = qt.sequence_loss(cfg, outputs, refs) + cfg.bandwidth_weight * torch.stack(
-        penalties).mean()
+    loss = qt.batch_loss(cfg, model, batch)
     loss.backward()
 
 

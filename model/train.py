@@ -193,6 +193,19 @@ def unroll(model: nn.Module, batch: dict[str, Tensor],
     return outputs
 
 
+def batch_loss(cfg: TrainConfig, model: nn.Module, batch: dict[str, Tensor],
+               **options: int) -> Tensor:
+    """One batch's training loss: the sequence loss of the unrolled outputs plus, for a model
+    with a bandwidth penalty, eq. 9's 1e-5 · eq. 13 (its expectation over frames too)."""
+    penalties: list[Tensor] = []
+    outputs = unroll(model, batch, penalties, **options)
+    refs = [batch["reference"][:, i] for i in range(len(outputs))]
+    loss = sequence_loss(cfg, outputs, refs)
+    if penalties:
+        loss = loss + cfg.bandwidth_weight * torch.stack(penalties).mean()
+    return loss
+
+
 @torch.no_grad()
 def validate(model: nn.Module, batches: list[dict[str, Tensor]]) -> float:
     """Mean PSNR (τ-mapped, model/metrics) of the last frame of each validation sequence."""
@@ -287,12 +300,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
         batch = drop_buffers(cfg, train_batches(step), step)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(cfg, step)
-        penalties: list[Tensor] = []
-        outputs = unroll(model, batch, penalties, **step_kernel_size(cfg, step))
-        refs = [batch["reference"][:, i] for i in range(len(outputs))]
-        loss = sequence_loss(cfg, outputs, refs)
-        if penalties:  # eq. 9: + 1e-5 · eq. 13, its expectation over frames too
-            loss = loss + cfg.bandwidth_weight * torch.stack(penalties).mean()
+        loss = batch_loss(cfg, model, batch, **step_kernel_size(cfg, step))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

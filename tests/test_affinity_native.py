@@ -323,11 +323,7 @@ def training_run(data, kernel_size: int, steps: int = 4) -> tuple[list[float], t
     losses, first_grad = [], None
     for step in range(steps):
         batch = batches(step)
-        penalties: list = []
-        outputs = qt.unroll(model, batch, penalties)
-        refs = [batch["reference"][:, i] for i in range(len(outputs))]
-        loss = qt.sequence_loss(cfg, outputs, refs) + cfg.bandwidth_weight * torch.stack(
-            penalties).mean()
+        loss = qt.batch_loss(cfg, model, batch)
         optimizer.zero_grad()
         loss.backward()
         if first_grad is None:
