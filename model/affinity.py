@@ -43,9 +43,13 @@ from quietframe.model.temporal import backward_warp, history_valid
 EMBEDDING_INPUT_CHANNELS = 10  # log radiance (3) + albedo (3) + normal (3) + relative depth (1)
 EMBEDDING_CHANNELS = 32  # paper §3.2: 3 FC layers × 32
 FEATURE_CHANNELS = 8  # d of f^k (paper §3.7: d = 8)
-KERNELS = 3  # K
+KERNELS = 3  # K, the paper's (§3.5); a config may use more (à-trous dilations up to 2^(K-1))
 PARAMS_PER_KERNEL = FEATURE_CHANNELS + 2  # f^k, a^k, c^k
-UNET_OUTPUTS = KERNELS * PARAMS_PER_KERNEL + 2  # + b, λ
+GUIDE_CHANNELS = 7  # albedo (3) + normal (3) + relative depth (1), at full resolution
+
+
+def unet_outputs(kernels: int) -> int:
+    return kernels * PARAMS_PER_KERNEL + 2  # + b, λ
 LEAK = 0.01  # leaky ReLU slope (the paper does not give one: PyTorch's default)
 DEFAULT_KERNEL_SIZE = 13  # paper §3.5: 13×13 windows
 KERNEL_SIZES = (5, 7, 9, 11, 13)  # the session-time choices (paper §5.5.3)
@@ -79,11 +83,19 @@ class AffinityConfig:
     temporal: bool = True  # False: the single-frame variant (no eq. 3, 5, 7-8 history)
     temporal_kernel_size: int = 5  # u', v' window of eq. 8 (dilation 1)
     kernel_size: int = DEFAULT_KERNEL_SIZE  # default of the `kernel_size` input
+    # K: kernels in sequence, dilation 2^(k-1). More than the paper's 3 widens the support at a
+    # small kernel size (K = 5 at 5×5: 125 px, 125 taps per pixel; K = 3 at 13×13: 85 px, 507).
+    kernels: int = KERNELS
+    # Full-resolution guide: f^k += P_k g with g the pixel's albedo, normal and relative depth
+    # and P_k a learned 8×7 matrix, so that the half-resolution features keep per-pixel edges.
+    guide: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "widths", tuple(self.widths))  # JSON round trip gives a list
         if self.unet_scale not in (1, 2):
             raise ValueError(f"unet_scale must be 1 or 2, got {self.unet_scale}")
+        if not 2 <= self.kernels <= 6:
+            raise ValueError(f"kernels must be 2..6, got {self.kernels}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -94,15 +106,17 @@ def ldr_log(x: Tensor) -> Tensor:
     return torch.log1p(x.clamp_min(0))
 
 
-def embedding_inputs(color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> Tensor:
-    """Pixel-mean buffers as the FC layers see them: (N, 10, H, W)."""
+def guide_inputs(albedo: Tensor, normal: Tensor, depth: Tensor) -> Tensor:
+    """The noise-free auxiliary buffers, bounded: (N, 7, H, W)."""
     depth_scale = depth.mean(dim=(2, 3), keepdim=True).clamp_min(1e-6)
     relative_depth = depth / depth_scale  # scene-unit free, as NBG's GuideNet input
-    return torch.cat(
-        (ldr_log(color), albedo.clamp(0, 1), normal.clamp(-1, 1),
-         relative_depth / (1 + relative_depth)),
-        dim=1,
-    )
+    return torch.cat((albedo.clamp(0, 1), normal.clamp(-1, 1),
+                      relative_depth / (1 + relative_depth)), dim=1)
+
+
+def embedding_inputs(color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> Tensor:
+    """Pixel-mean buffers as the FC layers see them: (N, 10, H, W)."""
+    return torch.cat((ldr_log(color), guide_inputs(albedo, normal, depth)), dim=1)
 
 
 class Embedding(nn.Module):
@@ -132,7 +146,7 @@ class UNet(nn.Module):
     bilinear up, concatenated skips (the paper's structure, shallower and narrower for a CPU);
     a 1×1 convolution makes the raw kernel parameters."""
 
-    def __init__(self, widths: tuple[int, ...]) -> None:
+    def __init__(self, widths: tuple[int, ...], kernels: int = KERNELS) -> None:
         super().__init__()
         cin = 2 * EMBEDDING_CHANNELS  # e and W ē
         self.down = nn.ModuleList()
@@ -143,13 +157,13 @@ class UNet(nn.Module):
         for w in reversed(widths[:-1]):
             self.up.append(nn.ModuleList([_conv(cin + w, w), _conv(w, w)]))
             cin = w
-        self.out = nn.Conv2d(cin, UNET_OUTPUTS, 1)
+        self.out = nn.Conv2d(cin, unet_outputs(kernels), 1)
         with torch.no_grad():
             # a = raw² has zero slope at raw = 0, where the kernels are box filters that ignore
             # the features: start at a = b = 1 so that the features get a gradient.
-            for k in range(KERNELS):
+            for k in range(kernels):
                 self.out.bias[k * PARAMS_PER_KERNEL + FEATURE_CHANNELS] = 1.0
-            self.out.bias[KERNELS * PARAMS_PER_KERNEL] = 1.0
+            self.out.bias[kernels * PARAMS_PER_KERNEL] = 1.0
 
     def forward(self, x: Tensor) -> Tensor:
         skips = []
@@ -164,7 +178,7 @@ class UNet(nn.Module):
             x = upsample_bilinear(x, skip)
             x = torch.cat((x, skip), dim=1)
             x = F.leaky_relu(b(F.leaky_relu(a(x), LEAK)), LEAK)
-        return self.out(x)  # (N, 32, h, w), raw
+        return self.out(x)  # (N, 10 K + 2, h, w), raw
 
 
 @dataclass
@@ -181,12 +195,13 @@ class KernelParams:
 def kernel_params(raw: Tensor) -> KernelParams:
     """eq. 2 outputs with the paper's activations: squares for bandwidths, sigmoids for c, λ."""
     features, bandwidth, center = [], [], []
-    for k in range(KERNELS):
+    kernels = (raw.shape[1] - 2) // PARAMS_PER_KERNEL
+    for k in range(kernels):
         p = raw[:, k * PARAMS_PER_KERNEL : (k + 1) * PARAMS_PER_KERNEL]
         features.append(p[:, :FEATURE_CHANNELS])
         bandwidth.append(p[:, FEATURE_CHANNELS : FEATURE_CHANNELS + 1].square())  # eq. 4: a >= 0
         center.append(torch.sigmoid(p[:, FEATURE_CHANNELS + 1 : FEATURE_CHANNELS + 2]))
-    tail = raw[:, KERNELS * PARAMS_PER_KERNEL :]
+    tail = raw[:, kernels * PARAMS_PER_KERNEL :]
     return KernelParams(features, bandwidth, center, tail[:, 0:1].square(),  # eq. 7: b >= 0
                         torch.sigmoid(tail[:, 1:2]))  # eq. 3: λ in [0, 1]
 
@@ -211,10 +226,18 @@ def accumulate_radiance(radiance: Tensor, warped: Tensor, blend: Tensor) -> Tens
     return (1 - blend) * radiance + blend * warped
 
 
+def guided_features(params: KernelParams, guide: Tensor, projection: nn.Conv2d) -> KernelParams:
+    """f^k + P_k g at full resolution (AffinityConfig.guide): P is one 1×1 convolution."""
+    extra = projection(guide).split(FEATURE_CHANNELS, dim=1)  # K × (N, 8, H, W)
+    return KernelParams([f + e for f, e in zip(params.features, extra, strict=True)],
+                        params.bandwidth, params.center, params.temporal_bandwidth,
+                        params.blend)
+
+
 def spatial_kernels(radiance: Tensor, params: KernelParams, kernel_size: int) -> Tensor:
     # eq. 4 + 6: L^(k) = Σ w^k L^(k-1) / (ε + Σ w^k), k = 1..K-1, dilation 2^(k-1)
     x = radiance  # (N, 3, H, W) = L^(0) = L̄
-    for k in range(KERNELS - 1):
+    for k in range(len(params.features) - 1):
         x = spatial_affinity_filter(x, params.features[k], params.bandwidth[k], params.center[k],
                                     kernel_size, 2**k, EPSILON)
     return x  # L^(K-1)
@@ -225,7 +248,7 @@ def final_kernel(radiance: Tensor, params: KernelParams, prev_output: Tensor,
                  temporal_kernel_size: int) -> Tensor:
     # eq. 7 + 8: the K-th spatial kernel (dilation 2^(K-1)) jointly normalised with the
     # temporal kernel ω = exp(-b ||f^K - W f^K_{t-1}||²) over W O_{t-1}; ω = 0 where temporal_on = 0
-    k = KERNELS - 1
+    k = len(params.features) - 1
     return temporal_affinity_filter(
         radiance, params.features[k], params.bandwidth[k], params.center[k], prev_output,
         prev_features, params.temporal_bandwidth, temporal_on, kernel_size, 2**k,
@@ -246,7 +269,9 @@ class AffinityDenoiser(nn.Module):
         super().__init__()
         self.config = config or AffinityConfig()
         self.embedding = Embedding()
-        self.unet = UNet(self.config.widths)
+        self.unet = UNet(self.config.widths, self.config.kernels)
+        self.guide = (nn.Conv2d(GUIDE_CHANNELS, self.config.kernels * FEATURE_CHANNELS, 1,
+                                bias=False) if self.config.guide else None)
         self._init_hidden_layers()
         self.bandwidth_penalty: Tensor | None = None
 
@@ -270,6 +295,8 @@ class AffinityDenoiser(nn.Module):
                 nn.init.kaiming_normal_(module.weight, a=LEAK, nonlinearity="leaky_relu")
                 nn.init.zeros_(module.bias)
         nn.init.kaiming_normal_(self.unet.out.weight, nonlinearity="linear")
+        if self.guide is not None:
+            nn.init.kaiming_normal_(self.guide.weight, nonlinearity="linear")
 
     def _low(self, x: Tensor) -> Tensor:
         """s×s block means (ceil mode: a partial block averages the pixels it has)."""
@@ -310,6 +337,8 @@ class AffinityDenoiser(nn.Module):
         # Activations before upsampling: cheaper, and bilinear weights are convex, so a, b >= 0
         # and c, λ in [0, 1] still hold.
         params = upsample_params(low_params, color, self.config.unet_scale)
+        if self.guide is not None:
+            params = guided_features(params, guide_inputs(albedo, normal, depth), self.guide)
         if warped is not None:
             acc = accumulate_radiance(radiance, warped[:, s["radiance"]],
                                       params.blend * keep)  # eq. 5
@@ -319,7 +348,7 @@ class AffinityDenoiser(nn.Module):
                                   self.config.temporal_kernel_size)  # eq. 7, 8
         else:  # single-frame variant: the K-th kernel alone (eq. 4, 6)
             acc = radiance
-            k = KERNELS - 1
+            k = self.config.kernels - 1
             output = spatial_affinity_filter(
                 spatial_kernels(acc, params, size), params.features[k], params.bandwidth[k],
                 params.center[k], size, 2**k, EPSILON)
@@ -335,9 +364,10 @@ def bandwidth_penalty_of(params: KernelParams) -> Tensor:
     return bandwidth_regulariser(params.bandwidth, params.temporal_bandwidth)  # eq. 13
 
 
-def _variant(name: str, widths: tuple[int, ...], scale: int, temporal: bool = True
-             ) -> AffinityConfig:
-    return AffinityConfig(name=name, widths=widths, unet_scale=scale, temporal=temporal)
+def _variant(name: str, widths: tuple[int, ...], scale: int, temporal: bool = True,
+             kernels: int = KERNELS, guide: bool = False) -> AffinityConfig:
+    return AffinityConfig(name=name, widths=widths, unet_scale=scale, temporal=temporal,
+                          kernels=kernels, guide=guide)
 
 
 # The width sweep (docs/affinity.md): h = U-Net at half resolution, f = full resolution.
@@ -349,6 +379,10 @@ VARIANTS: dict[str, AffinityConfig] = {
         _variant("affinity-h32", (32, 48, 64), 2),
         _variant("affinity-f16", (16, 24, 32), 1),
         _variant("affinity-h16-single", (16, 24, 32), 2, temporal=False),
+        # K = 5 à-trous kernels (dilations 1..16) and the full-resolution guide
+        _variant("affinity-h16-k5g", (16, 24, 32), 2, kernels=5, guide=True),
+        _variant("affinity-h16-k5", (16, 24, 32), 2, kernels=5),
+        _variant("affinity-h16-g", (16, 24, 32), 2, guide=True),
     )
 }
 

@@ -64,6 +64,26 @@ def l1_tonemapped_loss(
     return (ldr_gamma(pred, gamma) - ldr_gamma(ref, gamma)).abs().mean()
 
 
+def tonemap_tau(x: torch.Tensor) -> torch.Tensor:
+    # Işık eq. 15, metrics.tonemap_tau in torch; the floor keeps the slope of ^(1/2.4) finite
+    x = x.clamp_min(_GAMMA_FLOOR)
+    return (x / (1 + x)).pow(1.0 / 2.4)
+
+
+def tau_mse_loss(pred: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    # Işık eq. 14's own error: the mean squared difference of τ-mapped images, the quantity the
+    # evaluation's PSNR is -10 log10 of; its minimiser is the conditional mean in τ space
+    return (tonemap_tau(pred) - tonemap_tau(ref)).square().mean()
+
+
+def temporal_tau_mse_loss(preds: torch.Tensor, refs: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    # eq. 12's temporal term in the same space: frame differences of τ-mapped outputs
+    if preds.shape[dim] < 2:
+        raise ValueError(f"temporal_loss: need >= 2 frames along dim {dim}, got {preds.shape}")
+    diff_pred = torch.diff(tonemap_tau(preds), dim=dim)
+    return (diff_pred - torch.diff(tonemap_tau(refs), dim=dim)).square().mean()
+
+
 def bandwidth_regulariser(
     bandwidths: list[torch.Tensor], temporal_bandwidth: torch.Tensor
 ) -> torch.Tensor:

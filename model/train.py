@@ -31,8 +31,10 @@ from quietframe.model.losses import (
     l1_tonemapped_loss,
     relmse_unbiased_loss,
     smape_loss,
+    tau_mse_loss,
     temporal_loss,
     temporal_relmse_unbiased_loss,
+    temporal_tau_mse_loss,
 )
 from quietframe.model.metrics import psnr
 from quietframe.model.nbg import VARIANTS, NBGConfig, NBGDenoiser
@@ -50,7 +52,8 @@ class TrainConfig:
     # an affinity variant names its U-Net widths
     data: str = str(DATA_DIR)
     # or "l1" (paper §4.4: L1 on the LDR-mapped output), or "relmse+temporal" (unbiased under
-    # noisy targets, losses.relmse_unbiased_loss)
+    # noisy targets, losses.relmse_unbiased_loss), or "tau+temporal" (squared error in the
+    # evaluation's τ space, Işık eq. 14-15: the loss whose optimum is the best PSNR)
     loss: str = "smape+temporal"
     temporal_weight: float = 0.25  # Işık eq. 12 term next to the spatial one
     bandwidth_weight: float = 1e-5  # Işık eq. 9: weight of eq. 13 (affinity, oidn-temporal)
@@ -101,6 +104,7 @@ LOSSES = {
     "smape+temporal": (smape_loss, temporal_loss),
     "l1": (l1_tonemapped_loss, None),
     "relmse+temporal": (relmse_unbiased_loss, temporal_relmse_unbiased_loss),
+    "tau+temporal": (tau_mse_loss, temporal_tau_mse_loss),
 }
 
 

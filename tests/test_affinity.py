@@ -32,7 +32,8 @@ def frame_inputs(index: int) -> tuple:
     return moving_frame(index, HEIGHT, WIDTH)
 
 
-@pytest.fixture(scope="module", params=["affinity-h16", "affinity-f16", "affinity-h16-single"])
+@pytest.fixture(scope="module", params=["affinity-h16", "affinity-f16", "affinity-h16-single",
+                                      "affinity-h16-k5g"])
 def exported(request, tmp_path_factory):
     torch.manual_seed(0)
     model = affinity.AffinityDenoiser(affinity.VARIANTS[request.param]).eval()

@@ -192,3 +192,26 @@ def test_temporal_relmse_weights_differences_by_the_later_output_frame():
     assert got == pytest.approx((1.0 / (3 + metrics.EPS_RELATIVE)) ** 2, rel=1e-6)
     with pytest.raises(ValueError):
         losses.temporal_relmse_unbiased_loss(preds[:, :1], refs[:, :1])
+
+
+def test_tau_mse_loss_is_the_error_psnr_reports():
+    rng = np.random.default_rng(3)
+    ref = rng.gamma(0.5, 0.4, (16, 16, 3))
+    pred = ref * rng.uniform(0.5, 1.5, ref.shape) + 0.01
+    loss = losses.tau_mse_loss(torch.from_numpy(pred), torch.from_numpy(ref)).item()
+    assert -10 * np.log10(loss) == pytest.approx(metrics.psnr(pred, ref), abs=1e-9)
+    # the floor: a zero or negative prediction keeps a finite gradient
+    p = torch.tensor([0.0, -1.0, 0.3], dtype=torch.float64, requires_grad=True)
+    losses.tau_mse_loss(p, torch.tensor([0.2, 0.2, 0.3], dtype=torch.float64)).backward()
+    assert torch.isfinite(p.grad).all()
+
+
+def test_temporal_tau_mse_is_the_error_of_tau_differences():
+    preds = torch.rand(2, 3, 3, 4, 4, dtype=torch.float64)
+    refs = torch.rand(2, 3, 3, 4, 4, dtype=torch.float64)
+    tp, tr = losses.tonemap_tau(preds), losses.tonemap_tau(refs)
+    expected = ((tp[:, 1:] - tp[:, :-1]) - (tr[:, 1:] - tr[:, :-1])).square().mean()
+    assert losses.temporal_tau_mse_loss(preds, refs).item() == pytest.approx(expected.item())
+    assert losses.temporal_tau_mse_loss(refs, refs).item() == 0.0
+    with pytest.raises(ValueError, match="2 frames"):
+        losses.temporal_tau_mse_loss(preds[:, :1], refs[:, :1])

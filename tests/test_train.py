@@ -43,7 +43,7 @@ def test_batches_depend_only_on_seed_and_step(data):
     assert a(0)["color"].shape == (2, 2, 3, 24, 24)  # (batch, frames, C, crop, crop)
 
 
-@pytest.mark.parametrize("loss", ["smape+temporal", "l1", "relmse+temporal"])
+@pytest.mark.parametrize("loss", ["smape+temporal", "l1", "relmse+temporal", "tau+temporal"])
 def test_resumed_run_equals_uninterrupted_run(data, tmp_path, loss):
     cfg = config(data, loss=loss)
     qt.train(cfg, tmp_path / "straight")
