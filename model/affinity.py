@@ -89,6 +89,10 @@ class AffinityConfig:
     # Full-resolution guide: f^k += P_k g with g the pixel's albedo, normal and relative depth
     # and P_k a learned 8×7 matrix, so that the half-resolution features keep per-pixel edges.
     guide: bool = False
+    # Dilation order: False is the paper's 1, 2, ..., 2^(K-1); True runs the coarsest kernel
+    # first and ends at dilation 1, so that the last (temporal) kernel smooths out the grid
+    # pattern a sparse dilated kernel leaves instead of printing it.
+    coarse_first: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "widths", tuple(self.widths))  # JSON round trip gives a list
@@ -234,24 +238,34 @@ def guided_features(params: KernelParams, guide: Tensor, projection: nn.Conv2d) 
                         params.blend)
 
 
-def spatial_kernels(radiance: Tensor, params: KernelParams, kernel_size: int) -> Tensor:
+def kernel_dilation(k: int, kernels: int, coarse_first: bool) -> int:
+    """Dilation of the (k+1)-th kernel: 2^k (eq. 6), or 2^(K-1-k) with coarse_first."""
+    return 2 ** (kernels - 1 - k) if coarse_first else 2**k
+
+
+def spatial_kernels(radiance: Tensor, params: KernelParams, kernel_size: int,
+                    coarse_first: bool = False) -> Tensor:
     # eq. 4 + 6: L^(k) = Σ w^k L^(k-1) / (ε + Σ w^k), k = 1..K-1, dilation 2^(k-1)
     x = radiance  # (N, 3, H, W) = L^(0) = L̄
-    for k in range(len(params.features) - 1):
+    kernels = len(params.features)
+    for k in range(kernels - 1):
         x = spatial_affinity_filter(x, params.features[k], params.bandwidth[k], params.center[k],
-                                    kernel_size, 2**k, EPSILON)
+                                    kernel_size, kernel_dilation(k, kernels, coarse_first),
+                                    EPSILON)
     return x  # L^(K-1)
 
 
 def final_kernel(radiance: Tensor, params: KernelParams, prev_output: Tensor,
                  prev_features: Tensor, temporal_on: Tensor, kernel_size: int,
-                 temporal_kernel_size: int) -> Tensor:
-    # eq. 7 + 8: the K-th spatial kernel (dilation 2^(K-1)) jointly normalised with the
-    # temporal kernel ω = exp(-b ||f^K - W f^K_{t-1}||²) over W O_{t-1}; ω = 0 where temporal_on = 0
+                 temporal_kernel_size: int, coarse_first: bool = False) -> Tensor:
+    # eq. 7 + 8: the K-th spatial kernel (dilation 2^(K-1); 1 coarse-first) jointly normalised
+    # with the temporal kernel ω = exp(-b ||f^K - W f^K_{t-1}||²) over W O_{t-1};
+    # ω = 0 where temporal_on = 0
     k = len(params.features) - 1
     return temporal_affinity_filter(
         radiance, params.features[k], params.bandwidth[k], params.center[k], prev_output,
-        prev_features, params.temporal_bandwidth, temporal_on, kernel_size, 2**k,
+        prev_features, params.temporal_bandwidth, temporal_on, kernel_size,
+        kernel_dilation(k, k + 1, coarse_first),
         temporal_kernel_size, EPSILON)
 
 
@@ -342,16 +356,18 @@ class AffinityDenoiser(nn.Module):
         if warped is not None:
             acc = accumulate_radiance(radiance, warped[:, s["radiance"]],
                                       params.blend * keep)  # eq. 5
-            filtered = spatial_kernels(acc, params, size)  # eq. 4, 6
+            filtered = spatial_kernels(acc, params, size, self.config.coarse_first)  # eq. 4, 6
             output = final_kernel(filtered, params, warped[:, s["output"]],
                                   warped[:, s["features"]], temporal_on, size,
-                                  self.config.temporal_kernel_size)  # eq. 7, 8
+                                  self.config.temporal_kernel_size,
+                                  self.config.coarse_first)  # eq. 7, 8
         else:  # single-frame variant: the K-th kernel alone (eq. 4, 6)
             acc = radiance
             k = self.config.kernels - 1
             output = spatial_affinity_filter(
-                spatial_kernels(acc, params, size), params.features[k], params.bandwidth[k],
-                params.center[k], size, 2**k, EPSILON)
+                spatial_kernels(acc, params, size, self.config.coarse_first), params.features[k],
+                params.bandwidth[k], params.center[k], size,
+                kernel_dilation(k, k + 1, self.config.coarse_first), EPSILON)
         self.bandwidth_penalty = bandwidth_penalty_of(low_params)
         new_state = torch.cat((acc, output, params.features[-1], depth, normal),
                               dim=1)  # (N, STATE_CHANNELS, H, W)
@@ -365,9 +381,10 @@ def bandwidth_penalty_of(params: KernelParams) -> Tensor:
 
 
 def _variant(name: str, widths: tuple[int, ...], scale: int, temporal: bool = True,
-             kernels: int = KERNELS, guide: bool = False) -> AffinityConfig:
+             kernels: int = KERNELS, guide: bool = False, coarse_first: bool = False
+             ) -> AffinityConfig:
     return AffinityConfig(name=name, widths=widths, unet_scale=scale, temporal=temporal,
-                          kernels=kernels, guide=guide)
+                          kernels=kernels, guide=guide, coarse_first=coarse_first)
 
 
 # The width sweep (docs/affinity.md): h = U-Net at half resolution, f = full resolution.
@@ -383,6 +400,7 @@ VARIANTS: dict[str, AffinityConfig] = {
         _variant("affinity-h16-k5g", (16, 24, 32), 2, kernels=5, guide=True),
         _variant("affinity-h16-k5", (16, 24, 32), 2, kernels=5),
         _variant("affinity-h16-g", (16, 24, 32), 2, guide=True),
+        _variant("affinity-h16-k5gc", (16, 24, 32), 2, kernels=5, guide=True, coarse_first=True),
     )
 }
 

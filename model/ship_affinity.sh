@@ -5,13 +5,15 @@
 #             the crops) and the width table (docs/affinity-sweep.md);
 #   ship:     install it in models/ with its measured validation tables (model=auto, the card)
 #             — for a run that earns its place next to NBG and OIDN (docs/affinity.md).
-#   RUN=~/.cache/quietframe/runs/g2/affinity-h24-relmse PYTHON=.venv/bin/python \
-#       model/ship_affinity.sh evaluate|ship
+#   RUN=~/.cache/quietframe/runs/g2/s6/affinity-h16-k5g-tau NAME=affinity-h16-k5g \
+#       PYTHON=.venv/bin/python model/ship_affinity.sh evaluate|ship
+# NAME is the model's name in models/ and the reports (the run's variant); SWEEP=0 skips
+# re-timing the width table in evaluate.
 set -eu
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
 RUN=${RUN:-$R/affinity-h24}
-NAME=affinity-h24
+NAME=${NAME:-affinity-h24}
 VERSION=${VERSION:-1}
 STAGE=${1:?evaluate or ship}
 T=${TMPDIR:-/tmp}/ship-$NAME
@@ -30,8 +32,10 @@ if [ "$STAGE" = evaluate ]; then
     "$PY" -c "import json, pathlib; from quietframe.bench import auto_choice as a; \
 r = json.loads(pathlib.Path('docs/auto_choice.json').read_text()); \
 a.update_section(pathlib.Path('docs/benchmarks.md'), a.section(r, list(r['rows'][0]['fixed'])))"
-    "$PY" -m quietframe.bench.affinity_sweep --kernel-sizes 5 9 13 --repeats 3 \
-        --runs "$R/sweep" --out docs/affinity-sweep.md
+    if [ "${SWEEP:-1}" != 0 ]; then
+        "$PY" -m quietframe.bench.affinity_sweep --kernel-sizes 5 9 13 --repeats 3 \
+            --runs "$R/sweep" --out docs/affinity-sweep.md
+    fi
 fi
 
 if [ "$STAGE" = ship ]; then

@@ -33,7 +33,7 @@ def frame_inputs(index: int) -> tuple:
 
 
 @pytest.fixture(scope="module", params=["affinity-h16", "affinity-f16", "affinity-h16-single",
-                                      "affinity-h16-k5g"])
+                                      "affinity-h16-k5gc"])
 def exported(request, tmp_path_factory):
     torch.manual_seed(0)
     model = affinity.AffinityDenoiser(affinity.VARIANTS[request.param]).eval()
@@ -246,3 +246,22 @@ def test_shipped_model_is_the_export_of_its_shipped_checkpoint(name):
         for expected, color, _, _ in pairs:
             np.testing.assert_allclose(color, expected, rtol=1e-4,
                                        atol=1e-4 * float(np.abs(expected).max()))
+
+
+def test_kernel_count_dilations_and_guide():
+    # K kernels: dilations 1..2^(K-1) in the paper's order, reversed with coarse_first
+    assert [affinity.kernel_dilation(k, 5, False) for k in range(5)] == [1, 2, 4, 8, 16]
+    assert [affinity.kernel_dilation(k, 5, True) for k in range(5)] == [16, 8, 4, 2, 1]
+    with pytest.raises(ValueError, match="kernels"):
+        affinity.AffinityConfig(kernels=1)
+    model = affinity.AffinityDenoiser(affinity.VARIANTS["affinity-h16-k5gc"])
+    assert model.unet.out.out_channels == 5 * affinity.PARAMS_PER_KERNEL + 2
+    # the guide makes features differ across a one-pixel albedo edge the half-resolution
+    # U-Net cannot see: only the guide's projection separates the two columns
+    buffers = [b.clone() for b in frame_inputs(0)]
+    buffers[1][..., :, 1::2] = 0.9  # albedo alternating per column
+    buffers[1][..., :, 0::2] = 0.1
+    guide = affinity.guide_inputs(*buffers[1:4])
+    assert guide.shape[1] == affinity.GUIDE_CHANNELS
+    extra = model.guide(guide)
+    assert (extra[..., 1::2] - extra[..., 0::2]).abs().mean() > 0.1
