@@ -1,6 +1,7 @@
 """Why an affinity checkpoint scores what it scores on the validation split (docs/affinity.md).
 
-    python -m quietframe.bench.affinity_diagnose RUN/best.pt [--sequences 12] [--spp 1 8]
+    python -m quietframe.bench.affinity_diagnose RUN/best.pt [--sequences 12] [--spp 1 8] \
+        [--against models/nbg-2l-3g.onnx]
 
 Through the PyTorch model (quietframe-train's unroll, whole sequences, training's validation
 metric: τ-mapped PSNR), per spp:
@@ -10,7 +11,9 @@ metric: τ-mapped PSNR), per spp:
 - last-frame PSNR per run-time kernel size,
 - last-frame PSNR with the output's energy restored per block (output × blur(accumulated
   input) / blur(output), luminance, block means upsampled bilinearly): how much of the gap to
-  the reference is a low-frequency bias rather than noise left or detail lost.
+  the reference is a low-frequency bias rather than noise left or detail lost;
+- with --against, the same per-frame PSNR and energy for exported models (e.g. the shipped NBG)
+  run through quietframe.runtime on the same batches: a comparison measured in one run.
 """
 
 from __future__ import annotations
@@ -57,6 +60,18 @@ def run(model: affinity.AffinityDenoiser, batch: dict, kernel_size: int, block: 
     return outputs
 
 
+def run_exported(denoiser, batch: dict) -> list[torch.Tensor]:
+    """Outputs of one whole sequence through quietframe.runtime (state carried, reset honoured)."""
+    state, outputs = None, []
+    for t in range(batch["color"].shape[1]):
+        planes = {k: batch[k][0, t].numpy() for k in ("color", "albedo", "normal", "depth",
+                                                      "motion")}
+        result = denoiser.denoise(planes, None if batch["reset"][0, t] else state)
+        state = result.state
+        outputs.append(torch.from_numpy(result.color)[None])
+    return outputs
+
+
 def psnr(pred: torch.Tensor, ref: torch.Tensor) -> float:
     return metrics.psnr(pred[0].permute(1, 2, 0).numpy(), ref[0].permute(1, 2, 0).numpy())
 
@@ -69,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--kernel-sizes", type=int, nargs="+", default=[5, 9, 13])
     parser.add_argument("--blocks", type=int, nargs="+", default=[16, 32])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--against", type=Path, nargs="*", default=[],
+                        help="exported .onnx models to measure on the same batches")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     model, checkpoint = affinity.load_checkpoint(str(args.checkpoint))
@@ -97,12 +114,32 @@ def main(argv: list[str] | None = None) -> int:
                 last.setdefault(f"k={default}, energy restored per {block}²",
                                 []).append(psnr(out, refs[:, -1]))
         print(f"\n{spp} spp, {len(batches)} sequences")
+        for path in args.against:
+            report_exported(path, batches, args.threads)
         print("  PSNR per frame index: " + " ".join(f"{np.mean(v):.2f}" for v in per_frame if v))
         print(f"  energy out/ref (last frame): {np.round(energy, 2).tolist()}, mean "
               f"{np.mean(energy):.3f}; noisy input/ref: mean {np.mean(noisy_energy):.3f}")
         for name, values in last.items():
             print(f"  last-frame PSNR, {name}: {np.mean(values):.2f}")
     return 0
+
+
+def report_exported(path: Path, batches: list[dict], threads: int) -> None:
+    from quietframe.runtime import Denoiser
+
+    denoiser = Denoiser(path, threads=threads)
+    per_frame: list[list[float]] = []
+    energy = []
+    for batch in batches:
+        outputs = run_exported(denoiser, batch)
+        for t, out in enumerate(outputs):
+            if len(per_frame) <= t:
+                per_frame.append([])
+            per_frame[t].append(psnr(out, batch["reference"][:, t]))
+        energy.append(float(outputs[-1].mean() / batch["reference"][:, -1].mean()))
+    print(f"  {path.stem}: PSNR per frame index: "
+          + " ".join(f"{np.mean(v):.2f}" for v in per_frame)
+          + f"; last frame {np.mean(per_frame[-1]):.2f}; energy out/ref {np.mean(energy):.3f}")
 
 
 if __name__ == "__main__":

@@ -401,6 +401,7 @@ VARIANTS: dict[str, AffinityConfig] = {
         _variant("affinity-h16-k5", (16, 24, 32), 2, kernels=5),
         _variant("affinity-h16-g", (16, 24, 32), 2, guide=True),
         _variant("affinity-h16-k5gc", (16, 24, 32), 2, kernels=5, guide=True, coarse_first=True),
+        _variant("affinity-h16-k6gc", (16, 24, 32), 2, kernels=6, guide=True, coarse_first=True),
     )
 }
 
