@@ -45,7 +45,8 @@ def data_lines(training: dict) -> list[str]:
 
     data = Path(training["data"]).expanduser()
     return ["## Data", "",
-            f"- train: {describe_split(split_dir(data, 'train'))}",
+            f"- train (as on disk when this card was written; a run started while the split "
+            f"was still rendering saw fewer): {describe_split(split_dir(data, 'train'))}",
             f"- validation (never trained on; picks `best.pt`): "
             f"{describe_split(split_dir(data, 'validation'))}", ""]
 
