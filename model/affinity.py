@@ -46,10 +46,6 @@ FEATURE_CHANNELS = 8  # d of f^k (paper §3.7: d = 8)
 KERNELS = 3  # K, the paper's (§3.5); a config may use more (à-trous dilations up to 2^(K-1))
 PARAMS_PER_KERNEL = FEATURE_CHANNELS + 2  # f^k, a^k, c^k
 GUIDE_CHANNELS = 7  # albedo (3) + normal (3) + relative depth (1), at full resolution
-
-
-def unet_outputs(kernels: int) -> int:
-    return kernels * PARAMS_PER_KERNEL + 2  # + b, λ
 LEAK = 0.01  # leaky ReLU slope (the paper does not give one: PyTorch's default)
 DEFAULT_KERNEL_SIZE = 13  # paper §3.5: 13×13 windows
 KERNEL_SIZES = (5, 7, 9, 11, 13)  # the session-time choices (paper §5.5.3)
@@ -139,6 +135,10 @@ class Embedding(nn.Module):
         for layer in self.layers:
             x = F.leaky_relu(layer(x), LEAK)  # eq. 1: e = FC(r̄)
         return x  # (N, 32, H, W)
+
+
+def unet_outputs(kernels: int) -> int:
+    return kernels * PARAMS_PER_KERNEL + 2  # + b, λ
 
 
 def _conv(cin: int, cout: int) -> nn.Conv2d:
@@ -244,15 +244,16 @@ def kernel_dilation(k: int, kernels: int, coarse_first: bool) -> int:
 
 
 def spatial_kernels(radiance: Tensor, params: KernelParams, kernel_size: int,
-                    coarse_first: bool = False) -> Tensor:
-    # eq. 4 + 6: L^(k) = Σ w^k L^(k-1) / (ε + Σ w^k), k = 1..K-1, dilation 2^(k-1)
+                    coarse_first: bool = False, count: int | None = None) -> Tensor:
+    # eq. 4 + 6: L^(k) = Σ w^k L^(k-1) / (ε + Σ w^k), k = 1..count, dilation 2^(k-1);
+    # count = K - 1 (the K-th is final_kernel's), or K for the single-frame variant
     x = radiance  # (N, 3, H, W) = L^(0) = L̄
     kernels = len(params.features)
-    for k in range(kernels - 1):
+    for k in range(kernels - 1 if count is None else count):
         x = spatial_affinity_filter(x, params.features[k], params.bandwidth[k], params.center[k],
                                     kernel_size, kernel_dilation(k, kernels, coarse_first),
                                     EPSILON)
-    return x  # L^(K-1)
+    return x  # L^(count)
 
 
 def final_kernel(radiance: Tensor, params: KernelParams, prev_output: Tensor,
@@ -261,12 +262,12 @@ def final_kernel(radiance: Tensor, params: KernelParams, prev_output: Tensor,
     # eq. 7 + 8: the K-th spatial kernel (dilation 2^(K-1); 1 coarse-first) jointly normalised
     # with the temporal kernel ω = exp(-b ||f^K - W f^K_{t-1}||²) over W O_{t-1};
     # ω = 0 where temporal_on = 0
-    k = len(params.features) - 1
+    kernels = len(params.features)
+    k = kernels - 1
     return temporal_affinity_filter(
         radiance, params.features[k], params.bandwidth[k], params.center[k], prev_output,
         prev_features, params.temporal_bandwidth, temporal_on, kernel_size,
-        kernel_dilation(k, k + 1, coarse_first),
-        temporal_kernel_size, EPSILON)
+        kernel_dilation(k, kernels, coarse_first), temporal_kernel_size, EPSILON)
 
 
 class AffinityDenoiser(nn.Module):
@@ -361,13 +362,10 @@ class AffinityDenoiser(nn.Module):
                                   warped[:, s["features"]], temporal_on, size,
                                   self.config.temporal_kernel_size,
                                   self.config.coarse_first)  # eq. 7, 8
-        else:  # single-frame variant: the K-th kernel alone (eq. 4, 6)
+        else:  # single-frame variant: all K kernels spatial, no temporal term (eq. 4, 6)
             acc = radiance
-            k = self.config.kernels - 1
-            output = spatial_affinity_filter(
-                spatial_kernels(acc, params, size, self.config.coarse_first), params.features[k],
-                params.bandwidth[k], params.center[k], size,
-                kernel_dilation(k, k + 1, self.config.coarse_first), EPSILON)
+            output = spatial_kernels(acc, params, size, self.config.coarse_first,
+                                     count=self.config.kernels)
         self.bandwidth_penalty = bandwidth_penalty_of(low_params)
         new_state = torch.cat((acc, output, params.features[-1], depth, normal),
                               dim=1)  # (N, STATE_CHANNELS, H, W)

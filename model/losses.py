@@ -19,12 +19,17 @@ def smape_loss(pred: torch.Tensor, ref: torch.Tensor, eps: float = EPS_RELATIVE)
     return ((pred - ref).abs() / (pred.abs() + ref.abs() + eps)).mean()
 
 
+def _check_frames(preds: torch.Tensor, dim: int) -> None:
+    """The temporal terms need a frame difference: at least 2 frames along `dim`."""
+    if preds.shape[dim] < 2:
+        raise ValueError(f"temporal_loss: need >= 2 frames along dim {dim}, got {preds.shape}")
+
+
 def temporal_loss(
     preds: torch.Tensor, refs: torch.Tensor, dim: int = 1, eps: float = EPS_RELATIVE
 ) -> torch.Tensor:
     # Işık eq. 12: SMAPE(∂t O, ∂t O*), ∂t plain finite difference along `dim` of (N, T, C, H, W)
-    if preds.shape[dim] < 2:
-        raise ValueError(f"temporal_loss: need >= 2 frames along dim {dim}, got {preds.shape}")
+    _check_frames(preds, dim)
     return smape_loss(torch.diff(preds, dim=dim), torch.diff(refs, dim=dim), eps)
 
 
@@ -46,8 +51,7 @@ def temporal_relmse_unbiased_loss(
 ) -> torch.Tensor:
     # Işık eq. 12's temporal term with the unbiased loss above: ∂t of output and reference,
     # weighted by the later output frame (a difference's own magnitude can be ~0)
-    if preds.shape[dim] < 2:
-        raise ValueError(f"temporal_loss: need >= 2 frames along dim {dim}, got {preds.shape}")
+    _check_frames(preds, dim)
     later = preds.narrow(dim, 1, preds.shape[dim] - 1)
     return relmse_unbiased_loss(torch.diff(preds, dim=dim), torch.diff(refs, dim=dim), later, eps)
 
@@ -78,8 +82,7 @@ def tau_mse_loss(pred: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 def temporal_tau_mse_loss(preds: torch.Tensor, refs: torch.Tensor, dim: int = 1) -> torch.Tensor:
     # eq. 12's temporal term in the same space: frame differences of τ-mapped outputs
-    if preds.shape[dim] < 2:
-        raise ValueError(f"temporal_loss: need >= 2 frames along dim {dim}, got {preds.shape}")
+    _check_frames(preds, dim)
     diff_pred = torch.diff(tonemap_tau(preds), dim=dim)
     return (diff_pred - torch.diff(tonemap_tau(refs), dim=dim)).square().mean()
 

@@ -5,7 +5,7 @@
 #             the crops) and the width table (docs/affinity-sweep.md);
 #   ship:     install it in models/ with its measured validation tables (model=auto, the card)
 #             — for a run that earns its place next to NBG and OIDN (docs/affinity.md).
-#   RUN=~/.cache/quietframe/runs/g2/s6/affinity-h16-k5g-tau NAME=affinity-h16-k5g \
+#   RUN=~/.cache/quietframe/runs/g2/s6/affinity-h16-k5gc-tau NAME=affinity-h16-k5gc \
 #       PYTHON=.venv/bin/python model/ship_affinity.sh evaluate|ship
 # NAME is the model's name in models/ and the reports (the run's variant); SWEEP=0 skips
 # re-timing the width table in evaluate.
