@@ -34,6 +34,7 @@ from quietframe.client.protocol import (
 from quietframe.runtime import Denoiser, ModelInfo
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.sanitize import clamp_to_half
+from quietframe.runtime.usable_buffers import unusable_buffers
 from quietframe.service import frames, model_choice
 from quietframe.service.errors import (
     FrameConflict,
@@ -246,7 +247,13 @@ def reserve_bytes(info: ModelInfo, spec: SessionSpec) -> int:
 def choice_header(choice: Choice) -> str:
     spp = "unknown" if choice.spp is None else f"{choice.spp:g}"
     text = f"{choice.model}; spp={spp}; source={choice.noise_source}; reason={choice.reason}"
+    for symbol, word in HEADER_WORDS.items():  # spelled out, not turned into "?"
+        text = text.replace(symbol, word)
     return text.encode("ascii", "replace").decode()  # an HTTP header value is latin-1
+
+
+# The non-ASCII symbols the choice's reason uses, as the header spells them.
+HEADER_WORDS = {"σ": "sigma", "×": "x", "≤": "<=", "≥": ">=", "–": "-", "—": "-", "·": "*"}
 
 
 def process_frame(
@@ -557,9 +564,9 @@ class SessionRegistry:
         also measures how noisy the frame looks (model_choice.noise_statistic)."""
         spec = session.spec
         stated = model_choice.samples_from_header(header.attributes, spec.layer)
-        noise = await self._on_pool(self._estimate_noise, body, sources, stated)
+        noise, unusable = await self._on_pool(self._estimate_noise, body, sources, stated)
         return model_choice.choose(
-            sources,
+            [b for b in sources if b not in unusable],  # present in the pixels, not just named
             noise,
             self.models.profiles,
             self.models.default,
@@ -573,12 +580,18 @@ class SessionRegistry:
         body: bytes | bytearray,
         sources: dict[str, frames.Source],
         stated: model_choice.NoiseLevel | None,
-    ) -> model_choice.NoiseLevel:
-        planes = frames.decode(body, {b: sources[b] for b in ("color", "albedo") if b in sources})
-        return model_choice.estimate_spp(
+    ) -> tuple[model_choice.NoiseLevel, tuple[str, ...]]:
+        """The frame's noise level, and the buffers it names that hold nothing usable
+        (runtime.usable_buffers: all-zero motion, constant depth; decode drops the former)."""
+        wanted = ("color", "albedo", "motion", "depth")
+        planes = frames.decode(body, {b: sources[b] for b in wanted if b in sources})
+        dropped = [b for b in wanted if b in sources and b not in planes.buffers]
+        unusable = (*dropped, *unusable_buffers(planes.buffers))
+        noise = model_choice.estimate_spp(
             planes.buffers["color"], planes.buffers.get("albedo"), self.models.calibration,
             header=stated,
         )
+        return noise, unusable
 
     def _reserve_reply(self, session: Session, reply_bytes: int, info: ModelInfo) -> None:
         """The reply is the whole input file with the denoised colour in it, larger than the
