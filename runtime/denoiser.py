@@ -2,94 +2,93 @@
 
 Used by the service, the evaluation and the benchmarks, so every reported figure is a figure
 of the shipped path. Knows the graph interface of docs/model-interface.md, nothing about what a
-model does inside. Buffers go in and the frame comes out as (C, H, W) float32 planes: the layout
-of EXR channels and of the NCHW graph alike, so nothing is transposed or re-copied on the way.
+model does inside: what it knows of a model comes from its card (runtime/card.py). Buffers go
+in and the frame comes out as (C, H, W) float32 planes: the layout of EXR channels and of the
+NCHW graph alike, so nothing is transposed or re-copied on the way.
 """
 
 from __future__ import annotations
 
-import json
 import threading
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
 from quietframe.runtime.buffers import BUFFER_CHANNELS, BufferError, check_buffers, check_plane
-from quietframe.runtime.oidn_prepass import (
-    PREPASS_BUFFERS,
-    OIDNPrepass,
-    PrepassUnavailable,
-    read_prepass,
+from quietframe.runtime.card import (
+    OUTPUT,
+    RESET,
+    STATE_IN,
+    STATE_OUT,
+    GraphStage,
+    InputSpec,
+    ModelCard,
+    OIDNStage,
+    StateSpec,
 )
+from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass, PrepassUnavailable
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
-from quietframe.runtime.tiling import (
-    DEFAULT_TILE_PIXELS,
-    add_ballast,
-    crop,
-    model_geometry,
-    place,
-    tiles_of,
-)
+from quietframe.runtime.tiling import max_memory_mb_default, run_tiled, tile_pixels_for
 
+__all__ = ["BY_MEMORY", "DenoiseResult", "Denoiser", "InputSpec", "ModelInfo", "StateSpec",
+           "check_options", "read_model_info"]
 
-@dataclass(frozen=True)
-class StateSpec:
-    name: str
-    channels: int
-    scale: int = 1  # the tensor is ⌈H/scale⌉ × ⌈W/scale⌉ (e.g. a half-resolution history)
-
-    def shape(self, height: int, width: int) -> tuple[int, int, int, int]:
-        return (1, self.channels, -(-height // self.scale), -(-width // self.scale))
-
-
-@dataclass(frozen=True)
-class InputSpec:
-    """An extra scalar graph input (metadata `quietframe.inputs`), fed from its default or a
-    session/call option: e.g. the affinity model's `kernel_size`."""
-
-    name: str
-    dtype: str  # numpy dtype name, e.g. "int64"
-    shape: tuple[int, ...]
-    default: float | int
-    allowed: tuple[float | int, ...] | None = None  # None: any value
-    doc: str = ""
-
-    def check(self, value: float | int) -> None:
-        """ValueError for a value this input does not take."""
-        if self.allowed is not None and value not in self.allowed:
-            raise ValueError(f"{self.name} must be one of {list(self.allowed)}, got {value!r}")
-        if np.dtype(self.dtype).kind in "iu" and not float(value).is_integer():
-            raise ValueError(f"{self.name} is an integer, got {value!r}")  # not truncated
-
-    def array(self, value: float | int) -> np.ndarray:
-        self.check(value)
-        return np.full(self.shape, value, dtype=self.dtype)
-
-    def describe(self) -> str:
-        """E.g. 'kernel_size (one of [5, 7, 9], default 5)', for messages and listings."""
-        values = f"one of {list(self.allowed)}, " if self.allowed is not None else ""
-        return f"{self.name} ({values}default {self.default})"
+BY_MEMORY = "by_memory"  # Denoiser(tile_pixels=...): tiles sized by max_memory_mb
 
 
 @dataclass(frozen=True)
 class ModelInfo:
+    """A loaded model's interface as callers see it: for a composition, the buffers every stage
+    reads and the state of every stage (each stage's under its namespace)."""
+
     name: str
     version: str
     path: Path
     required_buffers: tuple[str, ...]
     optional_buffers: tuple[str, ...]
     state_specs: tuple[StateSpec, ...]
-    metadata: dict[str, str]
-    metrics: dict = field(default_factory=dict)
-    training: dict = field(default_factory=dict)
+    card: ModelCard
     inputs: tuple[InputSpec, ...] = ()
+
+    @property
+    def metrics(self) -> dict:
+        """`quietframe.metrics` as written (the API lists it)."""
+        return self.card.metrics()
+
+    @property
+    def training(self) -> dict:
+        return dict(self.card.training)
+
+    @property
+    def metadata(self) -> dict[str, str]:
+        """The card as metadata_props (what an exporter writes)."""
+        return self.card.to_props()
 
     def state_nbytes(self, height: int, width: int) -> int:
         return sum(4 * int(np.prod(s.shape(height, width))) for s in self.state_specs)
+
+
+def model_info(path: Path, card: ModelCard, parts: Iterable[tuple[GraphStage, ModelCard]] = ()
+               ) -> ModelInfo:
+    """The interface of `card`'s model; `parts`: its other graph stages with their cards."""
+    cards = [c for _, c in parts]
+    required = tuple(dict.fromkeys(b for c in (card, *cards) for b in c.required))
+    optional = tuple(b for b in dict.fromkeys(b for c in (card, *cards) for b in c.optional)
+                     if b not in required)
+    states = tuple(StateSpec(stage.state_key(s.name), s.channels, s.scale)
+                   for stage, c in parts for s in c.state)
+    inputs = tuple({i.name: i for c in (*cards, card) for i in c.inputs}.values())
+    return ModelInfo(card.name, card.version, path, required, optional,
+                     (*card.state, *states), card, inputs)
+
+
+def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
+    """A single graph's interface from its metadata_props (no composition resolved)."""
+    return model_info(path, ModelCard.from_props(metadata, path.stem))
 
 
 @dataclass
@@ -98,23 +97,6 @@ class DenoiseResult:
     state: dict[str, np.ndarray]  # feed back as the next frame's state
     sanitized: dict[str, int]  # replaced input values per buffer (see sanitize.py)
     missing: tuple[str, ...]  # optional buffers that were absent and fed as zeros
-
-
-COLOR_STAGE_PREFIX = "color_from."  # state names of a prepass's color_from model
-
-
-def compose_info(info: ModelInfo, color_stage: ModelInfo) -> ModelInfo:
-    """A composition's interface: the buffers either part requires or reads, and both parts'
-    state (the color_from model's under COLOR_STAGE_PREFIX), so sessions persist and budget it
-    like any model's."""
-    required = tuple(dict.fromkeys((*info.required_buffers, *color_stage.required_buffers)))
-    optional = tuple(b for b in dict.fromkeys((*info.optional_buffers,
-                                               *color_stage.optional_buffers))
-                     if b not in required)
-    states = tuple(StateSpec(COLOR_STAGE_PREFIX + s.name, s.channels, s.scale)
-                   for s in color_stage.state_specs)
-    return replace(info, required_buffers=required, optional_buffers=optional,
-                   state_specs=(*info.state_specs, *states))
 
 
 def check_options(info: ModelInfo, options: Mapping[str, float | int]) -> None:
@@ -136,30 +118,6 @@ def check_options(info: ModelInfo, options: Mapping[str, float | int]) -> None:
             raise ValueError(f"model {info.name!r}: {exc}") from None
 
 
-def read_model_info(path: Path, metadata: Mapping[str, str]) -> ModelInfo:
-    def load(key: str, default: str):
-        return json.loads(metadata.get(f"quietframe.{key}", default))
-
-    return ModelInfo(
-        name=metadata.get("quietframe.name", path.stem),
-        version=metadata.get("quietframe.version", "0"),
-        path=path,
-        required_buffers=tuple(load("buffers.required", '["color"]')),
-        optional_buffers=tuple(load("buffers.optional", "[]")),
-        state_specs=tuple(StateSpec(s["name"], int(s["channels"]), int(s.get("scale", 1)))
-                          for s in load("state", "[]")),
-        metadata=dict(metadata),
-        metrics=load("metrics", "{}"),
-        training=load("training", "{}"),
-        inputs=tuple(
-            InputSpec(i["name"], i["dtype"], tuple(i["shape"]), i["default"],
-                      tuple(i["allowed"]) if i.get("allowed") is not None else None,
-                      i.get("doc", ""))
-            for i in load("inputs", "[]")
-        ),
-    )
-
-
 _ops_lock = threading.Lock()
 
 
@@ -173,53 +131,122 @@ def make_session(path: Path, threads: int) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
+class GraphRunner:
+    """One graph stage of a model: its session, its card, and its tiles. `run` feeds it the
+    frame's buffers, the stage's state and reset, and returns its output and new state."""
+
+    def __init__(self, session: ort.InferenceSession, card: ModelCard, stage: GraphStage,
+                 tile_pixels: int | None) -> None:
+        self.session, self.card, self.stage = session, card, stage
+        self.tile_pixels = tile_pixels  # None: every frame whole
+        self.input_names = {i.name for i in session.get_inputs()}
+        self.output_names = [o.name for o in session.get_outputs()]
+        self.scales = {f"{io}{s.name}": s.scale for s in card.state if s.scale != 1
+                       for io in (STATE_IN, STATE_OUT)}
+
+    def run(self, feeds: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
+            height: int, width: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """(output (1, 3, H, W), new state by the stage's own names); `state` None: fresh."""
+        feeds = {k: v for k, v in feeds.items() if k in self.input_names}
+        zero_state: dict[str, StateSpec] = {}
+        for spec in self.card.state:
+            if state is None:
+                zero_state[STATE_IN + spec.name] = spec
+                continue
+            tensor = state[self.stage.state_key(spec.name)]
+            if tensor.shape != spec.shape(height, width):
+                raise BufferError(f"state {self.stage.state_key(spec.name)!r} has shape "
+                                  f"{tensor.shape}, frame is {height}x{width}")
+            feeds[STATE_IN + spec.name] = tensor
+        if RESET in self.input_names:  # a prepass-only graph has no history of its own
+            feeds[RESET] = np.array([1.0 if state is None else 0.0], np.float32)
+        tiling = self.card.tiling
+        if tiling is None or self.tile_pixels is None or height * width <= self.tile_pixels:
+            feeds |= {k: np.zeros(s.shape(height, width), np.float32)
+                      for k, s in zero_state.items()}
+            outputs = dict(zip(self.output_names, self.session.run(None, feeds), strict=True))
+        else:
+            values = {k: v.reshape(-1)[0] for k, v in feeds.items() if v.ndim != 4 and v.size}
+            outputs = run_tiled(lambda part: dict(zip(self.output_names,
+                                                      self.session.run(None, part),
+                                                      strict=True)),
+                                feeds, height, width, tiling, values, self.tile_pixels,
+                                self.scales, zero_state)
+        return outputs[OUTPUT], {s.name: outputs[STATE_OUT + s.name] for s in self.card.state}
+
+
 class Denoiser:
     """A loaded model; `denoise` is thread-safe (onnxruntime runs sessions concurrently).
-    Frames above `tile_pixels` run in overlapping tiles (tiling.py) when the model card gives
-    the geometry to make them seamless; None runs every frame whole.
 
-    A model whose metadata names a prepass (quietframe.prepass, runtime/oidn_prepass.py) is a
-    composition: the runtime runs OIDN on the frame first and feeds its output to the graph.
-    Such a model raises PrepassUnavailable here when pyoidn is not installed. A prepass with
-    `color_from` runs that model (its own Denoiser and state) first and gives OIDN its output.
+    The model card's stages run in order (runtime/card.py): graphs (this file's, last; others
+    from files in its folder, each with its state under its namespace) and OIDN passes
+    (runtime/oidn_prepass.py), which denoise the previous graph's output (or the frame's
+    colour) and feed the next graph. A model with an OIDN stage raises PrepassUnavailable here
+    when pyoidn is not installed.
+
+    Memory: each graph runs in overlapping tiles (tiling.py) whose working set fits in
+    `max_memory_mb` (default QUIETFRAME_MAX_MEMORY_MB or tiling.DEFAULT_MAX_MEMORY_MB; OIDN gets
+    the same bound as its maxMemoryMB). `tile_pixels` overrides the tile size (padded pixels);
+    None runs every frame whole.
 
     `options`: values for the model's extra inputs (`info.inputs`), e.g. {"kernel_size": 7};
-    the metadata default for the others."""
+    the card's default for the others."""
 
     def __init__(
         self,
         model_path: str | Path,
         threads: int = 2,
-        tile_pixels: int | None = DEFAULT_TILE_PIXELS,
+        tile_pixels: int | None | str = BY_MEMORY,
         options: Mapping[str, float | int] | None = None,
+        max_memory_mb: float | None = None,
     ) -> None:
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"model file {path} does not exist")
+        self.max_memory_mb = max_memory_mb or max_memory_mb_default()
         self.session = make_session(path, threads)
-        meta = self.session.get_modelmeta().custom_metadata_map
-        self.info = read_model_info(path, meta)
-        self.geometry = model_geometry(meta)
-        self.tile_pixels = tile_pixels
-        self._output_names = [o.name for o in self.session.get_outputs()]
-        self.input_names = {i.name for i in self.session.get_inputs()}
-        settings = read_prepass(meta)
+        self.card = ModelCard.from_props(self.session.get_modelmeta().custom_metadata_map,
+                                         path.stem)
+        prepass = self.card.prepass
         try:
-            self.prepass = OIDNPrepass(settings, num_threads=threads) if settings else None
+            self.prepass = (OIDNPrepass(prepass, num_threads=threads,
+                                        max_memory_mb=self.max_memory_mb) if prepass else None)
         except PrepassUnavailable as exc:
-            exc.model = self.info.name  # for the service's log line and error
+            exc.model = self.card.name  # for the service's log line and error
             raise
-        self._graph_states = self.info.state_specs
-        self.color_stage: Denoiser | None = None
-        if settings and settings.color_from:
-            first = path.parent / settings.color_from
-            if not first.is_file():
-                raise FileNotFoundError(f"model {self.info.name!r} denoises the output of "
-                                        f"{settings.color_from}, which is not installed next to "
-                                        f"it ({first})")
-            self.color_stage = Denoiser(first, threads, tile_pixels)
-            self.info = compose_info(self.info, self.color_stage.info)
+        self.stages: list[GraphRunner | OIDNStage] = []
+        parts: list[tuple[GraphStage, ModelCard]] = []
+        for stage in self.card.stages:
+            if isinstance(stage, OIDNStage):
+                self.stages.append(stage)
+                continue
+            if stage.file:
+                session = make_session(self._stage_file(path, stage), threads)
+                card = ModelCard.from_props(session.get_modelmeta().custom_metadata_map,
+                                            Path(stage.file).stem)
+                parts.append((stage, card))
+            else:
+                session, card = self.session, self.card
+            self.stages.append(GraphRunner(session, card, stage,
+                                           self._tile_pixels(card, tile_pixels)))
+        self.graph = self.stages[-1]  # this file's graph
+        assert isinstance(self.graph, GraphRunner)
+        self.tile_pixels = self.graph.tile_pixels
+        self.input_names = self.graph.input_names
+        self.info = model_info(path, self.card, parts)
         self._option_feeds = self._options({}, options or {})
+
+    def _stage_file(self, path: Path, stage: GraphStage) -> Path:
+        first = path.parent / stage.file
+        if not first.is_file():
+            raise FileNotFoundError(f"model {self.card.name!r} denoises the output of "
+                                    f"{stage.file}, which is not installed next to it ({first})")
+        return first
+
+    def _tile_pixels(self, card: ModelCard, tile_pixels: int | None | str) -> int | None:
+        if tile_pixels != BY_MEMORY:
+            return tile_pixels  # type: ignore[return-value]
+        return tile_pixels_for(card.tiling, self.max_memory_mb) if card.tiling else None
 
     def _options(self, base: Mapping[str, np.ndarray],
                  options: Mapping[str, float | int]) -> dict[str, np.ndarray]:
@@ -243,12 +270,6 @@ class Denoiser:
             s.name: np.zeros(s.shape(height, width), np.float32)
             for s in self.info.state_specs
         }
-
-    def color_stage_state(self, state: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The color_from model's own state, out of this composition's state dict."""
-        assert self.color_stage is not None
-        return {s.name: state[COLOR_STAGE_PREFIX + s.name]
-                for s in self.color_stage.info.state_specs}
 
     def _feeds(
         self, planes: Mapping[str, np.ndarray]
@@ -279,65 +300,21 @@ class Denoiser:
         `options` overrides the Denoiser's options for this call."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
         feeds |= self._options(self._option_feeds, options) if options else self._option_feeds
-        fresh = state is None
-        color_state: dict[str, np.ndarray] = {}
-        if self.prepass is not None:
-            # The sanitised planes, so OIDN sees exactly what a plain graph would; an absent
-            # aux buffer is left out (OIDN then runs without it), not given as zeros.
-            oidn_planes = {name: feeds[name][0] for name in PREPASS_BUFFERS
-                           if name not in missing}
-            if self.color_stage is not None:
-                first = self.color_stage.denoise(
-                    {k: v[0] for k, v in feeds.items() if k in BUFFER_CHANNELS},
-                    None if fresh else self.color_stage_state(state))
-                oidn_planes["color"] = first.color
-                color_state = {COLOR_STAGE_PREFIX + k: v for k, v in first.state.items()}
-                if "denoised" in first.sanitized:
-                    sanitized["color_from"] = first.sanitized["denoised"]
-            feeds[self.prepass.settings.input] = self.prepass(oidn_planes)
-        feeds = {k: v for k, v in feeds.items() if k in self.input_names}
-        if state is None:
-            state = self.initial_state(height, width)
-        for spec in self._graph_states:
-            tensor = state[spec.name]
-            if tensor.shape != spec.shape(height, width):
-                raise BufferError(
-                    f"state {spec.name!r} has shape {tensor.shape}, frame is {height}x{width}"
-                )
-            feeds[f"state_in.{spec.name}"] = tensor
-        if "reset" in self.input_names:  # a prepass-only graph has no history of its own
-            feeds["reset"] = np.array([1.0 if fresh else 0.0], np.float32)
-        outputs = self._run(feeds, height, width)
-        color, bad = sanitize_output(outputs["denoised"][0])
-        if bad:
-            sanitized["denoised"] = bad
-        return DenoiseResult(
-            color=color,
-            state={**{s.name: outputs[f"state_out.{s.name}"] for s in self._graph_states},
-                   **color_state},
-            sanitized=sanitized,
-            missing=missing,
-        )
-
-    def _run(self, feeds: dict[str, np.ndarray], height: int, width: int) -> dict[str, np.ndarray]:
-        """One run, or one per tile with each tile's interior put in place."""
-        run = self.session.run
-        if self.geometry is None or self.tile_pixels is None:
-            return dict(zip(self._output_names, run(None, feeds), strict=True))
-        motion = feeds.get("motion")
-        tiles = list(tiles_of(height, width, self.geometry, motion, self.tile_pixels))
-        if len(tiles) == 1:
-            return dict(zip(self._output_names, run(None, feeds), strict=True))
-        geometry, dy, dx = self.geometry, 0, 0
-        ballast = geometry.depth_mean and "depth" in feeds
-        mean_depth = float(feeds["depth"].mean(dtype=np.float64)) if ballast else 0.0
-        outputs: dict[str, np.ndarray] = {}
-        for tile in tiles:
-            part = {k: crop(v, tile) if v.ndim == 4 else v for k, v in feeds.items()}
-            if ballast:
-                part, dy, dx = add_ballast(part, tile, height, width, mean_depth, geometry.align)
-            for name, result in zip(self._output_names, run(None, part), strict=True):
-                if name not in outputs:  # (N, C, H, W) of the whole frame
-                    outputs[name] = np.empty((*result.shape[:2], height, width), result.dtype)
-                place(outputs[name], tile, result, dy, dx)
-        return outputs
+        new_state: dict[str, np.ndarray] = {}
+        color = feeds["color"]  # (1, 3, H, W): what the next OIDN stage denoises
+        for stage in self.stages:
+            if isinstance(stage, OIDNStage):
+                # The sanitised planes, so OIDN sees exactly what a plain graph would; an absent
+                # aux buffer is left out (OIDN then runs without it), not given as zeros.
+                oidn_planes = {name: feeds[name][0] for name in PREPASS_BUFFERS[1:]
+                               if name not in missing}
+                feeds[stage.input] = self.prepass({"color": color[0], **oidn_planes})
+                continue
+            output, stage_state = stage.run(feeds, state, height, width)
+            clean, bad = sanitize_output(output[0])
+            if bad:  # the last stage's under "denoised", an earlier one's under its namespace
+                sanitized[stage.stage.namespace or OUTPUT] = bad
+            color = clean[None]
+            new_state |= {stage.stage.state_key(k): v for k, v in stage_state.items()}
+        return DenoiseResult(color=color[0], state=new_state, sanitized=sanitized,
+                             missing=missing)

@@ -1,6 +1,7 @@
 """A per-frame Open Image Denoise pass that runs before a model's graph (the oidn-temporal tier).
 
-A model asks for it in its metadata (docs/model-interface.md):
+A model's card lists it as an OIDN stage (runtime/card.py); files written before the card say
+it in their metadata (docs/model-interface.md):
 
     quietframe.prepass = {"oidn": {"quality": "high", "prefilter_aux": false}, "input": "oidn",
                           "color_from": "accumulation.onnx"}
@@ -14,27 +15,30 @@ then sees several frames' samples instead of one. pyoidn is optional: without it
 
 Resources: one OIDN device per worker thread (OIDN devices are not meant to be shared between
 threads that execute concurrently), and per thread the committed filters of the last frame sizes
-seen, so a sequence pays for device and filter creation once. pyoidn binds numpy memory
+seen, so a sequence pays for device and filter creation once. Memory: OIDN tiles large images
+itself (its own alignment and overlap) to fit its `maxMemoryMB`, which the runtime sets from
+its one memory bound. pyoidn binds numpy memory
 zero-copy without keeping it alive: every bound array is held by the filter set that binds it,
 frames are copied into those arrays, and filters are released before their arrays.
 """
 
 from __future__ import annotations
 
-import json
 import threading
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from quietframe.runtime.card import PREFIX, OIDNStage, parse_prepass
+
 QUALITIES = {"fast": "OIDN_QUALITY_FAST", "balanced": "OIDN_QUALITY_BALANCED",
              "high": "OIDN_QUALITY_HIGH"}
-PREPASS_KEY = "quietframe.prepass"
+PREPASS_KEY = PREFIX + "prepass"
 PREPASS_BUFFERS = ("color", "albedo", "normal")  # what OIDN reads, as (3, H, W) planes
 SIZES_PER_THREAD = 2  # filter sets kept per thread, by (size, aux set): a session's, plus one
+
+OIDNSettings = OIDNStage  # the prepass settings are the card's OIDN stage (runtime/card.py)
 
 
 class PrepassUnavailable(RuntimeError):
@@ -43,40 +47,9 @@ class PrepassUnavailable(RuntimeError):
     model: str | None = None  # the model's name, set by the runtime that loads it
 
 
-@dataclass(frozen=True)
-class OIDNSettings:
-    quality: str = "high"
-    prefilter_aux: bool = False
-    input: str = "oidn"  # the graph input that receives OIDN's output
-    aux: tuple[str, ...] = ("albedo", "normal")  # what OIDN is given besides the colour
-    color_from: str = ""  # a model file (same folder) whose output OIDN denoises; "": the frame
-
-    def __post_init__(self) -> None:
-        if self.color_from and (Path(self.color_from).name != self.color_from
-                                or not self.color_from.endswith(".onnx")):
-            raise ValueError(f"prepass: color_from must name an .onnx file in the model's own "
-                             f"folder, got {self.color_from!r}")
-        if self.quality not in QUALITIES:
-            raise ValueError(f"prepass: OIDN quality must be one of {list(QUALITIES)}, "
-                             f"got {self.quality!r}")
-        if set(self.aux) - {"albedo", "normal"} or ("normal" in self.aux
-                                                     and "albedo" not in self.aux):
-            raise ValueError(f"prepass: OIDN aux must be (), ('albedo',) or ('albedo', 'normal') "
-                             f"(a normal only with an albedo), got {self.aux!r}")
-
-
 def read_prepass(metadata: Mapping[str, str]) -> OIDNSettings | None:
-    """The model's prepass from its metadata, or None when it has none."""
-    text = metadata.get(PREPASS_KEY)
-    if not text:
-        return None
-    spec = json.loads(text)
-    if set(spec) - {"oidn", "input", "color_from"} or "oidn" not in spec:
-        raise ValueError(f"{PREPASS_KEY}: only an 'oidn' prepass is known, got {sorted(spec)}")
-    oidn = spec["oidn"]
-    return OIDNSettings(quality=oidn.get("quality", "high"),
-                        prefilter_aux=bool(oidn.get("prefilter_aux", False)),
-                        input=spec.get("input", "oidn"), color_from=spec.get("color_from", ""))
+    """The model's prepass from its metadata (with `color_from` as written), or None."""
+    return parse_prepass(metadata.get(PREPASS_KEY))
 
 
 def import_pyoidn():
@@ -104,8 +77,9 @@ class _FilterSet:
     bind."""
 
     def __init__(self, pyoidn, device, settings: OIDNSettings, shape: tuple[int, int],
-                 aux: tuple[str, ...]) -> None:
+                 aux: tuple[str, ...], max_memory_mb: float | None = None) -> None:
         self._oidn, self._device = pyoidn, device
+        self._max_memory_mb = max_memory_mb
         self.inputs = ("color", *aux)
         names = [*self.inputs, "output"]
         if settings.prefilter_aux:
@@ -127,6 +101,8 @@ class _FilterSet:
         for slot, key in images.items():
             flt.set_image(slot, self.bound[key], oidn.OIDN_FORMAT_FLOAT3)
         flt.set_quality(getattr(oidn, QUALITIES[settings.quality]))
+        if self._max_memory_mb:  # OIDN tiles the image itself to fit (its own overlap)
+            flt.set_int("maxMemoryMB", int(self._max_memory_mb))
         if "color" in images:
             flt.set_bool("hdr", True)
             flt.set_bool("cleanAux", settings.prefilter_aux)
@@ -174,9 +150,11 @@ class _ThreadResources:
 class OIDNPrepass:
     """OIDN's RT filter on (3, H, W) planes; thread-safe (per-thread device and filters)."""
 
-    def __init__(self, settings: OIDNSettings, num_threads: int = 0) -> None:
+    def __init__(self, settings: OIDNSettings, num_threads: int = 0,
+                 max_memory_mb: float | None = None) -> None:
         self._oidn = import_pyoidn()
         self.settings, self.num_threads = settings, num_threads  # 0: all cores (OIDN default)
+        self.max_memory_mb = max_memory_mb  # OIDN's maxMemoryMB; None: OIDN's default
         self._local = threading.local()
         self._lock = threading.Lock()
         self._all: list[_ThreadResources] = []  # every thread's, for close()
@@ -198,7 +176,8 @@ class OIDNPrepass:
         key = (*shape, aux)
         filter_set = resources.sets.get(key)
         if filter_set is None:
-            filter_set = _FilterSet(self._oidn, resources.device, self.settings, shape, aux)
+            filter_set = _FilterSet(self._oidn, resources.device, self.settings, shape, aux,
+                                    self.max_memory_mb)
             resources.sets[key] = filter_set
             with self._lock:
                 self.filter_sets_built += 1

@@ -1,63 +1,57 @@
-"""Large frames in overlapping tiles, so a model's working set stays bounded (NBG needs about
-0.7 KiB per pixel untiled, which an 8K frame would multiply by 33 Mpx; docs/reliability.md).
+"""Large frames in overlapping tiles, so a graph's working set stays bounded by one setting,
+`max_memory_mb` (like OIDN's `maxMemoryMB`): a tile holds at most max_memory_mb / the card's
+`bytes_per_pixel` padded pixels (NBG ~0.75 KiB/px, the affinity model ~1 KiB/px untiled, which
+an 8K frame would multiply by 33 Mpx; docs/reliability.md). What tiles need to know about a
+graph is its card's `Tiling` (runtime/card.py; the rules per family: runtime/receptive.py).
 
-Why the tiles join without seams: an NBG output pixel depends only on inputs within a finite
+Why the tiles join without seams: an output pixel depends only on inputs within a finite
 radius (its receptive field) and on the history at those pixels' motion targets. With
 - every tile read with `overlap` extra pixels on each side, overlap >= receptive radius + the
   frame's largest motion (+1 for the nearest-pixel fetch), so every input and history pixel an
   interior pixel depends on is in its tile, and a motion target that is inside the frame is
   inside the tile (the warp's in-frame test agrees with the untiled run);
-- every tile's origin a multiple of the coarsest grid cell (sigma_s * 2^(grids-1)), so the
-  bilateral grids' cells lie where they lie in the untiled frame;
+- every tile's origin a multiple of the card's `align` (NBG: the coarsest grid cell; affinity:
+  the U-Net's coarsest cell), so grid cells, pooling blocks and resampling grids lie where they
+  lie in the untiled frame (a state at 1/s resolution is cut at origin / s);
 - only each tile's interior kept, for the output and for the new state;
-each interior pixel is computed from the same values as untiled. One frame-wide quantity is not
-local: the GuideNet feature depth / mean(depth) (model/nbg.py guide_features). Each tile gets a
+each interior pixel is computed from the same values as untiled. Frame-wide quantities are not
+local; the card lists them. Mean depth (NBG's GuideNet and the affinity guide divide depth by
+it: model/nbg.py guide_features, model/affinity.py guide_inputs) is restored: each tile gets a
 ballast band appended on a side that is not the frame's edge (so at least `overlap` away from
 its interior, which it cannot reach): zero buffers and one depth value chosen so that the tile's
 mean depth is the frame's. The interior then sees the frame's depth scale. What remains is float
 rounding (the mean is summed in another order), and nearest-pixel warps whose source falls on an
 exact .5 tie, where the warp's normalised-coordinate arithmetic rounds by the tile's width.
-tests/test_tiling.py compares tiled and untiled runs.
+The affinity model's U-Net resamples by the ratio of its level sizes, which tiles and frame
+share only when the frame's sides are multiples of `align` (4K and 8K are); other sizes tile
+with a small parameter shift. A first frame's zero state is made per tile, not for the frame.
+tests/test_tiling.py compares tiled and untiled runs of every shipped model.
 """
 
 from __future__ import annotations
 
-import json
 import math
-from collections.abc import Iterator, Mapping
+import os
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-# Pixels of one padded tile: 1080p (2.07 Mpx) still runs whole (tiles cost their overlap);
-# NBG's working set is ~0.7 KiB/px, so a tile in flight holds ~1.4 GiB whatever the frame size.
-DEFAULT_TILE_PIXELS = 1 << 21
+from quietframe.runtime.card import StateSpec, Tiling
+
+# The working set one tile may hold, in MiB (OIDN's maxMemoryMB); QUIETFRAME_MAX_MEMORY_MB
+# overrides. 1536 MiB keeps NBG's tiles at 2 Mpx (1080p still runs whole, tiles cost their
+# overlap); the frame's own buffers, state and output come on top (~0.1-0.3 KiB/px).
+DEFAULT_MAX_MEMORY_MB = 1536
 
 
-@dataclass(frozen=True)
-class Geometry:
-    """What tiling needs to know about a model."""
-
-    radius: int  # receptive radius in pixels (without motion)
-    align: int  # tile origins are multiples of this
-    depth_mean: bool  # the graph divides depth by its frame mean (GuideNet features)
+def max_memory_mb_default() -> float:
+    return float(os.environ.get("QUIETFRAME_MAX_MEMORY_MB", DEFAULT_MAX_MEMORY_MB))
 
 
-def model_geometry(metadata: Mapping[str, str]) -> Geometry | None:
-    """From the model card's architecture (docs/model-interface.md); None: unknown model, not
-    tiled. Radius: 2 cells of the coarsest grid (splat then slice reach one cell each way, a
-    cell is sigma pixels) + 2 px per 5x5 GuideNet layer + 2 px of outlier suppression (5x5)."""
-    try:
-        arch = json.loads(metadata["quietframe.architecture"])
-        grids, layers, sigma = int(arch["grids"]), int(arch["layers"]), int(arch["sigma_s"])
-    except (KeyError, TypeError, ValueError):
-        return None
-    coarsest = sigma * 2 ** max(grids - 1, 0) if grids else 1
-    return Geometry(
-        radius=2 * coarsest * (grids > 0) + 2 * layers + 2,
-        align=max(coarsest, 1),
-        depth_mean=layers > 0,
-    )
+def tile_pixels_for(tiling: Tiling, max_memory_mb: float) -> int:
+    """Padded pixels of one tile whose working set fits in `max_memory_mb`."""
+    return max(int(max_memory_mb * 2**20) // tiling.bytes_per_pixel, 1)
 
 
 @dataclass(frozen=True)
@@ -72,11 +66,14 @@ class Tile:
     px1: int
 
 
-def overlap_for(geometry: Geometry, motion: np.ndarray | None) -> int:
+def overlap_for(tiling: Tiling, values: Mapping[str, float | int],
+                motion: np.ndarray | None) -> int:
+    """Radius (at the run-time inputs' `values`) + the frame's largest motion + 1 (the nearest
+    fetch), rounded up to the alignment."""
     reach = 0
-    if motion is not None and motion.size:
+    if tiling.motion and motion is not None and motion.size:
         reach = int(math.ceil(float(np.abs(motion).max()))) + 1
-    return _round_up(geometry.radius + reach, geometry.align)
+    return _round_up(tiling.radius_for(values) + reach, tiling.align)
 
 
 def plan_tiles(height: int, width: int, overlap: int, align: int, tile_pixels: int) -> list[Tile]:
@@ -96,18 +93,21 @@ def plan_tiles(height: int, width: int, overlap: int, align: int, tile_pixels: i
     ]
 
 
-def crop(array: np.ndarray, tile: Tile) -> np.ndarray:
-    """The padded region of an (N, C, H, W) array, contiguous (what onnxruntime reads)."""
-    return np.ascontiguousarray(array[..., tile.py0 : tile.py1, tile.px0 : tile.px1])
+def crop(array: np.ndarray, tile: Tile, scale: int = 1) -> np.ndarray:
+    """The padded region of an (N, C, H, W) array at 1/scale resolution, contiguous (what
+    onnxruntime reads)."""
+    return np.ascontiguousarray(array[..., tile.py0 // scale : -(-tile.py1 // scale),
+                                      tile.px0 // scale : -(-tile.px1 // scale)])
 
 
 def add_ballast(
     feeds: dict[str, np.ndarray], tile: Tile, height: int, width: int, mean_depth: float,
-    align: int,
+    align: int, scales: Mapping[str, int],
 ) -> tuple[dict[str, np.ndarray], int, int]:
-    """Append a band of `align` rows (or columns) beyond a padded edge that is not the frame's:
-    zeros, and depth v with mean(tile + band) = `mean_depth`. Returns the feeds and the rows and
-    columns put before the tile (the interior's shift)."""
+    """Append a band of `align` rows (or columns; align / scale for a feed at 1/scale) beyond a
+    padded edge that is not the frame's: zeros, and depth v with mean(tile + band) =
+    `mean_depth`. Returns the feeds and the rows and columns put before the tile (the
+    interior's shift)."""
     depth = feeds["depth"]  # (1, 1, h, w)
     h, w = depth.shape[2:]
     if tile.py1 < height or tile.py0 > 0:
@@ -121,7 +121,7 @@ def add_ballast(
             out[name] = array
             continue
         shape = list(array.shape)
-        shape[axis] = align
+        shape[axis] = align // scales.get(name, 1)
         band = np.full(shape, value if name == "depth" else 0.0, array.dtype)
         parts = (band, array) if before else (array, band)
         out[name] = np.ascontiguousarray(np.concatenate(parts, axis=axis))
@@ -129,20 +129,46 @@ def add_ballast(
     return out, shift * (axis == 2), shift * (axis == 3)
 
 
-def place(target: np.ndarray, tile: Tile, result: np.ndarray, dy: int = 0, dx: int = 0) -> None:
-    """Put the interior of a padded tile's (N, C, h, w) result (shifted by a leading ballast
-    band of dy rows / dx columns) in place."""
-    oy, ox = tile.y0 - tile.py0 + dy, tile.x0 - tile.px0 + dx
-    interior = result[..., oy : oy + tile.y1 - tile.y0, ox : ox + tile.x1 - tile.x0]
-    target[..., tile.y0 : tile.y1, tile.x0 : tile.x1] = interior
+def place(target: np.ndarray, tile: Tile, result: np.ndarray, dy: int = 0, dx: int = 0,
+          scale: int = 1) -> None:
+    """Put the interior of a padded tile's (N, C, h, w) result at 1/scale resolution (shifted by
+    a leading ballast band of dy rows / dx columns) in place."""
+    y0, x0 = tile.y0 // scale, tile.x0 // scale
+    y1, x1 = -(-tile.y1 // scale), -(-tile.x1 // scale)
+    oy, ox = (tile.y0 - tile.py0 + dy) // scale, (tile.x0 - tile.px0 + dx) // scale
+    target[..., y0:y1, x0:x1] = result[..., oy : oy + y1 - y0, ox : ox + x1 - x0]
 
 
-def tiles_of(
-    height: int, width: int, geometry: Geometry, motion: np.ndarray | None, tile_pixels: int
-) -> Iterator[Tile]:
-    yield from plan_tiles(
-        height, width, overlap_for(geometry, motion), geometry.align, tile_pixels
-    )
+def run_tiled(
+    run: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]],
+    feeds: Mapping[str, np.ndarray], height: int, width: int, tiling: Tiling,
+    values: Mapping[str, float | int], tile_pixels: int, scales: Mapping[str, int],
+    zero_state: Mapping[str, StateSpec] = {},  # noqa: B006 (read only)
+) -> dict[str, np.ndarray]:
+    """`run` (one graph run on feeds -> outputs) over tiles of the frame, each tile's interior
+    put in place. `scales`: input and output names at 1/scale resolution; `zero_state`: state
+    inputs not in `feeds` that are zeros (a first frame), made per tile."""
+    tiles = plan_tiles(height, width, overlap_for(tiling, values, feeds.get("motion")),
+                       tiling.align, tile_pixels)
+    ballast = tiling.statistic("mean_depth") is not None and "depth" in feeds and len(tiles) > 1
+    mean_depth = float(feeds["depth"].mean(dtype=np.float64)) if ballast else 0.0
+    outputs: dict[str, np.ndarray] = {}
+    dy = dx = 0
+    for tile in tiles:
+        th, tw = tile.py1 - tile.py0, tile.px1 - tile.px0
+        part = {k: crop(v, tile, scales.get(k, 1)) if v.ndim == 4 else v
+                for k, v in feeds.items()}
+        part |= {k: np.zeros(spec.shape(th, tw), np.float32) for k, spec in zero_state.items()}
+        if ballast:
+            part, dy, dx = add_ballast(part, tile, height, width, mean_depth, tiling.align,
+                                       scales)
+        for name, result in run(part).items():
+            scale = scales.get(name, 1)
+            if name not in outputs:  # (N, C, H, W) of the whole frame
+                shape = (*result.shape[:2], -(-height // scale), -(-width // scale))
+                outputs[name] = np.empty(shape, result.dtype)
+            place(outputs[name], tile, result, dy, dx, scale)
+    return outputs
 
 
 def _round_up(value: int, multiple: int) -> int:

@@ -1,0 +1,452 @@
+"""The model card: everything the runtime, tiling, model choice and the registry know about an
+exported model, typed and versioned (DESIGN.md, "The model card"; docs/model-interface.md).
+
+Exporters build a `ModelCard` and write it with `to_props` into the ONNX metadata_props; every
+reader gets it back with `ModelCard.from_props`. Nothing else parses metadata strings. No torch.
+
+The metadata layout stays the one every shipped model was written with (`quietframe.name`,
+`.buffers.*`, `.state`, `.inputs`, `.prepass`, `.metrics`, ...), so older readers and files keep
+working; the card adds `quietframe.card` (its version), `quietframe.stages` (the composition) and
+`quietframe.tiling`. A file without them (version 0: every model shipped before the card) gets
+its stages from `quietframe.prepass` and its tiling from its family's rule (runtime/receptive.py).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.runtime.ops_library import OPS_DOMAIN
+
+CARD_VERSION = 1
+PREFIX = "quietframe."
+# Every figure measured before tables were kept per renderer came from Mitsuba renders.
+DEFAULT_RENDERER = "mitsuba"
+# The state namespace of a prepass's `color_from` model in version-0 cards: sessions stored
+# under it (`color_from.accumulation`) stay readable.
+LEGACY_STAGE_NAMESPACE = "color_from"
+
+# Graph I/O names (docs/model-interface.md), spelled here only.
+OUTPUT = "denoised"
+RESET = "reset"
+STATE_IN, STATE_OUT = "state_in.", "state_out."
+
+OIDN_QUALITIES = ("fast", "balanced", "high")
+
+
+@dataclass(frozen=True)
+class StateSpec:
+    name: str
+    channels: int
+    scale: int = 1  # the tensor is ⌈H/scale⌉ × ⌈W/scale⌉ (e.g. a half-resolution history)
+
+    def shape(self, height: int, width: int) -> tuple[int, int, int, int]:
+        return (1, self.channels, -(-height // self.scale), -(-width // self.scale))
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "channels": self.channels, "scale": self.scale}
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """An extra scalar graph input (`quietframe.inputs`), fed from its default or a session /
+    call option: e.g. the affinity model's `kernel_size`."""
+
+    name: str
+    dtype: str  # numpy dtype name, e.g. "int64"
+    shape: tuple[int, ...]
+    default: float | int
+    allowed: tuple[float | int, ...] | None = None  # None: any value
+    doc: str = ""
+
+    def check(self, value: float | int) -> None:
+        """ValueError for a value this input does not take."""
+        if self.allowed is not None and value not in self.allowed:
+            raise ValueError(f"{self.name} must be one of {list(self.allowed)}, got {value!r}")
+        if np.dtype(self.dtype).kind in "iu" and not float(value).is_integer():
+            raise ValueError(f"{self.name} is an integer, got {value!r}")  # not truncated
+
+    def array(self, value: float | int) -> np.ndarray:
+        self.check(value)
+        return np.full(self.shape, value, dtype=self.dtype)
+
+    def describe(self) -> str:
+        """E.g. 'kernel_size (one of [5, 7, 9], default 5)', for messages and listings."""
+        values = f"one of {list(self.allowed)}, " if self.allowed is not None else ""
+        return f"{self.name} ({values}default {self.default})"
+
+    def to_dict(self) -> dict:
+        allowed = list(self.allowed) if self.allowed is not None else None
+        return {"name": self.name, "dtype": self.dtype, "shape": list(self.shape),
+                "default": self.default, "allowed": allowed, "doc": self.doc}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> InputSpec:
+        allowed = tuple(d["allowed"]) if d.get("allowed") is not None else None
+        return cls(d["name"], d["dtype"], tuple(d["shape"]), d["default"], allowed,
+                   d.get("doc", ""))
+
+
+# ---- the composition ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GraphStage:
+    """An ONNX graph: this file (`file` ""), or another model file in the same folder, run with
+    its own state under `namespace` (state `x` is kept as `<namespace>.x`; "" : as `x`)."""
+
+    file: str = ""
+    namespace: str = ""
+
+    def __post_init__(self) -> None:
+        if self.file and (Path(self.file).name != self.file or not self.file.endswith(".onnx")):
+            raise ValueError(f"a graph stage must name an .onnx file in the model's own folder, "
+                             f"got {self.file!r}")
+        if bool(self.file) != bool(self.namespace):
+            raise ValueError("a graph stage of another file needs a state namespace of its own "
+                             "(and this file's graph none)")
+
+    def state_key(self, name: str) -> str:
+        return f"{self.namespace}.{name}" if self.namespace else name
+
+
+@dataclass(frozen=True)
+class OIDNStage:
+    """Open Image Denoise's RT filter on the previous stage's output (or the frame's colour when
+    it is the first stage), with the frame's albedo/normal; its output is fed to the next graph
+    as input `input`. `color_from`: only in what `quietframe.prepass` says (a graph stage run
+    first), never set in a card's stage list."""
+
+    quality: str = "high"
+    prefilter_aux: bool = False
+    input: str = "oidn"  # the graph input that receives OIDN's output
+    aux: tuple[str, ...] = ("albedo", "normal")  # what OIDN is given besides the colour
+    color_from: str = ""
+
+    def __post_init__(self) -> None:
+        if self.color_from and (Path(self.color_from).name != self.color_from
+                                or not self.color_from.endswith(".onnx")):
+            raise ValueError(f"prepass: color_from must name an .onnx file in the model's own "
+                             f"folder, got {self.color_from!r}")
+        if self.quality not in OIDN_QUALITIES:
+            raise ValueError(f"prepass: OIDN quality must be one of {list(OIDN_QUALITIES)}, "
+                             f"got {self.quality!r}")
+        if set(self.aux) - {"albedo", "normal"} or ("normal" in self.aux
+                                                     and "albedo" not in self.aux):
+            raise ValueError(f"prepass: OIDN aux must be (), ('albedo',) or ('albedo', 'normal') "
+                             f"(a normal only with an albedo), got {self.aux!r}")
+
+    def oidn_dict(self) -> dict:
+        out: dict = {"quality": self.quality, "prefilter_aux": self.prefilter_aux}
+        if self.aux != OIDNStage.aux:
+            out["aux"] = list(self.aux)
+        return out
+
+
+Stage = GraphStage | OIDNStage
+
+
+def parse_prepass(text: str | None) -> OIDNStage | None:
+    """`quietframe.prepass` as written since the oidn-temporal tier (docs/model-interface.md)."""
+    if not text:
+        return None
+    spec = json.loads(text)
+    if set(spec) - {"oidn", "input", "color_from"} or "oidn" not in spec:
+        raise ValueError(f"{PREFIX}prepass: only an 'oidn' prepass is known, got {sorted(spec)}")
+    oidn = spec["oidn"]
+    return OIDNStage(quality=oidn.get("quality", "high"),
+                     prefilter_aux=bool(oidn.get("prefilter_aux", False)),
+                     input=spec.get("input", "oidn"),
+                     aux=tuple(oidn.get("aux", OIDNStage.aux)),
+                     color_from=spec.get("color_from", ""))
+
+
+def stages_from_prepass(prepass: OIDNStage | None) -> tuple[Stage, ...]:
+    if prepass is None:
+        return (GraphStage(),)
+    first = ((GraphStage(prepass.color_from, LEGACY_STAGE_NAMESPACE),)
+             if prepass.color_from else ())
+    return (*first, replace(prepass, color_from=""), GraphStage())
+
+
+def prepass_of(stages: Sequence[Stage]) -> dict | None:
+    """The `quietframe.prepass` form of a composition ([graph,] OIDN, this graph), or None
+    when it has no OIDN stage."""
+    oidn = [s for s in stages if isinstance(s, OIDNStage)]
+    if not oidn:
+        return None
+    before = stages[: stages.index(oidn[0])]
+    spec: dict = {"oidn": oidn[0].oidn_dict(), "input": oidn[0].input}
+    if before:
+        spec["color_from"] = before[0].file
+    return spec
+
+
+def stage_to_dict(stage: Stage) -> dict:
+    if isinstance(stage, GraphStage):
+        return {"graph": stage.file, "namespace": stage.namespace}
+    return {"oidn": stage.oidn_dict(), "input": stage.input}
+
+
+def stage_from_dict(d: Mapping) -> Stage:
+    if "graph" in d:
+        return GraphStage(d["graph"], d.get("namespace", ""))
+    oidn = d["oidn"]
+    return OIDNStage(oidn.get("quality", "high"), bool(oidn.get("prefilter_aux", False)),
+                     d.get("input", "oidn"), tuple(oidn.get("aux", OIDNStage.aux)))
+
+
+def check_stages(stages: Sequence[Stage]) -> None:
+    """Graphs and OIDN passes in sequence, ending with this file's graph; an OIDN stage feeds
+    a graph."""
+    if not stages or stages[-1] != GraphStage():
+        raise ValueError(f"a composition ends with this file's graph, got {stages!r}")
+    for a, b in zip(stages, stages[1:], strict=False):
+        if isinstance(a, OIDNStage) and not isinstance(b, GraphStage):
+            raise ValueError("an OIDN stage must feed a graph")
+    spaces = [s.namespace for s in stages if isinstance(s, GraphStage)]
+    if len(set(spaces)) != len(spaces):
+        raise ValueError(f"graph stages need distinct state namespaces, got {spaces}")
+
+
+# ---- tiling ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameStatistic:
+    """A frame-wide quantity a graph computes (not local to a pixel), and how a tile gets it:
+    "ballast" = a band beyond a tile edge that is not the frame's holds the value that makes
+    the tile's statistic the frame's (runtime/tiling.py add_ballast); "tile" = the tile's own
+    (parity then holds only where the statistic does not decide)."""
+
+    name: str  # e.g. "mean_depth"
+    buffer: str  # the buffer it is computed from
+    how: str  # "ballast" | "tile"
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """What cutting a frame into tiles needs to know about one graph (runtime/tiling.py)."""
+
+    radius: int  # receptive radius in pixels, without motion and without `reach`
+    align: int  # tile origins are multiples of this
+    # Extra radius per value of a run-time input (e.g. the affinity kernels' reach by
+    # kernel_size); a value not listed counts as the largest listed.
+    reach: Mapping[str, Mapping[int, int]] = field(default_factory=dict)
+    motion: bool = True  # the graph warps its history: overlap grows with max |motion| + 1
+    statistics: tuple[FrameStatistic, ...] = ()
+    bytes_per_pixel: int = 1024  # the graph's working set per padded-tile pixel
+
+    def radius_for(self, values: Mapping[str, float | int]) -> int:
+        """The radius when the run-time inputs have `values` (name -> value)."""
+        extra = 0
+        for name, table in self.reach.items():
+            value = values.get(name)
+            extra += table.get(int(value), max(table.values())) if value is not None \
+                else max(table.values())
+        return self.radius + extra
+
+    def statistic(self, name: str) -> FrameStatistic | None:
+        return next((s for s in self.statistics if s.name == name), None)
+
+    def to_dict(self) -> dict:
+        return {"radius": self.radius, "align": self.align,
+                "reach": {k: {str(v): r for v, r in t.items()} for k, t in self.reach.items()},
+                "motion": self.motion,
+                "statistics": [[s.name, s.buffer, s.how] for s in self.statistics],
+                "bytes_per_pixel": self.bytes_per_pixel}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Tiling:
+        return cls(int(d["radius"]), int(d["align"]),
+                   {k: {int(v): int(r) for v, r in t.items()} for k, t in d.get("reach",
+                                                                               {}).items()},
+                   bool(d.get("motion", True)),
+                   tuple(FrameStatistic(*s) for s in d.get("statistics", [])),
+                   int(d.get("bytes_per_pixel", 1024)))
+
+
+# ---- measurements ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SppRow:
+    spp: float  # samples per pixel of the inputs
+    psnr: float  # dB on the τ-mapped image, mean over frames
+    trmae: float | None = None  # mean over sequences
+
+    def to_dict(self) -> dict:
+        return {"spp": self.spp, "psnr": self.psnr,
+                **({} if self.trmae is None else {"trmae": self.trmae})}
+
+
+MEASUREMENT_KEYS = ("by_spp", "ms_720p", "measured", "absent_db", "absent_db_worst", "by_noise")
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """One renderer's measured table of a model (docs/model-interface.md, what `auto` reads)."""
+
+    by_spp: tuple[SppRow, ...] = ()  # spp ascending
+    ms_720p: float | None = None  # median ms per 1280×720 frame through the runtime
+    measured: Mapping = field(default_factory=dict)  # the run: command, machine, split, ...
+    absent_db: Mapping[str, float] = field(default_factory=dict)  # mean PSNR change, absent
+    absent_db_worst: Mapping[str, float] = field(default_factory=dict)  # the largest loss
+    # (log2 σ demodulated, log2 σ of the colour alone, PSNR) per validation (sequence, spp)
+    by_noise: tuple[tuple[float, float, float], ...] = ()
+    by_noise_measured: Mapping = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        """Enough for `auto` to choose this model: a speed and an error table."""
+        return self.ms_720p is not None and bool(self.by_spp)
+
+    def to_dict(self) -> dict:
+        out: dict = {}
+        if self.by_spp:
+            out["by_spp"] = [r.to_dict() for r in self.by_spp]
+        if self.ms_720p is not None:
+            out["ms_720p"] = self.ms_720p
+        if self.measured:
+            out["measured"] = dict(self.measured)
+        if self.absent_db:
+            out["absent_db"] = dict(self.absent_db)
+        if self.absent_db_worst:
+            out["absent_db_worst"] = dict(self.absent_db_worst)
+        if self.by_noise:
+            out["by_noise"] = {"points": [list(p) for p in self.by_noise],
+                               "measured": dict(self.by_noise_measured)}
+        return out
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Measurements:
+        noise = d.get("by_noise") or {}
+        return cls(
+            by_spp=tuple(SppRow(r["spp"], r["psnr"], r.get("trmae"))
+                         for r in sorted(d.get("by_spp") or [], key=lambda r: r["spp"])
+                         if "psnr" in r),
+            ms_720p=d.get("ms_720p"),
+            measured=dict(d.get("measured") or {}),
+            absent_db=dict(d.get("absent_db") or {}),
+            absent_db_worst=dict(d.get("absent_db_worst") or {}),
+            by_noise=tuple(tuple(p) for p in noise.get("points") or []),
+            by_noise_measured=dict(noise.get("measured") or {}),
+        )
+
+
+# ---- the card -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    name: str
+    version: str = "0"
+    architecture: Mapping = field(default_factory=dict)  # the exporter's config, as written
+    required: tuple[str, ...] = ("color",)  # buffers
+    optional: tuple[str, ...] = ()  # fed as zeros when absent
+    state: tuple[StateSpec, ...] = ()  # this file's graph's own state
+    inputs: tuple[InputSpec, ...] = ()  # run-time inputs, e.g. kernel_size
+    stages: tuple[Stage, ...] = (GraphStage(),)
+    tiling: Tiling | None = None  # None: no rule knows the graph; it runs whole
+    training: Mapping = field(default_factory=dict)
+    measurements: Mapping[str, Measurements] = field(default_factory=dict)  # by renderer
+    notes: Mapping = field(default_factory=dict)  # other metrics, e.g. training's val score
+    ops_domain: str = OPS_DOMAIN
+    card_version: int = CARD_VERSION
+
+    def __post_init__(self) -> None:
+        check_stages(self.stages)
+
+    @property
+    def prepass(self) -> OIDNStage | None:
+        return next((s for s in self.stages if isinstance(s, OIDNStage)), None)
+
+    def measured(self, renderer: str | None = None) -> Measurements:
+        """The renderer's table, else the default renderer's (the only one measured so far)."""
+        table = self.measurements.get(renderer or DEFAULT_RENDERER)
+        return table or self.measurements.get(DEFAULT_RENDERER) or Measurements()
+
+    def metrics(self) -> dict:
+        """`quietframe.metrics` as written: notes, the default renderer's table at the top level
+        (as every model measured before per-renderer tables has it), others under
+        `by_renderer`."""
+        out = dict(self.notes) | self.measurements.get(DEFAULT_RENDERER, Measurements()).to_dict()
+        others = {r: m.to_dict() for r, m in self.measurements.items() if r != DEFAULT_RENDERER}
+        return out | ({"by_renderer": others} if others else {})
+
+    def with_measurements(self, renderer: str, table: Measurements) -> ModelCard:
+        return replace(self, measurements={**self.measurements, renderer: table})
+
+    def to_props(self) -> dict[str, str]:
+        props = {
+            "name": self.name,
+            "version": self.version,
+            "card": str(CARD_VERSION),
+            "architecture": json.dumps(dict(self.architecture)),
+            "buffers.required": json.dumps(list(self.required)),
+            "buffers.optional": json.dumps(list(self.optional)),
+            "state": json.dumps([s.to_dict() for s in self.state]),
+            "ops_domain": self.ops_domain,
+            "training": json.dumps(dict(self.training)),
+            "metrics": json.dumps(self.metrics()),
+            "stages": json.dumps([stage_to_dict(s) for s in self.stages]),
+        }
+        if self.inputs:
+            props["inputs"] = json.dumps([i.to_dict() for i in self.inputs])
+        prepass = prepass_of(self.stages)
+        if prepass is not None:  # what readers before the card know of the composition
+            props["prepass"] = json.dumps(prepass)
+        if self.tiling is not None:
+            props["tiling"] = json.dumps(self.tiling.to_dict())
+        return {PREFIX + k: v for k, v in props.items()}
+
+    @classmethod
+    def from_props(cls, props: Mapping[str, str], default_name: str = "") -> ModelCard:
+        """The card of a file's metadata_props, any version up to CARD_VERSION."""
+        def load(key: str, default: str):
+            return json.loads(props.get(PREFIX + key) or default)
+
+        version = int(props.get(PREFIX + "card", "0"))
+        if version > CARD_VERSION:
+            raise ValueError(f"model card version {version} is newer than this quietframe reads "
+                             f"({CARD_VERSION}): upgrade quietframe")
+        metrics = dict(load("metrics", "{}"))
+        by_renderer = metrics.pop("by_renderer", {})
+        notes = {k: v for k, v in metrics.items() if k not in MEASUREMENT_KEYS}
+        tables = {r: Measurements.from_dict(m) for r, m in by_renderer.items()}
+        if any(k in metrics for k in MEASUREMENT_KEYS):
+            tables[DEFAULT_RENDERER] = Measurements.from_dict(metrics)
+        stages_text = props.get(PREFIX + "stages")
+        stages = (tuple(stage_from_dict(s) for s in json.loads(stages_text)) if stages_text
+                  else stages_from_prepass(parse_prepass(props.get(PREFIX + "prepass"))))
+        architecture = load("architecture", "{}")
+        inputs = tuple(InputSpec.from_dict(i) for i in load("inputs", "[]"))
+        tiling_text = props.get(PREFIX + "tiling")
+        if tiling_text:
+            tiling = Tiling.from_dict(json.loads(tiling_text))
+        else:
+            from quietframe.runtime.receptive import tiling_for  # the rules import these types
+
+            tiling = tiling_for(architecture if isinstance(architecture, dict) else {}, inputs,
+                                any(isinstance(s, OIDNStage) for s in stages))
+        return cls(
+            name=props.get(PREFIX + "name", default_name),
+            version=props.get(PREFIX + "version", "0"),
+            architecture=architecture,
+            required=tuple(load("buffers.required", '["color"]')),
+            optional=tuple(load("buffers.optional", "[]")),
+            state=tuple(StateSpec(s["name"], int(s["channels"]), int(s.get("scale", 1)))
+                        for s in load("state", "[]")),
+            inputs=inputs,
+            stages=stages,
+            tiling=tiling,
+            training=load("training", "{}"),
+            measurements=tables,
+            notes=notes,
+            ops_domain=props.get(PREFIX + "ops_domain", OPS_DOMAIN),
+            card_version=version,
+        )

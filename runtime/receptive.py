@@ -1,0 +1,106 @@
+"""How far an output pixel of each model family reaches into its inputs: the tiling of a card.
+
+One rule per family, derived from the architecture the exporter records, so a card written
+before tilings were recorded (every model shipped so far) gets the same tiling as a new export.
+Radii are upper bounds in full-resolution pixels, without motion (the warp's reach is added per
+frame from the motion buffer, runtime/tiling.py). `align`: tile origins are multiples of it, so
+every grid cell, pooling block and resampling grid lies where it lies in the untiled frame.
+`bytes_per_pixel`: onnxruntime's working set per padded-tile pixel, measured on this machine
+(peak RSS of one tile minus its inputs and outputs, tests/test_tiling.py keeps the figure honest
+within 2x); `max_memory_mb` divides by it to size tiles.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+from quietframe.runtime.card import FrameStatistic, InputSpec, Tiling
+
+# GuideNet's relative depth is depth / mean(depth) over the frame (model/nbg.py guide_features;
+# model/affinity.py guide_inputs): each tile gets a ballast band that restores the frame's mean.
+MEAN_DEPTH = FrameStatistic("mean_depth", "depth", "ballast")
+# NBG's firefly floor is `outlier_floor` × the frame's mean luminance (model/nbg.py
+# suppress_outliers): a tile uses its own mean, which differs only where the floor, not the
+# neighbourhood bound, decides a clamp.
+MEAN_LUMINANCE = FrameStatistic("mean_luminance", "color", "tile")
+
+NBG_BYTES_PER_PIXEL = 768  # docs/reliability.md: ~0.7 KiB/px untiled
+AFFINITY_BYTES_PER_PIXEL = 1024
+OIDN_TEMPORAL_BYTES_PER_PIXEL = 512
+IDENTITY_BYTES_PER_PIXEL = 64
+
+
+def nbg_tiling(arch: Mapping) -> Tiling:
+    """2 cells of the coarsest grid (splat then slice reach one cell each way, a cell is sigma
+    pixels) + 2 px per 5x5 GuideNet layer + 2 px of outlier suppression (5x5)."""
+    grids, layers, sigma = int(arch["grids"]), int(arch["layers"]), int(arch["sigma_s"])
+    coarsest = sigma * 2 ** max(grids - 1, 0) if grids else 1
+    statistics = (MEAN_DEPTH,) if layers > 0 else ()
+    if float(arch.get("outlier_sigmas", 0) or 0) > 0 and float(arch.get("outlier_floor", 0)
+                                                                  or 0) > 0:
+        statistics += (MEAN_LUMINANCE,)
+    return Tiling(radius=2 * coarsest * (grids > 0) + 2 * layers + 2, align=max(coarsest, 1),
+                  statistics=statistics,
+                  bytes_per_pixel=NBG_BYTES_PER_PIXEL if layers else IDENTITY_BYTES_PER_PIXEL)
+
+
+def unet_radius(levels: int) -> int:
+    """Receptive radius of model/affinity.UNet in its own pixels: two 3x3 convolutions per level
+    at stride 2^level down and up, a 2x2 max-pool between levels, bilinear upsampling (one
+    coarse pixel) on the way up."""
+    down = sum(2 * 2**level for level in range(levels))
+    pools = sum(2**level for level in range(levels - 1))
+    up = sum(2 * 2**level + 2**(level + 1) for level in range(levels - 1))
+    return down + pools + up
+
+
+def affinity_tiling(arch: Mapping, inputs: Sequence[InputSpec]) -> Tiling:
+    """K dilated k×k kernels in sequence (dilations 2^0..2^(K-1), either order) reach
+    (k // 2)·(2^K - 1) px, at the `kernel_size` input's value; the kernel parameters come from
+    the U-Net at 1/s resolution on s×s block means, upsampled bilinearly (one block each way);
+    the temporal kernel gathers the warped history within temporal_kernel_size // 2. Tile
+    origins are multiples of s·2^(levels-1), so blocks and U-Net pooling cells keep their
+    places."""
+    scale, levels = int(arch.get("unet_scale", 1)), len(arch["widths"])
+    kernels = int(arch.get("kernels", 3))
+    dilation_sum = 2**kernels - 1
+    params = scale * (unet_radius(levels) + 2)
+    temporal = int(arch.get("temporal_kernel_size", 5)) // 2 if arch.get("temporal") else 0
+    sizes = next((spec.allowed for spec in inputs if spec.name == "kernel_size"), None)
+    sizes = sizes or (int(arch["kernel_size"]),)
+    return Tiling(radius=params + temporal + scale,
+                  align=scale * 2 ** (levels - 1),
+                  reach={"kernel_size": {int(k): (int(k) // 2) * dilation_sum for k in sizes}},
+                  statistics=(MEAN_DEPTH,), bytes_per_pixel=AFFINITY_BYTES_PER_PIXEL)
+
+
+def oidn_temporal_tiling(arch: Mapping) -> Tiling:
+    """model/oidn_temporal: (layers - 1) 3x3 convolutions (at 1/net_scale with block means and
+    bilinear upsampling), then one spatial kernel and one temporal window at dilation 1."""
+    scale = int(arch.get("net_scale", 1))
+    net = scale * (int(arch["layers"]) - 1 + (2 if scale > 1 else 0))
+    kernels = int(arch["kernel_size"]) // 2 + int(arch["temporal_kernel_size"]) // 2
+    return Tiling(radius=net + kernels, align=scale,
+                  bytes_per_pixel=OIDN_TEMPORAL_BYTES_PER_PIXEL)
+
+
+def identity_tiling() -> Tiling:
+    """A graph that passes a prepass result through (the OIDN-only compositions)."""
+    return Tiling(radius=0, align=1, motion=False, bytes_per_pixel=IDENTITY_BYTES_PER_PIXEL)
+
+
+def tiling_for(arch: Mapping, inputs: Sequence[InputSpec], has_prepass: bool) -> Tiling | None:
+    """The family rule for an architecture; None when no rule knows it (the model then runs
+    whole, and says so)."""
+    try:
+        if arch.get("family") == "affinity":
+            return affinity_tiling(arch, inputs)
+        if "grids" in arch and "layers" in arch:
+            return nbg_tiling(arch)
+        if has_prepass and "layers" in arch and "kernel_size" in arch:
+            return oidn_temporal_tiling(arch)
+        if has_prepass:
+            return identity_tiling()
+    except (KeyError, TypeError, ValueError):
+        return None
+    return None
