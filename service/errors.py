@@ -65,6 +65,18 @@ class BodyTooLarge(ServiceError):
     status, code = 413, "body_too_large"
 
 
+class ExrHeaderTooLarge(ServiceError):
+    """The EXR header's attributes exceed QUIETFRAME_MAX_HEADER_BYTES."""
+
+    status, code = 413, "exr_header_too_large"
+
+
+class FrameOverMemoryBudget(ServiceError):
+    """One frame needs more than the whole memory budget: no retry can succeed."""
+
+    status, code = 413, "frame_over_memory_budget"
+
+
 class ResolutionTooLarge(ServiceError):
     status, code = 413, "resolution_too_large"
 
@@ -117,6 +129,16 @@ class TooManySessions(ServiceError):
 
 class MemoryBudgetExceeded(ServiceError):
     status, code = 429, "memory_budget_exceeded"
+
+
+class MemoryBusy(ServiceError):
+    """The frames in flight hold the memory budget: retry after Retry-After."""
+
+    status, code = 429, "memory_busy"
+
+
+class TooManyUploads(ServiceError):
+    status, code = 429, "too_many_uploads"
 
 
 class NotReady(ServiceError):

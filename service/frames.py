@@ -32,8 +32,10 @@ from quietframe.runtime.buffers import BUFFER_CHANNELS, MissingBuffers, check_bu
 from quietframe.service.errors import (
     AmbiguousChannels,
     BadExr,
+    ExrHeaderTooLarge,
     MissingChannels,
     ResolutionTooLarge,
+    SizeMismatch,
     UnsupportedExr,
 )
 
@@ -127,7 +129,11 @@ _MAGIC = b"\x76\x2f\x31\x01"
 _TILED, _LONG_NAMES, _NON_IMAGE, _MULTIPART = 0x200, 0x400, 0x800, 0x1000
 _MAX_ATTRIBUTES = 4096  # a header with more is not a render's
 _MAX_ATTRIBUTE_BYTES = 64 << 20  # a preview image or ICC profile is far smaller
+# Attribute values up to this size are copied into ExrHeader.attributes (what the service reads:
+# windows, strings, the sample count); larger ones (previews, ICC profiles) stay in the body.
+_COPIED_ATTRIBUTE_BYTES = 64 << 10
 _COMPRESSION_METHODS = int(OpenEXR.NUM_COMPRESSION_METHODS)  # compression bytes this build reads
+_LINE_ORDERS = ("increasing", "decreasing", "random")
 
 
 @dataclass(frozen=True)
@@ -136,6 +142,18 @@ class ChannelInfo:
     pixel_type: int  # 0 uint, 1 half, 2 float
     x_sampling: int
     y_sampling: int
+
+
+@dataclass(frozen=True)
+class _Ref:
+    """Where one attribute's value lies in the body (parsed without copying it)."""
+
+    kind: str
+    start: int
+    size: int
+
+
+Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (inclusive, as EXR stores it)
 
 
 @dataclass
@@ -149,7 +167,11 @@ class ExrHeader:
     header_bytes: int  # where the offset tables and pixels start
     max_bytes: int  # the largest file this header can describe (uncompressed pixels + tables)
     cut: bool = False
-    attributes: dict[str, tuple[str, bytes]] = field(default_factory=dict)  # first part
+    # First part: name -> (kind, raw value), values up to _COPIED_ATTRIBUTE_BYTES only.
+    attributes: dict[str, tuple[str, bytes]] = field(default_factory=dict)
+    data_window: Box = (0, 0, 0, 0)
+    display_window: Box | None = None
+    pixel_bytes: int = 0  # every part's pixels, uncompressed (what decoding them holds)
 
 
 class TruncatedExr(BadExr):
@@ -158,17 +180,30 @@ class TruncatedExr(BadExr):
 
 
 class _Reader:
-    def __init__(self, data: bytes, pos: int) -> None:
-        self.data, self.pos = data, pos
+    """Walks the header without copying attribute values; past `cap` bytes the header is
+    refused (ExrHeaderTooLarge), however many of them have arrived."""
 
-    def take(self, n: int) -> bytes:
+    def __init__(self, data, pos: int, cap: int | None = None) -> None:
+        self.data, self.pos, self.cap = data, pos, cap
+
+    def skip(self, n: int) -> int:
+        """Advance past `n` bytes; returns where they start."""
         if n < 0:
             raise BadExr("EXR header has an attribute of negative size")
+        if self.cap is not None and self.pos + n > self.cap:
+            raise ExrHeaderTooLarge(
+                f"the EXR header is over {self.cap} bytes (QUIETFRAME_MAX_HEADER_BYTES): leave "
+                "large attributes (previews, ICC profiles, metadata blobs) out of the frames "
+                "sent for denoising, or raise the limit"
+            )
         if self.pos + n > len(self.data):
             raise TruncatedExr("EXR header is truncated")
-        chunk = self.data[self.pos : self.pos + n]
-        self.pos += n
-        return chunk
+        start, self.pos = self.pos, self.pos + n
+        return start
+
+    def take(self, n: int) -> bytes:
+        start = self.skip(n)
+        return bytes(self.data[start : start + n])
 
     def cstring(self, limit: int) -> str:
         end = self.data.find(b"\0", self.pos, self.pos + limit + 1)
@@ -176,12 +211,46 @@ class _Reader:
             if len(self.data) <= self.pos + limit:
                 raise TruncatedExr("EXR header is truncated")
             raise BadExr("EXR header has an over-long name")
-        raw = self.data[self.pos : end]
+        raw = self.take(end - self.pos)
         self.pos = end + 1
         try:
             return raw.decode("utf-8")
         except UnicodeDecodeError as exc:
             raise BadExr("EXR header has a name that is not UTF-8") from exc
+
+
+def _raw(data, ref: _Ref) -> bytes:
+    """The one place an attribute's bytes are read (copied) out of the body."""
+    with memoryview(data) as view:
+        return bytes(view[ref.start : ref.start + ref.size])
+
+
+# attribute kind -> (struct format, size) of the fixed-size kinds the service reads
+_FORMATS = {
+    "box2i": ("<iiii", 16),
+    "tiledesc": ("<IIB", 9),
+    "int": ("<i", 4),
+    "compression": ("<B", 1),
+    "lineOrder": ("<B", 1),
+}
+
+
+def attribute(data, refs: Mapping[str, _Ref], name: str, kind: str):
+    """The one attribute reader: the value of attribute `name`, which must be of `kind`, as a
+    Python value (tuple for box2i/tiledesc, int, str); None when absent; BadExr when it has
+    another kind or size."""
+    ref = refs.get(name)
+    if ref is None:
+        return None
+    if ref.kind != kind:
+        raise BadExr(f"EXR attribute {name!r} is a {ref.kind}, not a {kind}")
+    if kind == "string":
+        return _raw(data, ref).decode("utf-8", "replace")
+    fmt, size = _FORMATS[kind]
+    if ref.size != size:
+        raise BadExr(f"EXR attribute {name!r} ({kind}) is malformed")
+    value = struct.unpack(fmt, _raw(data, ref))
+    return value if len(value) > 1 else value[0]
 
 
 def _parse_chlist(value: bytes, limit: int) -> dict[str, ChannelInfo]:
@@ -198,27 +267,33 @@ def _parse_chlist(value: bytes, limit: int) -> dict[str, ChannelInfo]:
         channels[name] = ChannelInfo(name, pixel_type, x_sampling, y_sampling)
 
 
-def _parse_part(reader: _Reader, limit: int) -> dict[str, tuple[str, bytes]]:
-    attributes: dict[str, tuple[str, bytes]] = {}
+def _parse_part(reader: _Reader, limit: int) -> dict[str, _Ref]:
+    refs: dict[str, _Ref] = {}
     while True:
         if reader.pos >= len(reader.data):
             raise TruncatedExr("EXR header is truncated")
         if reader.data[reader.pos] == 0:
             reader.pos += 1
-            return attributes
-        if len(attributes) >= _MAX_ATTRIBUTES:
+            return refs
+        if len(refs) >= _MAX_ATTRIBUTES:
             raise BadExr("EXR header has too many attributes")
         name = reader.cstring(limit)
         kind = reader.cstring(limit)
         (size,) = struct.unpack("<i", reader.take(4))
         if size > _MAX_ATTRIBUTE_BYTES:  # refused now, not after reading that much
             raise BadExr(f"EXR header attribute {name!r} claims {size} bytes")
-        attributes[name] = (kind, reader.take(size))
+        refs[name] = _Ref(kind, reader.skip(size), size)
 
 
-def read_header(data: bytes | bytearray, max_width: int, max_height: int) -> ExrHeader:
-    """Parse and check the header; raises BadExr (400), ResolutionTooLarge (413), UnsupportedExr
-    (422), TruncatedExr (a BadExr) when `data` ends inside the header."""
+def read_header(
+    data: bytes | bytearray,
+    max_width: int,
+    max_height: int,
+    max_header_bytes: int | None = None,
+) -> ExrHeader:
+    """Parse and check the header; raises BadExr (400), ResolutionTooLarge / ExrHeaderTooLarge
+    (413), UnsupportedExr (422), TruncatedExr (a BadExr) when `data` ends inside the header.
+    Attribute values are not copied (only those the service reads, and small ones)."""
     if len(data) < 8 or data[:4] != _MAGIC:
         if len(data) < 4 and _MAGIC.startswith(bytes(data)):
             raise TruncatedExr("EXR header is truncated")
@@ -229,7 +304,7 @@ def read_header(data: bytes | bytearray, max_width: int, max_height: int) -> Exr
     if version & _NON_IMAGE:
         raise UnsupportedExr(_DEEP_DETAIL)
     limit = 255 if version & _LONG_NAMES else 31
-    reader = _Reader(data, 8)
+    reader = _Reader(data, 8, max_header_bytes)
     parts = [_parse_part(reader, limit)]
     while version & _MULTIPART:
         if reader.pos >= len(data):
@@ -238,17 +313,25 @@ def read_header(data: bytes | bytearray, max_width: int, max_height: int) -> Exr
             break
         parts.append(_parse_part(reader, limit))
     channels: dict[str, ChannelInfo] = {}
-    size = None
-    max_bytes = reader.pos + 1
-    for number, attributes in enumerate(parts):
-        part_size, part_channels = _check_part(number, attributes, limit, version)
-        if size is not None and part_size != size:
-            raise UnsupportedExr("EXR parts have different data windows; send one size")
-        size = part_size
+    window: Box | None = None
+    max_bytes, pixel_bytes = reader.pos + 1, 0
+    for number, refs in enumerate(parts):
+        part_window, part_channels = _check_part(data, number, refs, limit, version)
+        if window is not None and part_window != window:
+            raise UnsupportedExr(
+                f"EXR part {number} has the data window {part_window}, part 0 has {window}: "
+                "parts must cover the same pixels (same size and origin); write the passes "
+                "with one data window"
+            )
+        window = part_window
         for name, info in part_channels.items():
             channels.setdefault(name, info)  # a name in several parts: the first part's
-        max_bytes += _max_part_bytes(part_size, part_channels.values(), attributes)
-    width, height = size  # type: ignore[misc]
+        size = _box_size(part_window)
+        pixels = size[0] * size[1] * sum(_PIXEL_BYTES[c.pixel_type] for c in part_channels.values())
+        pixel_bytes += pixels
+        max_bytes += _max_part_bytes(data, size, pixels, refs)
+    assert window is not None
+    width, height = _box_size(window)
     if width > max_width or height > max_height:
         raise ResolutionTooLarge(
             f"frame is {width}x{height}; this server accepts at most {max_width}x{max_height}"
@@ -256,6 +339,7 @@ def read_header(data: bytes | bytearray, max_width: int, max_height: int) -> Exr
     subsampled = [c.name for c in channels.values() if (c.x_sampling, c.y_sampling) != (1, 1)]
     if subsampled:
         raise UnsupportedExr(f"subsampled channels are not supported: {subsampled}")
+    first = parts[0]
     return ExrHeader(
         width,
         height,
@@ -263,9 +347,32 @@ def read_header(data: bytes | bytearray, max_width: int, max_height: int) -> Exr
         len(parts),
         reader.pos,
         max_bytes,
-        _cut_flag(parts[0]),
-        parts[0],
+        _cut_flag(data, first),
+        {n: (r.kind, _raw(data, r)) for n, r in first.items() if r.size <= _COPIED_ATTRIBUTE_BYTES},
+        window,
+        attribute(data, first, "displayWindow", "box2i"),
+        pixel_bytes,
     )
+
+
+def check_windows(header: ExrHeader, width: int, height: int) -> None:
+    """SizeMismatch (422) unless the frame's data window, and its display window where it has
+    one, are the session's size: checked from the header, before any body buffer exists."""
+    display = _box_size(header.display_window) if header.display_window else None
+    if (header.width, header.height) == (width, height) and display in (None, (width, height)):
+        return
+    what = f"frame is {header.width}x{header.height}"
+    if display is not None and display != (header.width, header.height):
+        what += f" (display window {display[0]}x{display[1]})"
+    raise SizeMismatch(
+        f"{what}; this session is {width}x{height} (create a session per resolution; overscan "
+        "or crop windows: send the frame with its data and display windows at the session size)"
+    )
+
+
+def _box_size(box: Box) -> tuple[int, int]:
+    x0, y0, x1, y1 = box
+    return x1 - x0 + 1, y1 - y0 + 1
 
 
 _DEEP_DETAIL = (
@@ -278,42 +385,56 @@ _PIXEL_BYTES = {0: 4, 1: 2, 2: 4}  # uint, half, float
 
 
 def _check_part(
-    number: int, attributes: Mapping[str, tuple[str, bytes]], limit: int, version: int
-) -> tuple[tuple[int, int], dict[str, ChannelInfo]]:
+    data, number: int, refs: Mapping[str, _Ref], limit: int, version: int
+) -> tuple[Box, dict[str, ChannelInfo]]:
     """One part's data window and channels, after the checks that need no pixels: its type
     (deep parts are refused however the file's flags are set), tiling, compression."""
-    if "dataWindow" not in attributes or "channels" not in attributes:
+    if "dataWindow" not in refs or "channels" not in refs:
         raise BadExr("EXR header lacks its dataWindow or channels attribute")
-    kind, value = attributes["dataWindow"]
-    if kind != "box2i" or len(value) != 16:
-        raise BadExr("EXR dataWindow attribute is malformed")
-    x0, y0, x1, y1 = struct.unpack("<iiii", value)
-    part_size = (x1 - x0 + 1, y1 - y0 + 1)
-    if part_size[0] < 1 or part_size[1] < 1:
-        raise BadExr(f"EXR dataWindow is empty ({x0},{y0})-({x1},{y1})")
-    part_type = _string_attribute(attributes, "type")
+    try:
+        window: Box = attribute(data, refs, "dataWindow", "box2i")
+    except BadExr as exc:
+        raise BadExr("EXR dataWindow attribute is malformed") from exc
+    width, height = _box_size(window)
+    if width < 1 or height < 1:
+        raise BadExr(f"EXR dataWindow is empty {window}")
+    part_type = attribute(data, refs, "type", "string")
     if part_type is not None and part_type.startswith("deep"):
         raise UnsupportedExr(f"part {number} is {part_type}: {_DEEP_DETAIL}")
     if part_type is not None and part_type not in _IMAGE_TYPES:
         raise BadExr(f"part {number} has an unknown EXR part type {part_type!r}")
     tiled = _IMAGE_TYPES[part_type] if part_type is not None else bool(version & _TILED)
     if tiled:
-        _check_tiles(number, attributes)
-    kind, value = attributes.get("compression", ("compression", b"\0"))
-    if kind != "compression" or len(value) != 1 or value[0] >= _COMPRESSION_METHODS:
-        raise BadExr(f"part {number} has an invalid EXR compression attribute ({value.hex()})")
+        _check_tiles(data, number, refs)
     try:
-        part_channels = _parse_chlist(attributes["channels"][1], limit)
+        compression = attribute(data, refs, "compression", "compression")
+    except BadExr:
+        compression = -1
+    if compression is not None and not 0 <= compression < _COMPRESSION_METHODS:
+        raw = _raw(data, refs["compression"]).hex()
+        raise BadExr(f"part {number} has an invalid EXR compression attribute ({raw})")
+    order = attribute(data, refs, "lineOrder", "lineOrder")
+    if order is not None and order >= len(_LINE_ORDERS):
+        raise BadExr(f"part {number} has an invalid EXR lineOrder attribute ({order})")
+    try:
+        part_channels = _parse_chlist(_raw(data, refs["channels"]), limit)
     except TruncatedExr as exc:  # the attribute is whole: its content is malformed
         raise BadExr("EXR channel list is malformed") from exc
-    return part_size, part_channels
+    return window, part_channels
 
 
-def _check_tiles(number: int, attributes: Mapping[str, tuple[str, bytes]]) -> None:
-    kind, value = attributes.get("tiles", ("", b""))
-    if kind != "tiledesc" or len(value) != 9:
+def _tiles(data, refs: Mapping[str, _Ref]) -> tuple[int, int, int] | None:
+    try:
+        return attribute(data, refs, "tiles", "tiledesc")
+    except BadExr:
+        return None
+
+
+def _check_tiles(data, number: int, refs: Mapping[str, _Ref]) -> None:
+    tiles = _tiles(data, refs)
+    if tiles is None:
         raise BadExr(f"tiled part {number} lacks a valid tile description")
-    x_size, y_size, mode = struct.unpack("<IIB", value)
+    x_size, y_size, mode = tiles
     if x_size < 1 or y_size < 1 or mode & 0x0F >= len(_LEVEL_MODES):
         raise BadExr(f"tiled part {number} has an invalid tile description")
     if mode & 0x0F:
@@ -326,40 +447,29 @@ def _check_tiles(number: int, attributes: Mapping[str, tuple[str, bytes]]) -> No
         )
 
 
-def _max_part_bytes(
-    size: tuple[int, int], channels: Iterable[ChannelInfo], attributes: Mapping
-) -> int:
-    """The most bytes a flat single-level part can take on disk: its pixels uncompressed
-    (OpenEXR stores a chunk raw when compression does not shrink it), plus per-row chunk
-    headers and offsets (a chunk holds at least one row or one tile), plus 1% for writers
+def _max_part_bytes(data, size: tuple[int, int], pixels: int, refs: Mapping[str, _Ref]) -> int:
+    """The most bytes a flat single-level part can take on disk: its `pixels` bytes
+    uncompressed (OpenEXR stores a chunk raw when compression does not shrink it), plus per-row
+    chunk headers and offsets (a chunk holds at least one row or one tile), plus 1% for writers
     whose compression expands data slightly."""
     width, height = size
-    pixels = width * height * sum(_PIXEL_BYTES[c.pixel_type] for c in channels)
     chunks = height
-    kind, value = attributes.get("tiles", ("", b""))
-    if kind == "tiledesc" and len(value) == 9:  # checked by _check_tiles when the part is tiled
-        x_size, y_size, _ = struct.unpack("<IIB", value)
+    tiles = _tiles(data, refs)  # checked by _check_tiles when the part is tiled
+    if tiles is not None:
+        x_size, y_size, _ = tiles
         chunks = max(chunks, -(-width // max(x_size, 1)) * -(-height // max(y_size, 1)))
     return pixels + pixels // 100 + 32 * chunks + 4096
 
 
-def _string_attribute(attributes: Mapping[str, tuple[str, bytes]], name: str) -> str | None:
-    if name not in attributes:
-        return None
-    kind, value = attributes[name]
-    if kind != "string":
-        raise BadExr(f"EXR attribute {name!r} is malformed")
-    return value.decode("utf-8", "replace")
-
-
-def _cut_flag(attributes: Mapping[str, tuple[str, bytes]]) -> bool:
-    if CUT_ATTRIBUTE not in attributes:
+def _cut_flag(data, refs: Mapping[str, _Ref]) -> bool:
+    ref = refs.get(CUT_ATTRIBUTE)
+    if ref is None:
         return False
-    kind, value = attributes[CUT_ATTRIBUTE]
-    if kind == "int" and len(value) == 4:
-        return struct.unpack("<i", value)[0] != 0
-    if kind == "string":
-        return value.decode("utf-8", "replace").strip().lower() in ("1", "true", "yes", "cut")
+    if ref.kind == "int" and ref.size == 4:
+        return attribute(data, refs, CUT_ATTRIBUTE, "int") != 0
+    if ref.kind == "string":
+        flag = attribute(data, refs, CUT_ATTRIBUTE, "string")
+        return flag.strip().lower() in ("1", "true", "yes", "cut")
     return False
 
 
@@ -387,23 +497,31 @@ def _layer_matches(layer: str, alias: str) -> bool:
 
 
 def _components(
-    layers: Mapping[str, dict[str, str]], layer: str, buffer: str
+    layers: Mapping[str, dict[str, list[str]]], layer: str, buffer: str
 ) -> tuple[str, ...] | None:
     """Channel names of `layer` for `buffer`, in canonical order, or None if incomplete."""
     present = layers.get(layer, {})
     for spelling in COMPONENTS[buffer]:
         wanted = spelling[: BUFFER_CHANNELS[buffer]]
-        found = [present.get(c.lower()) for c in wanted]
+        found = [present.get(c.lower(), []) for c in wanted]
         if all(found):
-            return tuple(found)  # type: ignore[arg-type]
+            clashes = [names for names in found if len(names) > 1]
+            if clashes:  # R and r side by side: which one is the beauty is not ours to guess
+                raise AmbiguousChannels(
+                    f"buffer {buffer!r}: the channels {clashes} differ only in case; pass a "
+                    "channel mapping (`channels`, e.g. {\"color\": [\"R\", \"G\", \"B\"]}) "
+                    "when creating the session"
+                )
+            return tuple(names[0] for names in found)
     return None
 
 
-def _layers(names: Iterable[str]) -> dict[str, dict[str, str]]:
-    layers: dict[str, dict[str, str]] = {}
+def _layers(names: Iterable[str]) -> dict[str, dict[str, list[str]]]:
+    """layer -> lower-case component -> the channel names spelling it (several: a clash)."""
+    layers: dict[str, dict[str, list[str]]] = {}
     for name in names:
         layer, component = _split(name)
-        layers.setdefault(layer, {})[component.lower()] = name
+        layers.setdefault(layer, {}).setdefault(component.lower(), []).append(name)
     return layers
 
 
@@ -558,7 +676,9 @@ class Part:
 class DecodedFrame:
     buffers: dict[str, np.ndarray]  # canonical name -> (C, H, W) float32 planes
     parts: list[Part]  # everything the input holds, for the output
-    color_half: bool  # the input colour is half float (precision "input" keeps it)
+    color_half: bool  # the input colour is half float (its first channel)
+    # each colour channel's own type, R, G, B: precision "input" keeps each (mixed types too)
+    color_dtypes: tuple[np.dtype, ...] = ()
 
     @property
     def header(self) -> dict:
@@ -681,8 +801,18 @@ def _decode(data: bytes | bytearray, sources: Mapping[str, Source]) -> DecodedFr
             if source.motion_scale != (1.0, 1.0):
                 planar *= np.asarray(source.motion_scale, np.float32)[:, None, None]
         buffers[buffer] = planar
-    color_half = "color" in sources and planes[sources["color"].channels[0]].dtype == np.float16
-    return DecodedFrame(buffers, parts, color_half)
+    color = [planes[name].dtype for name in sources["color"].channels] if "color" in sources else []
+    color_half = bool(color) and color[0] == np.float16
+    return DecodedFrame(buffers, parts, color_half, tuple(color))
+
+
+def output_dtypes(frame: DecodedFrame, precision: str) -> tuple[type, ...]:
+    """The pixel type of each denoised channel R, G, B: the session's precision, or for "input"
+    each input colour channel's own (half stays half, float and uint become float)."""
+    if precision != "input":
+        return (np.float16 if precision == "half" else np.float32,) * 3
+    given = frame.color_dtypes or ((np.float16 if frame.color_half else np.float32),) * 3
+    return tuple(np.float16 if d == np.float16 else np.float32 for d in given)
 
 
 def output_channels(color: Sequence[str], denoised_layer: str | None = None) -> tuple[str, ...]:
@@ -728,12 +858,14 @@ def encode(
 ) -> bytes:
     """The input frame with the denoised (3, H, W) float32 planes written in (`output_channels`),
     as scanline EXR bytes: every part, channel (its pixel type too) and header attribute of
-    the input; only the denoised channels take the session's `precision`."""
-    dtype = np.float16 if precision == "half" else np.float32
+    the input; only the denoised channels take the session's `precision` (`output_dtypes`)."""
+    dtypes = output_dtypes(frame, precision)
     parts = []
     for part in frame.parts:
         attributes = {k: v for k, v in part.attributes.items() if k not in _LAYOUT_ATTRIBUTES}
         attributes["type"] = OpenEXR.scanlineimage
+        if attributes.get("lineOrder") == OpenEXR.RANDOM_Y:  # tiles only; scanlines are not
+            attributes["lineOrder"] = OpenEXR.INCREASING_Y
         given = part.attributes.get("compression")
         attributes["compression"] = output_compression(given, compression)
         attributes.update(extra or {})
@@ -741,7 +873,7 @@ def encode(
     home = next((p for p in parts if color_channels[0] in p.channels), parts[0])
     for i, name in enumerate(output_channels(color_channels, denoised_layer)):
         target = next((p for p in parts if name in p.channels), home)
-        target.channels[name] = np.asarray(color[i], dtype=dtype)
+        target.channels[name] = np.asarray(color[i], dtype=dtypes[i])
     try:
         return _write(parts)
     except Exception as exc:  # an attribute the binding reads but cannot write back

@@ -14,6 +14,7 @@ import hmac
 import json
 import logging
 import re
+import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
@@ -42,22 +43,36 @@ def token_matches(authorization: str, token: str) -> bool:
     )
 
 
-def timed_receive(receive: Receive, limit_bytes: int, timeout_s: float) -> Receive:
+def timed_receive(
+    receive: Receive, limit_bytes: int, timeout_s: float, min_rate_bytes_s: float = 0.0
+) -> Receive:
     """`receive` that raises BodyTooLarge past `limit_bytes`, BodyReadTimeout when no chunk
-    arrives for `timeout_s`, ClientDisconnect when the client leaves before the body's end.
-    Once the body is complete it passes messages through (disconnect listeners wait freely)."""
+    arrives for `timeout_s` or when the body falls behind `min_rate_bytes_s` after `timeout_s`
+    of grace (a byte every few seconds would otherwise hold the connection and its buffer for
+    ever), ClientDisconnect when the client leaves before the body's end. Once the body is
+    complete it passes messages through (disconnect listeners wait freely)."""
     state = {"size": 0, "done": False}
+    start = time.monotonic()
 
     async def wrapped() -> Message:
         if state["done"]:
             return await receive()
+        wait, slow = timeout_s, False
+        if min_rate_bytes_s > 0:  # the time by which the body must have more than it has
+            due = start + timeout_s + state["size"] / min_rate_bytes_s - time.monotonic()
+            wait, slow = min(wait, due), due < wait
         try:
-            message = await asyncio.wait_for(receive(), timeout_s)
+            message = await asyncio.wait_for(receive(), max(wait, 0.0))
         except asyncio.TimeoutError:
-            raise BodyReadTimeout(
-                f"no request body bytes for {timeout_s:g} s; send the body without pauses",
-                headers={"Connection": "close"},
-            ) from None
+            detail = f"no request body bytes for {timeout_s:g} s; send the body without pauses"
+            if slow:
+                rate = state["size"] / max(time.monotonic() - start, 1e-9)
+                detail = (
+                    f"the body arrived at {rate:.0f} bytes/s; after {timeout_s:g} s this "
+                    f"server needs at least {min_rate_bytes_s:.0f} bytes/s "
+                    "(QUIETFRAME_MIN_BODY_RATE_KIB_S)"
+                )
+            raise BodyReadTimeout(detail, headers={"Connection": "close"}) from None
         if message["type"] == "http.disconnect":
             raise ClientDisconnect()
         if message["type"] == "http.request":
@@ -94,6 +109,16 @@ class RequestGuard:
                     {"WWW-Authenticate": _AUTH_CHALLENGE},
                 )
                 return
+        if "content-length" in headers and "transfer-encoding" in headers:
+            # RFC 9112 6.3: the two disagree about where the body ends (request smuggling)
+            await self._reject(
+                send,
+                400,
+                "bad_request",
+                "the request has both Content-Length and Transfer-Encoding; send one (a chunked "
+                "body has no Content-Length)",
+            )
+            return
         frame = FRAME_PATH.match(path) is not None
         limit = settings.max_body_bytes if frame else settings.max_json_body_bytes
         declared = headers.get("content-length")
@@ -107,7 +132,9 @@ class RequestGuard:
                 else f"Content-Length {declared!r} is not a byte count",
             )
             return
-        bounded = timed_receive(receive, limit, settings.body_read_timeout_s)
+        bounded = timed_receive(
+            receive, limit, settings.body_read_timeout_s, settings.min_body_rate_bytes_s
+        )
         if frame:  # the frame route streams the body itself (errors reach the app's handlers)
             await self.app(scope, bounded, send)
             return

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import mmap
 import secrets
 import time
 from collections import OrderedDict
@@ -35,13 +36,13 @@ from quietframe.runtime import Denoiser, ModelInfo
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.sanitize import clamp_to_half
 from quietframe.runtime.usable_buffers import unusable_buffers
-from quietframe.service import frames, model_choice
+from quietframe.service import admission, frames, model_choice
+from quietframe.service.admission import MemoryBudget
 from quietframe.service.errors import (
     FrameConflict,
     FrameOutOfOrder,
     MemoryBudgetExceeded,
     SessionNotFound,
-    SizeMismatch,
     TooManySessions,
 )
 from quietframe.service.metrics import Metrics
@@ -276,18 +277,19 @@ def process_frame(
     denoised = time.perf_counter()
     info = denoiser.info
     model = f"{info.name} {info.version}"
-    precision = spec.precision
-    if precision == "input":
-        precision = "half" if frame.color_half else "float"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     color, clamped = result.color, 0
-    if precision == "half":  # a plain cast would turn values beyond ±65504 into ±Inf
-        color, clamped = clamp_to_half(color)
+    half = [i for i, d in enumerate(frames.output_dtypes(frame, spec.precision)) if d == np.float16]
+    if half:  # a plain cast would turn values beyond ±65504 into ±Inf
+        rows, clamped = clamp_to_half(color[half])
+        if clamped:
+            color = color.copy()
+            color[half] = rows
     body_out = frames.encode(
         color,
         frame,
         sources["color"].channels,
-        precision,
+        spec.precision,
         extra,
         spec.compression,
         spec.denoised_layer,
@@ -334,6 +336,10 @@ class SessionRegistry:
     ) -> None:
         self.settings, self.models, self.metrics, self.pool = settings, models, metrics, pool
         self.sessions: OrderedDict[str, Session] = OrderedDict()  # least recently used first
+        # frames in flight (admission.py), beside the history budget of what sessions keep
+        self.admission = MemoryBudget(
+            settings.memory_budget_bytes, settings.admission_wait_s, settings.max_uploads
+        )
         self.store = SessionStore(settings.state_dir, settings.state_fsync) if (
             settings.state_dir
         ) else None
@@ -466,20 +472,31 @@ class SessionRegistry:
 
     # ---- frames -------------------------------------------------------------------------------
 
+    def frame_need(self, session: Session, header: frames.ExrHeader, body_bytes: int) -> int:
+        """A frame's peak memory for the admission budget (model=auto: the largest model's)."""
+        names = self.models.names if session.spec.model == AUTO else [session.info.name]
+        infos = [self.models.denoiser(name).info for name in names]
+        return admission.frame_need(header, body_bytes, infos)
+
     async def denoise_frame(
-        self, session_id: str, index: int, body: bytes, cut: bool
+        self,
+        session_id: str,
+        index: int,
+        body: bytes | bytearray | mmap.mmap,
+        cut: bool,
+        header: frames.ExrHeader | None = None,
     ) -> FrameOutcome:
         """The frame protocol: everything that can be checked from the header is checked before
-        the lock; the session changes only once the reply is encoded (and stored)."""
+        the lock; the session changes only once the reply is encoded (and stored). `header`:
+        the body's, when the caller parsed it already."""
         session = self.get(session_id)
         spec = session.spec
         settings = self.settings
-        header = frames.read_header(body, settings.max_width, settings.max_height)
-        if (header.width, header.height) != (spec.width, spec.height):
-            raise SizeMismatch(
-                f"frame is {header.width}x{header.height}; this session is "
-                f"{spec.width}x{spec.height} (create a session per resolution)"
+        if header is None:
+            header = frames.read_header(
+                body, settings.max_width, settings.max_height, settings.max_header_bytes
             )
+        frames.check_windows(header, spec.width, spec.height)
         auto = spec.model == AUTO
         # model=auto: every buffer the frame carries (the choice's input, from the header); the
         # chosen model's own check follows once the plan says which model this frame uses.

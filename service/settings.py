@@ -40,6 +40,26 @@ class Settings(BaseSettings):
     max_sessions: int = Field(64, ge=1)
     session_ttl_s: float = Field(900.0, gt=0, description="idle sessions are deleted after this")
     history_budget_mb: float = Field(8192.0, gt=0, description="state + last reply of all sessions")
+    # Memory of frames in flight (admission.py), beside the history budget: a frame reserves
+    # its body, decoded channels, buffers, model working set, new state and reply before any of
+    # it is allocated; the server's memory is then bounded by base + history + this budget.
+    # An 8K float frame with 15 channels needs ~10.5 GiB; the default admits one at a time.
+    memory_budget_mb: float = Field(
+        12288.0, gt=0, description="frames in flight: bodies, decoding, model, reply"
+    )
+    admission_wait_s: float = Field(
+        10.0, ge=0, description="a frame waits this long for memory, then gets 429"
+    )
+    max_uploads: int = Field(32, ge=1, description="frame bodies received at once; more get 429")
+    max_header_bytes: int = Field(
+        16 << 20, ge=4096, description="EXR header (attributes of all parts) limit"
+    )
+    min_body_rate_kib_s: float = Field(
+        64.0,
+        ge=0,
+        description="after body_read_timeout_s of grace a body must arrive at this mean rate "
+        "(408 otherwise: a drip of bytes cannot hold a connection); 0: no minimum",
+    )
 
     # Durable sessions: with a directory, every session's state is written after each frame.
     state_dir: Path | None = None
@@ -66,6 +86,14 @@ class Settings(BaseSettings):
     @property
     def history_budget_bytes(self) -> int:
         return int(self.history_budget_mb * 2**20)
+
+    @property
+    def memory_budget_bytes(self) -> int:
+        return int(self.memory_budget_mb * 2**20)
+
+    @property
+    def min_body_rate_bytes_s(self) -> float:
+        return self.min_body_rate_kib_s * 1024
 
     @property
     def model_threads(self) -> int:

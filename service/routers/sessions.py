@@ -15,16 +15,10 @@ from quietframe.client.protocol import (
     Header,
     Reset,
 )
-from quietframe.service import frames
 from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
-from quietframe.service.errors import (
-    ERROR_EXAMPLES,
-    BodyTooLarge,
-    InvalidRequest,
-    UnsupportedMediaType,
-)
+from quietframe.service.errors import ERROR_EXAMPLES, InvalidRequest, UnsupportedMediaType
 from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
-from quietframe.service.settings import Settings
+from quietframe.service.upload import read_frame
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 log = logging.getLogger("quietframe.service")
@@ -100,67 +94,6 @@ async def delete_session(session_id: str, sessions: SessionsDep) -> Response:
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-async def _read_frame(request: Request, settings: Settings) -> bytearray:
-    """The EXR body, refused as early as its bytes allow: the magic number and the header are
-    checked as they arrive, and the body is held to its header's largest possible size. One
-    copy: when Content-Length is given the buffer is allocated once, after the header passed
-    (the request guard has already held Content-Length and the stream to the body limit)."""
-    declared = request.headers.get("content-length")
-    expected = int(declared) if declared and declared.isdigit() else None
-    body, size, bound = bytearray(), 0, settings.max_body_bytes
-    header, next_parse = None, 8
-    async for chunk in request.stream():
-        if not chunk:
-            continue
-        if header is None:
-            body += chunk
-            size = len(body)
-            if size < next_parse:
-                continue
-            header = _header_so_far(body, settings)
-            if header is None:  # more header to come: parse again once the bytes double
-                next_parse = 2 * size
-                continue
-            bound = min(bound, header.max_bytes)
-            if expected is not None:
-                _check_size(expected, bound, header)
-                whole = bytearray(expected)  # the one allocation of the body
-                whole[:size] = body
-                body = whole
-            continue
-        if size + len(chunk) > bound:
-            _check_size(size + len(chunk), bound, header)
-        if expected is not None:
-            if size + len(chunk) > expected:
-                raise InvalidRequest(f"body is longer than its Content-Length {expected}")
-            body[size : size + len(chunk)] = chunk
-        else:
-            body += chunk
-        size += len(chunk)
-    if header is None:
-        frames.read_header(body, settings.max_width, settings.max_height)  # raises BadExr
-    if expected is not None and size != expected:
-        raise InvalidRequest(f"body ended after {size} of its {expected} declared bytes")
-    return body
-
-
-def _header_so_far(data: bytearray, settings: Settings) -> frames.ExrHeader | None:
-    try:
-        return frames.read_header(data, settings.max_width, settings.max_height)
-    except frames.TruncatedExr:
-        return None
-
-
-def _check_size(size: int, bound: int, header: frames.ExrHeader) -> None:
-    if size > bound:
-        raise BodyTooLarge(
-            f"body is {size} bytes; a {header.width}x{header.height} EXR with these "
-            f"{len(header.channels)} channels has at most {bound} bytes (this server's frame "
-            "limit or the file's uncompressed size)",
-            headers={"Connection": "close"},
-        )
-
-
 _FRAME_DOC = f"""Denoise frame `index` of the sequence. Body: one EXR (`{EXR_MEDIA_TYPE}`) with
 colour and AOVs under any of the recognised renderer names (or the session's mapping). Response: the
 input EXR with the beauty's R, G, B denoised: every part, channel and header attribute kept.
@@ -186,7 +119,7 @@ filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` 
             "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
             "description": "the denoised EXR",
         },
-        **errors(400, 401, 404, 408, 409, 413, 415, 422),
+        **errors(400, 401, 404, 408, 409, 413, 415, 422, 429),
     },
     openapi_extra={
         "requestBody": {
@@ -206,13 +139,24 @@ async def post_frame(
 ) -> Response:
     """Reads the body and answers with the outcome; `SessionRegistry.denoise_frame` owns the
     frame's journey."""
-    sessions.get(session_id)  # 404 before reading a body for nothing
+    session = sessions.get(session_id)  # 404 before reading a body for nothing
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type not in ACCEPTED_FRAME_TYPES:
         raise UnsupportedMediaType(f"send the EXR as {EXR_MEDIA_TYPE} (got {media_type})")
-    body = await _read_frame(request, settings)
-    metrics.bytes_in.inc(len(body))
-    outcome = await sessions.denoise_frame(session_id, index, body, cut)
+    budget, spec = sessions.admission, session.spec
+    with budget.upload():  # 429 past QUIETFRAME_MAX_UPLOADS bodies at once
+        body, header, reservation = await read_frame(
+            request,
+            settings,
+            (spec.width, spec.height),
+            budget,
+            lambda h, body_bytes: sessions.frame_need(session, h, body_bytes),
+        )
+    try:
+        metrics.bytes_in.inc(len(body))
+        outcome = await sessions.denoise_frame(session_id, index, body, cut, header)
+    finally:
+        reservation.release()
     reply = outcome.reply
     metrics.bytes_out.inc(len(reply.body))
     headers = {**reply.headers, Header.REPLAYED: "true" if outcome.replayed else "false"}

@@ -1,0 +1,151 @@
+"""Memory admission: a frame reserves the memory it will hold before any of it is allocated.
+
+One budget (QUIETFRAME_MEMORY_BUDGET_MB) counts every frame in flight: the header bytes while
+they arrive, then, once the header has been checked against the session, the whole frame at
+once: its body, the channels the decoder returns, the canonical float32 buffers, the model's
+working set and new state, and the reply being encoded. A frame that does not fit waits a
+little (QUIETFRAME_ADMISSION_WAIT_S) for others to finish, then gets 429 with Retry-After; a
+frame larger than the whole budget gets 413 (no retry can help). The history budget
+(sessions.py) counts what sessions keep between frames; together they bound the server's
+memory above its base (models, interpreter).
+
+Everything here runs on the event loop thread: no locks.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Iterable, Iterator
+
+from quietframe.runtime import ModelInfo
+from quietframe.runtime.tiling import max_memory_mb_default
+from quietframe.service.errors import FrameOverMemoryBudget, MemoryBusy, TooManyUploads
+from quietframe.service.frames import ExrHeader
+
+# A graph without tiling in its card runs whole: budget it like the largest tiled ones per
+# pixel (the affinity model, ~1 KiB/px untiled; docs/reliability.md).
+UNTILED_BYTES_PER_PIXEL = 1024
+CANONICAL_CHANNELS = 12  # color 3, albedo 3, normal 3, depth 1, motion 2: float32 planes
+RETRY_AFTER_S = 2  # frames at test sizes finish in well under this; large ones free it sooner
+_SLACK_BYTES = 1 << 20  # decoder chunk buffers, Python objects, response framing
+
+
+def model_working_set(info: ModelInfo, height: int, width: int) -> int:
+    """Bytes a model holds while denoising one height x width frame, beside the frame's
+    buffers: its working set, from the model card's tiling (bytes per pixel; tiles and OIDN's
+    maxMemoryMB keep it within the runtime's max_memory_mb), and its new state (the old one
+    is in the history budget)."""
+    tiling = info.card.tiling
+    per_pixel = tiling.bytes_per_pixel if tiling is not None else UNTILED_BYTES_PER_PIXEL
+    working = height * width * per_pixel
+    if tiling is not None:
+        working = min(working, int(max_memory_mb_default() * 2**20))
+    return working + info.state_nbytes(height, width)
+
+
+def frame_need(header: ExrHeader, body_bytes: int, models: Iterable[ModelInfo]) -> int:
+    """What one frame holds at its peak, in bytes, from its header alone; `models`: those that
+    may denoise it (model=auto: any installed one, the largest counts)."""
+    pixels = header.width * header.height
+    model = max(model_working_set(m, header.height, header.width) for m in models)
+    decoded = header.pixel_bytes  # every channel of every part, as the decoder returns them
+    buffers = CANONICAL_CHANNELS * 4 * pixels
+    # The reply: the input's channels again (written uncompressed at worst), the denoised
+    # colour, the header's attributes as Python objects and written back.
+    reply = header.pixel_bytes + 3 * 4 * pixels + 2 * header.header_bytes
+    return body_bytes + decoded + buffers + model + reply + header.header_bytes + _SLACK_BYTES
+
+
+class Reservation:
+    """Bytes held in the budget by one frame; grows, and is released exactly once."""
+
+    def __init__(self, budget: MemoryBudget, nbytes: int) -> None:
+        self.budget, self.nbytes = budget, nbytes
+
+    def grow_to(self, nbytes: int) -> None:
+        """Grow now or raise MemoryBusy (for bytes already arriving: no waiting)."""
+        if nbytes > self.nbytes:
+            self.budget._take(nbytes - self.nbytes)
+            self.nbytes = nbytes
+
+    async def admit(self, nbytes: int, what: str) -> None:
+        """Grow to `nbytes`, waiting up to the budget's wait for frames in flight to finish;
+        FrameOverMemoryBudget when it can never fit, MemoryBusy when it does not in time."""
+        budget = self.budget
+        if nbytes > budget.limit_bytes:
+            raise FrameOverMemoryBudget(
+                f"{what} needs {nbytes / 2**20:.0f} MiB in flight; this server's memory budget "
+                f"is {budget.limit_bytes / 2**20:.0f} MiB (QUIETFRAME_MEMORY_BUDGET_MB): send "
+                "fewer or half-float channels, or raise the budget"
+            )
+        deadline = time.monotonic() + budget.wait_s
+        while True:
+            try:
+                self.grow_to(nbytes)
+                return
+            except MemoryBusy:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise
+                await budget._changed(left)
+
+    def release(self) -> None:
+        if self.nbytes:
+            self.budget._give(self.nbytes)
+            self.nbytes = 0
+
+
+class MemoryBudget:
+    def __init__(self, limit_bytes: int, wait_s: float, max_uploads: int) -> None:
+        self.limit_bytes, self.wait_s, self.max_uploads = limit_bytes, wait_s, max_uploads
+        self.used_bytes = 0
+        self.uploads = 0
+        self.peak_bytes = 0  # for the status and tests: the most ever reserved at once
+        self._waiters: list[asyncio.Future] = []
+
+    def reserve(self, nbytes: int) -> Reservation:
+        """A new reservation of `nbytes` now (MemoryBusy if they do not fit)."""
+        self._take(nbytes)
+        return Reservation(self, nbytes)
+
+    @contextlib.contextmanager
+    def upload(self) -> Iterator[None]:
+        """One of at most `max_uploads` frame bodies being received (TooManyUploads past it)."""
+        if self.uploads >= self.max_uploads:
+            raise TooManyUploads(
+                f"{self.uploads} frame bodies are being received (QUIETFRAME_MAX_UPLOADS); "
+                "retry after Retry-After seconds",
+                headers={"Retry-After": str(RETRY_AFTER_S), "Connection": "close"},
+            )
+        self.uploads += 1
+        try:
+            yield
+        finally:
+            self.uploads -= 1
+
+    def _take(self, nbytes: int) -> None:
+        if self.used_bytes + nbytes > self.limit_bytes:
+            raise MemoryBusy(
+                f"the frames in flight hold {self.used_bytes / 2**20:.0f} of this server's "
+                f"{self.limit_bytes / 2**20:.0f} MiB memory budget; this one needs "
+                f"{nbytes / 2**20:.1f} MiB more: retry after Retry-After seconds",
+                headers={"Retry-After": str(RETRY_AFTER_S), "Connection": "close"},
+            )
+        self.used_bytes += nbytes
+        self.peak_bytes = max(self.peak_bytes, self.used_bytes)
+
+    def _give(self, nbytes: int) -> None:
+        self.used_bytes -= nbytes
+        waiters, self._waiters = self._waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_result(None)
+
+    async def _changed(self, timeout_s: float) -> None:
+        """Wait until some memory is given back (or `timeout_s`)."""
+        waiter = asyncio.get_running_loop().create_future()
+        self._waiters.append(waiter)
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(waiter, timeout_s)
