@@ -27,10 +27,14 @@ class _ClientBase:
         timeout_s: float = 300.0,
         retry: RetryPolicy | None = None,
         transport: httpx.BaseTransport | httpx.AsyncBaseTransport | None = None,
+        on_retry=None,
     ) -> None:
+        """`on_retry(core.Retry)`: told before each retry's wait (the CLI prints it)."""
         self.retry = retry or RetryPolicy()
+        self.on_retry = on_retry
+        self.url = core.base_url(base_url)
         self._http = self._http_class(
-            base_url=base_url.rstrip("/"),
+            base_url=self.url,
             headers=core.auth_headers(token),
             timeout=timeout_s,
             transport=transport,
@@ -50,7 +54,7 @@ class Client(_ClientBase):
         self._http.close()
 
     def _send(self, call: Call) -> httpx.Response:
-        attempts = core.Attempts(self.retry, call)
+        attempts = core.Attempts(self.retry, call, self.on_retry)
         while (delay := attempts.after(self._try(call))) is not None:
             time.sleep(delay)
         return attempts.response
@@ -116,7 +120,7 @@ class AsyncClient(_ClientBase):
         await self._http.aclose()
 
     async def _send(self, call: Call) -> httpx.Response:
-        attempts = core.Attempts(self.retry, call)
+        attempts = core.Attempts(self.retry, call, self.on_retry)
         while (delay := attempts.after(await self._try(call))) is not None:
             await asyncio.sleep(delay)
         return attempts.response

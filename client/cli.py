@@ -14,8 +14,11 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
-EXIT_FAILURE, EXIT_USAGE = 1, 2
 COMMANDS_GROUP = "quietframe.commands"
+EXIT_CODES_HELP = """exit codes: 0 done; 1 unexpected failure; 2 configuration (flags, server URL,
+token, model, channel mapping, changed flags); 3 input (unreadable or truncated frames, size
+changes, missing passes, files in the way); 75 server unavailable or busy (retry later);
+130 / 143 interrupted by Ctrl-C / SIGTERM (run again to resume)."""
 
 
 def model_option(text: str) -> tuple[str, int | float]:
@@ -69,91 +72,251 @@ def _layers(job, layer: str | None, options: dict) -> tuple[str | None, ...]:
             "--channels names whole channels, the same for every session; with --layer all "
             "leave it out (each view layer's passes are found by name) or run one --layer each"
         )
-    return file_view_layers(job.files[0]) or (None,)
+    return file_view_layers(job.files[job.first_written]) or (None,)
+
+
+class _Stop(Exception):
+    """A failure decided before or during the run: its exit code, message and advice."""
+
+    def __init__(self, code: int, message: str, advice: str = "") -> None:
+        super().__init__(message)
+        self.code, self.message, self.advice = code, message, advice
+
+
+def _plan(args: argparse.Namespace):
+    """(server URL, session options, job, layers) from the command line; _Stop otherwise."""
+    from quietframe.client import outcome
+    from quietframe.client.core import base_url
+    from quietframe.client.frame_source import parse_frame_range
+    from quietframe.client.sequence import Job, SequenceError
+
+    if not args.server:
+        raise _Stop(outcome.CONFIG, "no server", "pass --server URL (or set QUIETFRAME_SERVER)")
+    try:
+        server = base_url(args.server)
+        options = session_options(args)
+        frames = parse_frame_range(args.frames) if args.frames else None
+    except ValueError as exc:
+        raise _Stop(outcome.CONFIG, str(exc)) from exc
+    if args.pre_roll < 0 or args.warmup < 0:
+        raise _Stop(outcome.CONFIG, "--pre-roll and --warmup take a frame count >= 0")
+    try:
+        job = Job.plan(args.input, args.out, frames, args.pre_roll, tuple(args.cut or ()))
+    except SequenceError as exc:
+        raise _Stop(outcome.INPUT, str(exc)) from exc
+    except ValueError as exc:
+        raise _Stop(outcome.CONFIG, str(exc)) from exc
+    try:
+        layers = _layers(job, args.layer, options)
+    except SequenceError as exc:
+        raise _Stop(outcome.INPUT, str(exc)) from exc
+    except ValueError as exc:
+        raise _Stop(outcome.CONFIG, str(exc)) from exc
+    return server, options, job, layers
+
+
+def _reporter(args: argparse.Namespace, total: int, done: int):
+    from quietframe.client.report import Reporter
+
+    if args.json:
+        mode = "json"
+    elif args.quiet:
+        mode = "quiet"
+    elif sys.stderr.isatty() and sys.stdout.isatty():
+        mode = "bar"
+    else:
+        mode = "lines"
+    return Reporter(mode, total, done)
+
+
+def _preflight(args, job, reporter) -> None:
+    """Every frame's header before the first upload; _Stop for what would fail later."""
+    from quietframe.client import outcome
+    from quietframe.client.preflight import check_frames
+
+    report = check_frames(job.files, job.missing)
+    for warning in report.warnings:
+        if args.strict:
+            raise _Stop(outcome.INPUT, warning, "render the missing frames, or leave out "
+                        "--strict to denoise across the gap")
+        reporter.warn(warning)
+    if report.errors:
+        raise _Stop(outcome.INPUT, "pre-flight found problems in the frames:\n  "
+                    + "\n  ".join(report.errors), "fix or re-render those frames first")
+    size = f"{report.size[0]}x{report.size[1]}" if report.size else "?"
+    layers = f", view layers {', '.join(report.layers)}" if report.layers else ""
+    reporter.event("preflight", f"quietframe: {report.frames} frame(s) checked: {size}"
+                   f"{layers}, {report.channels} channels each", frames=report.frames,
+                   size=report.size, layers=report.layers, channels=report.channels,
+                   warnings=report.warnings)
 
 
 def _denoise(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from quietframe.client import outcome
+    from quietframe.client.interrupt import Interrupted, stop_on_signals
+    from quietframe.client.report import Reporter
 
+    try:
+        server, options, job, layers = _plan(args)
+    except _Stop as stop:
+        Reporter("json" if args.json else "quiet", 0).error(stop.message, stop.advice, stop.code)
+        return stop.code
+    total = len(job.written)
+    reporter = _reporter(args, total, 0)
+    position = {"at": job.first_written}
+    with stop_on_signals():
+        try:
+            _preflight(args, job, reporter)
+            if args.dry_run:
+                reporter.summary(0, job.out_dir)
+                return outcome.OK
+            written = _run(args, server, options, job, layers, reporter, position)
+        except _Stop as stop:
+            reporter.error(stop.message, stop.advice, stop.code)
+            return stop.code
+        except Interrupted as stop:
+            return _interrupted(reporter, job, position["at"], stop.signal_name)
+        except KeyboardInterrupt:
+            return _interrupted(reporter, job, position["at"], "SIGINT")
+    reporter.summary(written, job.out_dir)
+    return outcome.OK
+
+
+def _interrupted(reporter, job, at: int, signal_name: str) -> int:
+    from quietframe.client import outcome
+
+    name = job.files[min(at, len(job.files) - 1)].name
+    reporter.error(f"interrupted ({signal_name}) at {name}",
+                   "finished frames are kept: run the same command again to resume",
+                   outcome.INTERRUPTED[signal_name])
+    return outcome.INTERRUPTED[signal_name]
+
+
+def _run(args, server, options, job, layers, reporter, position) -> int:
+    """The sequence itself; returns the frames written. _Stop for every failure."""
+    from quietframe.client import outcome
     from quietframe.client.api import Client, QuietframeError, RetryPolicy
-    from quietframe.client.sequence import Job, SequenceError, run_sequence
+    from quietframe.client.sequence import OutputConflict, SequenceError, job_settings
 
-    if not args.server:
-        print("quietframe: error: pass --server URL (or set QUIETFRAME_SERVER)", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        options = session_options(args)
-    except ValueError as exc:
-        print(f"quietframe: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        job = Job.plan(args.input, args.out)
-        layers = _layers(job, args.layer, options)
-    except (SequenceError, ValueError) as exc:
-        print(f"quietframe: error: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    done = job.first_pending()
-    bar = tqdm(
-        total=len(job.files), initial=done, unit="frame", dynamic_ncols=True, disable=args.quiet
-    )
+    settings = job_settings(args.model, args.precision, args.compression, layers, **options)
+    done = 0 if args.force else job.first_pending(settings) - job.first_written
+    reporter.done = done
     if done:
-        bar.write(f"resuming: {done} of {len(job.files)} frames already in {job.out_dir}")
+        reporter.note(f"resuming: {done} of {len(job.written)} frame(s) already in {job.out_dir}")
     if len(layers) > 1:
-        bar.write(f"view layers {', '.join(map(str, layers))}: one session each, one file out")
-    current = {"path": job.files[min(done, len(job.files) - 1)]}
-
-    def progress(p) -> None:
-        current["path"] = job.files[min(p.position + 1, len(job.files) - 1)]
-        if p.result is None:
-            bar.set_postfix_str(f"warm-up {p.path.name}")
-            return
-        bar.update(1)
-        notes = [] if p.result.reset == "none" else [f"reset={p.result.reset}"]
-        if p.result.sanitized:
-            notes.append(f"sanitized={p.result.sanitized}")
-        if p.result.missing:
-            notes.append(f"missing={','.join(p.result.missing)}")
-        bar.set_postfix_str(" ".join(notes))
-
+        reporter.note(f"view layers {', '.join(map(str, layers))}: one session each, one file")
     token = args.token or os.environ.get("QUIETFRAME_TOKEN")
-    try:
-        retry = RetryPolicy(retries=args.retries)
-        with Client(args.server, token=token, timeout_s=args.timeout, retry=retry) as client:
-            run_sequence(
-                client,
-                job,
-                args.server,
-                model=args.model,
-                precision=args.precision,
-                warmup=args.warmup,
-                compression=args.compression,
-                on_progress=progress,
-                layers=layers,
-                **options,
+    retry = RetryPolicy(retries=args.retries)
+    written = {"count": 0}
+
+    def on_retry(r) -> None:
+        reporter.warn_retry(f"server {server}: {r.describe()}")
+
+    with Client(server, token=token, timeout_s=args.timeout, retry=retry,
+                on_retry=on_retry) as client:
+        watcher = _ShotWatcher(args, client, reporter, job)
+
+        def progress(p) -> None:
+            position["at"] = p.position + 1
+            if p.result is None:
+                reporter.warm(job.indices[p.position], p.path.name)
+                return
+            watcher.seen(p)
+            reporter.frame(job.indices[p.position], p.path.name, p.result)
+            written["count"] += 1
+
+        try:
+            run_options = dict(
+                model=args.model, precision=args.precision, warmup=args.warmup,
+                compression=args.compression, on_progress=progress, layers=layers,
+                force=args.force, pre_roll=args.pre_roll, **options,
             )
-    except (QuietframeError, SequenceError, OSError) as exc:
-        bar.close()
-        print(f"quietframe: error at {current['path'].name}: {exc}", file=sys.stderr)
-        print("quietframe: run the same command again to resume", file=sys.stderr)
-        return EXIT_FAILURE
-    bar.close()
-    if not args.quiet:
-        print(f"{len(job.files)} frames in {job.out_dir}")
-    return 0
+            from quietframe.client.sequence import run_sequence
+
+            run_sequence(client, job, server, **run_options)
+        except OutputConflict as exc:
+            raise _Stop(outcome.CONFIG if exc.changed else outcome.INPUT, str(exc)) from exc
+        except QuietframeError as exc:
+            at = job.files[min(position["at"], len(job.files) - 1)].name
+            view_layers = tuple(layer for layer in layers if layer) or _file_layers(job)
+            failure = outcome.server_failure(exc.status, exc.code, exc.detail, server,
+                                             bool(options["channels"] or args.layer),
+                                             view_layers)
+            raise _Stop(failure.code, f"at {at}: {failure.message}", failure.advice) from exc
+        except SequenceError as exc:
+            raise _Stop(outcome.INPUT, str(exc), "fix that frame, then run the same command "
+                        "again to resume") from exc
+        except OSError as exc:
+            raise _Stop(outcome.FAILURE, f"{exc}", "run the same command again to resume") from exc
+    return written["count"]
+
+
+def _file_layers(job) -> tuple[str, ...]:
+    from quietframe.client.sequence import SequenceError, file_view_layers
+
+    try:
+        return file_view_layers(job.files[job.first_written])
+    except SequenceError:
+        return ()
+
+
+class _ShotWatcher:
+    """Says which model runs per shot (model=auto: the server's choice, in plain words) and
+    where the history restarts."""
+
+    def __init__(self, args, client, reporter, job) -> None:
+        self.args, self.client, self.reporter, self.job = args, client, reporter, job
+        self.shown: str | None = None
+
+    def seen(self, p) -> None:
+        from quietframe.client.choice_text import describe_choice
+        from quietframe.client.preflight import format_numbers
+
+        result, index = p.result, self.job.indices[p.position]
+        if result.reset == "gap":
+            previous = self.job.indices[p.position - 1] if p.position else None
+            gap = list(range(previous + 1, index)) if previous is not None else []
+            self.reporter.note(f"frame {index}: history restarted after missing frame(s) "
+                               f"{format_numbers(gap) if gap else '(before this run)'}")
+        new_shot = result.reset in ("first-frame", "cut") or p.resumed or self.shown is None
+        if not new_shot:
+            return
+        if self.args.model != "auto":
+            text = f"{result.model} (--model {self.args.model})"
+            choice = None
+        else:
+            try:
+                choice = self.client.session(p.session).get("choice") if p.session else None
+            except Exception:  # the choice is said for the reader; never fails a run
+                choice = None
+            text = describe_choice(choice) if choice else result.model
+        if text != self.shown or result.reset == "cut":
+            self.reporter.event("shot", f"quietframe: shot from frame {index}: {text}",
+                                frame=index, model=result.model, choice=choice, text=text)
+            self.shown = text
 
 
 def _models(args: argparse.Namespace) -> int:
+    from quietframe.client import outcome
+    from quietframe.client.model_table import model_table
+
     if args.server:
         from quietframe.client.api import Client, QuietframeError
+        from quietframe.client.core import base_url
 
         token = args.token or os.environ.get("QUIETFRAME_TOKEN")
         try:
-            with Client(args.server, token=token) as client:
+            server = base_url(args.server)
+            with Client(server, token=token, retry=_quick_retry()) as client:
                 listing = client.models()
-        except QuietframeError as exc:
+        except ValueError as exc:
             print(f"quietframe: error: {exc}", file=sys.stderr)
-            return EXIT_FAILURE
-        models, default = listing["models"], listing["default"]
+            return outcome.CONFIG
+        except QuietframeError as exc:
+            failure = outcome.server_failure(exc.status, exc.code, exc.detail, server, False)
+            print(f"quietframe: error: {failure.message}\nquietframe: {failure.advice}",
+                  file=sys.stderr)
+            return failure.code
     else:
         try:
             from quietframe.service.model_registry import ModelRegistry
@@ -164,40 +327,78 @@ def _models(args: argparse.Namespace) -> int:
                 "pass --server URL to ask a server",
                 file=sys.stderr,
             )
-            return EXIT_FAILURE
+            return outcome.CONFIG
         registry = ModelRegistry(Settings(threads=1))
-        models = [m.model_dump() for m in registry.public()]
-        default = registry.default
-    for m in models:
-        metrics = m.get("metrics") or {}
-        figures = ", ".join(f"{k}={v}" for k, v in metrics.items() if not isinstance(v, dict))
-        mark = " (default)" if m["name"] == default else ""
-        print(f"{m['name']} {m['version']}{mark}")
-        print(
-            f"  needs: {', '.join(m['required_buffers'])}; "
-            f"optional: {', '.join(m['optional_buffers']) or '-'}"
-        )
-        if m.get("options"):  # run-time options a session can set (--model-option)
-            print(f"  options: {'; '.join(_option_text(o) for o in m['options'])}")
-        print(f"  figures: {figures or 'none recorded (untrained export)'}")
-    return 0
+        listing = {"models": [m.model_dump() for m in registry.public()],
+                   "default": registry.default}
+    if args.json:
+        print(json.dumps(listing, indent=1))
+    else:
+        print(model_table(listing["models"], listing["default"]))
+    return outcome.OK
 
 
-def _option_text(option: dict) -> str:
-    """A listed model option: 'kernel_size (default 13; one of 5, 7, 9, 11, 13): <doc>'."""
-    allowed = option.get("allowed")
-    values = f"; one of {', '.join(map(str, allowed))}" if allowed else ""
-    doc = f": {option['doc']}" if option.get("doc") else ""
-    return f"{option['name']} (default {option['default']}{values}){doc}"
+def _quick_retry():
+    from quietframe.client.api import RetryPolicy
+
+    return RetryPolicy(retries=2, backoff_s=0.5, max_backoff_s=2.0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="quietframe", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="quietframe",
+        description=__doc__.splitlines()[0],
+        epilog=EXIT_CODES_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"quietframe {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     denoise = sub.add_parser("denoise", help="denoise a folder or glob of EXR frames")
-    denoise.add_argument("input", help="folder of .exr frames, or a glob like 'shot/*.exr'")
+    denoise.add_argument(
+        "input",
+        help="folder of .exr frames, a glob like 'shot/*.exr', or a frame pattern like "
+        "'shot.####.exr' or 'shot.%%04d.exr'",
+    )
     denoise.add_argument("--out", required=True, help="output folder (same file names)")
+    denoise.add_argument(
+        "--frames",
+        metavar="RANGE",
+        help="frames to denoise and write, e.g. 1001-1100 or 1001-1012,1050 (default: all)",
+    )
+    denoise.add_argument(
+        "--pre-roll",
+        type=int,
+        default=0,
+        metavar="N",
+        help="send the N frames before --frames first, to warm the history without writing "
+        "them (a farm chunk then continues its shot without a visible pop)",
+    )
+    denoise.add_argument(
+        "--cut",
+        type=int,
+        action="append",
+        metavar="FRAME",
+        help="a camera cut at FRAME: the history starts afresh there (repeatable)",
+    )
+    denoise.add_argument(
+        "--force",
+        action="store_true",
+        help="redo outputs that are not this job's (other files, re-rendered sources, changed "
+        "flags) in a new session instead of refusing",
+    )
+    denoise.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="check every frame's header (size, view layers, passes, truncation, gaps) and "
+        "stop before the first upload",
+    )
+    denoise.add_argument(
+        "--strict", action="store_true", help="a missing frame in the range is an error"
+    )
+    denoise.add_argument(
+        "--json", action="store_true", help="one JSON event per line on stdout, for scripts"
+    )
     denoise.add_argument(
         "--server",
         default=os.environ.get("QUIETFRAME_SERVER"),
@@ -272,21 +473,38 @@ def build_parser() -> argparse.ArgumentParser:
         default=5,
         help="retries per request on 429/5xx/connection errors (with backoff)",
     )
-    denoise.add_argument("--quiet", action="store_true", help="no progress bar")
+    denoise.add_argument(
+        "--quiet", action="store_true", help="errors and warnings only (no progress)"
+    )
     denoise.set_defaults(func=_denoise)
 
     models = sub.add_parser("models", help="list models (installed here, or on --server)")
     models.add_argument("--server", default=os.environ.get("QUIETFRAME_SERVER"))
     models.add_argument("--token")
+    models.add_argument("--json", action="store_true", help="the listing as JSON")
     models.set_defaults(func=_models)
     for command in entry_points(group=COMMANDS_GROUP):  # e.g. `serve`, from quietframe.service
         command.load()(sub)
     return parser
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("quietframe")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except BrokenPipeError:  # `quietframe models | head`: the reader left, nothing is wrong
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so the interpreter's final flush is quiet too
+        return 0
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from quietframe.client.protocol import (
     CUT_QUERY,
     EXR_MEDIA_TYPE,
     Header,
+    parse_counts,
     parse_timings,
     split_list,
 )
@@ -46,6 +47,9 @@ class FrameResult:
     missing: tuple[str, ...]  # optional buffers the frame lacked (filled by the model)
     replayed: bool  # answered from the server's stored reply (a retry)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    sanitized_buffers: dict[str, int] = field(default_factory=dict)  # per buffer: depth=678
+    model: str = ""  # "<name> <version>" of the model that ran
+    choice: str = ""  # model=auto: the X-Quietframe-Choice header
 
 
 @dataclass(frozen=True)
@@ -90,8 +94,9 @@ class Attempts:
     the answer, else the seconds to wait before sending again; it raises QuietframeError when
     the call has failed for good."""
 
-    def __init__(self, policy: RetryPolicy, call: Call) -> None:
+    def __init__(self, policy: RetryPolicy, call: Call, on_retry=None) -> None:
         self.policy, self.call, self.attempt = policy, call, 0
+        self.on_retry = on_retry  # (Retry) -> None: told before each wait, e.g. to print it
         self.response: httpx.Response | None = None  # the answer, once `after` returned None
 
     def after(self, outcome: httpx.Response | Exception) -> float | None:
@@ -107,7 +112,27 @@ class Attempts:
         )
         delay = self.policy.delay(self.attempt, retry_after)
         self.attempt += 1
+        if self.on_retry is not None:
+            self.on_retry(Retry(self.call, self.attempt, self.policy.retries, delay, outcome))
         return delay
+
+
+@dataclass(frozen=True)
+class Retry:
+    """One retry about to happen: which call, its number (1-based) of `of`, the wait."""
+
+    call: Call
+    number: int
+    of: int
+    delay_s: float
+    outcome: httpx.Response | Exception
+
+    def describe(self) -> str:
+        if isinstance(self.outcome, httpx.Response):
+            why = f"{self.outcome.status_code} {parse_error(self.outcome).code}"
+        else:
+            why = f"{type(self.outcome).__name__}: {self.outcome}"
+        return f"{why}; retry {self.number} of {self.of} in {self.delay_s:.1f} s"
 
 
 def parse_error(response: httpx.Response) -> QuietframeError:
@@ -128,7 +153,21 @@ def parse_frame(index: int, response: httpx.Response) -> FrameResult:
         missing=split_list(h.get(Header.MISSING, "")),
         replayed=h.get(Header.REPLAYED) == "true",
         timings_ms=parse_timings(h.get(Header.SERVER_TIMING, "")),
+        sanitized_buffers=parse_counts(h.get(Header.SANITIZED_BUFFERS, "")),
+        model=h.get(Header.MODEL, ""),
+        choice=h.get(Header.CHOICE, ""),
     )
+
+
+def base_url(url: str) -> str:
+    """The server's root URL: a trailing `/v1` (the API prefix, which every call adds) is
+    dropped, so `--server http://denoise:8000/v1` works; ValueError without http(s)://."""
+    url = url.strip().rstrip("/")
+    if not url.startswith(("http://", "https://")):
+        raise ValueError(f"server URL {url!r} must start with http:// or https://")
+    if url.endswith("/v1"):
+        url = url[: -len("/v1")]
+    return url
 
 
 def auth_headers(token: str | None) -> dict[str, str]:

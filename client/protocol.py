@@ -59,6 +59,16 @@ def format_counts(counts: dict[str, int]) -> str:
     return join_list(f"{name}={count}" for name, count in sorted(counts.items()))
 
 
+def parse_counts(value: str) -> dict[str, int]:
+    """`format_counts` read back: "color=3, depth=1" -> {"color": 3, "depth": 1}."""
+    counts = {}
+    for part in split_list(value):
+        name, _, count = part.partition("=")
+        if name and count.isdigit():
+            counts[name] = int(count)
+    return counts
+
+
 def format_timings(timings_ms: dict[str, float]) -> str:
     return join_list(f"{stage};dur={ms:.1f}" for stage, ms in timings_ms.items())
 

@@ -1,11 +1,18 @@
-"""Stream a directory (or glob) of EXR frames through one session, resumably.
+"""Stream a sequence of EXR frames (client/frame_source.py) through one session, resumably.
 
-Frames are sorted by the last number in their file name, which is also the index sent to the
-server (a missing frame number is a gap: the server starts a fresh history there, as for a camera
-cut). Outputs are written atomically under the input names, so an output that exists is done.
-A job file in the output folder remembers the session: a resumed run continues that session when
-the server still has it at the last finished frame; otherwise it starts a new session and first
-re-sends up to `warmup` finished frames (outputs not rewritten) to rebuild the history.
+Frames are sent in frame-number order; that number is the index sent to the server (a missing
+number is a gap: the server starts a fresh history there, as for a camera cut). Outputs are
+written atomically under the input names, each with a record (client/output_records.py) that
+says from which source and with which settings it was made: only such an output counts as done
+on a rerun; any other file in the way, a re-rendered source or changed flags are refused
+(OutputConflict) unless `force`, which redoes them in a new session.
+
+A job file in the output folder (one per frame range, so farm chunks keep their own) remembers
+the session: a resumed run continues it when the server still has it at the last finished frame
+and the settings are the same; otherwise a new session is first sent up to `warmup` finished
+frames (outputs not rewritten) to rebuild the history. A chunk of a longer shot starts the same
+way from the `pre_roll` frames before its range (sent, never written), so it does not begin on an
+empty history (a visible pop at every chunk boundary).
 
 Several view layers of one file (`layers`): one session per layer, each frame sent to every
 session; each reply is the whole file with its layer denoised, so the output is the first reply
@@ -14,41 +21,33 @@ with every other layer's channels taken from that layer's reply (one file per fr
 
 from __future__ import annotations
 
-import asyncio
-import glob
 import json
 import os
-import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from quietframe.client import output_records as records
 from quietframe.client.api import AsyncClient, Client, FrameResult, QuietframeError
+from quietframe.client.frame_source import (
+    SequenceError,
+    find_frames,
+    frame_number,
+    select_frames,
+)
 from quietframe.client.protocol import view_layers
 
 JOB_FILE = ".quietframe-job.json"
-_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+__all__ = ["JOB_FILE", "Job", "SequenceError", "find_frames", "frame_number", "run_sequence"]
 
 
-class SequenceError(Exception):
-    """The input cannot be streamed as one sequence (no frames, mixed sizes, name clashes)."""
+class OutputConflict(SequenceError):
+    """Files in the output folder that this run would overwrite but did not make with these
+    sources and settings; `changed` when only the settings differ (a configuration matter)."""
 
-
-def find_frames(source: str | Path) -> list[Path]:
-    """EXR files of a directory or a glob pattern, sorted by frame number then name."""
-    path = Path(source)
-    if path.is_dir():
-        files = [p for p in path.iterdir() if p.suffix.lower() == ".exr" and p.is_file()]
-    else:
-        files = [Path(p) for p in glob.glob(str(source)) if Path(p).is_file()]
-    if not files:
-        raise SequenceError(f"no EXR frames in {source}")
-    return sorted(files, key=lambda p: (frame_number(p) or 0, p.name))
-
-
-def frame_number(path: Path) -> int | None:
-    match = _NUMBER.search(path.stem)
-    return int(match.group(1)) if match else None
+    def __init__(self, message: str, changed: bool) -> None:
+        super().__init__(message)
+        self.changed = changed
 
 
 def file_view_layers(path: Path) -> tuple[str, ...]:
@@ -76,51 +75,137 @@ def frame_size(path: Path) -> tuple[int, int]:
 
 @dataclass
 class Job:
+    """One run's frames: `files[:first_written]` are pre-roll (sent, never written)."""
+
     files: list[Path]
     indices: list[int]
     out_dir: Path
     width: int
     height: int
+    first_written: int = 0
+    missing: tuple[int, ...] = ()  # frame numbers of the range without a file
+    cuts: frozenset[int] = frozenset()  # frame numbers that start a new shot (--cut)
+    job_file: str = JOB_FILE  # one per frame range: parallel chunks keep their own
 
     @classmethod
-    def plan(cls, source: str | Path, out_dir: str | Path) -> Job:
-        files = find_frames(source)
+    def plan(
+        cls,
+        source: str | Path,
+        out_dir: str | Path,
+        frames: tuple[int, ...] | None = None,
+        pre_roll: int = 0,
+        cuts: tuple[int, ...] = (),
+    ) -> Job:
+        chosen = select_frames(source, frames, pre_roll)
+        files = [*chosen.pre_roll, *chosen.files]
         out = Path(out_dir)
         if any(f.parent.resolve() == out.resolve() for f in files):
-            raise SequenceError("--out must differ from the input folder (outputs keep the names)")
+            raise ValueError("--out must differ from the input folder (outputs keep the names)")
         numbers = [frame_number(f) for f in files]
-        if None in numbers:
-            indices = list(range(len(files)))  # no frame numbers: the sorted order
-        else:
-            indices = numbers  # type: ignore[assignment]
-            clash = {n for n in indices if indices.count(n) > 1}
-            if clash:
-                raise SequenceError(f"several files have frame number(s) {sorted(clash)[:5]}")
+        indices = list(range(len(files))) if None in numbers else numbers
         out.mkdir(parents=True, exist_ok=True)
-        width, height = frame_size(files[0])
-        return cls(files, indices, out, width, height)
+        width, height = frame_size(chosen.files[0])
+        job_file = JOB_FILE
+        if frames is not None:
+            job_file = f".quietframe-job.{frames[0]}-{frames[-1]}.json"
+        return cls(files, indices, out, width, height, len(chosen.pre_roll), chosen.missing,
+                   frozenset(cuts), job_file)  # type: ignore[arg-type]
+
+    @property
+    def written(self) -> range:
+        """Positions whose output this job writes."""
+        return range(self.first_written, len(self.files))
 
     def output(self, i: int) -> Path:
         return self.out_dir / self.files[i].name
 
-    def first_pending(self) -> int:
-        """Position of the first frame without output (len(files) when all are done)."""
-        for i in range(len(self.files)):
-            if not self.output(i).exists():
+    def first_pending(self, settings: dict | None = None) -> int:
+        """Position of the first written frame that is not this job's output (len(files) when
+        all are done); with `settings` None, the first without an output file at all."""
+        for i in self.written:
+            if settings is None:
+                if not self.output(i).exists():
+                    return i
+            elif records.check(self.output(i), self.files[i], settings).status is not (
+                records.Status.DONE
+            ):
                 return i
         return len(self.files)
 
+    def conflicts(self, settings: dict) -> list[tuple[int, records.Check]]:
+        """Outputs in the way: every written position whose file exists but is not done."""
+        found = []
+        for i in self.written:
+            check = records.check(self.output(i), self.files[i], settings)
+            if check.status not in (records.Status.DONE, records.Status.ABSENT):
+                found.append((i, check))
+        return found
+
+    def is_cut(self, i: int) -> bool:
+        return self.indices[i] in self.cuts
+
     def read_job(self) -> dict:
         try:
-            return json.loads((self.out_dir / JOB_FILE).read_text())
+            return json.loads((self.out_dir / self.job_file).read_text())
         except (OSError, ValueError):
             return {}
 
     def write_job(self, **fields) -> None:
-        _atomic_write(self.out_dir / JOB_FILE, json.dumps(fields).encode())
+        _atomic_write(self.out_dir / self.job_file, json.dumps(fields).encode())
 
-    def write_output(self, i: int, data: bytes) -> None:
+    def write_output(self, i: int, data: bytes, settings: dict | None = None,
+                     source: dict | None = None, **extra) -> None:
+        """The output, then (with `settings`) its record: the source's stamp (`source`, or
+        read now) and what made it."""
         _atomic_write(self.output(i), data)
+        if settings is not None:
+            stamp = source or records.source_stamp(self.files[i])
+            records.write_record(self.output(i), stamp, settings, len(data), **extra)
+
+
+def job_settings(
+    model: str = "auto",
+    precision: str = "input",
+    compression: str = "input",
+    layers: tuple[str | None, ...] = (None,),
+    **options,
+) -> dict:
+    """What an output is made with, as CLI flag names (output_records compares them): every
+    session field that changes the pixels or the file."""
+    settings = {"model": model, "precision": precision, "compression": compression,
+                "layer": [layer for layer in layers if layer is not None]}
+    for name, value in sorted(options.items()):
+        name = "model_option" if name == "model_options" else name
+        settings[name] = list(value) if isinstance(value, tuple) else value
+    return {k: v for k, v in settings.items() if v not in (None, {}, [])}  # unset: left out
+
+
+def refuse_conflicts(job: Job, settings: dict) -> None:
+    """OutputConflict naming what is in the way and the fix, unless nothing is."""
+    found = job.conflicts(settings)
+    if not found:
+        return
+    names = ", ".join(job.output(i).name for i, _ in found[:3]) + (
+        f" and {len(found) - 3} more" if len(found) > 3 else "")
+    kinds = {check.status for _, check in found}
+    S = records.Status
+    if kinds == {S.CHANGED}:
+        raise OutputConflict(
+            f"{len(found)} output(s) in {job.out_dir} ({names}) were made with other settings "
+            f"({found[0][1].detail}); pass --force to redo them with these flags in a new "
+            "session, or use another --out", changed=True)
+    why = {
+        S.FOREIGN: "were not written by quietframe for these inputs",
+        S.STALE: "come from source frames that changed since (re-rendered)",
+        S.CHANGED: "were made with other settings",
+        S.DAMAGED: "do not have the size they were written with",
+    }
+    reasons = "; ".join(f"{sum(c.status is k for _, c in found)} {why[k]}"
+                        for k in S if k in kinds)
+    raise OutputConflict(
+        f"{len(found)} file(s) in {job.out_dir} ({names}) would be overwritten: {reasons}. "
+        "Pass --force to denoise them again (a new session), or use another --out",
+        changed=False)
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -141,22 +226,29 @@ def _check_size(job: Job, i: int) -> bytes:
 
 @dataclass
 class Progress:
-    position: int  # 0-based position in the sorted files
+    position: int  # 0-based position in job.files
     path: Path
-    result: FrameResult | None  # None for warm-up frames (sent only to rebuild history)
+    result: FrameResult | None  # None for warm-up / pre-roll frames (sent to build history)
+    session: str | None = None  # the (first layer's) session that made it
+    resumed: bool = False  # the first frame of a run that continued an existing session
 
 
-def _resume_plan(pending: int, session: dict | None, warmup: int) -> tuple[str | None, list[int]]:
-    """(session id to continue or None for a new one, positions to re-send for warm-up)."""
-    if pending == 0 or session is None:
-        return None, list(range(max(0, pending - warmup), pending))
-    return session["id"], []
+def _warm_positions(job: Job, pending: int, count: int) -> list[int]:
+    """Up to `count` positions before `pending` that rebuild its history: none across a cut
+    or a gap (the server resets there anyway)."""
+    start = max(0, pending - count)
+    for j in range(pending, start, -1):
+        if job.is_cut(j) or job.indices[j] != job.indices[j - 1] + 1:
+            return list(range(j, pending))
+    return list(range(start, pending))
 
 
 def _matches(job: Job, server: str, pending: int, stored: dict, session: dict, layer) -> bool:
+    """A stored session can go on at `pending`: same server and settings, at the previous
+    frame, or at `pending` itself (its reply was lost; the server replays it)."""
     return (
         stored.get("server") == server
-        and session.get("last_index") == job.indices[pending - 1]
+        and session.get("last_index") in (job.indices[pending - 1], job.indices[pending])
         and (session.get("width"), session.get("height")) == (job.width, job.height)
         and session.get("layer") == layer
     )
@@ -199,11 +291,18 @@ def _holds(part, layer: str) -> bool:
 
 
 def run_sequence(client: Client, job: Job, server: str, **options) -> str | None:
-    """Denoise every pending frame of `job` (options of `arun_sequence`: model, precision,
-    warmup, compression, on_progress, layers, further session fields); returns the session id
+    """Denoise every pending frame of `job` (options of `arun_sequence`); returns the session id
     (the first layer's when several; None if nothing to do). The sequence protocol is written
-    once, in `arun_sequence`; here it drives the sync client (one frame at a time either way)."""
-    return asyncio.run(arun_sequence(_Awaitable(client), job, server, **options))
+    once, in `arun_sequence`; here its coroutine is stepped by hand on the sync client, whose
+    calls never pause, so it runs in this thread as plain calls: Ctrl-C and SIGTERM stop it in
+    the request under way (asyncio.run would defer them to the end of the run)."""
+    coroutine = arun_sequence(_Awaitable(client), job, server, **options)
+    try:
+        coroutine.send(None)
+    except StopIteration as finished:
+        return finished.value
+    coroutine.close()
+    raise RuntimeError("the sequence paused on a synchronous client")
 
 
 class _Awaitable:
@@ -231,52 +330,63 @@ async def arun_sequence(
     compression: str = "input",
     on_progress: Callable[[Progress], None] | None = None,
     layers: tuple[str | None, ...] = (None,),
+    force: bool = False,
+    pre_roll: int | None = None,
     **options,
 ) -> str | None:
     """`run_sequence` for AsyncClient (one task per sequence). `layers`: view layers to denoise,
-    one session each (None: the server's alias table picks the beauty); `options`: further
-    session fields (channels, denoised_layer, quality, motion_scale)."""
-    pending = job.first_pending()
+    one session each (None: the server's alias table picks the beauty); `force`: redo outputs
+    that are not this job's (else OutputConflict); `pre_roll`: frames sent before the job's
+    first written frame (default: all of job's pre-roll files); `options`: further session
+    fields (channels, denoised_layer, quality, motion_scale, model_options)."""
+    settings = job_settings(model, precision, compression, layers, **options)
+    if not force:
+        refuse_conflicts(job, settings)
+    pending = job.first_pending(settings)
     if pending == len(job.files):
         return None
-    stored = job.read_job()
+    stored = {} if force else job.read_job()
+    if stored.get("settings") not in (None, settings):
+        stored = {}  # a session made with other flags is never continued
     sessions: dict[str | None, str] = {}
-    warm: dict[str | None, list[int]] = {}
+    fresh: set[str] = set()  # sessions created now: they get the warm-up frames
     for layer in layers:
         session = await _reusable_session(client, job, server, pending, stored, layer)
-        session_id, warm[layer] = _resume_plan(pending, session, warmup)
-        if session_id is None:
+        if session is None:
             created = await client.create_session(
-                job.width,
-                job.height,
-                model,
-                precision=precision,
-                compression=compression,
-                layer=layer,
-                **options,
+                job.width, job.height, model, precision=precision, compression=compression,
+                layer=layer, **options,
             )
-            session_id = created["id"]
-        sessions[layer] = session_id
-    for i in sorted({i for positions in warm.values() for i in positions}):
+            session = created
+            fresh.add(created["id"])
+        sessions[layer] = session["id"]
+    resumed = not fresh
+    count = warmup if pending > job.first_written else (
+        job.first_written if pre_roll is None else pre_roll)
+    for i in _warm_positions(job, pending, count) if fresh else []:
         data = _check_size(job, i)
-        for layer, session_id in sessions.items():
-            if i in warm[layer]:
-                await client.send_frame(session_id, job.indices[i], data)
+        for session_id in sessions.values():
+            if session_id in fresh:
+                await client.send_frame(session_id, job.indices[i], data, cut=job.is_cut(i))
         _notify(on_progress, Progress(i, job.files[i], None))
     keys = {layer or "": session_id for layer, session_id in sessions.items()}
+    first_session = next(iter(sessions.values()))
     for i in range(pending, len(job.files)):
         data = _check_size(job, i)
+        source = records.source_stamp(job.files[i], data)
         results = {
-            layer: await client.send_frame(session_id, job.indices[i], data)
+            layer: await client.send_frame(session_id, job.indices[i], data, cut=job.is_cut(i))
             for layer, session_id in sessions.items()
         }
         result = _combined(results)
-        job.write_output(i, result.exr)
-        job.write_job(server=server, sessions=keys, last_index=job.indices[i])
-        _notify(on_progress, Progress(i, job.files[i], result))
+        job.write_output(i, result.exr, settings, source, model=result.model,
+                         session=first_session, index=job.indices[i])
+        job.write_job(server=server, sessions=keys, last_index=job.indices[i], settings=settings)
+        _notify(on_progress, Progress(i, job.files[i], result, first_session,
+                                      resumed=resumed and i == pending))
     for session_id in sessions.values():
         await client.delete_session(session_id)
-    return next(iter(sessions.values()))
+    return first_session
 
 
 def _combined(results: dict[str | None, FrameResult]) -> FrameResult:
@@ -284,10 +394,15 @@ def _combined(results: dict[str | None, FrameResult]) -> FrameResult:
     first = next(iter(results.values()))
     if len(results) == 1:
         return first
+    sanitized: dict[str, int] = {}
+    for r in results.values():
+        for name, count in r.sanitized_buffers.items():
+            sanitized[name] = sanitized.get(name, 0) + count
     return replace(
         first,
         exr=merge_layers({layer: r.exr for layer, r in results.items()}),
         sanitized=sum(r.sanitized for r in results.values()),
+        sanitized_buffers=sanitized,
         missing=tuple(sorted({m for r in results.values() for m in r.missing})),
     )
 

@@ -14,7 +14,7 @@ from conftest import LiveServer, read_exr, service_settings, shot
 
 from quietframe.client import AsyncClient, Client, QuietframeError, RetryPolicy
 from quietframe.client.cli import main
-from quietframe.client.sequence import JOB_FILE, Job, SequenceError, find_frames
+from quietframe.client.sequence import JOB_FILE, Job, SequenceError, find_frames, job_settings
 
 FAST = RetryPolicy(retries=3, backoff_s=0.001, max_backoff_s=0.01)
 
@@ -172,9 +172,8 @@ def test_cli_resume_continues_the_same_session(tmp_path, live_server):
     with Client(live_server.url) as client:  # a run that stopped after two frames
         sid = client.create_session(job.width, job.height)["id"]
         for i in range(2):
-            job.write_output(
-                i, client.send_frame(sid, job.indices[i], job.files[i].read_bytes()).exr
-            )
+            exr = client.send_frame(sid, job.indices[i], job.files[i].read_bytes()).exr
+            job.write_output(i, exr, job_settings())  # with its record: this job's output
         job.write_job(server=live_server.url, session=sid, last_index=job.indices[1])
         assert (
             main(["denoise", "--server", live_server.url, str(src), "--out", str(out), "--quiet"])
@@ -191,10 +190,10 @@ def test_cli_failure_is_clear_and_resumable(tmp_path, live_server, capsys):
     good = (src / "shot_1003.exr").read_bytes()
     (src / "shot_1003.exr").write_bytes(good[: len(good) // 2])  # truncated render
     args = ["denoise", "--server", live_server.url, str(src), "--out", str(out), "--quiet"]
-    assert main(args) == 1
+    assert main(args) == 3  # an input error, found by the pre-flight before any upload
     err = capsys.readouterr().err
-    assert "shot_1003.exr" in err and "400 bad_exr" in err and "again to resume" in err
-    assert sorted(p.name for p in out.glob("*.exr")) == ["shot_1001.exr", "shot_1002.exr"]
+    assert "shot_1003.exr" in err and "cut short" in err and "re-render" in err
+    assert not list(out.glob("*.exr"))
     (src / "shot_1003.exr").write_bytes(good)
     assert main(args) == 0 and len(list(out.glob("*.exr"))) == 4
 
@@ -202,7 +201,7 @@ def test_cli_failure_is_clear_and_resumable(tmp_path, live_server, capsys):
 def test_cli_usage_errors(tmp_path, capsys):
     src = tmp_path / "in"
     write_shot(src, n=1)
-    assert main(["denoise", "--server", "http://127.0.0.1:9", str(src), "--out", str(src)]) == 1
+    assert main(["denoise", "--server", "http://127.0.0.1:9", str(src), "--out", str(src)]) == 2
     assert "must differ" in capsys.readouterr().err
     code = main(
         [
@@ -217,14 +216,15 @@ def test_cli_usage_errors(tmp_path, capsys):
             "0",
         ]
     )
-    assert code == 1 and "connection_error" in capsys.readouterr().err
+    err = capsys.readouterr().err  # server unavailable: retryable, the URL named
+    assert code == 75 and "cannot reach the quietframe server at http://127.0.0.1:9" in err
 
 
 def test_cli_models(live_server, capsys):
     assert main(["models", "--server", live_server.url]) == 0
     out = capsys.readouterr().out
-    assert "(default)" in out and "needs: color, albedo" in out
-    assert main(["models"]) == 0 and "(default)" in capsys.readouterr().out
+    assert "[auto's fallback]" in out and "color,albedo" in out
+    assert main(["models"]) == 0 and "[session default]" in capsys.readouterr().out
 
 
 def test_serve_is_a_quietframe_command_registered_by_the_service(capsys):

@@ -1,0 +1,132 @@
+"""What `quietframe denoise` tells its reader: a progress bar on a terminal, one line per frame
+in a log (stdout not a terminal), or one JSON object per line (`--json`) for scripts.
+
+Every message is an event (`kind` + fields); the three outputs are three ways of writing the
+same events, so a script sees exactly what a person sees. Errors also go to stderr as text.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections import defaultdict
+from typing import TextIO
+
+# What each sanitised buffer's count means, said once per run in the summary.
+SANITIZED_WORDS = {
+    "depth": "no-hit depths (sky or background written as 0 or 1e10) set to the farthest "
+             "depth: expected for Blender, harmless",
+    "color": "NaN/Inf/negative colour values set to 0: check the render for bad samples",
+    "albedo": "NaN/Inf/negative albedo values set to 0",
+    "normal": "NaN/Inf normals set to 0",
+    "motion": "NaN/Inf motion vectors set to 0",
+    "denoised": "output values clamped to the half-float range",
+}
+
+
+class Reporter:
+    def __init__(self, mode: str, total: int, done: int = 0, stream: TextIO | None = None,
+                 errors: TextIO | None = None) -> None:
+        """`mode`: "bar" (terminal), "lines" (a log), "json" or "quiet" (errors only)."""
+        self.mode, self.total, self.done = mode, total, done
+        self.out = stream or sys.stdout
+        self.err = errors or sys.stderr
+        self.sanitized: dict[str, list[int]] = defaultdict(list)  # buffer -> count per frame
+        self.warnings: list[str] = []
+        self.bar = None
+        if mode == "bar":
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=done, unit="frame", dynamic_ncols=True,
+                            file=self.err)
+
+    # ---- events --------------------------------------------------------------------------
+
+    def event(self, kind: str, line: str, /, **fields) -> None:
+        """One event: a JSON line, or `line` as a line of the log / above the bar."""
+        if self.mode == "json":
+            record = {"event": kind, "time": round(time.time(), 3), **fields}
+            self.out.write(json.dumps(record, default=str) + "\n")
+            self.out.flush()
+        elif self.mode == "bar" and self.bar is not None:
+            self.bar.write(line, file=self.err)
+        elif self.mode == "lines":
+            self.out.write(line + "\n")
+            self.out.flush()
+
+    def note(self, text: str) -> None:
+        self.event("note", f"quietframe: {text}", message=text)
+
+    def warn(self, text: str) -> None:
+        self.warnings.append(text)
+        self.event("warning", f"quietframe: warning: {text}", message=text)
+        if self.mode == "quiet":
+            self.err.write(f"quietframe: warning: {text}\n")
+
+    def warn_retry(self, text: str) -> None:
+        """A retry under way: said at once, even when quiet (a silent wait looks like a hang)."""
+        if self.mode == "json":
+            self.event("retry", text, message=text)
+            return
+        if self.bar is not None:
+            self.bar.write(f"quietframe: {text}", file=self.err)
+        else:
+            self.err.write(f"quietframe: {text}\n")
+            self.err.flush()
+
+    def frame(self, index: int, name: str, result) -> None:
+        for buffer, count in result.sanitized_buffers.items():
+            self.sanitized[buffer].append(count)
+        self.done += 1
+        ms = result.timings_ms.get("total")
+        fields = {"frame": index, "file": name, "reset": result.reset,
+                  "missing": list(result.missing), "model": result.model,
+                  "server_ms": ms, "replayed": result.replayed,
+                  "sanitized": result.sanitized_buffers, "done": self.done, "total": self.total}
+        if self.mode == "bar" and self.bar is not None:
+            self.bar.update(1)
+            notes = [] if result.reset == "none" else [f"new history: {result.reset}"]
+            self.bar.set_postfix_str(" ".join(notes))
+            return
+        notes = "" if result.reset == "none" else f", new history ({result.reset})"
+        timing = f", {ms:.0f} ms" if ms is not None else ""
+        self.event("frame", f"frame {index} {name} done [{self.done}/{self.total}]{timing}"
+                   f"{notes}", **fields)
+
+    def warm(self, index: int, name: str) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"warming history: {name}")
+        self.event("warmup", f"frame {index} {name} sent to warm the history (not written)",
+                   frame=index, file=name)
+
+    def error(self, message: str, advice: str, code: int) -> None:
+        self.close()
+        if self.mode == "json":
+            self.event("error", message, message=message, advice=advice, exit_code=code)
+        self.err.write(f"quietframe: error: {message}\n")
+        if advice:
+            self.err.write(f"quietframe: {advice}\n")
+        self.err.flush()
+
+    def summary(self, written: int, out_dir) -> None:
+        self.close()
+        notes = [f"{buffer}: {max(counts)} per frame at most, in {len(counts)} frame(s): "
+                 f"{SANITIZED_WORDS.get(buffer, 'values replaced')}"
+                 for buffer, counts in sorted(self.sanitized.items()) if any(counts)]
+        for line in notes:
+            self.event("sanitized", f"quietframe: sanitised {line}", message=line)
+        text = f"{written} frame(s) written to {out_dir}"
+        if self.warnings:
+            text += f"; {len(self.warnings)} warning(s): " + "; ".join(self.warnings)
+        if self.mode == "json":
+            self.event("summary", text, written=written, out=str(out_dir),
+                       warnings=self.warnings)
+        elif self.mode != "quiet":
+            self.out.write(text + "\n")
+            self.out.flush()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
