@@ -18,6 +18,7 @@ Compression = Literal[
 # A finite number, not a boolean (strict: JSON true is not 1.0) nor NaN/Infinity (Python's json
 # reads those literals).
 Factor = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+MAX_LAYER_NAME_BYTES = 120  # two of them and ".R" fit in an EXR channel name (255 bytes)
 # A model option's value: an integer stays one (kernel_size 9), else a finite number.
 OptionValue = Annotated[int, Field(strict=True)] | Factor
 
@@ -73,7 +74,7 @@ class SessionCreate(BaseModel):
         description="target for model 'auto': the cheapest model expected within 1 dB (fast), "
         "0.3 dB (balanced, the default) or 0 dB (best) of the best expected PSNR",
     )
-    latency_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = Field(
+    latency_ms: Annotated[float, Field(strict=True, gt=0, allow_inf_nan=False)] | None = Field(
         None,
         description="budget for model 'auto': expected denoise ms per frame at this session's "
         "size (from each model's measured 720p time); models over it are not chosen",
@@ -100,8 +101,16 @@ class SessionCreate(BaseModel):
     @field_validator("layer", "denoised_layer")
     @classmethod
     def _layer_name(cls, value: str | None) -> str | None:
-        if value is not None and (not value or value.startswith(".") or value.endswith(".")):
+        if value is None:
+            return value
+        if not value or value.startswith(".") or value.endswith("."):
             raise ValueError("a layer name is not empty and neither starts nor ends with '.'")
+        # It becomes part of EXR channel names: no control characters (a NUL ends a name in
+        # the file), and with the view layer and component within OpenEXR's 255 bytes.
+        if any(ord(c) < 32 or ord(c) == 127 for c in value):
+            raise ValueError("a layer name has no control characters (NUL, tab, newline, ...)")
+        if len(value.encode()) > MAX_LAYER_NAME_BYTES:
+            raise ValueError(f"a layer name is at most {MAX_LAYER_NAME_BYTES} bytes (UTF-8)")
         return value
 
     @field_validator("channels")

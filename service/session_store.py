@@ -203,3 +203,8 @@ def _verify(
         if name.startswith("state.") and array.shape != shapes.get(name[6:]):
             raise ValueError(f"{name} has shape {array.shape}; the session's model expects "
                              f"{shapes.get(name[6:], 'no such state')}")
+        # The runtime feeds state as float32 and the reply is bytes: another dtype of the right
+        # shape would pass this far and fail inside the model (a 500 on every frame).
+        want = np.float32 if name.startswith("state.") else np.uint8
+        if array.dtype != want:
+            raise ValueError(f"{name} is {array.dtype}; a session file holds {np.dtype(want)}")

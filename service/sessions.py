@@ -673,6 +673,13 @@ class SessionRegistry:
         assert self.store is not None
         for path, meta in self.store.metas():
             lost = "error" in meta  # unreadable, truncated, or another session's file
+            settings = None if lost else self.store.read_spec(path.stem)
+            if settings is not None and _spec_fields(meta) != _spec_fields(settings):
+                # The settings file is the session as created: a state file that says otherwise
+                # (another session's, rewritten under this id) is not this session's history.
+                lost = True
+                meta = {"error": "its settings differ from the session's settings file: "
+                        f"{_spec_difference(meta, settings)}"}
             if lost:
                 aside = self.store.quarantine_path(path)
                 log.error(
@@ -729,3 +736,15 @@ class SessionRegistry:
             **progress,
         )
         self.sessions[session.id] = session
+
+
+def _spec_fields(meta: dict) -> dict:
+    """What a stored record says the session is (SessionSpec's fields)."""
+    fields = {name: meta.get(name) for name in SessionSpec.__dataclass_fields__}
+    fields["model_options"] = fields["model_options"] or {}  # absent in older files
+    return fields
+
+
+def _spec_difference(meta: dict, settings: dict) -> str:
+    a, b = _spec_fields(meta), _spec_fields(settings)
+    return ", ".join(f"{k} {a[k]!r} (settings file: {b[k]!r})" for k in a if a[k] != b[k])
