@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from quietframe.runtime.tiling import DEFAULT_TILE_PIXELS
+DEFAULT_TILE_PIXELS = 1 << 21  # what the default memory bound gives NBG (runtime/tiling.py)
 
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "8k": (7680, 4320)}
 
@@ -48,7 +48,7 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
 
     from quietframe.bench.http_overhead import rss_mib
     from quietframe.runtime import Denoiser, default_model_path
-    from quietframe.runtime.tiling import tiles_of
+    from quietframe.runtime.tiling import overlap_for, plan_tiles
 
     denoiser = Denoiser(default_model_path(), threads=threads, tile_pixels=tile_pixels)
     base = rss_mib(os.getpid(), "VmHWM")
@@ -61,10 +61,11 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
         assert np.isfinite(result.color).all()
         state = result.state
     inputs = sum(p.nbytes for p in planes.values()) / 2**20
-    geometry = denoiser.geometry
+    tiling = denoiser.graph.card.tiling
     tiles = 1
-    if tile_pixels is not None:
-        tiles = len(list(tiles_of(height, width, geometry, planes["motion"], tile_pixels)))
+    if tile_pixels is not None and tiling is not None:
+        overlap = overlap_for(tiling, {}, planes["motion"])
+        tiles = len(plan_tiles(height, width, overlap, tiling.align, tile_pixels))
     return {
         "size": f"{width}x{height}",
         "ms_per_frame": round(statistics.median(times), 0),

@@ -1,8 +1,8 @@
-"""Model cards: a markdown file next to each shipped .onnx, written from its metadata.
+"""Model cards: a markdown file next to each shipped .onnx, written from its ModelCard.
 
-The card repeats what the graph's metadata_props say (architecture, training, validation
-metrics) and adds the speed measured on this machine through the shipped runtime, so the card
-and the file can never disagree about what was trained.
+The markdown repeats what the file's card says (runtime/card.py: architecture, composition,
+tiling, training, measured tables per renderer) and adds the speed measured on this machine
+through the shipped runtime, so the markdown and the file can never disagree.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from pathlib import Path
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.runtime import Denoiser
+from quietframe.runtime.card import GraphStage, ModelCard, OIDNStage
 
 
 def measure_720p_ms(runtime: Denoiser) -> float:
@@ -52,15 +53,16 @@ def data_lines(training: dict) -> list[str]:
 
 
 def prepass_lines(runtime: Denoiser, threads: int) -> list[str]:
-    """For a composition (quietframe.prepass): what runs first, and the 720p time split."""
-    if runtime.prepass is None:
+    """For a composition (an OIDN stage): what runs first, and the 720p time split."""
+    settings = runtime.card.prepass
+    if settings is None:
         return []
     from quietframe.bench.oidn_temporal import measure
 
     t = measure(runtime.info.path, threads, repeats=3)
-    settings = runtime.prepass.settings
-    source = (f"on the output of `{settings.color_from}` (run first, with its own state)"
-              if settings.color_from else "on the frame")
+    first = [s.file for s in runtime.card.stages if isinstance(s, GraphStage) and s.file]
+    source = (f"on the output of `{first[0]}` (run first, with its own state)"
+              if first else "on the frame")
     graph = ("then the graph on its output" if "reset" in runtime.input_names
              else "and returns its output (no learned stage)")
     return [f"Runs Open Image Denoise {source} (quality {settings.quality}, prefiltered "
@@ -69,6 +71,40 @@ def prepass_lines(runtime: Denoiser, threads: int) -> list[str]:
             f"graph) {t['stage'].median_ms:.0f} ms "
             f"({100 * t['stage'].median_ms / t['oidn'].median_ms:.0f}% of OIDN), median of 3 "
             "(bench/oidn_temporal.py).", ""]
+
+
+def stage_text(stage: GraphStage | OIDNStage) -> str:
+    if isinstance(stage, OIDNStage):
+        return (f"OIDN ({stage.quality}, prefiltered aux {stage.prefilter_aux}) -> graph input "
+                f"`{stage.input}`")
+    if not stage.file:
+        return "this file's graph"
+    return f"`{stage.file}` (state under `{stage.namespace}.`)"
+
+
+def card_lines(card: ModelCard) -> list[str]:
+    """Composition, tiling and the measured tables per renderer, from the card."""
+    lines = ["## Composition and tiling", "",
+             f"Stages: {' -> '.join(stage_text(s) for s in card.stages)}. "
+             f"State: {[f'{s.name} ({s.channels} ch, 1/{s.scale})' for s in card.state]}.", ""]
+    tiling = card.tiling
+    if tiling is None:
+        lines += ["No tiling rule knows this graph: frames run whole.", ""]
+    else:
+        reach = "".join(f"; + {r} px by {name}" for name, table in tiling.reach.items()
+                        for r in [", ".join(f"{v}: {x}" for v, x in table.items())])
+        stats = ", ".join(f"{s.name} ({s.how})" for s in tiling.statistics) or "none"
+        lines += [f"Tiles: receptive radius {tiling.radius} px{reach}, origins on multiples "
+                  f"of {tiling.align} px, overlap + max |motion| + 1 "
+                  f"{'(warps history)' if tiling.motion else '(no warp)'}; frame-wide "
+                  f"statistics: {stats}; ~{tiling.bytes_per_pixel} B per tile pixel "
+                  "(tile size = max_memory_mb / that, runtime/tiling.py).", ""]
+    for renderer, table in card.measurements.items():
+        if table.complete:
+            rows = ", ".join(f"{r.spp:g} spp {r.psnr:.2f} dB" for r in table.by_spp)
+            lines += [f"Measured on {renderer} frames (what `auto` reads): {rows}; "
+                      f"{table.ms_720p} ms at 720p.", ""]
+    return lines
 
 
 def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 2,
@@ -84,8 +120,9 @@ def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 
         f"Needs buffers {list(info.required_buffers)}; optional {list(info.optional_buffers)}"
         " (missing motion = static camera).", "",
         "## Architecture", "", "```json",
-        json.dumps(json.loads(info.metadata.get("quietframe.architecture", "{}")), indent=1),
-        "```", "", "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
+        json.dumps(dict(runtime.card.architecture), indent=1),
+        "```", "", *card_lines(runtime.card),
+        "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
         *data_lines(info.training),
         "## Speed", "",
         f"{ms:.0f} ms per 1280×720 frame through quietframe.runtime with {threads} threads on "

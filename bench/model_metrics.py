@@ -9,8 +9,10 @@ buffer) and `absent_db_worst` (the largest loss over the run's sequences) from
 bench/auto_choice.py's buffer-absence rows; `--noise-points` adds `by_noise` from a validation
 run of bench/auto_choice.py (rows with every buffer: the first frame's log2 noise statistic,
 demodulated and not, and the model's PSNR on the sequence; service/model_choice.py).
-Existing keys (training's validation score) are kept. Nothing here is typed in: `model=auto`
-reads what a measurement wrote (docs/model-interface.md).
+Existing keys (training's validation score) are kept. `--renderer` names whose frames were
+measured (the card keeps a table per renderer, runtime/card.py; default mitsuba, the renderer of
+every table so far). Nothing here is typed in: `model=auto` reads what a measurement wrote
+(docs/model-interface.md).
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import json
 from pathlib import Path
 
 import onnx
+
+from quietframe.runtime.card import DEFAULT_RENDERER, Measurements, ModelCard
 
 
 def metrics_from_rows(rows: list[dict], meta: dict) -> dict:
@@ -65,16 +69,18 @@ def worst_absent_db(result: dict, model: str) -> dict[str, float]:
     return worst
 
 
-def stamp(path: Path, additions: dict) -> dict:
-    """Merge `additions` into the file's `quietframe.metrics` (rewrites the file in place)."""
+def stamp(path: Path, additions: dict, renderer: str = DEFAULT_RENDERER) -> dict:
+    """Merge `additions` into the card's table for `renderer` (rewrites the file in place, its
+    card in the current version) and return the card's `quietframe.metrics`."""
     model = onnx.load(str(path))
-    props = {p.key: p.value for p in model.metadata_props}
-    metrics = {**json.loads(props.get("quietframe.metrics", "{}") or "{}"), **additions}
-    props["quietframe.metrics"] = json.dumps(metrics)
+    card = ModelCard.from_props({p.key: p.value for p in model.metadata_props}, path.stem)
+    table = Measurements.from_dict({**card.measured(renderer).to_dict(), **additions}
+                                   if renderer in card.measurements else additions)
+    card = card.with_measurements(renderer, table)
     del model.metadata_props[:]
-    onnx.helper.set_model_props(model, props)
+    onnx.helper.set_model_props(model, card.to_props())
     onnx.save_model(model, str(path))
-    return metrics
+    return card.metrics()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="auto_choice.json: per-model PSNR change with each buffer absent")
     parser.add_argument("--noise-points", type=Path,
                         help="auto_choice.json of a validation run: by_noise points per model")
+    parser.add_argument("--renderer", default=DEFAULT_RENDERER,
+                        help="the renderer of the evaluated frames: the card keeps one table "
+                             f"per renderer (default {DEFAULT_RENDERER})")
     args = parser.parse_args(argv)
     evaluation = json.loads(args.evaluation.read_text())
     absence_run = json.loads(args.absent.read_text()) if args.absent else {}
@@ -105,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         by_noise = noise_points(choice_run, path.stem) if choice_run else None
         if by_noise:
             additions["by_noise"] = by_noise
-        metrics = stamp(path, additions)
+        metrics = stamp(path, additions, args.renderer)
         print(f"{path}: {json.dumps(metrics)[:200]}")
     return 0
 

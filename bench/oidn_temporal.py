@@ -69,12 +69,14 @@ def measure(path: Path, threads: int, repeats: int) -> dict[str, Timing]:
              "reset": np.zeros(1, np.float32),
              **{f"state_in.{k}": v for k, v in state.items()}}
     feeds = {k: v for k, v in feeds.items() if k in runtime.input_names}
-    first = runtime.color_stage  # a color_from model runs before OIDN: quietframe's time too
-    first_state = runtime.color_stage_state(state) if first is not None else None
+    first = runtime.color_stage  # a graph stage before OIDN: quietframe's time too
+    first_state = first.own_state(state) if first is not None else None
+    first_feeds = {name: plane[None] for name, plane in planes.items()}
+    _, height, width = planes["color"].shape
 
     def stage() -> None:
         if first is not None:
-            first.denoise(planes, first_state)
+            first.run(first_feeds, first_state, height, width)
         runtime.session.run(None, feeds)
 
     return {

@@ -20,6 +20,7 @@ from quietframe.export import onnx_export
 from quietframe.export.onnx_export import OPSET
 from quietframe.model.affinity import KERNEL_SIZES, AffinityDenoiser
 from quietframe.runtime.buffers import BUFFER_NAMES
+from quietframe.runtime.card import OUTPUT, RESET, STATE_IN, STATE_OUT
 from quietframe.runtime.ops_library import OPS_DOMAIN
 
 KERNEL_SIZE_INPUT = "kernel_size"
@@ -92,7 +93,9 @@ def export_affinity(
     training: Mapping | None = None,
     metrics: Mapping | None = None,
 ) -> Path:
-    """Write `model` as a self-describing ONNX file at `path` and return the path."""
+    """Write `model` as a self-describing ONNX file at `path` (its card: onnx_export.model_card,
+    with the kernel size as a run-time input, whose value sets the tiling's reach) and return
+    the path."""
     model = model.eval()
     height = torch.export.Dim("height", min=1, max=8192)
     width = torch.export.Dim("width", min=1, max=8192)
@@ -107,8 +110,8 @@ def export_affinity(
             _ExportWrapper(model).eval(), example_inputs(model), dynamo=True,
             opset_version=OPSET, custom_translation_table=translation_table(),
             dynamic_shapes=dynamic,
-            input_names=[*BUFFER_NAMES, "reset", *(f"state_in.{n}" for n in names)],
-            output_names=["denoised", *(f"state_out.{n}" for n in names)],
+            input_names=[*BUFFER_NAMES, RESET, *(STATE_IN + n for n in names)],
+            output_names=[OUTPUT, *(STATE_OUT + n for n in names)],
             verbose=False,
         )
     config = model.config

@@ -7,7 +7,6 @@ dynamic H and W, and metadata_props that make the file self-describing for the r
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -24,8 +23,21 @@ from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
 from quietframe.model.oidn_temporal import OIDNOnlyConfig, OIDNTemporal
 from quietframe.model.temporal import WARP_MODES
 from quietframe.runtime.buffers import BUFFER_NAMES
+from quietframe.runtime.card import (
+    OUTPUT,
+    RESET,
+    STATE_IN,
+    STATE_OUT,
+    InputSpec,
+    ModelCard,
+    StateSpec,
+    prepass_stage,
+    split_metrics,
+    stages_from_prepass,
+)
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS
 from quietframe.runtime.ops_library import OPS_DOMAIN
+from quietframe.runtime.receptive import tiling_for
 
 OPSET = 18
 REQUIRED_BUFFERS = ("color", "albedo", "normal", "depth")
@@ -238,14 +250,14 @@ def export_nbg(
             _ExportWrapper(model).eval(),
             example_inputs(state_channels=model.state_channels), dynamo=True,
             opset_version=OPSET, custom_translation_table=table, dynamic_shapes=dynamic,
-            input_names=[*graph_inputs, "reset", f"state_in.{STATE_NAME}"],
-            output_names=["denoised", f"state_out.{STATE_NAME}"],
+            input_names=[*graph_inputs, RESET, STATE_IN + STATE_NAME],
+            output_names=[OUTPUT, STATE_OUT + STATE_NAME],
             verbose=False,
         )
     config = model.config
-    extra = {"prepass": config.prepass()} if hasattr(config, "prepass") else {}
+    prepass = config.prepass() if hasattr(config, "prepass") else None
     state = [{"name": STATE_NAME, "channels": model.state_channels}]
-    metadata = model_metadata(config, version, state, training, metrics, **extra)
+    metadata = model_metadata(config, version, state, training, metrics, prepass=prepass)
     return save_described(program.model_proto, metadata, path)
 
 
@@ -255,38 +267,52 @@ def export_oidn_only(config: OIDNOnlyConfig, path: Path, *, version: str = "0") 
     color_from model keeps its own); the runtime does the rest from the metadata."""
     dims = [1, 3, "height", "width"]
     graph = onnx.helper.make_graph(
-        [onnx.helper.make_node("Identity", ["oidn"], ["denoised"])], config.name,
+        [onnx.helper.make_node("Identity", ["oidn"], [OUTPUT])], config.name,
         [onnx.helper.make_tensor_value_info("oidn", onnx.TensorProto.FLOAT, dims)],
-        [onnx.helper.make_tensor_value_info("denoised", onnx.TensorProto.FLOAT, dims)])
+        [onnx.helper.make_tensor_value_info(OUTPUT, onnx.TensorProto.FLOAT, dims)])
     proto = onnx.helper.make_model(graph, opset_imports=[onnx.helper.make_opsetid("", OPSET)])
     # OIDN runs with the colour alone when albedo/normal are absent (runtime/oidn_prepass.py);
-    # a color_from model adds its own requirements (runtime/denoiser.compose_info).
+    # a color_from graph stage adds its own requirements (runtime/denoiser.model_info).
     roles = (PREPASS_BUFFERS[:1], PREPASS_BUFFERS[1:])
     metadata = model_metadata(config, version, [], {"trained": False, "learned_stage": False},
                               {}, roles=roles, prepass=config.prepass())
     return save_described(proto, metadata, path)
 
 
+def model_card(
+    config, version: str, state: list[dict], training: Mapping | None, metrics: Mapping | None,
+    roles: tuple[tuple[str, ...], tuple[str, ...]] | None = None,
+    inputs: list[dict] | None = None, prepass: Mapping | None = None,
+) -> ModelCard:
+    """The card of an exported model (runtime/card.py): `roles` = (required, optional) buffers,
+    by default from the training config (buffer_roles); `inputs` = run-time inputs
+    (`quietframe.inputs` dicts); `prepass` = the config's prepass spec (an OIDN stage, after a
+    `color_from` graph); the tiling from the family's rule (runtime/receptive.py)."""
+    required, optional = roles or buffer_roles(training)
+    architecture = config.to_dict()
+    specs = tuple(InputSpec.from_dict(i) for i in inputs or [])
+    stages = stages_from_prepass(prepass_stage(prepass) if prepass else None)
+    notes, tables = split_metrics(metrics or {})
+    return ModelCard(
+        name=config.name, version=version, architecture=architecture, required=tuple(required),
+        optional=tuple(optional),
+        state=tuple(StateSpec(s["name"], int(s["channels"]), int(s.get("scale", 1)))
+                    for s in state),
+        inputs=specs, stages=stages,
+        tiling=tiling_for(architecture, specs, prepass is not None),
+        training=dict(training or {}), measurements=tables, notes=notes,
+    )
+
+
 def model_metadata(
     config, version: str, state: list[dict], training: Mapping | None, metrics: Mapping | None,
-    roles: tuple[tuple[str, ...], tuple[str, ...]] | None = None, **extra: object,
+    roles: tuple[tuple[str, ...], tuple[str, ...]] | None = None,
+    inputs: list[dict] | None = None, prepass: Mapping | None = None,
 ) -> dict[str, str]:
-    """The metadata_props that make an exported model self-describing for the runtime
-    (docs/model-interface.md); `roles` = (required, optional) buffers, by default from the
-    training config (buffer_roles); `extra` adds quietframe.<key> entries (prepass, inputs)."""
-    required, optional = roles or buffer_roles(training)
-    metadata = {
-        "quietframe.name": config.name,
-        "quietframe.version": version,
-        "quietframe.architecture": json.dumps(config.to_dict()),
-        "quietframe.buffers.required": json.dumps(list(required)),
-        "quietframe.buffers.optional": json.dumps(list(optional)),
-        "quietframe.state": json.dumps(state),
-        "quietframe.ops_domain": OPS_DOMAIN,
-        "quietframe.training": json.dumps(dict(training or {})),
-        "quietframe.metrics": json.dumps(dict(metrics or {})),
-    }
-    return metadata | {f"quietframe.{key}": json.dumps(value) for key, value in extra.items()}
+    """The metadata_props that make an exported model self-describing: its card as props
+    (docs/model-interface.md)."""
+    return model_card(config, version, state, training, metrics, roles, inputs,
+                      prepass).to_props()
 
 
 def save_described(proto: onnx.ModelProto, metadata: Mapping[str, str], path: Path) -> Path:

@@ -152,9 +152,11 @@ Stage = GraphStage | OIDNStage
 
 def parse_prepass(text: str | None) -> OIDNStage | None:
     """`quietframe.prepass` as written since the oidn-temporal tier (docs/model-interface.md)."""
-    if not text:
-        return None
-    spec = json.loads(text)
+    return prepass_stage(json.loads(text)) if text else None
+
+
+def prepass_stage(spec: Mapping) -> OIDNStage:
+    """The OIDN stage of a prepass spec {"oidn": {...}, "input": ..., "color_from": ...}."""
     if set(spec) - {"oidn", "input", "color_from"} or "oidn" not in spec:
         raise ValueError(f"{PREFIX}prepass: only an 'oidn' prepass is known, got {sorted(spec)}")
     oidn = spec["oidn"]
@@ -338,6 +340,18 @@ class Measurements:
         )
 
 
+def split_metrics(metrics: Mapping) -> tuple[dict, dict[str, Measurements]]:
+    """A `quietframe.metrics` dict -> (notes, tables by renderer): the top-level table is the
+    default renderer's, `by_renderer` holds the others."""
+    metrics = dict(metrics)
+    by_renderer = metrics.pop("by_renderer", {})
+    notes = {k: v for k, v in metrics.items() if k not in MEASUREMENT_KEYS}
+    tables = {r: Measurements.from_dict(m) for r, m in by_renderer.items()}
+    if any(k in metrics for k in MEASUREMENT_KEYS):
+        tables[DEFAULT_RENDERER] = Measurements.from_dict(metrics)
+    return notes, tables
+
+
 # ---- the card -------------------------------------------------------------------------------
 
 
@@ -414,12 +428,7 @@ class ModelCard:
         if version > CARD_VERSION:
             raise ValueError(f"model card version {version} is newer than this quietframe reads "
                              f"({CARD_VERSION}): upgrade quietframe")
-        metrics = dict(load("metrics", "{}"))
-        by_renderer = metrics.pop("by_renderer", {})
-        notes = {k: v for k, v in metrics.items() if k not in MEASUREMENT_KEYS}
-        tables = {r: Measurements.from_dict(m) for r, m in by_renderer.items()}
-        if any(k in metrics for k in MEASUREMENT_KEYS):
-            tables[DEFAULT_RENDERER] = Measurements.from_dict(metrics)
+        notes, tables = split_metrics(load("metrics", "{}"))
         stages_text = props.get(PREFIX + "stages")
         stages = (tuple(stage_from_dict(s) for s in json.loads(stages_text)) if stages_text
                   else stages_from_prepass(parse_prepass(props.get(PREFIX + "prepass"))))

@@ -144,6 +144,15 @@ class GraphRunner:
         self.scales = {f"{io}{s.name}": s.scale for s in card.state if s.scale != 1
                        for io in (STATE_IN, STATE_OUT)}
 
+    @property
+    def info(self) -> ModelInfo:
+        """This graph's own interface (its state by its own names)."""
+        return model_info(Path(self.stage.file or f"{self.card.name}.onnx"), self.card)
+
+    def own_state(self, state: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """This stage's state out of a composition's state dict, by the stage's own names."""
+        return {s.name: state[self.stage.state_key(s.name)] for s in self.card.state}
+
     def run(self, feeds: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
             height: int, width: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """(output (1, 3, H, W), new state by the stage's own names); `state` None: fresh."""
@@ -235,6 +244,12 @@ class Denoiser:
         self.input_names = self.graph.input_names
         self.info = model_info(path, self.card, parts)
         self._option_feeds = self._options({}, options or {})
+
+    @property
+    def color_stage(self) -> GraphRunner | None:
+        """The graph of another file whose output the OIDN stage denoises, if any."""
+        first = self.stages[0]
+        return first if isinstance(first, GraphRunner) and first.stage.file else None
 
     def _stage_file(self, path: Path, stage: GraphStage) -> Path:
         first = path.parent / stage.file

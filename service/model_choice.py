@@ -12,8 +12,8 @@ session's first frame and of a cut, and nowhere else, so a shot never switches m
   the colour): the same spp is a clean frame in a sunlit room and a speckled one in a room lit
   through a window, and which model is good enough depends on that, not on the spp;
 - the session's target: `quality` (fast | balanced | best) and/or `latency_ms`;
-- each model's measured table (`ModelProfile.from_info`: `quietframe.metrics` in the ONNX
-  metadata, written by measurements, docs/model-interface.md).
+- each model's measured table (`ModelProfile.from_card`: the card's measurements for the
+  frame's renderer, written by measurements into the ONNX metadata, docs/model-interface.md).
 
 Among the models that fit the latency budget and whose expected PSNR is within the quality's
 tolerance of the best expected PSNR, those that flicker more than STABILITY_SLACK above the
@@ -34,6 +34,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from quietframe.runtime.card import Measurements, ModelCard
 
 # dB below the best expected PSNR a quality accepts in exchange for speed. "balanced" matches
 # the acceptance target of bench/auto_choice.py (within 0.3 dB of the best fixed model).
@@ -89,27 +91,34 @@ class ModelProfile:
     psnr_by_noise: tuple[tuple[float, float, float], ...] = ()
 
     @classmethod
+    def from_card(cls, card: ModelCard, renderer: str | None = None) -> ModelProfile:
+        """A model's profile from its card: the renderer's measured table where it has one,
+        else the default renderer's (runtime/card.py ModelCard.measured)."""
+        return cls.from_measurements(card.name, card.required, card.optional,
+                                     card.measured(renderer))
+
+    @classmethod
     def from_metadata(
         cls, name: str, required: Sequence[str], optional: Sequence[str], metrics: Mapping
     ) -> ModelProfile:
-        table = metrics.get("by_spp") or []
-        rows = sorted((float(r["spp"]), float(r["psnr"])) for r in table if "psnr" in r)
-        flicker = sorted((float(r["spp"]), float(r["trmae"])) for r in table
-                         if isinstance(r.get("trmae"), (int, float)) and math.isfinite(r["trmae"]))
-        absent = metrics.get("absent_db") or {}
-        ms = metrics.get("ms_720p")
-        points = (metrics.get("by_noise") or {}).get("points") or []
+        """From a `quietframe.metrics` dict as written (tests, tables built by hand)."""
+        return cls.from_measurements(name, required, optional, Measurements.from_dict(metrics))
+
+    @classmethod
+    def from_measurements(
+        cls, name: str, required: Sequence[str], optional: Sequence[str], table: Measurements
+    ) -> ModelProfile:
         return cls(
             name=name,
             required=tuple(required),
             optional=tuple(optional),
-            ms_720p=float(ms) if ms is not None else None,
-            psnr_by_spp=tuple(rows),
-            trmae_by_spp=tuple(flicker),
-            absent_db={k: float(v) for k, v in absent.items()},
-            absent_db_worst={k: float(v)
-                             for k, v in (metrics.get("absent_db_worst") or {}).items()},
-            psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in points),
+            ms_720p=float(table.ms_720p) if table.ms_720p is not None else None,
+            psnr_by_spp=tuple((float(r.spp), float(r.psnr)) for r in table.by_spp),
+            trmae_by_spp=tuple((float(r.spp), float(r.trmae)) for r in table.by_spp
+                               if isinstance(r.trmae, (int, float)) and math.isfinite(r.trmae)),
+            absent_db={k: float(v) for k, v in table.absent_db.items()},
+            absent_db_worst={k: float(v) for k, v in table.absent_db_worst.items()},
+            psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in table.by_noise),
         )
 
     @property

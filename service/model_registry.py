@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -26,13 +26,6 @@ from quietframe.service.settings import Settings
 log = logging.getLogger("quietframe.service")
 
 AUTO = "auto"
-
-
-def _json_or_text(value: str | None) -> dict | str | None:
-    try:
-        return json.loads(value) if value else None
-    except ValueError:
-        return value
 
 
 def options_for(info: ModelInfo, options: Mapping[str, float | int]) -> dict[str, float | int]:
@@ -68,14 +61,16 @@ class ModelRegistry:
             self._aliases[path.stem] = name
         wanted = settings.default_model
         self.default = self.resolve(wanted) if wanted else self._runtime_default(paths)
-        self.profiles = [
-            ModelProfile.from_metadata(
-                name, d.info.required_buffers, d.info.optional_buffers, d.info.metrics
-            )
-            for name, d in self._denoisers.items()
-        ]
+        self.profiles = self.profiles_for(None)
         self.calibration = load_calibration()  # spp from a frame's noise (model_choice.py)
         self.ready = False
+
+    def profiles_for(self, renderer: str | None) -> list[ModelProfile]:
+        """What `auto` knows of each model for frames of `renderer` (None: the default
+        renderer's tables); a composition is chosen on its own card's table."""
+        return [replace(ModelProfile.from_card(d.card, renderer), name=name,
+                        required=d.info.required_buffers, optional=d.info.optional_buffers)
+                for name, d in self._denoisers.items()]
 
     def _runtime_default(self, paths: list[Path]) -> str:
         try:
@@ -173,7 +168,7 @@ class ModelRegistry:
                 version=d.info.version,
                 file=d.info.path.name,
                 default=name == self.default,
-                architecture=_json_or_text(d.info.metadata.get("quietframe.architecture")),
+                architecture=dict(d.card.architecture) or None,
                 required_buffers=list(d.info.required_buffers),
                 optional_buffers=list(d.info.optional_buffers),
                 state=[BufferSpec(name=s.name, channels=s.channels) for s in d.info.state_specs],
