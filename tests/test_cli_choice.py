@@ -53,3 +53,20 @@ def test_choice_header_is_ascii_and_spells_symbols_out():
     choice = Choice("m", "looks like log2 σ 3.82, 1.1× the steadiest", 4.0, "estimate", ())
     text = choice_header(choice)
     assert text.isascii() and "?" not in text and "sigma 3.82" in text and "1.1x" in text
+
+
+def test_swagger_ui_is_served_from_the_package():
+    """/docs works offline: the page's script and style come from this server, not a CDN."""
+    pytest.importorskip("swagger_ui_bundle")
+    from conftest import service_settings
+    from fastapi.testclient import TestClient
+
+    from quietframe.service.main import create_app
+
+    with TestClient(create_app(service_settings())) as client:
+        page = client.get("/docs")
+        assert page.status_code == 200 and "cdn" not in page.text.lower()
+        script = client.get("/docs/assets/swagger-ui-bundle.js")
+        assert script.status_code == 200 and len(script.content) > 100_000
+        assert client.get("/docs/assets/swagger-ui.css").status_code == 200
+        assert client.get("/openapi.json").status_code == 200
