@@ -41,12 +41,13 @@ def _ms(model: dict) -> str:
 
 
 def _options(model: dict) -> str:
+    """`kernel_size (default 13; one of 5, 7, 9, 11, 13)` per run-time option."""
     parts = []
     for option in model.get("options") or ():
         allowed = option.get("allowed")
-        values = f" ({'/'.join(map(str, allowed))})" if allowed else ""
-        parts.append(f"{option['name']}={option['default']}{values}")
-    return ", ".join(parts)
+        values = f"; one of {', '.join(map(str, allowed))}" if allowed else ""
+        parts.append(f"{option['name']} (default {option['default']}{values})")
+    return "; ".join(parts)
 
 
 def model_table(models: list[dict], default: str) -> str:
@@ -58,7 +59,7 @@ def model_table(models: list[dict], default: str) -> str:
         mark = "  [auto's fallback]" if m["name"] == default else ""
         what = describe(m)
         if m.get("options"):
-            what += f"; --model-option {_options(m)}"
+            what += f"; options: {_options(m)} (--model-option NAME=VALUE)"
         rows.append((f"{m['name']} {m['version']}{mark}", ",".join(m["required_buffers"]),
                      _ms(m), _psnr(m), what))
     widths = [max(len(r[i]) for r in (header, *rows)) for i in range(4)]
