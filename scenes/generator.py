@@ -16,6 +16,8 @@ GENERATOR_VERSION whenever its output for a seed changes (the data cache is keye
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from . import architecture, furniture, materials, meshes, textures
@@ -720,28 +722,55 @@ def mover_meshes(desc: dict) -> list[tuple[str, meshes.MeshData, list[np.ndarray
     return out
 
 
+@dataclass
+class SceneParts:
+    """What both renderers build from a description: static geometry merged per material
+    index, moving parts (object-space mesh, per-frame 4x4, material index), lit bulbs (placed
+    mesh, linear-RGB radiance) and the ground plane. One place, so the Mitsuba and Cycles
+    scenes hold the same triangles, materials and emitters."""
+
+    static: dict[int, meshes.MeshData]
+    movers: list[tuple[str, meshes.MeshData, list[np.ndarray], int]]
+    bulbs: list[tuple[meshes.MeshData, list[float]]]
+
+
+def scene_parts(desc: dict) -> SceneParts:
+    surf = desc["surfaces"]
+    groups: dict[int, list[meshes.MeshData]] = {}
+    for key, m in architecture.meshes_of(desc["layout"]):
+        groups.setdefault(surf[key], []).append(m)
+    ground = architecture.quad([0, -0.02, 0], [1, 0, 0], [0, 0, 1], Y_UP, [-200, 200, -200, 200])
+    groups.setdefault(surf["ground"], []).append(ground)
+    bulbs: list[tuple[meshes.MeshData, list[float]]] = []
+    for piece in desc["pieces"]:
+        m4 = np.asarray(piece["transform"])
+        for role, m in furniture.parts(piece["kind"], piece["params"]):
+            m = m.transformed(m4)
+            if role == "bulb" and piece["light"]["on"]:
+                rgb = np.asarray(piece["light"]["color"]) * _bulb_radiance(piece, m)
+                bulbs.append((m, rgb.tolist()))
+            else:
+                idx = surf["bulb_off"] if role == "bulb" else piece["materials"][role]
+                groups.setdefault(idx, []).append(m)
+    movers = []
+    for name, mesh, frames in mover_meshes(desc):
+        j, role = name[5:].split("_", 1)
+        movers.append((name, mesh, frames, desc["movers"][int(j)]["materials"][role]))
+    static = {idx: meshes.merge(ms) for idx, ms in sorted(groups.items())}
+    return SceneParts(static, movers, bulbs)
+
+
+BULB_REFLECTANCE = 0.8  # the diffuse grey of a lit bulb's surface (both renderers)
+
+
 def build(desc: dict) -> tuple[dict, dict[str, list[float]]]:
     """Mitsuba scene dict without sensor and integrator, plus per-shape albedo overrides
     (shape id -> RGB) for surfaces whose Mitsuba albedo AOV is not a reflectance. Static
     geometry is merged into one mesh per material (fewer shapes, one BSDF instance each)."""
     import mitsuba as mi
 
-    mats, surf = desc["materials"], desc["surfaces"]
-    groups: dict[int, list[meshes.MeshData]] = {}
-    for key, m in architecture.meshes_of(desc["layout"]):
-        groups.setdefault(surf[key], []).append(m)
-    ground = architecture.quad([0, -0.02, 0], [1, 0, 0], [0, 0, 1], Y_UP, [-200, 200, -200, 200])
-    groups.setdefault(surf["ground"], []).append(ground)
-    bulbs: list[tuple[meshes.MeshData, dict]] = []
-    for piece in desc["pieces"]:
-        m4 = np.asarray(piece["transform"])
-        for role, m in furniture.parts(piece["kind"], piece["params"]):
-            m = m.transformed(m4)
-            if role == "bulb" and piece["light"]["on"]:
-                bulbs.append((m, piece))
-            else:
-                idx = surf["bulb_off"] if role == "bulb" else piece["materials"][role]
-                groups.setdefault(idx, []).append(m)
+    mats = desc["materials"]
+    parts = scene_parts(desc)
     scene: dict = {"type": "scene"}
     overrides: dict[str, list[float]] = {}
     bsdfs: dict[int, object] = {}
@@ -757,20 +786,14 @@ def build(desc: dict) -> tuple[dict, dict[str, list[float]]]:
         if albedo is not None:
             overrides[name] = albedo
 
-    for idx, ms in sorted(groups.items()):
-        add(f"mat{idx:02d}", meshes.merge(ms), idx)
-    movers = {p_i: p for p_i, p in enumerate(desc["movers"])}
-    for name, mesh, frames in mover_meshes(desc):
-        j, role = name[5:].split("_", 1)
-        add(name, mesh.transformed(frames[0]), movers[int(j)]["materials"][role])
-    dark = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}})
-    for k, (mesh, piece) in enumerate(bulbs):
-        emitter = mi.load_dict(
-            {
-                "type": "area",
-                "radiance": _emitter_rgb(piece["light"]["color"], _bulb_radiance(piece, mesh)),
-            }
-        )
+    for idx, mesh in parts.static.items():
+        add(f"mat{idx:02d}", mesh, idx)
+    for name, mesh, frames, idx in parts.movers:
+        add(name, mesh.transformed(frames[0]), idx)
+    grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": BULB_REFLECTANCE}}
+    dark = mi.load_dict(grey)
+    for k, (mesh, rgb) in enumerate(parts.bulbs):
+        emitter = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": rgb}})
         scene[f"bulb{k:02d}"] = meshes.to_mitsuba(mesh, f"bulb{k:02d}", dark, emitter)
     env = desc["environment"]
     scene["env"] = {"type": "envmap", "bitmap": mi.Bitmap(sky_bitmap(env))}

@@ -16,15 +16,27 @@ OIDN_CACHE_DIR = CACHE_DIR / "oidn"
 DEFAULT_THREADS = 2  # this project's machines have 2 cores
 
 SPLIT_BASE = {"train": 1_000_000, "validation": 2_000_000, "test": 3_000_000}
+# Cycles splits draw from their own ranges, disjoint from Mitsuba's and from each other; the
+# locked-off (static camera and scene) shots of issue 24 are splits of their own.
+CYCLES_SPLIT_BASE = {
+    "train": 5_000_000,
+    "validation": 6_000_000,
+    "test": 7_000_000,
+    "validation-static": 6_500_000,
+    "test-static": 7_500_000,
+}
+RENDERERS = ("mitsuba", "cycles")
 
 
-def split_seeds(split: str, count: int, start: int = 0) -> list[int]:
+def split_seeds(split: str, count: int, start: int = 0, renderer: str = "mitsuba") -> list[int]:
     """Scene seeds of a split: disjoint ranges, so no scene is in two splits."""
-    return [SPLIT_BASE[split] + i for i in range(start, start + count)]
+    base = CYCLES_SPLIT_BASE if renderer == "cycles" else SPLIT_BASE
+    return [base[split] + i for i in range(start, start + count)]
 
 
-def split_dir(data: Path | str, split: str) -> Path:
-    """The folder of a split rendered by today's generator."""
+def split_dir(data: Path | str, split: str, renderer: str = "mitsuba") -> Path:
+    """The folder of a split rendered by today's generator (Cycles: `<version>-cycles`)."""
     from quietframe.scenes.generator import GENERATOR_VERSION
 
-    return Path(data).expanduser() / GENERATOR_VERSION / split
+    version = GENERATOR_VERSION + ("-cycles" if renderer == "cycles" else "")
+    return Path(data).expanduser() / version / split

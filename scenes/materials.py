@@ -86,15 +86,28 @@ def random_material(
     return mat
 
 
+def texture_pixels(spec: dict, colored: bool) -> np.ndarray:
+    """The bitmap of a texture spec, rebuilt from its seeds: (H, W, 3) linear RGB or (H, W)
+    scalar; row 0 is sampled at v = 0 (both renderers' bitmaps are fed row 0 first)."""
+    field = textures.make(spec["pattern"], spec["seed"])
+    data = textures.colorize(field, np.random.default_rng(spec["color_seed"])) if colored else field
+    return np.ascontiguousarray(data, np.float32)
+
+
+def roughness_pixels(mat: dict) -> np.ndarray:
+    """Spatially varying roughness alpha: between alpha/4 and alpha (gloss varies, never turns
+    into a mirror)."""
+    field = textures.make(mat["alpha_texture"]["pattern"], mat["alpha_texture"]["seed"])
+    return np.ascontiguousarray(mat["alpha"] * (0.25 + 0.75 * field), np.float32)
+
+
 def _bitmap(spec: dict, colored: bool) -> dict:
     import mitsuba as mi
 
-    field = textures.make(spec["pattern"], spec["seed"])
-    data = textures.colorize(field, np.random.default_rng(spec["color_seed"])) if colored else field
     t = spec["tiling"]
     return {
         "type": "bitmap",
-        "bitmap": mi.Bitmap(np.ascontiguousarray(data, np.float32)),
+        "bitmap": mi.Bitmap(texture_pixels(spec, colored)),
         "raw": not colored,
         "to_uv": mi.ScalarTransform3f().scale([t, t]),
     }
@@ -109,12 +122,10 @@ def _reflectance(mat: dict) -> dict:
 def _alpha(mat: dict) -> dict | float:
     if "alpha_texture" not in mat:
         return mat["alpha"]
-    # Roughness map between alpha/4 and alpha: gloss varies, never turns into a mirror.
-    tex = _bitmap(mat["alpha_texture"], colored=False)
-    field = textures.make(mat["alpha_texture"]["pattern"], mat["alpha_texture"]["seed"])
     import mitsuba as mi
 
-    tex["bitmap"] = mi.Bitmap(np.ascontiguousarray(mat["alpha"] * (0.25 + 0.75 * field)))
+    tex = _bitmap(mat["alpha_texture"], colored=False)
+    tex["bitmap"] = mi.Bitmap(roughness_pixels(mat))
     return tex
 
 

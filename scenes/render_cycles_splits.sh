@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Render the Cycles splits of the g2 scenes (issue 23), staged and resumable like
+# render_splits.sh: test, validation, the locked-off test/validation shots, then train.
+# Finished files are skipped, so re-running continues where a stopped render left off.
+#   nohup nice -n 10 scenes/render_cycles_splits.sh > ~/.cache/quietframe/logs/render_cycles.log 2>&1 &
+# CYCLES_PYTHON: the interpreter of the Cycles venv (python3.11 -m venv V && V/bin/pip install
+# ".[cycles]"; or bpy==4.5.4 plus tools/dev_links.py for a development checkout).
+# Budget (docs/data.md, "Cycles splits"): ~17 CPU-hours on this 2-core machine in all.
+set -u
+PY=${CYCLES_PYTHON:-$HOME/venv-bpy/bin/python}
+render() {  # split sequences size reference_spp [more args]
+    local split=$1 n=$2 size=$3 ref=$4
+    shift 4
+    "$PY" -m quietframe.scenes.cycles_render --split "$split" --sequences "$n" --frames 8 \
+        --size "$size" --spp 1,2,4,8,16,64 --reference-spp "$ref" --threads "${THREADS:-2}" "$@" \
+        || echo "split $split: some sequences failed (re-run to retry)"
+}
+render test "${TEST_SEQUENCES:-8}" 192x192 512
+render validation "${VALIDATION_SEQUENCES:-8}" 192x192 512
+render test-static "${STATIC_SEQUENCES:-2}" 192x192 512
+render validation-static "${STATIC_SEQUENCES:-2}" 192x192 512
+render train "${TRAIN_SEQUENCES:-40}" 128x128 256 --reference-min-spp 32
