@@ -7,6 +7,7 @@ dynamic H and W, and metadata_props that make the file self-describing for the r
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -289,7 +290,7 @@ def model_card(
     (`quietframe.inputs` dicts); `prepass` = the config's prepass spec (an OIDN stage, after a
     `color_from` graph); the tiling from the family's rule (runtime/receptive.py)."""
     required, optional = roles or buffer_roles(training)
-    architecture = config.to_dict()
+    architecture = json.loads(json.dumps(config.to_dict()))  # as a reader sees it (lists)
     specs = tuple(InputSpec.from_dict(i) for i in inputs or [])
     stages = stages_from_prepass(prepass_stage(prepass) if prepass else None)
     notes, tables = split_metrics(metrics or {})

@@ -5,9 +5,11 @@ before tilings were recorded (every model shipped so far) gets the same tiling a
 Radii are upper bounds in full-resolution pixels, without motion (the warp's reach is added per
 frame from the motion buffer, runtime/tiling.py). `align`: tile origins are multiples of it, so
 every grid cell, pooling block and resampling grid lies where it lies in the untiled frame.
-`bytes_per_pixel`: onnxruntime's working set per padded-tile pixel, measured on this machine
-(peak RSS of one tile minus its inputs and outputs, tests/test_tiling.py keeps the figure honest
-within 2x); `max_memory_mb` divides by it to size tiles.
+`bytes_per_pixel`: the graph's transient working set per pixel in onnxruntime without memory
+patterns (how tiles run), measured on a 1024² frame as peak RSS added by one run less its
+outputs, rounded up by ~25%: accumulation 64, nbg-2l-1g 313, nbg-2l-3g 251, nbg-7l-3g 919,
+affinity-h16-k5gc 571, oidn-temporal-acc's graph 240 B/px (this machine, onnxruntime 1.23);
+runtime/tiling.py adds the tile's own inputs, state and outputs, which the card's state gives.
 """
 
 from __future__ import annotations
@@ -24,10 +26,10 @@ MEAN_DEPTH = FrameStatistic("mean_depth", "depth", "ballast")
 # neighbourhood bound, decides a clamp.
 MEAN_LUMINANCE = FrameStatistic("mean_luminance", "color", "tile")
 
-NBG_BYTES_PER_PIXEL = 768  # docs/reliability.md: ~0.7 KiB/px untiled
-AFFINITY_BYTES_PER_PIXEL = 1024
-OIDN_TEMPORAL_BYTES_PER_PIXEL = 512
-IDENTITY_BYTES_PER_PIXEL = 64
+NBG_BYTES_PER_PIXEL_PER_LAYER = 128  # per GuideNet layer + 1 (the prestage and the grids)
+AFFINITY_BYTES_PER_PIXEL = 768
+OIDN_TEMPORAL_BYTES_PER_PIXEL = 320
+IDENTITY_BYTES_PER_PIXEL = 16
 
 
 def nbg_tiling(arch: Mapping) -> Tiling:
@@ -41,7 +43,7 @@ def nbg_tiling(arch: Mapping) -> Tiling:
         statistics += (MEAN_LUMINANCE,)
     return Tiling(radius=2 * coarsest * (grids > 0) + 2 * layers + 2, align=max(coarsest, 1),
                   statistics=statistics,
-                  bytes_per_pixel=NBG_BYTES_PER_PIXEL if layers else IDENTITY_BYTES_PER_PIXEL)
+                  bytes_per_pixel=NBG_BYTES_PER_PIXEL_PER_LAYER * (layers + 1))
 
 
 def unet_radius(levels: int) -> int:

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,8 +40,9 @@ import numpy as np
 from quietframe.runtime.card import StateSpec, Tiling
 
 # The working set one tile may hold, in MiB (OIDN's maxMemoryMB); QUIETFRAME_MAX_MEMORY_MB
-# overrides. 1536 MiB keeps NBG's tiles at 2 Mpx (1080p still runs whole, tiles cost their
-# overlap); the frame's own buffers, state and output come on top (~0.1-0.3 KiB/px).
+# overrides. At 1536 MiB 1080p still runs whole through NBG's 2-layer models (tiles cost their
+# overlap) and a 4K frame through affinity-h16-k5gc adds 2.5 GiB of peak RSS (the frame's own
+# buffers, state and output come on top of the tile: ~0.15 KiB/px for it).
 DEFAULT_MAX_MEMORY_MB = 1536
 
 
@@ -49,9 +50,17 @@ def max_memory_mb_default() -> float:
     return float(os.environ.get("QUIETFRAME_MAX_MEMORY_MB", DEFAULT_MAX_MEMORY_MB))
 
 
-def tile_pixels_for(tiling: Tiling, max_memory_mb: float) -> int:
-    """Padded pixels of one tile whose working set fits in `max_memory_mb`."""
-    return max(int(max_memory_mb * 2**20) // tiling.bytes_per_pixel, 1)
+def tile_bytes_per_pixel(tiling: Tiling, state: Sequence[StateSpec]) -> int:
+    """A tile's memory per padded pixel: the graph's working set (the card's bytes_per_pixel)
+    and the tile's own float32 inputs (at most the five buffers, 12 channels), state in and out
+    and output (3 channels)."""
+    state_channels = sum(s.channels / s.scale**2 for s in state)
+    return tiling.bytes_per_pixel + int(4 * (12 + 2 * state_channels + 3))
+
+
+def tile_pixels_for(tiling: Tiling, state: Sequence[StateSpec], max_memory_mb: float) -> int:
+    """Padded pixels of one tile whose memory fits in `max_memory_mb`."""
+    return max(int(max_memory_mb * 2**20) // tile_bytes_per_pixel(tiling, state), 1)
 
 
 @dataclass(frozen=True)

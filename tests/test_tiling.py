@@ -21,6 +21,7 @@ from quietframe.runtime.tiling import (
     DEFAULT_MAX_MEMORY_MB,
     overlap_for,
     plan_tiles,
+    tile_bytes_per_pixel,
     tile_pixels_for,
 )
 
@@ -88,12 +89,14 @@ def test_large_motion_widens_the_overlap():
 
 def test_one_memory_setting_chooses_the_tile_size():
     nbg = Denoiser(default_model_path(), threads=1)
-    assert nbg.tile_pixels == 1 << 21  # the default bound keeps NBG's 2 Mpx tiles
     assert nbg.max_memory_mb == DEFAULT_MAX_MEMORY_MB
+    assert nbg.tile_pixels > 1920 * 1080  # 1080p still runs whole through NBG-2l
     path = next(p for p in installed_models() if p.stem.startswith("affinity"))
     small = Denoiser(path, threads=1, max_memory_mb=256)
     card = small.card
-    assert small.tile_pixels == tile_pixels_for(card.tiling, 256) == 256 * 2**20 // 1024
+    # the graph's 768 B/px + 4 B x (12 buffer + 2 x (18 + 32/4) state + 3 output) channels
+    assert tile_bytes_per_pixel(card.tiling, card.state) == 768 + 4 * (12 + 2 * 26 + 3)
+    assert small.tile_pixels == tile_pixels_for(card.tiling, card.state, 256)
     side = math.isqrt(small.tile_pixels)
     tiles = plan_tiles(2160, 3840, overlap_for(card.tiling, {"kernel_size": 5}, None),
                        card.tiling.align, small.tile_pixels)
