@@ -28,6 +28,9 @@ def test_card_reports_architecture_data_speed_and_metrics(tmp_path):
     card = write_model_card(path, rows, threads=1).read_text()
     assert card.startswith("# nbg-2l-1g (version 7)")
     assert '"grids": 1' in card and '"steps_done": 12' in card
+    # from the ModelCard: composition and tiling (radius 2 cells of 4 px + 2 x 2 layers + 2)
+    assert "Stages: this file's graph." in card
+    assert "Tiles: receptive radius 14 px, origins on multiples of 4 px" in card
     assert "saw fewer): 2 sequences (seeds 3–4, generator" in card
     assert "6 frames, 48×40, inputs at [1, 2] spp" in card
     assert "- validation (never trained on; picks `best.pt`): 1 sequences (seeds 9–9" in card
