@@ -221,13 +221,13 @@ def check_stages(stages: Sequence[Stage]) -> None:
 @dataclass(frozen=True)
 class FrameStatistic:
     """A frame-wide quantity a graph computes (not local to a pixel), and how a tile gets it:
-    "ballast" = a band beyond a tile edge that is not the frame's holds the value that makes
-    the tile's statistic the frame's (runtime/tiling.py add_ballast); "tile" = the tile's own
-    (parity then holds only where the statistic does not decide)."""
+    "frame" = the graph's own reduction runs on the whole frame and its value is fed to every
+    tile (runtime/statistics.py); "tile" = the tile's own (parity then holds only where the
+    statistic does not decide)."""
 
     name: str  # e.g. "mean_depth"
     buffer: str  # the buffer it is computed from
-    how: str  # "ballast" | "tile"
+    how: str  # "frame" | "tile"
 
 
 @dataclass(frozen=True)

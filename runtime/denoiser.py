@@ -32,6 +32,7 @@ from quietframe.runtime.card import (
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass, PrepassUnavailable
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
+from quietframe.runtime.statistics import split_statistics
 from quietframe.runtime.tiling import max_memory_mb_default, run_tiled, tile_pixels_for
 
 __all__ = ["BY_MEMORY", "DenoiseResult", "Denoiser", "InputSpec", "ModelInfo", "StateSpec",
@@ -121,7 +122,8 @@ def check_options(info: ModelInfo, options: Mapping[str, float | int]) -> None:
 _ops_lock = threading.Lock()
 
 
-def make_session(path: Path, threads: int, memory_patterns: bool = True) -> ort.InferenceSession:
+def make_session(model: Path | bytes, threads: int,
+                 memory_patterns: bool = True) -> ort.InferenceSession:
     """`memory_patterns` False for tiled runs: onnxruntime plans one block per input shape and
     keeps each in its arena, so tiles of four shapes (interior, right, bottom, corner) held
     ~1.9 GiB more at 4K (affinity-h16-k5gc: +4.35 GiB peak RSS with patterns, +2.45 without);
@@ -133,7 +135,31 @@ def make_session(path: Path, threads: int, memory_patterns: bool = True) -> ort.
     options.enable_mem_pattern = memory_patterns
     with _ops_lock:
         options.register_custom_ops_library(str(ops_library_path()))
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    source = model if isinstance(model, bytes) else str(model)
+    return ort.InferenceSession(source, options, providers=["CPUExecutionProvider"])
+
+
+class TiledGraph:
+    """A graph as its tiles run it: without memory patterns (make_session), and with its
+    frame-wide statistics computed on the whole frame and fed to every tile
+    (runtime/statistics.py)."""
+
+    def __init__(self, path: Path, threads: int) -> None:
+        split = split_statistics(path)
+        self.session = make_session(split.tiles if split else path, threads,
+                                    memory_patterns=False)
+        self._split = split
+        self._statistics = make_session(split.statistics, threads) if split else None
+        self._inputs = ({i.name for i in self._statistics.get_inputs()}
+                        if self._statistics else set())
+
+    def statistics(self, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The frame's statistics, as the tile graph's inputs, from the whole frame's feeds."""
+        if self._split is None or self._statistics is None:
+            return {}
+        values = self._statistics.run(list(self._split.names),
+                                      {k: v for k, v in feeds.items() if k in self._inputs})
+        return dict(zip(self._split.inputs, values, strict=True))
 
 
 class GraphRunner:
@@ -145,20 +171,19 @@ class GraphRunner:
         self.session, self.card, self.stage = session, card, stage
         self.tile_pixels = tile_pixels  # None: every frame whole
         self._path, self._threads = path, threads
-        self._tiled_session: ort.InferenceSession | None = None  # made at the first large frame
+        self._tiled: TiledGraph | None = None  # made at the first frame run in tiles
         self._lock = threading.Lock()
         self.input_names = {i.name for i in session.get_inputs()}
         self.output_names = [o.name for o in session.get_outputs()]
         self.scales = {f"{io}{s.name}": s.scale for s in card.state if s.scale != 1
                        for io in (STATE_IN, STATE_OUT)}
 
-    def tiled_session(self) -> ort.InferenceSession:
-        """The graph again, without memory patterns (make_session), for frames run in tiles."""
+    def tiled(self) -> TiledGraph:
+        """The graph as tiles run it (made once, at the first frame run in tiles)."""
         with self._lock:
-            if self._tiled_session is None:
-                self._tiled_session = make_session(self._path, self._threads,
-                                                   memory_patterns=False)
-            return self._tiled_session
+            if self._tiled is None:
+                self._tiled = TiledGraph(self._path, self._threads)
+            return self._tiled
 
     @property
     def info(self) -> ModelInfo:
@@ -192,9 +217,12 @@ class GraphRunner:
             outputs = dict(zip(self.output_names, self.session.run(None, feeds), strict=True))
         else:
             values = {k: v.reshape(-1)[0] for k, v in feeds.items() if v.ndim != 4 and v.size}
-            session = self.tiled_session()
+            tiled = self.tiled()
+            frame_wide = tiled.statistics(feeds)
             outputs = run_tiled(lambda part: dict(zip(self.output_names,
-                                                      session.run(None, part), strict=True)),
+                                                      tiled.session.run(None,
+                                                                        part | frame_wide),
+                                                      strict=True)),
                                 feeds, height, width, tiling, values, self.tile_pixels,
                                 self.scales, zero_state)
         return outputs[OUTPUT], {s.name: outputs[STATE_OUT + s.name] for s in self.card.state}

@@ -19,12 +19,11 @@ from collections.abc import Mapping, Sequence
 from quietframe.runtime.card import FrameStatistic, InputSpec, Tiling
 
 # GuideNet's relative depth is depth / mean(depth) over the frame (model/nbg.py guide_features;
-# model/affinity.py guide_inputs): each tile gets a ballast band that restores the frame's mean.
-MEAN_DEPTH = FrameStatistic("mean_depth", "depth", "ballast")
-# NBG's firefly floor is `outlier_floor` × the frame's mean luminance (model/nbg.py
-# suppress_outliers): a tile uses its own mean, which differs only where the floor, not the
-# neighbourhood bound, decides a clamp.
-MEAN_LUMINANCE = FrameStatistic("mean_luminance", "color", "tile")
+# model/affinity.py guide_inputs, at full and at U-Net resolution), and NBG's firefly floor is
+# `outlier_floor` × the frame's mean luminance (model/nbg.py suppress_outliers): computed on the
+# whole frame by the graph's own reductions and fed to every tile (runtime/statistics.py).
+MEAN_DEPTH = FrameStatistic("mean_depth", "depth", "frame")
+MEAN_LUMINANCE = FrameStatistic("mean_luminance", "color", "frame")
 
 NBG_BYTES_PER_PIXEL_PER_LAYER = 128  # per GuideNet layer + 1 (the prestage and the grids)
 AFFINITY_BYTES_PER_PIXEL = 768

@@ -15,13 +15,12 @@ radius (its receptive field) and on the history at those pixels' motion targets.
   lie in the untiled frame (a state at 1/s resolution is cut at origin / s);
 - only each tile's interior kept, for the output and for the new state;
 each interior pixel is computed from the same values as untiled. Frame-wide quantities are not
-local; the card lists them. Mean depth (NBG's GuideNet and the affinity guide divide depth by
-it: model/nbg.py guide_features, model/affinity.py guide_inputs) is restored: each tile gets a
-ballast band appended on a side that is not the frame's edge (so at least `overlap` away from
-its interior, which it cannot reach): zero buffers and one depth value chosen so that the tile's
-mean depth is the frame's. The interior then sees the frame's depth scale. What remains is float
-rounding (the mean is summed in another order), and nearest-pixel warps whose source falls on an
-exact .5 tie, where the warp's normalised-coordinate arithmetic rounds by the tile's width.
+local (the card lists them: mean depth, which NBG's GuideNet and the affinity guide divide depth
+by, and the mean luminance under NBG's firefly floor): the graph's own reductions over the image
+run on the whole frame and every tile is fed their values (runtime/statistics.py). What remains
+is float rounding (convolutions of another size may sum in another order), and nearest-pixel
+warps whose source falls on an exact .5 tie, where the warp's normalised-coordinate arithmetic
+rounds by the tile's width.
 The affinity model's U-Net resamples by the ratio of its level sizes, which tiles and frame
 share only when the frame's sides are multiples of `align` (4K and 8K are); other sizes tile
 with a small parameter shift. A first frame's zero state is made per tile, not for the frame.
@@ -109,42 +108,12 @@ def crop(array: np.ndarray, tile: Tile, scale: int = 1) -> np.ndarray:
                                       tile.px0 // scale : -(-tile.px1 // scale)])
 
 
-def add_ballast(
-    feeds: dict[str, np.ndarray], tile: Tile, height: int, width: int, mean_depth: float,
-    align: int, scales: Mapping[str, int],
-) -> tuple[dict[str, np.ndarray], int, int]:
-    """Append a band of `align` rows (or columns; align / scale for a feed at 1/scale) beyond a
-    padded edge that is not the frame's: zeros, and depth v with mean(tile + band) =
-    `mean_depth`. Returns the feeds and the rows and columns put before the tile (the
-    interior's shift)."""
-    depth = feeds["depth"]  # (1, 1, h, w)
-    h, w = depth.shape[2:]
-    if tile.py1 < height or tile.py0 > 0:
-        axis, count, before = 2, align * w, tile.py1 >= height
-    else:
-        axis, count, before = 3, align * h, tile.px1 >= width
-    value = mean_depth + (mean_depth * h * w - float(depth.sum(dtype=np.float64))) / count
-    out = {}
-    for name, array in feeds.items():
-        if array.ndim != 4:
-            out[name] = array
-            continue
-        shape = list(array.shape)
-        shape[axis] = align // scales.get(name, 1)
-        band = np.full(shape, value if name == "depth" else 0.0, array.dtype)
-        parts = (band, array) if before else (array, band)
-        out[name] = np.ascontiguousarray(np.concatenate(parts, axis=axis))
-    shift = align if before else 0
-    return out, shift * (axis == 2), shift * (axis == 3)
-
-
-def place(target: np.ndarray, tile: Tile, result: np.ndarray, dy: int = 0, dx: int = 0,
-          scale: int = 1) -> None:
-    """Put the interior of a padded tile's (N, C, h, w) result at 1/scale resolution (shifted by
-    a leading ballast band of dy rows / dx columns) in place."""
+def place(target: np.ndarray, tile: Tile, result: np.ndarray, scale: int = 1) -> None:
+    """Put the interior of a padded tile's (N, C, h, w) result at 1/scale resolution in
+    place."""
     y0, x0 = tile.y0 // scale, tile.x0 // scale
     y1, x1 = -(-tile.y1 // scale), -(-tile.x1 // scale)
-    oy, ox = (tile.y0 - tile.py0 + dy) // scale, (tile.x0 - tile.px0 + dx) // scale
+    oy, ox = (tile.y0 - tile.py0) // scale, (tile.x0 - tile.px0) // scale
     target[..., y0:y1, x0:x1] = result[..., oy : oy + y1 - y0, ox : ox + x1 - x0]
 
 
@@ -159,24 +128,18 @@ def run_tiled(
     inputs not in `feeds` that are zeros (a first frame), made per tile."""
     tiles = plan_tiles(height, width, overlap_for(tiling, values, feeds.get("motion")),
                        tiling.align, tile_pixels)
-    ballast = tiling.statistic("mean_depth") is not None and "depth" in feeds and len(tiles) > 1
-    mean_depth = float(feeds["depth"].mean(dtype=np.float64)) if ballast else 0.0
     outputs: dict[str, np.ndarray] = {}
-    dy = dx = 0
     for tile in tiles:
         th, tw = tile.py1 - tile.py0, tile.px1 - tile.px0
         part = {k: crop(v, tile, scales.get(k, 1)) if v.ndim == 4 else v
                 for k, v in feeds.items()}
         part |= {k: np.zeros(spec.shape(th, tw), np.float32) for k, spec in zero_state.items()}
-        if ballast:
-            part, dy, dx = add_ballast(part, tile, height, width, mean_depth, tiling.align,
-                                       scales)
         for name, result in run(part).items():
             scale = scales.get(name, 1)
             if name not in outputs:  # (N, C, H, W) of the whole frame
                 shape = (*result.shape[:2], -(-height // scale), -(-width // scale))
                 outputs[name] = np.empty(shape, result.dtype)
-            place(outputs[name], tile, result, dy, dx, scale)
+            place(outputs[name], tile, result, scale=scale)
     return outputs
 
 
