@@ -6,7 +6,10 @@ PIP := --disable-pip-version-check --no-input -q
 HOST ?= 0.0.0.0
 PORT ?= 8000
 
-.PHONY: test serve lint bench clean
+CYCLES_VENV := .venv-cycles
+CYCLES_PYTHON ?= python3.11
+
+.PHONY: test serve lint bench clean cycles
 
 # torch first and pinned: 2.13.0 is the CPU build; anything else pulls several GB of CUDA wheels.
 $(VENV)/.base:
@@ -32,11 +35,21 @@ serve: $(SERVE_VENV)/.base
 	$(SERVE_VENV)/bin/python -m pip install $(PIP) ".[serve,client]"
 	$(SERVE_VENV)/bin/quietframe serve --host $(HOST) --port $(PORT)
 
+# Blender Cycles (bpy 4.5, Python 3.11) in a venv of its own: the Cycles renders and the tests
+# that run Blender (tests/cycles_support.py finds it; skipped without it). CI installs it.
+$(CYCLES_VENV)/.base:
+	$(CYCLES_PYTHON) -m venv $(CYCLES_VENV)
+	$(CYCLES_VENV)/bin/python -m pip install $(PIP) --upgrade pip
+	touch $@
+
+cycles: $(CYCLES_VENV)/.base
+	$(CYCLES_VENV)/bin/python -m pip install $(PIP) ".[cycles]"
+
 lint: install-dev
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) $(SERVE_VENV) build
+	rm -rf $(VENV) $(SERVE_VENV) $(CYCLES_VENV) build
 
 # Development: make the source folders importable as quietframe.<folder> in .venv without a
 # rebuild per edit (symlinks mimic the wheel layout). Point QUIETFRAME_OPS_LIBRARY at a build of

@@ -39,6 +39,7 @@ from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
 AUX = ("albedo", "normal", "depth", "motion")
+STORED_BLENDER = "blender_denoise"  # a stored output in a Cycles frame's buffers, not an input
 
 
 class RuntimeMethod:
@@ -90,15 +91,32 @@ class Noisy:
         return buffers["color"]
 
 
+class BlenderDenoise:
+    """What a Blender user gets by ticking Denoise: Cycles' own OIDN pass (Accurate prefilter,
+    High quality) of the same render, stored with the Cycles splits (scenes/cycles_render.py).
+    Its time is Blender's, not measured here."""
+
+    reads_stored = True
+
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
+        return buffers[STORED_BLENDER]
+
+
 def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int, ...] = (),
-                  single_frame: tuple[str, ...] = ()) -> dict[str, Callable[[], object]]:
+                  single_frame: tuple[str, ...] = (), renderer: str = "mitsuba",
+                  ) -> dict[str, Callable[[], object]]:
     """Method name -> factory (each sequence gets fresh state through reset()). `extra`: more
     .onnx files (e.g. fresh training runs), named by file stem. `kernel_sizes` and
-    `single_frame` (model names) add model_variants."""
+    `single_frame` (model names) add model_variants. Cycles data adds Blender's denoise."""
     from quietframe.bench import baselines
 
     models = {p.stem: p for p in (*installed_models(), *extra)}
     methods: dict[str, Callable[[], object]] = {"noisy": Noisy}
+    if renderer == "cycles":
+        methods["blender-denoise"] = BlenderDenoise
     if "accumulation" in models:
         methods["accumulation"] = lambda: RuntimeMethod(models["accumulation"], threads)
     methods["svgf"] = lambda: baselines.SVGFStyleFilter(num_threads=threads)
@@ -115,17 +133,33 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
     return methods
 
 
-def sequence_dirs(data: Path, split: str) -> list[Path]:
+def sequence_dirs(data: Path, split: str, renderer: str = "mitsuba",
+                  spp_levels: tuple[int, ...] = ()) -> list[Path]:
+    """Sequence folders of a split; of a Cycles split only those finished at `spp_levels`."""
+    from quietframe.scenes import cycles_io
     from quietframe.scenes.layout import split_dir
 
-    root = split_dir(data, split)
-    return sorted(p.parent for p in root.glob("*/manifest.json"))
+    root = split_dir(data, split, renderer)
+    folders = sorted(p.parent for p in root.glob("*/manifest.json"))
+    if renderer == "cycles":
+        folders = [f for f in folders if cycles_io.finished(f, spp_levels)]
+    return folders
 
 
 def load_sequence(folder: Path, spp: int) -> list[tuple[dict, np.ndarray, bool]]:
-    """[(buffers, reference, reset)] for every frame of a sequence at `spp`."""
+    """[(buffers, reference, reset)] for every frame of a sequence at `spp`. A Cycles frame's
+    buffers also hold Blender's own denoise of it (STORED_BLENDER)."""
+    from quietframe.scenes import cycles_io
     from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
 
+    if cycles_io.is_cycles_sequence(folder):
+        resets = cycles_io.frame_resets(folder)
+        frames = []
+        for t, reset in enumerate(resets):
+            f = cycles_io.load_frame(folder, t, spp)
+            buffers = {k: f[k] for k in ("color", *AUX, STORED_BLENDER)}
+            frames.append((buffers, f["reference"], reset))
+        return frames
     frames = []
     for path in sorted(folder.glob("frame_*.exr")):
         layers = load_frame(path, [color_layer(spp), "reference", *AUX])
@@ -138,23 +172,29 @@ def load_sequence(folder: Path, spp: int) -> list[tuple[dict, np.ndarray, bool]]
 class Scores:
     per_frame: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
     trmae: list[float] = field(default_factory=list)
+    flicker: list[float] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
 
     def summary(self) -> dict[str, float]:
         out = {k: float(np.mean(v)) for k, v in self.per_frame.items()}
         out["trmae"] = float(np.mean(self.trmae)) if self.trmae else float("nan")
+        out["flicker"] = float(np.mean(self.flicker)) if self.flicker else float("nan")
         out["ms"] = float(np.median(self.ms))
         return out
 
 
-def run_sequence(method, frames, scores: Scores, keep: list | None = None) -> None:
+def run_sequence(method, frames, scores: Scores, keep: list | None = None,
+                 locked_off: bool = False) -> None:
+    """Score `method` over one sequence; `locked_off` (a static shot) also scores flicker."""
     method.reset()
     preds, refs = [], []
     for buffers, reference, reset in frames:
         if reset:
             method.reset()
+        inputs = buffers if getattr(method, "reads_stored", False) else {
+            k: v for k, v in buffers.items() if k != STORED_BLENDER}
         start = time.perf_counter()
-        pred = np.asarray(method(buffers), np.float32)
+        pred = np.asarray(method(inputs), np.float32)
         scores.ms.append(1e3 * (time.perf_counter() - start))
         for name, fn in (("psnr", metrics.psnr), ("ssim", metrics.ssim),
                          ("smape", metrics.smape), ("relmse", metrics.relmse)):
@@ -162,6 +202,8 @@ def run_sequence(method, frames, scores: Scores, keep: list | None = None) -> No
         preds.append(pred)
         refs.append(reference)
     scores.trmae.append(metrics.trmae(np.stack(preds), np.stack(refs)))
+    if locked_off:
+        scores.flicker.append(metrics.flicker(np.stack(preds)))
     if keep is not None:
         keep.append(preds[-1])
 
@@ -179,8 +221,11 @@ def prepass_shares(method, threads: int) -> dict[str, float]:
 
 
 def time_720p(factory, threads: int) -> float:
-    """ms/frame at 1280×720 on synthetic buffers, state carried like a real sequence."""
+    """ms/frame at 1280×720 on synthetic buffers, state carried like a real sequence (nan for
+    a stored output: its time is the renderer's)."""
     method = factory()
+    if getattr(method, "reads_stored", False):
+        return float("nan")
     buffers = {k: v.transpose(1, 2, 0) for k, v in frame_buffers().items()}  # (H, W, C) images
     method.reset()
     method(buffers)
@@ -242,19 +287,26 @@ def crop_sheet(crops: dict[str, list[np.ndarray]], columns: list[str], path: Pat
     plt.close(fig)
 
 
+def _figure(value: float, spec: str) -> str:
+    """A table cell: the figure, or a dash where it does not apply (nan)."""
+    return "–" if np.isnan(value) else format(value, spec)
+
+
 def write_report(rows: list[dict], meta: dict, path: Path) -> None:
     lines = ["# quietframe evaluation", "",
-             f"Data: {meta['sequences']} {meta['split']} sequences ({meta['resolution']}), "
+             f"Data: {meta['sequences']} {meta.get('renderer', 'mitsuba')} {meta['split']} "
+             f"sequences ({meta['resolution']}), "
              f"{meta['frames']} frames each spp level; machine: {meta['machine']}. "
              f"Command: `{meta['command']}`.",
              "PSNR on τ(x) = (x/(1+x))^(1/2.4); TRMAE per Işık et al. eq. 16; ms = median "
              "per frame.", "",
-             "| method | spp | PSNR | SSIM | SMAPE | relMSE | TRMAE | ms/frame (eval) | "
-             "ms/frame 720p |", "|---|---|---|---|---|---|---|---|---|"]
+             "| method | spp | PSNR | SSIM | SMAPE | relMSE | TRMAE | flicker | "
+             "ms/frame (eval) | ms/frame 720p |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['method']} | {r['spp']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
                      f"{r['smape']:.4f} | {r['relmse']:.4f} | {r['trmae']:.4f} | "
-                     f"{r['ms']:.1f} | {r['ms_720p']:.0f} |")
+                     f"{_figure(r.get('flicker', np.nan), '.4f')} | {r['ms']:.1f} | "
+                     f"{_figure(r['ms_720p'], '.0f')} |")
     shares = {r["method"]: r for r in rows if "ms_720p_oidn" in r}
     if shares:
         lines += ["", "720p time of the compositions (OIDN prepass + temporal graph):", "",
@@ -269,8 +321,12 @@ def write_report(rows: list[dict], meta: dict, path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-eval", description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DATA_DIR)
-    parser.add_argument("--split", default="validation")
-    parser.add_argument("--spp", default="1,2,4,8")
+    parser.add_argument("--split", default="validation",
+                        help="train, validation or test; Cycles also validation-static and "
+                             "test-static (locked-off shots: flicker is scored)")
+    parser.add_argument("--renderer", choices=("mitsuba", "cycles"), default="mitsuba")
+    parser.add_argument("--spp", default="", help="comma list (default: Mitsuba 1,2,4,8; "
+                                                  "Cycles 1,2,4,8,16,64)")
     parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
     parser.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
     parser.add_argument("--methods", default="", help="comma list (default: all)")
@@ -288,20 +344,24 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         raise SystemExit(f"--model: no such file {missing}")
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    folders = sequence_dirs(args.data.expanduser(), args.split)
+    spp_levels = tuple(int(s) for s in (
+        args.spp or ("1,2,4,8,16,64" if args.renderer == "cycles" else "1,2,4,8")).split(","))
+    folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, spp_levels)
     if args.sequences:
         folders = folders[: args.sequences]
     if not folders:
-        raise SystemExit(f"no {args.split} sequences under {args.data} (run quietframe-render)")
+        raise SystemExit(f"no finished {args.renderer} {args.split} sequences under "
+                         f"{args.data} (render them: docs/data.md)")
+    locked_off = args.split.endswith("-static")
     kernel_sizes = tuple(int(k) for k in args.kernel_sizes.split(",") if k)
     single_frame = tuple(m for m in args.single_frame.split(",") if m)
-    methods = build_methods(args.threads, args.model, kernel_sizes, single_frame)
+    methods = build_methods(args.threads, args.model, kernel_sizes, single_frame, args.renderer)
     if args.methods:  # a listed model keeps its @k / /frame rows
         wanted = args.methods.split(",")
         methods = {k: v for k, v in methods.items() if re.split("[@/]", k)[0] in wanted}
     rows, crops, ms_720p = [], defaultdict(list), {}
-    crop_spp = int(args.spp.split(",")[0])
-    for spp in (int(s) for s in args.spp.split(",")):
+    crop_spp = spp_levels[0]
+    for spp in spp_levels:
         sequences = [load_sequence(f, spp) for f in folders]
         for name, factory in list(methods.items()):
             try:
@@ -312,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             for i, frames in enumerate(sequences):
                 keep = crops[name] if spp == crop_spp and i < 3 else None
-                run_sequence(method, frames, scores, keep)
+                run_sequence(method, frames, scores, keep, locked_off)
             if spp == crop_spp:
                 crops["reference"] = [s[-1][1] for s in sequences[:3]]
             row = {"method": name, "spp": spp, **scores.summary()}
@@ -325,14 +385,17 @@ def main(argv: list[str] | None = None) -> int:
                               for k, v in row.items()}), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     first = sequences[0][0][1]
-    meta = {"sequences": len(folders), "split": args.split, "threads": args.threads,
+    meta = {"sequences": len(folders), "split": args.split, "renderer": args.renderer,
+            "threads": args.threads,
             "resolution": f"{first.shape[1]}×{first.shape[0]}",
             "frames": sum(len(s) for s in sequences), "machine": cpu_peak_gflops(args.threads)[1],
             "command": "quietframe-eval " + " ".join(sys.argv[1:] if argv is None else argv)}
     (args.out / "benchmarks.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     write_report(rows, meta, args.out / "benchmarks.md")
-    scatter_plot(rows, args.out / "psnr_vs_ms.png", args.split)
-    columns = [c for c in ("noisy", "accumulation", "svgf", "oidn-high", *sorted(
+    scatter_plot([r for r in rows if np.isfinite(r["ms_720p"])], args.out / "psnr_vs_ms.png",
+                 f"{args.renderer} {args.split}")
+    columns = [c for c in ("noisy", "accumulation", "svgf", "oidn-high", "blender-denoise",
+                           *sorted(
         m for m in methods if m.startswith(("nbg", "affinity", "oidn-temporal"))
         and not re.search("[@/]", m)),
         "reference") if c in crops]

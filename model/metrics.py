@@ -109,3 +109,13 @@ def trmae(preds: np.ndarray, refs: np.ndarray, eps: float = EPS_RELATIVE) -> flo
         raise ValueError(f"trmae: need at least 2 frames, got {p.shape[0]}")
     dp, dr = temporal_difference(p), temporal_difference(r)
     return float(np.mean(np.abs(dp - dr) / (np.abs(dr) + eps)))
+
+
+def flicker(preds: np.ndarray) -> float:
+    """Flicker of a locked-off shot (static camera and scene, new noise every frame, so the
+    true image is constant): the mean over pixels and channels of the temporal standard
+    deviation of τ(output). Needs no reference, so no reference noise limits it."""
+    p = tonemap_tau(_f64(np.stack(preds)))
+    if p.shape[0] < 2:
+        raise ValueError(f"flicker: need at least 2 frames, got {p.shape[0]}")
+    return float(np.mean(np.std(p, axis=0)))

@@ -2,9 +2,10 @@
 
 The fixtures in tests/fixtures/blender/ are rendered by tools/render_blender_fixtures.py and
 committed, so these tests need no bpy; the tests that ask Blender to read quietframe's output
-are skipped where `bpy` is not importable. The issue-12 expectations (complete outputs, Noisy
-Image written back as Combined, the sky's depth, an all-zero Vector reported missing, colour-only
-frames told what would work, the CLI's view layers) are plain tests since phase 2.
+run Blender in its own venv (tests/cycles_support.py) and are skipped without one. The issue-12
+expectations (complete outputs, Noisy Image written back as Combined, the sky's depth, an
+all-zero Vector reported missing, colour-only frames told what would work, the CLI's view
+layers) are plain tests since phase 2.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cycles_support import blender_json, require_cycles
 
 from quietframe.service import frames
 from quietframe.service.errors import AmbiguousChannels, MissingChannels
@@ -589,33 +591,38 @@ def test_cli_takes_a_view_layer_and_a_channel_mapping(tmp_path):
 # ---- Blender reads quietframe's output (needs bpy; the fixtures above do not) ----------------
 
 
+_PASSES_IN_BLENDER = """
+import json, sys
+import bpy
+path, layers = sys.argv[1], sys.argv[2:]
+scene = bpy.context.scene
+scene.use_nodes = True
+image = bpy.data.images.load(path, check_existing=False)
+image.reload()
+node = scene.node_tree.nodes.new("CompositorNodeImage")
+node.image = image
+found = {}
+for layer in layers:
+    try:
+        node.layer = layer
+    except TypeError:  # not one of the image's view layers
+        continue
+    found[layer] = [o.name for o in node.outputs if o.enabled]
+print("@@" + json.dumps(found))
+"""
+
+
 def blender_passes(path: Path, layers: list[str]) -> dict[str, list[str]]:
     """View layer -> pass names, as Blender's compositor Image node lists them for the file
-    (the way a compositor artist sees it); a layer Blender does not find is left out."""
-    import bpy
-
-    scene = bpy.context.scene
-    scene.use_nodes = True
-    image = bpy.data.images.load(str(path), check_existing=False)
-    image.reload()
-    node = scene.node_tree.nodes.new("CompositorNodeImage")
-    node.image = image
-    found = {}
-    for layer in layers:
-        try:
-            node.layer = layer
-        except TypeError:  # not one of the image's view layers
-            continue
-        found[layer] = [o.name for o in node.outputs if o.enabled]
-    scene.node_tree.nodes.remove(node)
-    bpy.data.images.remove(image)
-    return found
+    (the way a compositor artist sees it); a layer Blender does not find is left out. Runs in
+    the Cycles venv (tests/cycles_support.py)."""
+    return blender_json(_PASSES_IN_BLENDER, str(path), *layers)
 
 
 def test_blender_reads_quietframe_output(tmp_path):
     """Blender finds in the output every pass it wrote (the Image node always offers an Alpha
     socket, whether or not the file has alpha)."""
-    pytest.importorskip("bpy")
+    require_cycles()
     given = tmp_path / "given.exr"
     given.write_bytes(read("passes_half_piz.0002.exr"))
     _, out = roundtrip(given.read_bytes())
@@ -643,7 +650,7 @@ def test_blender_reads_quietframe_output(tmp_path):
     ],
 )
 def test_blender_finds_every_pass_of_the_input_in_the_output(tmp_path, file, layer):
-    pytest.importorskip("bpy")
+    require_cycles()
     given = tmp_path / "given.exr"
     given.write_bytes(read(file))
     _, out = roundtrip(given.read_bytes(), mapping_for(layer) if layer else None, (1.0, -1.0))
@@ -654,7 +661,7 @@ def test_blender_finds_every_pass_of_the_input_in_the_output(tmp_path, file, lay
 
 
 def test_blender_finds_the_denoised_layer(tmp_path):
-    pytest.importorskip("bpy")
+    require_cycles()
     _, out = roundtrip(read("passes_half_piz.0002.exr"), denoised_layer="Denoised")
     returned = tmp_path / "returned.exr"
     returned.write_bytes(out)

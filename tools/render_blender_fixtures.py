@@ -2,8 +2,8 @@
 
 Regenerate (one command; needs Blender as a Python module in its own venv, not the project's):
 
-    python3.11 -m venv /work/bpy-venv && /work/bpy-venv/bin/pip install "bpy==4.5.*"
-    nice -n 10 /work/bpy-venv/bin/python tools/render_blender_fixtures.py [--out DIR]
+    make cycles     # .venv-cycles: bpy 4.5 LTS (the `cycles` extra)
+    nice -n 10 .venv-cycles/bin/python tools/render_blender_fixtures.py [--out DIR]
 
 The scene is built in code (no downloaded assets): a floor, a cube, a sphere and a cylinder with
 different materials, a sun, a coloured sky in the top part of the frame, and a camera that pans
