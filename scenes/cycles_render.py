@@ -312,14 +312,21 @@ def render_sequence(seed: int, out: Path, cfg: CyclesConfig, log=print) -> dict:
     return manifest
 
 
-def reference_noise(seq_dir: Path, t: int, eps: float = 0.01) -> float:
-    """Noise of frame t's reference as docs/data.md measures it (the median over pixels of
-    |a - b| / ((a + b)/2 + eps) on luminance, exposed units, for two independent references
-    of the same spp), from its two halves: their figure over sqrt(2), since each half has
-    half the samples of the reference."""
-    a, b = (read_layer(seq_dir / h / frame_file(t), "Combined")[..., :3] @ LUMA
+def reference_noise(seq_dir: Path, t: int, eps: float = 0.01) -> tuple[float, float]:
+    """Noise of frame t's reference from its two halves a, b, and the PSNR ceiling it implies.
+
+    Noise as docs/data.md measures it (the median over pixels of |a - b| / ((a + b)/2 + eps)
+    on luminance, exposed units, for two independent references of the reference's spp): the
+    halves' figure over sqrt(2), since each half has half the samples. Ceiling: the PSNR a
+    perfect denoiser would score against this reference, whose error is half of each half's:
+    MSE(a, b) = 4 MSE(reference, truth) for independent halves, so PSNR(a, b) + 6.02 dB."""
+    from quietframe.model.metrics import psnr
+
+    a, b = (read_layer(seq_dir / h / frame_file(t), "Combined")[..., :3]
             for h in REFERENCE_HALVES)
-    return float(np.median(np.abs(a - b) / ((a + b) / 2 + eps)) / np.sqrt(2))
+    la, lb = a @ LUMA, b @ LUMA
+    noise = float(np.median(np.abs(la - lb) / ((la + lb) / 2 + eps)) / np.sqrt(2))
+    return noise, psnr(a, b) + 10 * float(np.log10(4))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -333,7 +340,7 @@ def split_summary(root: Path, cfg: CyclesConfig, seeds: list[int]) -> dict:
     seqs = [json.loads((root / str(s) / MANIFEST).read_text()) for s in seeds
             if (root / str(s) / MANIFEST).exists()]
     per_frame = {
-        f"{m['seed']}/{f['index']}": round(reference_noise(root / str(m["seed"]), f["index"]), 4)
+        f"{m['seed']}/{f['index']}": reference_noise(root / str(m["seed"]), f["index"])
         for m in seqs
         for f in m["frames"]
         if reference_frame(f["index"], cfg) == f["index"]
@@ -341,12 +348,16 @@ def split_summary(root: Path, cfg: CyclesConfig, seeds: list[int]) -> dict:
                 for h in REFERENCE_HALVES)
     }
     noise = {
-        "median_relative_difference": float(np.median(list(per_frame.values())))
+        "median_relative_difference": float(np.median([n for n, _ in per_frame.values()]))
+        if per_frame else None,
+        "psnr_ceiling_db_median": float(np.median([c for _, c in per_frame.values()]))
         if per_frame else None,
         "definition": "per frame: median over pixels of |a-b| / ((a+b)/2 + eps), luminance, "
         "eps 0.01, for two independent references of the reference's spp (from its two "
-        "halves: their figure / sqrt 2); the split's figure is the median over frames",
-        "per_frame": per_frame,
+        "halves: their figure / sqrt 2); the split's figure is the median over frames. "
+        "Ceiling: PSNR of a perfect denoiser against the reference (halves' PSNR + 6.02 dB)",
+        "per_frame": {k: {"noise": round(n, 4), "psnr_ceiling_db": round(c, 2)}
+                      for k, (n, c) in per_frame.items()},
     }
     frames = [f for m in seqs for f in m["frames"]]
     cpu = sum(m.get("scene_setup_cpu_s", 0) for m in seqs) + sum(
