@@ -7,6 +7,7 @@ through the shipped runtime, so the markdown and the file can never disagree.
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -39,38 +40,63 @@ def describe_split(root: Path) -> str:
             f"at {levels} spp, references at {refs} spp")
 
 
-def data_lines(training: dict) -> list[str]:
+def data_lines(training: dict, previous: list[str] = ()) -> list[str]:
+    """The training data's splits as on disk; a split not on this machine keeps the line an
+    earlier card (`previous`, its lines) wrote where the data was."""
     if "data" not in training:
         return []
     from quietframe.scenes.layout import split_dir
 
     data = Path(training["data"]).expanduser()
-    return ["## Data", "",
-            f"- train (as on disk when this card was written; a run started while the split "
-            f"was still rendering saw fewer): {describe_split(split_dir(data, 'train'))}",
-            f"- validation (never trained on; picks `best.pt`): "
-            f"{describe_split(split_dir(data, 'validation'))}", ""]
+    lines = ["## Data", ""]
+    for split, label in (("train", "train (as on disk when this card was written; a run started "
+                                   "while the split was still rendering saw fewer)"),
+                         ("validation", "validation (never trained on; picks `best.pt`)")):
+        root = split_dir(data, split)
+        kept = [line for line in previous if line.startswith(f"- {split}")]
+        present = any(root.glob("*/manifest.json"))
+        lines.append(f"- {label}: {describe_split(root)}" if present or not kept else kept[0])
+    return [*lines, ""]
 
 
-def prepass_lines(runtime: Denoiser, threads: int) -> list[str]:
-    """For a composition (an OIDN stage): what runs first, and the 720p time split."""
+def prepass_lines(runtime: Denoiser, threads: int, measure: bool) -> list[str]:
+    """For a composition (an OIDN stage): what runs first, and (measured) the 720p time
+    split."""
     settings = runtime.card.prepass
     if settings is None:
         return []
-    from quietframe.bench.oidn_temporal import measure
-
-    t = measure(runtime.info.path, threads, repeats=3)
     first = [s.file for s in runtime.card.stages if isinstance(s, GraphStage) and s.file]
     source = (f"on the output of `{first[0]}` (run first, with its own state)"
               if first else "on the frame")
     graph = ("then the graph on its output" if "reset" in runtime.input_names
              else "and returns its output (no learned stage)")
-    return [f"Runs Open Image Denoise {source} (quality {settings.quality}, prefiltered "
-            f"aux {settings.prefilter_aux}; needs pyoidn), {graph}: OIDN "
-            f"{t['oidn'].median_ms:.0f} ms, quietframe's part (the `color_from` model and the "
-            f"graph) {t['stage'].median_ms:.0f} ms "
+    line = (f"Runs Open Image Denoise {source} (quality {settings.quality}, prefiltered "
+            f"aux {settings.prefilter_aux}; needs pyoidn), {graph}")
+    if not measure:
+        return [line + ".", ""]
+    from quietframe.bench.oidn_temporal import measure as time_stages
+
+    t = time_stages(runtime.info.path, threads, repeats=3)
+    return [f"{line}: OIDN {t['oidn'].median_ms:.0f} ms, quietframe's part (the graphs) "
+            f"{t['stage'].median_ms:.0f} ms "
             f"({100 * t['stage'].median_ms / t['oidn'].median_ms:.0f}% of OIDN), median of 3 "
             "(bench/oidn_temporal.py).", ""]
+
+
+def speed_lines(runtime: Denoiser, threads: int, measure: bool) -> list[str]:
+    """The 720p time: the card's (the evaluation run that measured the table `auto` reads)
+    unless `measure` or the card has none; then measured now on this machine."""
+    table = runtime.card.measured()
+    if not measure and table.ms_720p is not None:
+        run = table.measured
+        where = ", ".join(f"{k} {run[k]}" for k in ("split", "threads", "machine") if k in run)
+        return [f"{table.ms_720p:.0f} ms per 1280×720 frame through quietframe.runtime: the "
+                f"card's figure, from the `quietframe-eval` run of its table ({where}).", "",
+                *prepass_lines(runtime, threads, measure=False)]
+    ms = measure_720p_ms(runtime)
+    return [f"{ms:.0f} ms per 1280×720 frame through quietframe.runtime with {threads} threads "
+            f"on {cpu_peak_gflops(threads)[1]}, median of 5 (bench/timing.py).", "",
+            *prepass_lines(runtime, threads, measure=True)]
 
 
 def stage_text(stage: GraphStage | OIDNStage) -> str:
@@ -91,14 +117,16 @@ def card_lines(card: ModelCard) -> list[str]:
     if tiling is None:
         lines += ["No tiling rule knows this graph: frames run whole.", ""]
     else:
-        reach = "".join(f"; + {r} px by {name}" for name, table in tiling.reach.items()
+        reach = "".join(f" + its reach by {name} ({r} px)" for name, table in tiling.reach.items()
                         for r in [", ".join(f"{v}: {x}" for v, x in table.items())])
         stats = ", ".join(f"{s.name} ({s.how})" for s in tiling.statistics) or "none"
         lines += [f"Tiles: receptive radius {tiling.radius} px{reach}, origins on multiples "
-                  f"of {tiling.align} px, overlap + max |motion| + 1 "
-                  f"{'(warps history)' if tiling.motion else '(no warp)'}; frame-wide "
-                  f"statistics: {stats}; ~{tiling.bytes_per_pixel} B per tile pixel "
-                  "(tile size = max_memory_mb / that, runtime/tiling.py).", ""]
+                  f"of {tiling.align} px, "
+                  f"{'overlap + max |motion| + 1 (warps history)' if tiling.motion else 'no warp'}"
+                  "; frame-wide "
+                  f"statistics: {stats}; graph working set ~{tiling.bytes_per_pixel} B/px "
+                  "(a tile holds max_memory_mb / (that + its own inputs, state and output), "
+                  "runtime/tiling.py).", ""]
     for renderer, table in card.measurements.items():
         if table.complete:
             rows = ", ".join(f"{r.spp:g} spp {r.psnr:.2f} dB" for r in table.by_spp)
@@ -107,13 +135,15 @@ def card_lines(card: ModelCard) -> list[str]:
     return lines
 
 
-def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 2,
-                     split: str = "") -> Path:
+def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: int = 2,
+                     split: str = "", measure: bool = False) -> Path:
     """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model,
-    measured on `split` (named in the card: test figures are reported, validation ones chose)."""
+    measured on `split` (named in the card: test figures are reported, validation ones chose);
+    `measure`: time the model now instead of quoting the card's measured 720p time."""
     runtime = Denoiser(path, threads=threads)
     info = runtime.info
-    ms = measure_720p_ms(runtime)
+    card = path.with_suffix(".md")
+    previous = card.read_text().splitlines() if card.is_file() else []
     lines = [
         f"# {info.name} (version {info.version})", "",
         f"File: `{path.name}` ({path.stat().st_size / 1024:.0f} KiB). "
@@ -123,11 +153,8 @@ def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 
         json.dumps(dict(runtime.card.architecture), indent=1),
         "```", "", *card_lines(runtime.card),
         "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
-        *data_lines(info.training),
-        "## Speed", "",
-        f"{ms:.0f} ms per 1280×720 frame through quietframe.runtime with {threads} threads on "
-        f"{cpu_peak_gflops(threads)[1]}, median of 5 (bench/timing.py).", "",
-        *prepass_lines(runtime, threads),
+        *data_lines(info.training, previous),
+        "## Speed", "", *speed_lines(runtime, threads, measure),
         f"## Quality ({split} split)" if split else "## Quality", "",
     ]
     rows = evaluation or []
@@ -139,6 +166,26 @@ def write_model_card(path: Path, evaluation: dict | None = None, threads: int = 
                   "(docs/benchmarks.md)."]
     else:
         lines.append(f"Metadata metrics: `{json.dumps(info.metrics)}` (no evaluation run given).")
-    card = path.with_suffix(".md")
     card.write_text("\n".join(lines) + "\n")
     return card
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="model_card", description=__doc__.split("\n")[0])
+    parser.add_argument("models", type=Path, nargs="+")
+    parser.add_argument("--evaluation", type=Path, help="quietframe-eval JSON: quality rows")
+    parser.add_argument("--measure", action="store_true",
+                        help="time each model now instead of quoting its card's 720p time")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else {}
+    split = evaluation.get("meta", {}).get("split", "")
+    for path in args.models:
+        rows = sorted((r for r in evaluation.get("rows", []) if r["method"] == path.stem),
+                      key=lambda r: r["spp"])
+        print(f"wrote {write_model_card(path, rows, args.threads, split, args.measure)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
