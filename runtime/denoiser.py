@@ -33,7 +33,12 @@ from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass, Prepas
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 from quietframe.runtime.statistics import split_statistics
-from quietframe.runtime.tiling import max_memory_mb_default, run_tiled, tile_pixels_for
+from quietframe.runtime.tiling import (
+    max_memory_mb_default,
+    run_tiled,
+    tile_bytes_per_pixel,
+    tile_pixels_for,
+)
 
 __all__ = ["BY_MEMORY", "DenoiseResult", "Denoiser", "InputSpec", "ModelInfo", "StateSpec",
            "check_options", "read_model_info"]
@@ -185,6 +190,17 @@ class GraphRunner:
                 self._tiled = TiledGraph(self._path, self._threads)
             return self._tiled
 
+    def working_set_bytes(self, height: int, width: int) -> int:
+        """About the most this graph holds while it runs an H×W frame, beyond the frame's own
+        buffers and the state and output it returns: one tile's memory (or the whole frame's),
+        from the card (runtime/tiling.py tile_bytes_per_pixel)."""
+        if self.card.tiling is None:
+            return 0  # no estimate for a graph no rule knows
+        pixels = height * width
+        if self.tile_pixels is not None:
+            pixels = min(pixels, self.tile_pixels)
+        return pixels * tile_bytes_per_pixel(self.card.tiling, self.card.state)
+
     @property
     def info(self) -> ModelInfo:
         """This graph's own interface (its state by its own names)."""
@@ -289,6 +305,14 @@ class Denoiser:
         self.input_names = self.graph.input_names
         self.info = model_info(path, self.card, parts)
         self._option_feeds = self._options({}, options or {})
+
+    def working_set_bytes(self, height: int, width: int) -> int:
+        """About the most the model holds while it denoises an H×W frame beyond the frame's
+        buffers, state and output: its stages run one after another, so the largest stage's
+        (an OIDN stage: at most max_memory_mb, OIDN's own bound)."""
+        oidn = int(self.max_memory_mb * 2**20) if self.prepass is not None else 0
+        return max([oidn, *(stage.working_set_bytes(height, width) for stage in self.stages
+                            if isinstance(stage, GraphRunner))])
 
     @property
     def color_stage(self) -> GraphRunner | None:

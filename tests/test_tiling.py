@@ -97,6 +97,10 @@ def test_one_memory_setting_chooses_the_tile_size():
     # the graph's 768 B/px + 4 B x (12 buffer + 2 x (18 + 32/4) state + 3 output) channels
     assert tile_bytes_per_pixel(card.tiling, card.state) == 768 + 4 * (12 + 2 * 26 + 3)
     assert small.tile_pixels == tile_pixels_for(card.tiling, card.state, 256)
+    # what a memory guard can reserve: bounded by the setting at any frame size
+    assert small.working_set_bytes(4320, 7680) <= 256 * 2**20
+    assert small.working_set_bytes(64, 64) == 64 * 64 * tile_bytes_per_pixel(card.tiling,
+                                                                              card.state)
     side = math.isqrt(small.tile_pixels)
     tiles = plan_tiles(2160, 3840, overlap_for(card.tiling, {"kernel_size": 5}, None),
                        card.tiling.align, small.tile_pixels)
