@@ -242,6 +242,9 @@ class Tiling:
     motion: bool = True  # the graph warps its history: overlap grows with max |motion| + 1
     statistics: tuple[FrameStatistic, ...] = ()
     bytes_per_pixel: int = 1024  # the graph's working set per padded-tile pixel
+    # The graph resamples by the ratio of its levels' sizes (bilinear upsampling to a skip's
+    # size): a side that is not a multiple of `align` is not cut (runtime/tiling.py).
+    size_ratios: bool = False
 
     def radius_for(self, values: Mapping[str, float | int]) -> int:
         """The radius when the run-time inputs have `values` (name -> value)."""
@@ -260,7 +263,7 @@ class Tiling:
                 "reach": {k: {str(v): r for v, r in t.items()} for k, t in self.reach.items()},
                 "motion": self.motion,
                 "statistics": [[s.name, s.buffer, s.how] for s in self.statistics],
-                "bytes_per_pixel": self.bytes_per_pixel}
+                "bytes_per_pixel": self.bytes_per_pixel, "size_ratios": self.size_ratios}
 
     @classmethod
     def from_dict(cls, d: Mapping) -> Tiling:
@@ -269,7 +272,7 @@ class Tiling:
                                                                                {}).items()},
                    bool(d.get("motion", True)),
                    tuple(FrameStatistic(*s) for s in d.get("statistics", [])),
-                   int(d.get("bytes_per_pixel", 1024)))
+                   int(d.get("bytes_per_pixel", 1024)), bool(d.get("size_ratios", False)))
 
 
 # ---- measurements ---------------------------------------------------------------------------

@@ -72,7 +72,8 @@ def affinity_tiling(arch: Mapping, inputs: Sequence[InputSpec]) -> Tiling:
     return Tiling(radius=params + temporal + scale,
                   align=scale * 2 ** (levels - 1),
                   reach={"kernel_size": {int(k): (int(k) // 2) * dilation_sum for k in sizes}},
-                  statistics=(MEAN_DEPTH,), bytes_per_pixel=AFFINITY_BYTES_PER_PIXEL)
+                  statistics=(MEAN_DEPTH,), bytes_per_pixel=AFFINITY_BYTES_PER_PIXEL,
+                  size_ratios=scale > 1 or levels > 1)
 
 
 def oidn_temporal_tiling(arch: Mapping) -> Tiling:
@@ -82,7 +83,7 @@ def oidn_temporal_tiling(arch: Mapping) -> Tiling:
     net = scale * (int(arch["layers"]) - 1 + (2 if scale > 1 else 0))
     kernels = int(arch["kernel_size"]) // 2 + int(arch["temporal_kernel_size"]) // 2
     return Tiling(radius=net + kernels, align=scale,
-                  bytes_per_pixel=OIDN_TEMPORAL_BYTES_PER_PIXEL)
+                  bytes_per_pixel=OIDN_TEMPORAL_BYTES_PER_PIXEL, size_ratios=scale > 1)
 
 
 def identity_tiling() -> Tiling:

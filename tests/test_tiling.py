@@ -63,7 +63,7 @@ def assert_runs_agree(path, motion, height=HEIGHT, width=WIDTH):
     tiled = load(path, tiles)
     tiling = tiled.graph.card.tiling
     overlap = overlap_for(tiling, defaults(tiled.graph.card), np.array(motion))
-    plan = plan_tiles(height, width, overlap, tiling.align, tiles)
+    plan = plan_tiles(height, width, overlap, tiling.align, tiles, tiling.size_ratios)
     assert len(plan) > 1 or not tiling.radius  # the pass-through graph of OIDN-only models
     state_whole = state_tiled = None
     for planes in frames(motion, height, width):
@@ -85,6 +85,13 @@ def test_every_shipped_model_tiles_seamlessly(path):
 def test_large_motion_widens_the_overlap():
     """The default model with motion of (-37.2, 21.6) px: the overlap covers the warp's reach."""
     assert_runs_agree(default_model_path(), (-37.2, 21.6))
+
+
+def test_affinity_tiles_a_side_that_is_not_aligned_in_strips():
+    """322 rows are no multiple of the U-Net's 8: tiles span all rows (its upsampling ratios
+    are then the frame's), columns are cut."""
+    path = next(p for p in installed_models() if p.stem.startswith("affinity"))
+    assert_runs_agree(path, (1.3, -0.7), 322, 384)
 
 
 def test_one_memory_setting_chooses_the_tile_size():
