@@ -232,15 +232,16 @@ class GraphRunner:
                       for k, s in zero_state.items()}
             outputs = dict(zip(self.output_names, self.session.run(None, feeds), strict=True))
         else:
-            values = {k: v.reshape(-1)[0] for k, v in feeds.items() if v.ndim != 4 and v.size}
             tiled = self.tiled()
-            frame_wide = tiled.statistics(feeds)
-            outputs = run_tiled(lambda part: dict(zip(self.output_names,
-                                                      tiled.session.run(None,
-                                                                        part | frame_wide),
-                                                      strict=True)),
-                                feeds, height, width, tiling, values, self.tile_pixels,
-                                self.scales, zero_state)
+            frame_wide = tiled.statistics(feeds)  # computed once, fed to every tile
+
+            def run_tile(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+                results = tiled.session.run(None, part | frame_wide)
+                return dict(zip(self.output_names, results, strict=True))
+
+            values = {k: v.reshape(-1)[0] for k, v in feeds.items() if v.ndim != 4 and v.size}
+            outputs = run_tiled(run_tile, feeds, height, width, tiling, values,
+                                self.tile_pixels, self.scales, zero_state)
         return outputs[OUTPUT], {s.name: outputs[STATE_OUT + s.name] for s in self.card.state}
 
 
