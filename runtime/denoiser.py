@@ -255,9 +255,10 @@ class Denoiser:
     when pyoidn is not installed.
 
     Memory: each graph runs in overlapping tiles (tiling.py) whose working set fits in
-    `max_memory_mb` (default QUIETFRAME_MAX_MEMORY_MB or tiling.DEFAULT_MAX_MEMORY_MB; OIDN gets
-    the same bound as its maxMemoryMB). `tile_pixels` overrides the tile size (padded pixels);
-    None runs every frame whole.
+    `max_memory_mb` (default QUIETFRAME_MAX_MEMORY_MB or tiling.DEFAULT_MAX_MEMORY_MB). With an
+    OIDN stage, whose committed filters keep their scratch memory between frames, OIDN gets
+    half as its maxMemoryMB and the graphs' tiles the other half. `tile_pixels` overrides the
+    tile size (padded pixels); None runs every frame whole.
 
     `options`: values for the model's extra inputs (`info.inputs`), e.g. {"kernel_size": 7};
     the card's default for the others."""
@@ -278,9 +279,12 @@ class Denoiser:
         self.card = ModelCard.from_props(self.session.get_modelmeta().custom_metadata_map,
                                          path.stem)
         prepass = self.card.prepass
+        # OIDN keeps its scratch while the graphs run: the bound is shared (class docstring)
+        self._graph_memory_mb = self.max_memory_mb / 2 if prepass else self.max_memory_mb
         try:
             self.prepass = (OIDNPrepass(prepass, num_threads=threads,
-                                        max_memory_mb=self.max_memory_mb) if prepass else None)
+                                        max_memory_mb=self.max_memory_mb / 2)
+                            if prepass else None)
         except PrepassUnavailable as exc:
             exc.model = self.card.name  # for the service's log line and error
             raise
@@ -309,11 +313,11 @@ class Denoiser:
 
     def working_set_bytes(self, height: int, width: int) -> int:
         """About the most the model holds while it denoises an H×W frame beyond the frame's
-        buffers, state and output: its stages run one after another, so the largest stage's
-        (an OIDN stage: at most max_memory_mb, OIDN's own bound)."""
-        oidn = int(self.max_memory_mb * 2**20) if self.prepass is not None else 0
-        return max([oidn, *(stage.working_set_bytes(height, width) for stage in self.stages
-                            if isinstance(stage, GraphRunner))])
+        buffers, state and output: its graphs run one after another, so the largest graph's
+        (an OIDN stage keeps its scratch, at most its maxMemoryMB, while they run)."""
+        oidn = int(self.max_memory_mb / 2 * 2**20) if self.prepass is not None else 0
+        return oidn + max(stage.working_set_bytes(height, width) for stage in self.stages
+                          if isinstance(stage, GraphRunner))
 
     @property
     def color_stage(self) -> GraphRunner | None:
@@ -333,7 +337,7 @@ class Denoiser:
             return tile_pixels  # type: ignore[return-value]
         if card.tiling is None:
             return None
-        return tile_pixels_for(card.tiling, card.state, self.max_memory_mb)
+        return tile_pixels_for(card.tiling, card.state, self._graph_memory_mb)
 
     def _options(self, base: Mapping[str, np.ndarray],
                  options: Mapping[str, float | int]) -> dict[str, np.ndarray]:

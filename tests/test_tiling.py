@@ -114,6 +114,17 @@ def test_one_memory_setting_chooses_the_tile_size():
     assert all((t.py1 - t.py0) * (t.px1 - t.px0) <= side * side for t in tiles)
 
 
+def test_a_composition_shares_the_bound_with_oidn():
+    """OIDN's committed filters keep their scratch while the graphs run: half each."""
+    composed = load(next(p for p in installed_models() if p.stem == "oidn-temporal-acc"),
+                    "by_memory")
+    composed = Denoiser(composed.info.path, threads=1, max_memory_mb=512)
+    assert composed.prepass.max_memory_mb == 256
+    for stage in (composed.color_stage, composed.graph):
+        assert stage.tile_pixels == tile_pixels_for(stage.card.tiling, stage.card.state, 256)
+    assert composed.working_set_bytes(4320, 7680) <= 512 * 2**20
+
+
 def test_kernel_size_sets_the_affinity_reach():
     path = next(p for p in installed_models() if p.stem.startswith("affinity"))
     tiling = Denoiser(path, threads=1).card.tiling
