@@ -13,6 +13,11 @@ read again.
 
 Beside it, `<id>.json` holds the session's settings, written once at creation: when the .npz
 is damaged (or gone), the session can still continue from a fresh history.
+
+Two backends behind one small interface (`Store`): this folder (one server owns it; `shared`
+False) and Redis (`state_store_redis.py`, `shared` True: every replica behind the load balancer
+reads it, and each write is a compare-and-set on the session's version, so two replicas never
+both advance one session). `open_store` picks one from the settings.
 """
 
 from __future__ import annotations
@@ -28,8 +33,12 @@ import zlib
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from quietframe.service.settings import Settings
 
 SESSION_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")  # secrets.token_urlsafe(16): 128 random bits
 
@@ -63,7 +72,79 @@ class Reply:
         return self.request_crc == zlib.crc32(body)  # the one reply of an older file
 
 
+class Store(Protocol):
+    """What the registry asks of a durable store. `write` returns the session's new version
+    (None where the store has no versions: one server owns a local folder); a shared store
+    refuses a write whose `expect` is not the stored version (another replica advanced it)."""
+
+    shared: bool
+
+    def write_spec(self, meta: Mapping) -> None: ...
+    def read_spec(self, session_id: str) -> dict | None: ...
+    def write(self, meta: Mapping, state: Mapping[str, np.ndarray] | None, reply: Reply | None,
+              expect: int | None = None) -> int | None: ...
+    def read(self, session_id: str, shapes: Mapping[str, tuple[int, ...]]
+             ) -> tuple[dict[str, np.ndarray] | None, Reply | None]: ...
+    def quarantine(self, session_id: str) -> object: ...
+    def delete(self, session_id: str) -> None: ...
+
+
+def open_store(settings: Settings) -> Store | None:
+    """Redis when `store_url` is set (replicas share it), else the state folder, else none."""
+    if settings.store_url:
+        from quietframe.service.state_store_redis import RedisStore
+
+        return RedisStore(
+            settings.store_url, settings.session_ttl_s, settings.store_timeout_s,
+            settings.replica_id,
+        )
+    if settings.state_dir:
+        return SessionStore(settings.state_dir, settings.state_fsync)
+    return None
+
+
+def record(
+    meta: Mapping, state: Mapping[str, np.ndarray] | None, reply: Reply | None
+) -> tuple[dict, dict[str, np.ndarray]]:
+    """The stored form of a session, either backend: the meta (with the reply's identity and a
+    manifest of every member's shape) and the arrays (state tensors, the reply's bytes)."""
+    meta = dict(meta)
+    meta["reply"] = None
+    arrays = {f"state.{name}": tensor for name, tensor in (state or {}).items()}
+    if reply is not None:
+        meta["reply"] = {
+            "index": reply.index,
+            "headers": reply.headers,
+            "digest": reply.request_digest,
+            "crc": reply.request_crc,
+            "len": reply.request_len,
+        }
+        arrays["reply"] = np.frombuffer(reply.body, np.uint8)
+    meta["manifest"] = {name: list(array.shape) for name, array in arrays.items()}
+    return meta, arrays
+
+
+def unpack(
+    meta: dict, arrays: dict[str, np.ndarray], session_id: str,
+    shapes: Mapping[str, tuple[int, ...]],
+) -> tuple[dict[str, np.ndarray] | None, Reply | None]:
+    """State and reply from a stored record, verified (ValueError and friends otherwise)."""
+    _verify(meta, arrays, session_id, shapes)
+    state = {k[6:]: v for k, v in arrays.items() if k.startswith("state.")} or None
+    r, reply = meta["reply"], None
+    if r is not None and "reply" in arrays:
+        reply = Reply(
+            r["index"], arrays["reply"].tobytes(), r["headers"], r["len"], r.get("digest"),
+            r.get("crc"),
+        )
+    return state, reply
+
+
 class SessionStore:
+    """The local folder: one server owns it (a restart, even after kill -9, reads it back)."""
+
+    shared = False
+
     def __init__(self, folder: Path, fsync: bool) -> None:
         self.folder, self.fsync = Path(folder), fsync
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -99,24 +180,12 @@ class SessionStore:
         meta: Mapping,
         state: Mapping[str, np.ndarray] | None,
         reply: Reply | None,
+        expect: int | None = None,
     ) -> None:
-        """Replace the session's file (temp file + rename: a crash leaves the old one)."""
-        record = dict(meta)
-        record["reply"] = None
-        arrays = {}
-        for name, tensor in (state or {}).items():
-            arrays[f"state.{name}"] = tensor
-        if reply is not None:
-            record["reply"] = {
-                "index": reply.index,
-                "headers": reply.headers,
-                "digest": reply.request_digest,
-                "crc": reply.request_crc,
-                "len": reply.request_len,
-            }
-            arrays["reply"] = np.frombuffer(reply.body, np.uint8)
-        record["manifest"] = {name: list(array.shape) for name, array in arrays.items()}
-        arrays["meta"] = np.frombuffer(json.dumps(record).encode(), np.uint8)
+        """Replace the session's file (temp file + rename: a crash leaves the old one). `expect`
+        is ignored: this server is the folder's one writer, there is nobody to fence out."""
+        stored, arrays = record(meta, state, reply)
+        arrays["meta"] = np.frombuffer(json.dumps(stored).encode(), np.uint8)
         path = self.path(meta["id"])
         temp = path.with_name(f".{path.name}.tmp")
         try:
@@ -139,18 +208,7 @@ class SessionStore:
             with np.load(self.path(session_id)) as z:
                 arrays = {name: z[name] for name in z.files}  # whole reads check each CRC-32
             meta = json.loads(arrays.pop("meta").tobytes())
-            _verify(meta, arrays, session_id, shapes)
-            state = {k[6:]: v for k, v in arrays.items() if k.startswith("state.")} or None
-            r, reply = meta["reply"], None
-            if r is not None and "reply" in arrays:
-                reply = Reply(
-                    r["index"],
-                    arrays["reply"].tobytes(),
-                    r["headers"],
-                    r["len"],
-                    r.get("digest"),
-                    r.get("crc"),
-                )
+            state, reply = unpack(meta, arrays, session_id, shapes)
         except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
             raise StateDamaged(f"{type(exc).__name__}: {exc}") from exc
         return state, reply

@@ -42,6 +42,7 @@ from quietframe.service.errors import (
     FrameConflict,
     FrameOutOfOrder,
     MemoryBudgetExceeded,
+    ServiceError,
     SessionNotFound,
     TooManySessions,
 )
@@ -57,8 +58,8 @@ from quietframe.service.schemas import (
 )
 from quietframe.service.session_store import (
     Reply,
-    SessionStore,
     StateDamaged,
+    open_store,
     request_digest,
 )
 from quietframe.service.settings import Settings
@@ -133,6 +134,9 @@ class Session:
     reply: Reply | None = None
     resident: bool = True  # False: durable state is on disk only (restart or evicted)
     state_lost: bool = False  # the stored state was damaged: the next frame starts afresh
+    # A shared store's version of the session this copy is (its fencing token); None: unknown,
+    # load the session from the store before the next frame.
+    store_version: int | None = 0
     closed: bool = False
     sources: dict[str, list[str]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
@@ -340,10 +344,8 @@ class SessionRegistry:
         self.admission = MemoryBudget(
             settings.memory_budget_bytes, settings.admission_wait_s, settings.max_uploads
         )
-        self.store = SessionStore(settings.state_dir, settings.state_fsync) if (
-            settings.state_dir
-        ) else None
-        if self.store is not None:
+        self.store = open_store(settings)
+        if self.store is not None and not self.store.shared:  # a shared one: sessions on demand
             self._load_durable()
         self._update_gauges()
 
@@ -352,6 +354,8 @@ class SessionRegistry:
     def get(self, session_id: str, touch: bool = True) -> Session:
         """The session; `touch` counts as use (LRU order, TTL), status reads do not."""
         session = self.sessions.get(session_id)
+        if session is None and self.store is not None and self.store.shared:
+            session = self._adopt(session_id)
         if session is None:
             raise SessionNotFound(
                 f"no session {session_id!r} (expired after {self.settings.session_ttl_s:g} s idle, "
@@ -444,7 +448,9 @@ class SessionRegistry:
         self._make_room(session.reserve_bytes)
         if self.store is not None:
             await self._on_pool(self.store.write_spec, session.meta())
-            await self._on_pool(self.store.write, session.meta(), None, None)
+            session.store_version = await self._on_pool(
+                self.store.write, session.meta(), None, None, 0
+            )
         self.sessions[session.id] = session
         self.metrics.sessions_created.inc()
         self._update_gauges()
@@ -464,7 +470,8 @@ class SessionRegistry:
         session.closed = True
         session.state, session.reply = None, None
         self.sessions.pop(session.id, None)
-        if self.store is not None and reason != "deleted":
+        if self.store is not None and reason != "deleted" and not self.store.shared:
+            # (a shared store forgets idle sessions itself: another replica may hold this one)
             self.pool.submit(self.store.delete, session.id)
         self.metrics.sessions_closed.labels(reason).inc()
         self._update_gauges()
@@ -527,7 +534,7 @@ class SessionRegistry:
             )
             self._reserve_reply(session, len(frame.reply.body), info)
             if self.store is not None:
-                await self._on_pool(self.store.write, session.meta(frame), frame.state, frame.reply)
+                await self._persist(session, frame)
             self._commit(session, frame)
             if chose and choice is not None:
                 kind = choice.noise_source
@@ -624,7 +631,85 @@ class SessionRegistry:
     async def _on_pool(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
 
+    async def _persist(self, session: Session, frame: _Processed) -> None:
+        """Store the frame's outcome before it is committed; with a shared store, only if no
+        other replica advanced the session meanwhile (fencing: SessionMoved, and this copy is
+        reloaded before its next frame)."""
+        assert self.store is not None
+        try:
+            version = await self._on_pool(
+                self.store.write, session.meta(frame), frame.state, frame.reply,
+                session.store_version,
+            )
+        except ServiceError as exc:
+            if exc.code == "session_moved":
+                session.state, session.reply, session.resident = None, None, False
+                session.store_version = None
+            raise
+        session.store_version = version
+
+    def _adopt(self, session_id: str) -> Session | None:
+        """A session this replica does not hold, registered from the shared store (its state is
+        loaded with its next frame). Runs on the event loop: one small read."""
+        assert self.store is not None
+        found = self.store.find(session_id)  # type: ignore[attr-defined]
+        if found is None:
+            return None
+        meta, lost = found
+        self._restore(session_id, meta, lost)
+        session = self.sessions.get(session_id)
+        if session is not None:
+            session.store_version = None  # load what the store holds before the next frame
+            log.info("session adopted from the store", extra={"session": session_id})
+        return session
+
+    async def _follow_store(self, session: Session) -> None:
+        """Shared store: its version is the truth. Another replica may have advanced this session
+        since this copy was loaded (a failover, then back): load what it committed."""
+        store = self.store
+        assert store is not None
+        version = await self._on_pool(store.version, session.id)  # type: ignore[attr-defined]
+        if version is None:  # expired in the store, or deleted through another replica
+            self._remove(session, "gone")
+            raise SessionNotFound(f"session {session.id!r} is gone (expired or deleted)")
+        if session.resident and version == session.store_version:
+            return
+        self._make_room(session.reserve_bytes, keep=session)
+        loaded = await self._on_pool(store.load, session.id, self._shapes_of)  # type: ignore
+        if loaded is None:
+            self._remove(session, "gone")
+            raise SessionNotFound(f"session {session.id!r} is gone (expired or deleted)")
+        if loaded.meta is not None:
+            session.last_index = loaded.meta["last_index"]
+            session.frames_done = loaded.meta["frames_done"]
+            session.resets = loaded.meta["resets"]
+            choice = loaded.meta.get("choice")
+            session.choice = Choice.from_dict(choice) if choice else None
+            session.info = self._info_of(loaded.meta)
+        elif loaded.damage != "no stored state":
+            aside = await self._on_pool(store.quarantine, session.id)
+            log.error(
+                "stored session state is damaged; the next frame starts a fresh history",
+                extra={"session": session.id, "error": loaded.damage, "quarantined": aside},
+            )
+        session.state, session.reply = loaded.state, loaded.reply
+        session.state_lost = loaded.meta is None
+        session.store_version, session.resident = loaded.version, True
+        self._update_gauges()
+
+    def _info_of(self, meta: dict) -> ModelInfo:
+        """The model a stored session uses: its shot's choice (auto), else its model."""
+        choice = meta.get("choice")
+        name = choice["model"] if choice else self.models.resolve(meta["model"])
+        return self.models.denoiser(name).info
+
+    def _shapes_of(self, meta: dict) -> dict[str, tuple[int, ...]]:
+        info, (w, h) = self._info_of(meta), (meta["width"], meta["height"])
+        return {s.name: s.shape(h, w) for s in info.state_specs}
+
     async def _ensure_resident(self, session: Session) -> None:
+        if self.store is not None and self.store.shared:
+            return await self._follow_store(session)
         if session.resident:
             return
         self._make_room(session.reserve_bytes, keep=session)

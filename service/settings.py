@@ -64,6 +64,17 @@ class Settings(BaseSettings):
     # Durable sessions: with a directory, every session's state is written after each frame.
     state_dir: Path | None = None
     state_fsync: bool = Field(False, description="fsync state files (survive power loss, slower)")
+    # Past one box (docs/deployment.md): replicas behind a load balancer that hashes the session
+    # id share the sessions through Redis; a replica loads a session it does not hold from it.
+    store_url: str | None = Field(
+        None, description="redis://host:port/db: sessions shared by every replica (not state_dir)"
+    )
+    store_timeout_s: float = Field(
+        10.0, gt=0, description="a store call that takes longer is a 503 (the frame is not lost)"
+    )
+    replica_id: str | None = Field(
+        None, description="this replica's name in logs and stored records; None: the host name"
+    )
 
     auth_token: SecretStr | None = Field(None, description="bearer token for /v1; None: no auth")
     log_level: str = "info"

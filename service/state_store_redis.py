@@ -1,0 +1,232 @@
+"""Sessions in Redis, shared by every replica behind the load balancer (docs/deployment.md).
+
+One session is three keys with one hash tag, so a Redis Cluster keeps them in one slot and a
+transaction may span them:
+- `qf:{id}:spec` — the settings at creation (JSON), as `<id>.json` on disk;
+- `qf:{id}:ver`  — the version: 1 at creation, +1 per committed frame (the fencing token);
+- `qf:{id}:data` — a hash: `meta` (JSON: progress, reply identity, manifest of shapes), one
+  field per state tensor (`state.<name>`, raw float32, C order) and `reply` (the reply's bytes).
+
+A write is a compare-and-set on the version (WATCH / MULTI / EXEC): it succeeds only when the
+stored version is the one the writing replica loaded, so after a failover the replica that lost
+the session cannot overwrite what its successor committed; it gets SessionMoved and reloads.
+Reads of the version and the data are one transaction, so a reader never sees a half-written
+session. Every write renews the keys' expiry (the session TTL): Redis, not a replica, forgets
+abandoned sessions, so a replica that drops its copy of an idle session never deletes it under
+another replica's feet.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import socket
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import redis
+
+from quietframe.service.errors import ServiceError
+from quietframe.service.session_store import SESSION_ID, Reply, StateDamaged, record, unpack
+
+QUARANTINE_S = 7 * 86400  # a damaged record is kept this long for a look
+
+
+class StoreUnavailable(ServiceError):
+    """Redis did not answer: the frame is not committed (nor lost); retry."""
+
+    status, code = 503, "state_store_unavailable"
+
+
+class SessionMoved(ServiceError):
+    """Another replica advanced this session since this one loaded it (a failover): this
+    replica reloads it; the client's retry then continues the sequence (or gets the reply)."""
+
+    status, code = 503, "session_moved"
+
+
+@dataclass
+class Loaded:
+    """A session as stored: `meta` None when only its settings survive (state lost)."""
+
+    meta: dict | None
+    state: dict[str, np.ndarray] | None
+    reply: Reply | None
+    version: int
+    damage: str | None = None  # why the stored state could not be used
+
+
+class RedisStore:
+    shared = True
+
+    def __init__(
+        self, url: str, ttl_s: float, timeout_s: float, replica: str | None = None
+    ) -> None:
+        self.redis = redis.Redis.from_url(
+            url, socket_timeout=timeout_s, socket_connect_timeout=min(timeout_s, 2.0)
+        )
+        self.ttl_ms = int(ttl_s * 1000)
+        self.replica = replica or socket.gethostname()
+
+    @staticmethod
+    def keys(session_id: str) -> tuple[str, str, str]:
+        if not SESSION_ID.match(session_id):
+            raise ValueError(f"not a session id: {session_id!r}")
+        tag = f"qf:{{{session_id}}}"
+        return f"{tag}:spec", f"{tag}:ver", f"{tag}:data"
+
+    @contextlib.contextmanager
+    def _answering(self) -> Iterator[None]:
+        try:
+            yield
+        except (redis.ConnectionError, redis.TimeoutError) as exc:
+            raise StoreUnavailable(
+                f"the session store did not answer ({type(exc).__name__}); the frame was not "
+                "committed: retry after Retry-After",
+                headers={"Retry-After": "1"},
+            ) from exc
+
+    # ---- settings ----------------------------------------------------------------------------
+
+    def write_spec(self, meta: Mapping) -> None:
+        spec, _, _ = self.keys(meta["id"])
+        with self._answering():
+            self.redis.set(spec, json.dumps(dict(meta)), px=self.ttl_ms)
+
+    def read_spec(self, session_id: str) -> dict | None:
+        spec, _, _ = self.keys(session_id)
+        with self._answering():
+            raw = self.redis.get(spec)
+        return _json_record(raw, session_id)
+
+    def find(self, session_id: str) -> tuple[dict, bool] | None:
+        """(meta, state lost) of a session this replica does not hold, or None (no such one):
+        its progress when its data is stored, else its settings alone."""
+        spec, ver, data = self.keys(session_id)
+        with self._answering():
+            version, meta, settings = (
+                self.redis.pipeline().get(ver).hget(data, "meta").get(spec).execute()
+            )
+        if version is None:
+            return None
+        found = _json_record(meta, session_id)
+        if found is not None:
+            return found, False
+        settings = _json_record(settings, session_id)
+        return (settings, True) if settings is not None else None
+
+    # ---- state -------------------------------------------------------------------------------
+
+    def version(self, session_id: str) -> int | None:
+        _, ver, _ = self.keys(session_id)
+        with self._answering():
+            raw = self.redis.get(ver)
+        return None if raw is None else int(raw)
+
+    def write(
+        self,
+        meta: Mapping,
+        state: Mapping[str, np.ndarray] | None,
+        reply: Reply | None,
+        expect: int | None = None,
+    ) -> int:
+        """Store the session as `meta`/`state`/`reply` if its version is still `expect`
+        (0: a new session); returns the new version. SessionMoved otherwise."""
+        spec, ver, data = self.keys(meta["id"])
+        stored, arrays = record(meta, state, reply)
+        stored["writer"] = self.replica
+        fields: dict[str, bytes | memoryview] = {"meta": json.dumps(stored).encode()}
+        for name, array in arrays.items():  # no copy: redis-py sends a memoryview as it is
+            fields[name] = memoryview(np.ascontiguousarray(array)).cast("B")
+        expect = expect or 0
+        with self._answering(), self.redis.pipeline() as pipe:
+            try:
+                pipe.watch(ver)
+                current = pipe.get(ver)
+                if (0 if current is None else int(current)) != expect:
+                    raise self._moved(meta["id"], expect, current)
+                pipe.multi()
+                pipe.delete(data)  # a model switch (auto) changes the state's fields
+                pipe.hset(data, mapping=fields)  # type: ignore[arg-type]
+                pipe.set(ver, expect + 1, px=self.ttl_ms)
+                pipe.pexpire(data, self.ttl_ms)
+                pipe.pexpire(spec, self.ttl_ms)
+                pipe.execute()
+            except redis.WatchError:  # another replica wrote between our read and our write
+                raise self._moved(meta["id"], expect, None) from None
+        return expect + 1
+
+    def _moved(self, session_id: str, expect: int, current: bytes | None) -> SessionMoved:
+        now = "changed" if current is None else f"is {int(current)}"
+        return SessionMoved(
+            f"session {session_id} was advanced by another replica (version {now}, this replica "
+            f"held {expect}); it reloads the session: retry the frame",
+            headers={"Retry-After": "1"},
+        )
+
+    def load(
+        self, session_id: str, shapes_of: Callable[[dict], Mapping[str, tuple[int, ...]]]
+    ) -> Loaded | None:
+        """The stored session (one transaction: version and data agree), verified against
+        `shapes_of(meta)` (the state's shapes for the model the meta names); None if gone."""
+        _, ver, data = self.keys(session_id)
+        with self._answering():
+            version, fields = self.redis.pipeline().get(ver).hgetall(data).execute()
+        if version is None:
+            return None
+        if not fields:
+            return Loaded(None, None, None, int(version), "no stored state")
+        try:
+            meta = json.loads(fields.pop(b"meta"))
+            arrays = _arrays(meta, fields)
+            state, reply = unpack(meta, arrays, session_id, shapes_of(meta))
+        except (ValueError, KeyError, TypeError) as exc:
+            return Loaded(None, None, None, int(version), f"{type(exc).__name__}: {exc}")
+        return Loaded(meta, state, reply, int(version))
+
+    def read(
+        self, session_id: str, shapes: Mapping[str, tuple[int, ...]]
+    ) -> tuple[dict[str, np.ndarray] | None, Reply | None]:
+        loaded = self.load(session_id, lambda _: shapes)
+        if loaded is None or loaded.damage is not None:
+            raise StateDamaged(loaded.damage if loaded else "no such session")
+        return loaded.state, loaded.reply
+
+    def quarantine(self, session_id: str) -> str | None:
+        """Move the damaged data aside (kept a week); the version stays, so the session goes on
+        from a fresh history and fencing still holds."""
+        _, _, data = self.keys(session_id)
+        aside = f"qf:quarantine:{session_id}:{time.strftime('%Y%m%dT%H%M%S')}"
+        with self._answering():
+            try:
+                self.redis.rename(data, aside)
+            except redis.ResponseError:  # no such key
+                return None
+            self.redis.expire(aside, QUARANTINE_S)
+        return aside
+
+    def delete(self, session_id: str) -> None:
+        with self._answering():
+            self.redis.delete(*self.keys(session_id))
+
+
+def _json_record(raw: bytes | None, session_id: str) -> dict | None:
+    try:
+        meta = json.loads(raw) if raw is not None else None
+    except ValueError:
+        return None
+    return meta if isinstance(meta, dict) and meta.get("id") == session_id else None
+
+
+def _arrays(meta: dict, fields: dict[bytes, bytes]) -> dict[str, np.ndarray]:
+    """The stored members as arrays of the manifest's shapes (state float32, reply bytes); a
+    member of the wrong length is a ValueError (reshape), as a truncated file is on disk."""
+    arrays = {}
+    for raw_name, raw in fields.items():
+        name = raw_name.decode()
+        dtype = np.float32 if name.startswith("state.") else np.uint8
+        shape = meta["manifest"][name]
+        arrays[name] = np.frombuffer(raw, dtype).reshape(shape)
+    return arrays
