@@ -1,10 +1,12 @@
 """Large frames through the runtime: peak memory and time per frame at 1080p, 4K and 8K.
 
     python -m quietframe.bench.large_frames [--sizes 1080p 4k 8k] [--frames 2] [--threads 2]
+        [--model affinity-h16-k5gc] [--max-memory-mb 1536 | --tile-pixels 0]
 
 Each size runs in its own process (peak RSS = that process's VmHWM): synthetic render-like
 buffers (float32, built without float64 temporaries), `frames` frames with the history carried,
-through `Denoiser.denoise` with its default tiling (runtime/tiling.py). Prints a Markdown table:
+through `Denoiser.denoise` with its tiles sized by the memory bound (runtime/tiling.py;
+`--tile-pixels N` fixes them, 0 runs untiled). Prints a Markdown table:
 ms per frame (median), peak RSS, the inputs' and state's share of it, and the tile count.
 """
 
@@ -19,7 +21,7 @@ import time
 
 import numpy as np
 
-DEFAULT_TILE_PIXELS = 1 << 21  # what the default memory bound gives NBG (runtime/tiling.py)
+BY_MEMORY = -1  # --tile-pixels: tiles sized by the runtime's max_memory_mb
 
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "8k": (7680, 4320)}
 
@@ -43,14 +45,19 @@ def buffers(width: int, height: int, seed: int) -> dict[str, np.ndarray]:
     return {"color": color, "albedo": albedo, "normal": normal, "depth": depth, "motion": motion}
 
 
-def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | None) -> dict:
+def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | None,
+        model: str = "", max_memory_mb: float | None = None) -> dict:
     import os
 
     from quietframe.bench.http_overhead import rss_mib
-    from quietframe.runtime import Denoiser, default_model_path
+    from quietframe.runtime import Denoiser, default_model_path, find_model
+    from quietframe.runtime.denoiser import BY_MEMORY as RUNTIME_BY_MEMORY
     from quietframe.runtime.tiling import overlap_for, plan_tiles
 
-    denoiser = Denoiser(default_model_path(), threads=threads, tile_pixels=tile_pixels)
+    path = find_model(model) if model else default_model_path()
+    tiles_by = RUNTIME_BY_MEMORY if tile_pixels == BY_MEMORY else tile_pixels
+    denoiser = Denoiser(path, threads=threads, tile_pixels=tiles_by, max_memory_mb=max_memory_mb)
+    tile_pixels = denoiser.tile_pixels
     base = rss_mib(os.getpid(), "VmHWM")
     times, state = [], None
     for i in range(frames):
@@ -64,8 +71,10 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
     tiling = denoiser.graph.card.tiling
     tiles = 1
     if tile_pixels is not None and tiling is not None:
-        overlap = overlap_for(tiling, {}, planes["motion"])
-        tiles = len(plan_tiles(height, width, overlap, tiling.align, tile_pixels))
+        defaults = {spec.name: spec.default for spec in denoiser.graph.card.inputs}
+        overlap = overlap_for(tiling, defaults, planes["motion"])
+        tiles = len(plan_tiles(height, width, overlap, tiling.align, tile_pixels,
+                               tiling.size_ratios))
     return {
         "size": f"{width}x{height}",
         "ms_per_frame": round(statistics.median(times), 0),
@@ -84,20 +93,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument(
-        "--tile-pixels", type=int, default=DEFAULT_TILE_PIXELS, help="0: untiled (comparison)"
-    )
+        "--tile-pixels", type=int, default=BY_MEMORY,
+        help="padded pixels per tile; 0: untiled (comparison); default: from the memory bound")
+    parser.add_argument("--model", default="", help="an installed model (default: the default)")
+    parser.add_argument("--max-memory-mb", type=float, help="the runtime's memory bound")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one:
         width, height = SIZES[args.one]
         tile_pixels = args.tile_pixels or None
-        print(json.dumps(one(width, height, args.frames, args.threads, tile_pixels)))
+        print(json.dumps(one(width, height, args.frames, args.threads, tile_pixels, args.model,
+                             args.max_memory_mb)))
         return 0
     rows = []
     for size in args.sizes:
         cmd = [sys.executable, "-m", "quietframe.bench.large_frames", "--one", size,
                "--frames", str(args.frames), "--threads", str(args.threads),
-               "--tile-pixels", str(args.tile_pixels)]
+               "--tile-pixels", str(args.tile_pixels), "--model", args.model,
+               *(["--max-memory-mb", str(args.max_memory_mb)] if args.max_memory_mb else [])]
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         rows.append(json.loads(out.strip().splitlines()[-1]))
         print(json.dumps(rows[-1]), file=sys.stderr)
