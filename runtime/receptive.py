@@ -8,7 +8,7 @@ every grid cell, pooling block and resampling grid lies where it lies in the unt
 `bytes_per_pixel`: the graph's transient working set per pixel in onnxruntime without memory
 patterns (how tiles run), measured on a 1024² frame as peak RSS added by one run less its
 outputs, rounded up by ~25%: accumulation 64, nbg-2l-1g 313, nbg-2l-3g 251, nbg-7l-3g 919,
-affinity-h16-k5gc 571, oidn-temporal-acc's graph 240 B/px (this machine, onnxruntime 1.23);
+affinity-h16-k5gc 571, oidn-temporal-acc's graph 240 B/px (this machine, onnxruntime 1.32);
 runtime/tiling.py adds the tile's own inputs, state and outputs, which the card's state gives.
 """
 
