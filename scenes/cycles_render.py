@@ -33,14 +33,12 @@ from pathlib import Path
 import bpy  # only in the Cycles venv
 import numpy as np
 
-from . import cycles_scene
+from . import cycles_scene, preview
 from .generator import GENERATOR_VERSION, generate, summary
 from .layout import DATA_DIR, split_dir, split_seeds
 
 MANIFEST = "manifest.json"
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
-PREVIEW_SPP = 8
-MIN_LIT_FRACTION = 0.2  # as the Mitsuba renderer: reject scenes whose preview is near black
+LUMA = preview.LUMA
 REFERENCE_HALVES = {"reference_a": 1_000_003, "reference_b": 2_000_003}  # dir -> seed salt
 
 
@@ -191,15 +189,16 @@ def choose_scene(seed: int, n_frames: int, cfg: CyclesConfig, work: Path, tries:
         scene = cycles_scene.build_scene(desc, 1.0)
         configure(scene, cfg)
         c = scene.cycles
-        c.samples, c.seed, c.use_adaptive_sampling, c.use_denoising = PREVIEW_SPP, 99, False, False
+        c.samples, c.seed = preview.PREVIEW_SPP, 99
+        c.use_adaptive_sampling = c.use_denoising = False
         lum, ok = [], True
         for shot in desc["shots"]:
             path = work / f"preview_{attempt}_{shot['first_frame']}.exr"
             render_to(scene, cycles_scene.blender_frame(shot["first_frame"]), path)
             rad = read_layer(path, "Combined")[..., :3] @ LUMA
-            depth = read_layer(path, "Depth")[..., 0]
+            depth = read_layer(path, "Depth")[..., 0]  # 1e10 where no ray hit
             path.unlink()
-            if np.mean(depth < 0.25) > 0.2 or np.mean(rad > 0) < MIN_LIT_FRACTION:
+            if preview.rejected(rad, depth):
                 ok = False
                 break
             lum.append(rad)
@@ -207,20 +206,14 @@ def choose_scene(seed: int, n_frames: int, cfg: CyclesConfig, work: Path, tries:
             break
     else:
         raise RuntimeError(f"seed {seed}: {tries} generated scenes were all blocked or black")
-    lum_all = np.concatenate([x.ravel() for x in lum])
-    clip = np.percentile(lum_all, 99)
-    robust = float(np.mean(np.minimum(lum_all, clip)))
-    target = float(np.exp(np.random.default_rng([seed, 2]).uniform(np.log(0.15), np.log(0.6))))
+    exposure, clip = preview.exposure(lum, seed)
     c.max_bounces = 0  # direct light only: emitters seen directly or after one bounce
     path = work / "preview_direct.exr"
     render_to(scene, cycles_scene.blender_frame(desc["shots"][-1]["first_frame"]), path)
-    direct = np.minimum(read_layer(path, "Combined")[..., :3] @ LUMA, clip)
+    direct = read_layer(path, "Combined")[..., :3] @ LUMA
     path.unlink()
-    stats = {
-        "direct_fraction": float(direct.mean() / max(np.minimum(lum[-1], clip).mean(), 1e-12)),
-        "preview_black_fraction": float(np.mean(lum[-1] <= 0)),
-    }
-    return desc, attempt, target / max(robust, 1e-12), stats
+    stats = preview.lighting_stats(direct, lum[-1], clip, np.mean(lum[-1] <= 0))
+    return desc, attempt, exposure, stats
 
 
 # ---------------------------------------------------------------------------------------------

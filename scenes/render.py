@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from . import exr_io
+from . import exr_io, preview
 from .camera import Camera, motion_for_pass
 from .generator import GENERATOR_VERSION, build, generate, mover_meshes, summary
 
 MANIFEST = "manifest.json"
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+LUMA = preview.LUMA
 
 
 @dataclass
@@ -325,8 +325,6 @@ def _half(a: np.ndarray) -> np.ndarray:
     return a.astype(np.float16).astype(np.float32)
 
 
-PREVIEW_SPP = 8
-MIN_LIT_FRACTION = 0.2  # of pixels with any light in the 8-spp preview
 
 
 def choose_scene(
@@ -345,11 +343,11 @@ def choose_scene(
         for shot in desc["shots"]:
             t = shot["first_frame"]
             set_frame(scene, Camera(**desc["cameras"][t]), movers, t)
-            passes = render_passes(scene, reference, _seed(seed, attempt, 99), PREVIEW_SPP, table)
+            passes = render_passes(scene, reference, _seed(seed, attempt, 99), preview.PREVIEW_SPP,
+                                   table)
             rad = np.mean([p["radiance"] for p in passes], 0) @ LUMA
             depth = np.where(passes[0]["hit"], passes[0]["depth"], np.inf)
-            # Sunlit rooms are mostly black at 1 spp by design; reject only the near-black.
-            if np.mean(depth < 0.25) > 0.2 or np.mean(rad > 0) < MIN_LIT_FRACTION:
+            if preview.rejected(rad, depth):
                 ok = False
                 break
             lum.append(rad)
@@ -357,22 +355,15 @@ def choose_scene(
             break
     else:
         raise RuntimeError(f"seed {seed}: {tries} generated scenes were all blocked or black")
-    lum_all = np.concatenate([x.ravel() for x in lum])
-    clip = np.percentile(lum_all, 99)
-    robust = float(np.mean(np.minimum(lum_all, clip)))
-    target = float(np.exp(np.random.default_rng([seed, 2]).uniform(np.log(0.15), np.log(0.6))))
-    exposure = target / max(robust, 1e-12)
+    exposure, clip = preview.exposure(lum, seed)
     # Direct light only (emitters seen directly or after one bounce) on the last previewed
     # shot: the share of the image it explains says whether the scene is lit indirectly.
     direct = mi.load_dict({"type": "path", "max_depth": 2})
-    img = np.array(mi.render(scene, integrator=direct, seed=_seed(seed, 98), spp=PREVIEW_SPP))
+    img = np.array(mi.render(scene, integrator=direct, seed=_seed(seed, 98),
+                             spp=preview.PREVIEW_SPP))
     d_lum = np.nan_to_num(np.asarray(img, np.float32)[..., :3] @ LUMA)
-    stats = {
-        "direct_fraction": float(
-            np.minimum(d_lum, clip).mean() / max(np.minimum(lum[-1], clip).mean(), 1e-12)
-        ),
-        "preview_black_fraction": float(np.mean(passes[0]["radiance"].max(-1) <= 0)),
-    }
+    black = np.mean(passes[0]["radiance"].max(-1) <= 0)
+    stats = preview.lighting_stats(d_lum, lum[-1], clip, black)
     return desc, scene, reference, table, attempt, exposure, stats
 
 
