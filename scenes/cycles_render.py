@@ -182,30 +182,29 @@ def choose_scene(seed: int, n_frames: int, cfg: CyclesConfig, work: Path, tries:
     nearer than 0.25 m) or near black (< 20% of pixels with any light in an 8-spp preview);
     the exposure maps the preview's mean luminance (clipped at its 99th percentile) to a
     seeded 0.15-0.6, and `direct_fraction` is the share of it that direct light explains."""
-    for attempt in range(tries):
+    made: dict = {}
+
+    def shot_previews(attempt: int):
         desc = generate(seed, n_frames, attempt)
         if cfg.locked_off:
             desc = _locked_off(desc)
         scene = cycles_scene.build_scene(desc, 1.0)
         configure(scene, cfg)
+        made.update(desc=desc, scene=scene)
         c = scene.cycles
         c.samples, c.seed = preview.PREVIEW_SPP, 99
         c.use_adaptive_sampling = c.use_denoising = False
-        lum, ok = [], True
         for shot in desc["shots"]:
             path = work / f"preview_{attempt}_{shot['first_frame']}.exr"
             render_to(scene, cycles_scene.blender_frame(shot["first_frame"]), path)
             rad = read_layer(path, "Combined")[..., :3] @ LUMA
             depth = read_layer(path, "Depth")[..., 0]  # 1e10 where no ray hit
             path.unlink()
-            if preview.rejected(rad, depth):
-                ok = False
-                break
-            lum.append(rad)
-        if ok:
-            break
-    else:
-        raise RuntimeError(f"seed {seed}: {tries} generated scenes were all blocked or black")
+            yield rad, depth
+
+    attempt, lum = preview.first_acceptable(seed, tries, shot_previews)
+    desc, scene = made["desc"], made["scene"]
+    c = scene.cycles
     exposure, clip = preview.exposure(lum, seed)
     c.max_bounces = 0  # direct light only: emitters seen directly or after one bounce
     path = work / "preview_direct.exr"

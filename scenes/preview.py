@@ -4,6 +4,8 @@ shot that starts blocked or near black, expose the sequence, measure how indirec
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
+
 import numpy as np
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -17,6 +19,23 @@ def rejected(luminance: np.ndarray, depth: np.ndarray) -> bool:
     at 1 spp by design; only the near-black are rejected. `depth`: inf where no ray hit."""
     return bool(np.mean(depth < NEAR_M) > MAX_NEAR_FRACTION
                 or np.mean(luminance > 0) < MIN_LIT_FRACTION)
+
+
+def first_acceptable(
+    seed: int, tries: int, shot_previews: Callable[[int], Iterable[tuple[np.ndarray, np.ndarray]]]
+) -> tuple[int, list[np.ndarray]]:
+    """The first attempt (0, 1, ...) whose every shot preview passes, and those previews'
+    luminances. `shot_previews(attempt)` builds that attempt's scene and yields (luminance,
+    depth) per shot; it is stopped at the first rejected shot."""
+    for attempt in range(tries):
+        lum = []
+        for rad, depth in shot_previews(attempt):
+            if rejected(rad, depth):
+                break
+            lum.append(rad)
+        else:
+            return attempt, lum
+    raise RuntimeError(f"seed {seed}: {tries} generated scenes were all blocked or black")
 
 
 def exposure(luminances: list[np.ndarray], seed: int) -> tuple[float, float]:

@@ -335,26 +335,24 @@ def choose_scene(
     the exposure and measures how much of the light is direct (paths of one bounce)."""
     import mitsuba as mi
 
-    for attempt in range(tries):
+    made: dict = {}
+
+    def shot_previews(attempt: int):
         desc = scene_fn(seed, n_frames, attempt)
         scene, reference, table = load_scene(desc, cfg)
+        made.update(desc=desc, scene=scene, reference=reference, table=table)
         movers = movers_of(scene, desc)
-        lum, ok = [], True
         for shot in desc["shots"]:
             t = shot["first_frame"]
             set_frame(scene, Camera(**desc["cameras"][t]), movers, t)
-            passes = render_passes(scene, reference, _seed(seed, attempt, 99), preview.PREVIEW_SPP,
-                                   table)
+            made["passes"] = passes = render_passes(
+                scene, reference, _seed(seed, attempt, 99), preview.PREVIEW_SPP, table)
             rad = np.mean([p["radiance"] for p in passes], 0) @ LUMA
-            depth = np.where(passes[0]["hit"], passes[0]["depth"], np.inf)
-            if preview.rejected(rad, depth):
-                ok = False
-                break
-            lum.append(rad)
-        if ok:
-            break
-    else:
-        raise RuntimeError(f"seed {seed}: {tries} generated scenes were all blocked or black")
+            yield rad, np.where(passes[0]["hit"], passes[0]["depth"], np.inf)
+
+    attempt, lum = preview.first_acceptable(seed, tries, shot_previews)
+    desc, scene, reference, table, passes = (
+        made[k] for k in ("desc", "scene", "reference", "table", "passes"))
     exposure, clip = preview.exposure(lum, seed)
     # Direct light only (emitters seen directly or after one bounce) on the last previewed
     # shot: the share of the image it explains says whether the scene is lit indirectly.
