@@ -32,7 +32,7 @@ import numpy as np
 
 MODEL = "nbg-2l-3g"  # the fast tier, with a temporal state (a failover must carry it)
 HAPROXY_CFG = Path(__file__).resolve().parents[1] / "deploy" / "haproxy.cfg"
-SIZES = {"720p": (1280, 720), "1080p": (1920, 1080), "4k": (3840, 2160)}
+SIZES = {"512x288": (512, 288), "720p": (1280, 720), "1080p": (1920, 1080), "4k": (3840, 2160)}
 
 
 def free_port() -> int:
@@ -114,7 +114,8 @@ class Cluster:
         aof = ["--appendonly", "no"] if self.persistence == "none" else [
             "--appendonly", "yes", "--appendfsync", self.persistence]
         self._spawn("redis", ["redis-server", "--port", str(self.redis_port), "--bind",
-                              "127.0.0.1", "--save", "", *aof, "--dir", str(self.folder)])
+                              "127.0.0.1", "--save", "", *aof, "--dir", str(self.folder),
+                              "--proto-max-bulk-len", "2gb"])
         wait_for(self.redis_answers, 20, "redis-server")
 
     def redis_answers(self) -> bool:
@@ -252,13 +253,13 @@ def time_store(store, meta, state, reply, repeats: int, shapes) -> dict:
 
     answer = Reply(1, reply, {"X-Quietframe-Frame": "1"}, len(reply), "0" * 64)
     writes, checks, reads = [], [], []
-    version = 0
+    version = ""
     if store.shared:
         store.write_spec(meta)
     for _ in range(repeats):
         t0 = time.perf_counter()
         if store.shared:
-            assert (store.version(meta["id"]) or 0) == version
+            assert (store.version(meta["id"]) or "") == version
         t1 = time.perf_counter()
         version = store.write(meta, state, answer, version)
         t2 = time.perf_counter()
@@ -306,12 +307,10 @@ def store_costs(size_name: str, repeats: int) -> list[dict]:
 def estimate(replicas: int, cameras: int, size_name: str, seconds_per_frame: float) -> dict:
     """What the store and the load balancer carry for a farm: every frame writes its session's
     state and reply once; a failover reads one session back."""
-    from quietframe.runtime import Denoiser, installed_models
-
     width, height = SIZES[size_name]
-    info = Denoiser(next(p for p in installed_models() if p.stem == MODEL), threads=1).info
-    state = info.state_nbytes(height, width)
-    exr = width * height * 11 * 2 * 0.6  # 11 half channels (beauty, albedo, normal, depth), ZIP
+    _, state_tensors, reply = session_payload(width, height)  # the `store` measurement's
+    state = sum(a.nbytes for a in state_tensors.values())
+    exr = len(reply)  # a render-like Blender EXR (ZIP, half) in, about as large out
     frames_s = min(cameras, replicas) / seconds_per_frame  # one frame per replica at a time
     per_frame = state + exr
     return {

@@ -136,7 +136,7 @@ class Session:
     state_lost: bool = False  # the stored state was damaged: the next frame starts afresh
     # A shared store's version of the session this copy is (its fencing token); None: unknown,
     # load the session from the store before the next frame.
-    store_version: int | None = 0
+    store_version: str | None = ""  # "": a new session, not stored yet
     closed: bool = False
     sources: dict[str, list[str]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
@@ -449,7 +449,7 @@ class SessionRegistry:
         if self.store is not None:
             await self._on_pool(self.store.write_spec, session.meta())
             session.store_version = await self._on_pool(
-                self.store.write, session.meta(), None, None, 0
+                self.store.write, session.meta(), None, None, ""
             )
         self.sessions[session.id] = session
         self.metrics.sessions_created.inc()

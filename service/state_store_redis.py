@@ -3,7 +3,9 @@
 One session is three keys with one hash tag, so a Redis Cluster keeps them in one slot and a
 transaction may span them:
 - `qf:{id}:spec` — the settings at creation (JSON), as `<id>.json` on disk;
-- `qf:{id}:ver`  — the version: 1 at creation, +1 per committed frame (the fencing token);
+- `qf:{id}:ver`  — the version, the fencing token: `<n>-<random>`, n = 1 at creation, +1 per
+  committed frame; the random part makes every write's token unique, so a Redis that lost its
+  last writes (restarted from an older file) never hands out a token a replica already holds;
 - `qf:{id}:data` — a hash: `meta` (JSON: progress, reply identity, manifest of shapes), one
   field per state tensor (`state.<name>`, raw float32, C order) and `reply` (the reply's bytes).
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import secrets
 import socket
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -54,7 +57,7 @@ class Loaded:
     meta: dict | None
     state: dict[str, np.ndarray] | None
     reply: Reply | None
-    version: int
+    version: str
     damage: str | None = None  # why the stored state could not be used
 
 
@@ -119,47 +122,49 @@ class RedisStore:
 
     # ---- state -------------------------------------------------------------------------------
 
-    def version(self, session_id: str) -> int | None:
+    def version(self, session_id: str) -> str | None:
         _, ver, _ = self.keys(session_id)
         with self._answering():
             raw = self.redis.get(ver)
-        return None if raw is None else int(raw)
+        return None if raw is None else raw.decode()
 
     def write(
         self,
         meta: Mapping,
         state: Mapping[str, np.ndarray] | None,
         reply: Reply | None,
-        expect: int | None = None,
-    ) -> int:
+        expect: str | None = None,
+    ) -> str:
         """Store the session as `meta`/`state`/`reply` if its version is still `expect`
-        (0: a new session); returns the new version. SessionMoved otherwise."""
+        ("" or None: a new session); returns the new version. SessionMoved otherwise."""
         spec, ver, data = self.keys(meta["id"])
         stored, arrays = record(meta, state, reply)
         stored["writer"] = self.replica
         fields: dict[str, bytes | memoryview] = {"meta": json.dumps(stored).encode()}
         for name, array in arrays.items():  # no copy: redis-py sends a memoryview as it is
             fields[name] = memoryview(np.ascontiguousarray(array)).cast("B")
-        expect = expect or 0
+        expect = expect or ""
         with self._answering(), self.redis.pipeline() as pipe:
             try:
                 pipe.watch(ver)
                 current = pipe.get(ver)
-                if (0 if current is None else int(current)) != expect:
+                if (b"" if current is None else current).decode() != expect:
                     raise self._moved(meta["id"], expect, current)
+                count = int(expect.split("-")[0]) if expect else 0
+                new = f"{count + 1}-{secrets.token_hex(8)}"
                 pipe.multi()
                 pipe.delete(data)  # a model switch (auto) changes the state's fields
                 pipe.hset(data, mapping=fields)  # type: ignore[arg-type]
-                pipe.set(ver, expect + 1, px=self.ttl_ms)
+                pipe.set(ver, new, px=self.ttl_ms)
                 pipe.pexpire(data, self.ttl_ms)
                 pipe.pexpire(spec, self.ttl_ms)
                 pipe.execute()
             except redis.WatchError:  # another replica wrote between our read and our write
                 raise self._moved(meta["id"], expect, None) from None
-        return expect + 1
+        return new
 
-    def _moved(self, session_id: str, expect: int, current: bytes | None) -> SessionMoved:
-        now = "changed" if current is None else f"is {int(current)}"
+    def _moved(self, session_id: str, expect: str, current: bytes | None) -> SessionMoved:
+        now = "changed" if current is None else f"is {current.decode()}"
         return SessionMoved(
             f"session {session_id} was advanced by another replica (version {now}, this replica "
             f"held {expect}); it reloads the session: retry the frame",
@@ -177,14 +182,14 @@ class RedisStore:
         if version is None:
             return None
         if not fields:
-            return Loaded(None, None, None, int(version), "no stored state")
+            return Loaded(None, None, None, version.decode(), "no stored state")
         try:
             meta = json.loads(fields.pop(b"meta"))
             arrays = _arrays(meta, fields)
             state, reply = unpack(meta, arrays, session_id, shapes_of(meta))
         except (ValueError, KeyError, TypeError) as exc:
-            return Loaded(None, None, None, int(version), f"{type(exc).__name__}: {exc}")
-        return Loaded(meta, state, reply, int(version))
+            return Loaded(None, None, None, version.decode(), f"{type(exc).__name__}: {exc}")
+        return Loaded(meta, state, reply, version.decode())
 
     def read(
         self, session_id: str, shapes: Mapping[str, tuple[int, ...]]
