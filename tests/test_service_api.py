@@ -235,7 +235,7 @@ def test_idempotent_retry_and_order(client):
 def test_rejected_frames_never_change_state(client):
     frames = shot(3)
     # A model that needs albedo and keeps history (auto serves this static shot per frame).
-    sid, ref = new_session(client, model="nbg-2l-3g"), new_session(client, model="nbg-2l-3g")
+    sid, ref = new_session(client, model="oidn-acc"), new_session(client, model="oidn-acc")
     for i in range(2):
         send(client, sid, i, frames[i])
         send(client, ref, i, frames[i])
