@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import math
-import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.runtime.card import Measurements, ModelCard
+from quietframe.service.exr_header import attribute_number
 
 # dB below the best expected PSNR a quality accepts in exchange for speed. "balanced" matches
 # the acceptance target of bench/auto_choice.py (within 0.3 dB of the best fixed model).
@@ -188,19 +188,6 @@ class Choice:
 # ---- noise level ----------------------------------------------------------------------------
 
 
-def _attribute_number(kind: str, value: bytes) -> float | None:
-    try:
-        if kind == "string":
-            return float(value.decode("utf-8", "replace").strip())
-        if kind == "int" and len(value) == 4:
-            return float(struct.unpack("<i", value)[0])
-        if kind == "float" and len(value) == 4:
-            return float(struct.unpack("<f", value)[0])
-    except ValueError:
-        return None
-    return None
-
-
 def samples_from_header(
     attributes: Mapping[str, tuple[str, bytes]], layer: str | None = None
 ) -> NoiseLevel | None:
@@ -210,7 +197,7 @@ def samples_from_header(
     for name, (kind, value) in attributes.items():
         if name.startswith(CYCLES_PREFIX) and name.endswith(CYCLES_SUFFIX):
             view = name[len(CYCLES_PREFIX) : -len(CYCLES_SUFFIX)]
-            number = _attribute_number(kind, value)
+            number = attribute_number(name, kind, value)
             if number is not None and math.isfinite(number) and number >= 1:
                 found[view] = number
     if layer is not None and layer in found:
@@ -219,6 +206,15 @@ def samples_from_header(
         return None
     view = min(found, key=found.__getitem__)
     return NoiseLevel(found[view], f"{CYCLES_PREFIX}{view}{CYCLES_SUFFIX}")
+
+
+def renderer_from_header(attributes: Mapping[str, tuple[str, bytes]]) -> str | None:
+    """Which renderer wrote a frame, where its header says so: Cycles writes
+    `cycles.<view layer>.samples` (tests/fixtures/blender/README.md). None: unknown, and
+    `auto` uses the default renderer's tables (runtime/card.py ModelCard.measured)."""
+    if any(n.startswith(CYCLES_PREFIX) and n.endswith(CYCLES_SUFFIX) for n in attributes):
+        return "cycles"
+    return None
 
 
 def _box(x: np.ndarray, size: int) -> np.ndarray:

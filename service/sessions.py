@@ -592,7 +592,7 @@ class SessionRegistry:
         return model_choice.choose(
             [b for b in sources if b not in unusable],  # present in the pixels, not just named
             noise,
-            self.models.profiles,
+            self.models.profiles_for(model_choice.renderer_from_header(header.attributes)),
             self.models.default,
             quality=spec.quality,
             latency_ms=spec.latency_ms,

@@ -15,6 +15,7 @@ from quietframe.service.model_choice import (
     choose,
     estimate_spp,
     noise_statistic,
+    renderer_from_header,
     samples_from_header,
     spp_from_sigma,
 )
@@ -45,6 +46,22 @@ def test_samples_from_cycles_header():
     assert samples_from_header({"cycles.A.samples": ("string", b"lots")}) is None
     assert samples_from_header({"cycles.A.samples": ("string", b"0")}) is None
     assert samples_from_header({"vrayInfo/rendertime": ("string", b"0h 1m")}) is None
+
+
+def test_renderer_from_header_picks_that_renderers_tables():
+    cycles = {"cycles.ViewLayer.samples": ("string", b"16"), "BlenderMultiChannel": ("string",
+                                                                                    b"Blender")}
+    assert renderer_from_header(cycles) == "cycles"
+    assert renderer_from_header({"Frame": ("string", b"2")}) is None
+    from quietframe.runtime.card import Measurements, ModelCard
+
+    mitsuba = Measurements.from_dict({"by_spp": [{"spp": 1, "psnr": 25.0}]})
+    blender = Measurements.from_dict({"by_spp": [{"spp": 1, "psnr": 21.0}]})
+    card = ModelCard(name="m", measurements={"mitsuba": mitsuba, "cycles": blender})
+    assert ModelProfile.from_card(card, "cycles").expected_psnr(1, ALL) == 21.0
+    assert ModelProfile.from_card(card, None).expected_psnr(1, ALL) == 25.0
+    only_mitsuba = ModelCard(name="m", measurements={"mitsuba": mitsuba})
+    assert ModelProfile.from_card(only_mitsuba, "cycles").expected_psnr(1, ALL) == 25.0
 
 
 def test_expected_psnr_interpolates_in_log_spp_and_never_extrapolates():
