@@ -177,12 +177,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--measure", action="store_true",
                         help="time each model now instead of quoting its card's 720p time")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--stamp", action="store_true",
+                        help="first stamp --evaluation's rows into each model's measured table "
+                             "(what `model=auto` reads; bench/model_metrics.py)")
     args = parser.parse_args(argv)
     evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else {}
-    split = evaluation.get("meta", {}).get("split", "")
+    meta = evaluation.get("meta", {})
+    split = meta.get("split", "")
     for path in args.models:
         rows = sorted((r for r in evaluation.get("rows", []) if r["method"] == path.stem),
                       key=lambda r: r["spp"])
+        if args.stamp and rows:
+            from quietframe.bench.model_metrics import metrics_from_rows, stamp
+
+            stamp(path, metrics_from_rows(rows, meta))
         print(f"wrote {write_model_card(path, rows, args.threads, split, args.measure)}")
     return 0
 

@@ -13,6 +13,7 @@ import httpx
 
 from quietframe.client import core
 from quietframe.client.core import Call, FrameResult, QuietframeError, RetryPolicy
+from quietframe.client.sequence import Job, arun_sequence, run_sequence
 
 
 class _ClientBase:
@@ -99,8 +100,6 @@ class Client(_ClientBase):
         names), resuming an earlier run; options of `sequence.run_sequence` (model, precision,
         compression, warmup, on_progress, layers, and session fields such as channels).
         Returns the session id, None if nothing was left."""
-        from quietframe.client.sequence import Job, run_sequence
-
         job = Job.plan(source, out_dir)
         return run_sequence(self, job, str(self._http.base_url), **options)
 
@@ -159,7 +158,5 @@ class AsyncClient(_ClientBase):
 
     async def denoise_sequence(self, source, out_dir, **options) -> str | None:
         """`Client.denoise_sequence` for asyncio (one task per sequence)."""
-        from quietframe.client.sequence import Job, arun_sequence
-
         job = Job.plan(source, out_dir)
         return await arun_sequence(self, job, str(self._http.base_url), **options)

@@ -26,9 +26,10 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from quietframe.client import output_records as records
-from quietframe.client.api import AsyncClient, Client, FrameResult, QuietframeError
+from quietframe.client.core import FrameResult, QuietframeError
 from quietframe.client.frame_source import (
     SequenceError,
     find_frames,
@@ -36,6 +37,9 @@ from quietframe.client.frame_source import (
     select_frames,
 )
 from quietframe.client.protocol import view_layers
+
+if TYPE_CHECKING:  # the clients call into this module (denoise_sequence): no import back
+    from quietframe.client.api import AsyncClient, Client
 
 JOB_FILE = ".quietframe-job.json"
 __all__ = ["JOB_FILE", "Job", "SequenceError", "find_frames", "frame_number", "run_sequence"]

@@ -1,5 +1,7 @@
 """quietframe-export: write an NBG, oidn-temporal or affinity model (trained checkpoint or seeded
-untrained) to ONNX."""
+untrained) to ONNX. Its card (`<out>.md`, the measured table stamped from an evaluation) is
+written afterwards by `python -m quietframe.bench.model_card --stamp` (export does not depend
+on bench)."""
 
 from __future__ import annotations
 
@@ -18,10 +20,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
     parser.add_argument("--version", default="0")
     parser.add_argument("--out", type=Path, required=True, help="output .onnx path")
-    parser.add_argument("--card", action="store_true",
-                        help="also write the model card (<out>.md, measures 720p speed)")
-    parser.add_argument("--evaluation", type=Path,
-                        help="benchmarks.json of quietframe-eval: rows for the card")
     args = parser.parse_args(argv)
 
     import dataclasses
@@ -39,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
         path = export_oidn_only(oidn_temporal.OIDN_ONLY_VARIANTS[args.variant], args.out,
                                 version=args.version)
         print(f"wrote {path}")
-        return card(path, args)
+        return 0
     if args.variant == "accumulation" and not args.checkpoint:
         model, training, metrics = AccumulationDenoiser(), {"trained": False}, {}
     elif args.checkpoint:
@@ -72,28 +70,4 @@ def main(argv: list[str] | None = None) -> int:
     export = export_affinity if isinstance(model, affinity.AffinityDenoiser) else export_nbg
     path = export(model, args.out, version=args.version, training=training, metrics=metrics)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
-    return card(path, args)
-
-
-def card(path: Path, args: argparse.Namespace) -> int:
-    """--card: the model card, with --evaluation's rows stamped into the metadata first."""
-    if args.card:
-        import json
-
-        from quietframe.bench.model_card import write_model_card
-
-        rows, split = [], ""
-        if args.evaluation:
-            from quietframe.bench.model_metrics import metrics_from_rows, stamp
-
-            evaluation = json.loads(args.evaluation.read_text())
-            rows = [r for r in evaluation["rows"] if r["method"] == path.stem]
-            split = evaluation.get("meta", {}).get("split", "")
-            if rows:  # the speed/error table `model=auto` reads (docs/model-interface.md)
-                stamp(path, metrics_from_rows(rows, evaluation.get("meta", {})))
-        print(f"wrote {write_model_card(path, rows, split=split)}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

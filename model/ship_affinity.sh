@@ -53,8 +53,9 @@ if [ "$STAGE" = ship ]; then
     cp "$T/pts/auto_choice.json" docs/evaluation/auto_validation_affinity.json
     cp "$T/abs/auto_choice.json" docs/evaluation/absence_validation_affinity.json
     "$PY" -m quietframe.export.cli --checkpoint models/training/$NAME/best.pt \
-        --out models/$NAME.onnx --version "$VERSION" --card \
-        --evaluation docs/evaluation/validation_affinity.json
+        --out models/$NAME.onnx --version "$VERSION"
+    "$PY" -m quietframe.bench.model_card --stamp \
+        --evaluation docs/evaluation/validation_affinity.json models/$NAME.onnx
     "$PY" -m quietframe.bench.model_metrics --evaluation docs/evaluation/validation_affinity.json \
         --noise-points docs/evaluation/auto_validation_affinity.json \
         --absent docs/evaluation/absence_validation_affinity.json models/$NAME.onnx

@@ -45,3 +45,26 @@ def test_card_says_when_the_data_is_absent(tmp_path):
     card = write_model_card(path, threads=1).read_text()
     assert "not present on the machine that wrote this card" in card
     assert "no evaluation run given" in card
+
+
+def test_stamp_writes_the_evaluation_into_the_metadata_then_the_card(tmp_path):
+    """`bench.model_card --stamp` (what `quietframe-export --card` did, export no longer
+    importing bench): the rows become the measured table `auto` reads, then the card."""
+    import json
+
+    import onnx
+
+    from quietframe.bench import model_card
+    from quietframe.runtime.card import ModelCard
+
+    path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "m.onnx")
+    row = {"method": "m", "spp": 2, "psnr": 24.25, "ssim": 0.6, "smape": 0.1, "relmse": 0.2,
+           "trmae": 0.75}
+    evaluation = tmp_path / "benchmarks.json"
+    evaluation.write_text(json.dumps({"rows": [row], "meta": {"split": "validation"}}))
+    assert model_card.main(["--stamp", "--evaluation", str(evaluation), str(path)]) == 0
+    props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+    table = ModelCard.from_props(props, "m").measured(None)
+    assert [(r.spp, r.psnr, r.trmae) for r in table.by_spp] == [(2, 24.25, 0.75)]
+    card = path.with_suffix(".md").read_text()
+    assert "| 2 | 24.25 | 0.6000 | 0.1000 | 0.2000 | 0.7500 |" in card
