@@ -45,12 +45,6 @@ struct Attributes {
   float epsilon = kDefaultEpsilon;
 };
 
-inline std::string number(double v) {
-  char text[32];
-  std::snprintf(text, sizeof text, "%.9g", v);
-  return text;
-}
-
 // dilation (int, required, 1..kMaxDilation) and epsilon (float, optional, finite and >= 0).
 inline OrtStatus* read_attributes(const ort::Api& api, const char* op, const OrtKernelInfo* info,
                                   Attributes* out) {
@@ -67,7 +61,7 @@ inline OrtStatus* read_attributes(const ort::Api& api, const char* op, const Ort
   }
   if (!(std::isfinite(epsilon) && epsilon >= 0.0f)) {
     return op_error(api, op, "attribute epsilon must be a finite number >= 0, got " +
-                                 number(epsilon));
+                                 format_float(epsilon));
   }
   out->epsilon = epsilon;
   return nullptr;
@@ -379,23 +373,18 @@ inline bool same_nhw(const Shape& s, const Shape& like, int64_t channels) {
          s[3] == like[3];
 }
 
-// Reads and checks radiance, features, bandwidth, centre (inputs 0–3) into `j`; `rs`/`fs` get
-// the radiance and feature shapes.
-inline OrtStatus* read_spatial_inputs(const ort::Api& api, const char* op, OrtKernelContext* ctx,
-                                      Job* j, Shape* rs, Shape* fs) {
-  Shape bs, cs;
-  if (OrtStatus* s = get_float_input(api, op, ctx, 0, "radiance", &j->radiance, rs)) return s;
-  if (OrtStatus* s = get_float_input(api, op, ctx, 1, "features", &j->features, fs)) return s;
-  if (OrtStatus* s = get_float_input(api, op, ctx, 2, "bandwidth", &j->bandwidth, &bs)) return s;
-  if (OrtStatus* s = get_float_input(api, op, ctx, 3, "center", &j->center, &cs)) return s;
-  const Shape& r = *rs;
-  if (r.rank != 4 || r[0] < 1 || r[1] < 1 || r[2] < 1 || r[3] < 1) {
-    return op_error(api, op, "radiance must be (N, C, H, W) with every size >= 1, got " + r.str());
-  }
+// Checks radiance, features, bandwidth, centre (inputs 0–3, as read) and puts them in `j`.
+inline OrtStatus* read_spatial_inputs(const ort::Api& api, const char* op,
+                                      const FloatInput* in, Job* j) {
+  j->radiance = in[0].data;
+  j->features = in[1].data;
+  j->bandwidth = in[2].data;
+  j->center = in[3].data;
+  const Shape &r = in[0].shape, &f = in[1].shape, &bs = in[2].shape, &cs = in[3].shape;
+  if (OrtStatus* s = check_planes(api, op, "radiance", r)) return s;
   if (r[2] * r[3] > INT32_MAX - 16) {
     return op_error(api, op, "images of more than 2^31 pixels are not supported, got " + r.str());
   }
-  const Shape& f = *fs;
   if (f.rank != 4 || f[1] < 1 || !same_nhw(f, r, f[1])) {
     return op_error(api, op, "features must be " + nchw(r, "D") + " like the radiance, got " +
                                  f.str());
@@ -423,10 +412,7 @@ inline OrtStatus* run(const ort::Api& api, const char* op, OrtKernelContext* ctx
   j->bands = band_count(j->H, N, kMinRowsPerBand);
   const Job& job = *j;
   auto task = [&job](size_t i) { filter_band(job, static_cast<int64_t>(i)); };
-  if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
-    return op_error(api, op, "a worker task failed", ORT_FAIL);
-  }
-  return nullptr;
+  return run_tasks(api, op, ctx, N * job.bands, task);
 }
 
 }  // namespace qf::affinity

@@ -15,27 +15,19 @@
 namespace qf {
 namespace {
 
-class AffinityFilter {
+class AffinityFilter
+    : public Kernel<AffinityFilter, affinity::Attributes, affinity::read_attributes> {
  public:
+  using Kernel::Kernel;
   static constexpr const char* kName = "AffinityFilter";
-  static constexpr size_t kInputs = 5;
+  static constexpr const char* kInputNames[] = {"radiance", "features", "bandwidth", "center",
+                                                "kernel_size"};
+  static constexpr size_t kFloatInputs = 4;  // kernel_size is int64
   static constexpr size_t kOutputs = 1;
 
-  static ONNXTensorElementDataType input_type(size_t index) {
-    return index == 4 ? ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64 : ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT;
-  }
-
-  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, AffinityFilter** out) {
-    affinity::Attributes attributes;
-    if (OrtStatus* s = affinity::read_attributes(api, kName, info, &attributes)) return s;
-    *out = new AffinityFilter(attributes);
-    return nullptr;
-  }
-
-  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<4>& in) const {
     affinity::Job job;
-    Shape rs, fs;
-    if (OrtStatus* s = affinity::read_spatial_inputs(api, kName, ctx, &job, &rs, &fs)) return s;
+    if (OrtStatus* s = affinity::read_spatial_inputs(api, kName, in.data(), &job)) return s;
     int64_t size = 0;
     if (OrtStatus* s = get_int64_scalar_input(api, kName, ctx, 4, "kernel_size", &size)) return s;
     if (OrtStatus* s = affinity::kernel_radius(api, kName, "kernel_size", size, &job.radius)) {
@@ -43,12 +35,8 @@ class AffinityFilter {
     }
     job.dilation = attributes_.dilation;
     job.epsilon = attributes_.epsilon;
-    return affinity::run(api, kName, ctx, &job, rs);
+    return affinity::run(api, kName, ctx, &job, in[0].shape);
   }
-
- private:
-  explicit AffinityFilter(const affinity::Attributes& attributes) : attributes_(attributes) {}
-  affinity::Attributes attributes_;
 };
 
 }  // namespace

@@ -18,42 +18,27 @@
 namespace qf {
 namespace {
 
-class AffinityTemporalFilter {
+class AffinityTemporalFilter
+    : public Kernel<AffinityTemporalFilter, affinity::Attributes, affinity::read_attributes> {
  public:
+  using Kernel::Kernel;
   static constexpr const char* kName = "AffinityTemporalFilter";
-  static constexpr size_t kInputs = 10;
+  static constexpr const char* kInputNames[] = {
+      "radiance",           "features",    "bandwidth",   "center",
+      "prev_output",        "prev_features",
+      "temporal_bandwidth", "temporal_on", "kernel_size", "temporal_kernel_size"};
+  static constexpr size_t kFloatInputs = 8;  // the two kernel sizes are int64
   static constexpr size_t kOutputs = 1;
 
-  static ONNXTensorElementDataType input_type(size_t index) {
-    return index >= 8 ? ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64 : ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT;
-  }
-
-  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info,
-                           AffinityTemporalFilter** out) {
-    affinity::Attributes attributes;
-    if (OrtStatus* s = affinity::read_attributes(api, kName, info, &attributes)) return s;
-    *out = new AffinityTemporalFilter(attributes);
-    return nullptr;
-  }
-
-  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<8>& in) const {
     affinity::Job job;
-    Shape rs, fs, os, ps, bs, ts;
-    if (OrtStatus* s = affinity::read_spatial_inputs(api, kName, ctx, &job, &rs, &fs)) return s;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 4, "prev_output", &job.prev_output, &os)) {
-      return s;
-    }
-    if (OrtStatus* s =
-            get_float_input(api, kName, ctx, 5, "prev_features", &job.prev_features, &ps)) {
-      return s;
-    }
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 6, "temporal_bandwidth",
-                                       &job.temporal_bandwidth, &bs)) {
-      return s;
-    }
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 7, "temporal_on", &job.temporal_on, &ts)) {
-      return s;
-    }
+    if (OrtStatus* s = affinity::read_spatial_inputs(api, kName, in.data(), &job)) return s;
+    job.prev_output = in[4].data;
+    job.prev_features = in[5].data;
+    job.temporal_bandwidth = in[6].data;
+    job.temporal_on = in[7].data;
+    const Shape& rs = in[0].shape;
+    const Shape &os = in[4].shape, &ps = in[5].shape, &bs = in[6].shape, &ts = in[7].shape;
     using affinity::nchw;
     using affinity::same_nhw;
     if (!same_nhw(os, rs, job.C)) {
@@ -91,11 +76,6 @@ class AffinityTemporalFilter {
     job.epsilon = attributes_.epsilon;
     return affinity::run(api, kName, ctx, &job, rs);
   }
-
- private:
-  explicit AffinityTemporalFilter(const affinity::Attributes& attributes)
-      : attributes_(attributes) {}
-  affinity::Attributes attributes_;
 };
 
 }  // namespace

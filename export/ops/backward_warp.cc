@@ -407,41 +407,34 @@ void warp_band(const WarpJob& j, int64_t task) {
 
 bool line_aligned(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 63) == 0; }
 
-class BackwardWarp {
- public:
-  static constexpr const char* kName = "BackwardWarp";
-  static constexpr size_t kInputs = 2;
-  static constexpr size_t kOutputs = 2;
-
-  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, BackwardWarp** out) {
-    int64_t mode = -1;
-    if (OrtStatus* s = get_int_attribute(api, kName, info, "mode", &mode)) return s;
-    if (mode != static_cast<int64_t>(Mode::kBilinear) &&
-        mode != static_cast<int64_t>(Mode::kNearest)) {
-      return op_error(api, kName,
-                      "attribute mode must be 0 (bilinear) or 1 (nearest), got " +
-                          std::to_string(mode));
-    }
-    *out = new BackwardWarp(static_cast<Mode>(mode));
-    return nullptr;
+// mode: 0 bilinear, 1 nearest.
+OrtStatus* read_mode(const ort::Api& api, const char* op, const OrtKernelInfo* info, Mode* out) {
+  int64_t mode = -1;
+  if (OrtStatus* s = get_int_attribute(api, op, info, "mode", &mode)) return s;
+  if (mode != static_cast<int64_t>(Mode::kBilinear) &&
+      mode != static_cast<int64_t>(Mode::kNearest)) {
+    return op_error(api, op,
+                    "attribute mode must be 0 (bilinear) or 1 (nearest), got " +
+                        std::to_string(mode));
   }
+  *out = static_cast<Mode>(mode);
+  return nullptr;
+}
 
-  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
-    const float* image = nullptr;
-    const float* motion = nullptr;
-    Shape is, ms;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 0, "image", &image, &is)) return s;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 1, "motion", &motion, &ms)) return s;
-    if (is.rank != 4 || is[0] < 1 || is[1] < 1 || is[2] < 1 || is[3] < 1) {
-      return op_error(api, kName, "image must be (N, C, H, W) with every size >= 1, got " +
-                                      is.str());
-    }
+class BackwardWarp : public Kernel<BackwardWarp, Mode, read_mode> {
+ public:
+  using Kernel::Kernel;
+  static constexpr const char* kName = "BackwardWarp";
+  static constexpr const char* kInputNames[] = {"image", "motion"};
+  static constexpr size_t kOutputs = 2;  // warped, inside
+
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<2>& in) const {
+    const float* image = in[0].data;
+    const float* motion = in[1].data;
+    const Shape& is = in[0].shape;
+    if (OrtStatus* s = check_planes(api, kName, "image", is)) return s;
+    if (OrtStatus* s = check_planes_like(api, kName, "motion", in[1].shape, 2, is)) return s;
     const int64_t N = is[0], C = is[1], H = is[2], W = is[3];
-    if (ms.rank != 4 || ms[0] != N || ms[1] != 2 || ms[2] != H || ms[3] != W) {
-      return op_error(api, kName, "motion must be (N, 2, H, W) = (" + std::to_string(N) +
-                                      ", 2, " + std::to_string(H) + ", " + std::to_string(W) +
-                                      ") like the image, got " + ms.str());
-    }
     // Texel offsets inside one plane are int32 (the gathers' index type).
     if (H * W > INT32_MAX - W - 1) {
       return op_error(api, kName, "image planes of more than 2^31 pixels are not supported, got " +
@@ -460,17 +453,10 @@ class BackwardWarp {
     // segment then is one too) from line-aligned tensors.
     const bool stream = QF_HAVE_AVX2 && simd_enabled() && W % 16 == 0 &&
                         line_aligned(warped) && line_aligned(inside);
-    const WarpJob job{image, motion, warped, inside, C, H, W, bands, mode_, stream};
+    const WarpJob job{image, motion, warped, inside, C, H, W, bands, attributes_, stream};
     auto task = [&job](size_t i) { warp_band(job, static_cast<int64_t>(i)); };
-    if (!parallel_for(ctx, static_cast<size_t>(N * bands), task)) {
-      return op_error(api, kName, "a worker task failed", ORT_FAIL);
-    }
-    return nullptr;
+    return run_tasks(api, kName, ctx, N * bands, task);
   }
-
- private:
-  explicit BackwardWarp(Mode mode) : mode_(mode) {}
-  Mode mode_;
 };
 
 }  // namespace

@@ -340,27 +340,18 @@ void slice_band(const SliceJob& j, int64_t task) {
   }
 }
 
-class BilateralSlice {
+class BilateralSlice : public Kernel<BilateralSlice, grid::Attributes, grid::read_attributes> {
  public:
+  using Kernel::Kernel;
   static constexpr const char* kName = "BilateralSlice";
-  static constexpr size_t kInputs = 3;
-  static constexpr size_t kOutputs = 1;
+  static constexpr const char* kInputNames[] = {"grid", "weight", "guide"};
+  static constexpr size_t kOutputs = 1;  // image
 
-  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, BilateralSlice** out) {
-    grid::Attributes attributes;
-    if (OrtStatus* s = grid::read_attributes(api, kName, info, &attributes)) return s;
-    *out = new BilateralSlice(attributes);
-    return nullptr;
-  }
-
-  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
-    const float* grid = nullptr;
-    const float* weight = nullptr;
-    const float* guide = nullptr;
-    Shape gs, ws, us;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 0, "grid", &grid, &gs)) return s;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 1, "weight", &weight, &ws)) return s;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 2, "guide", &guide, &us)) return s;
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<3>& in) const {
+    const float* grid = in[0].data;
+    const float* weight = in[1].data;
+    const float* guide = in[2].data;
+    const Shape &gs = in[0].shape, &ws = in[1].shape, &us = in[2].shape;
     if (us.rank != 4 || us[0] < 1 || us[1] != 1 || us[2] < 1 || us[3] < 1) {
       return op_error(api, kName, "guide must be (N, 1, H, W) with N, H, W >= 1, got " +
                                       us.str());
@@ -400,15 +391,8 @@ class BilateralSlice {
     const SliceJob job{grid, weight, guide, out, C, H, W, D, GH, GW, &range, &xs, &ys,
                        band_count(GH, N, grid::kMinRowsPerBand), fast};
     auto task = [&job](size_t i) { slice_band(job, static_cast<int64_t>(i)); };
-    if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
-      return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);
-    }
-    return nullptr;
+    return run_tasks(api, kName, ctx, N * job.bands, task, "out of memory for scratch buffers");
   }
-
- private:
-  explicit BilateralSlice(const grid::Attributes& attributes) : attributes_(attributes) {}
-  grid::Attributes attributes_;
 };
 
 }  // namespace

@@ -161,20 +161,16 @@ void scatter_row_avx2(const SplatJob& j, const SplatScratch& s, float ty0, float
                       _mm256_loadu_ps(xpair + 8 * x));
     const __m256 z0 = _mm256_broadcast_ss(tz0 + x), z1 = _mm256_broadcast_ss(tz1 + x);
     const int32_t first = offset[x];
-    if (kLo) {
-      const __m256 p = _mm256_mul_ps(y0, pair);
-      float* a = lo + first;
+    // the row's y weight times the pair into two range cells of `rows` (lo or hi)
+    auto add = [&](float* rows, __m256 y) {
+      const __m256 p = _mm256_mul_ps(y, pair);
+      float* a = rows + first;
       float* b = a + zstride;
       _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
       _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
-    }
-    if (kHi) {
-      const __m256 p = _mm256_mul_ps(y1, pair);
-      float* a = hi + first;
-      float* b = a + zstride;
-      _mm256_storeu_ps(a, _mm256_fmadd_ps(z0, p, _mm256_loadu_ps(a)));
-      _mm256_storeu_ps(b, _mm256_fmadd_ps(z1, p, _mm256_loadu_ps(b)));
-    }
+    };
+    if (kLo) add(lo, y0);
+    if (kHi) add(hi, y1);
   };
   // Neighbouring pixels mostly hit the same cells, and each add must wait for the previous
   // one's store: walk kStreams far-apart stretches of the row in lockstep so that that
@@ -340,35 +336,20 @@ void splat_band(const SplatJob& j, int64_t task) {
   out.finish();
 }
 
-class BilateralSplat {
+class BilateralSplat : public Kernel<BilateralSplat, grid::Attributes, grid::read_attributes> {
  public:
+  using Kernel::Kernel;
   static constexpr const char* kName = "BilateralSplat";
-  static constexpr size_t kInputs = 2;
-  static constexpr size_t kOutputs = 2;
+  static constexpr const char* kInputNames[] = {"image", "guide"};
+  static constexpr size_t kOutputs = 2;  // grid, weight
 
-  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, BilateralSplat** out) {
-    grid::Attributes attributes;
-    if (OrtStatus* s = grid::read_attributes(api, kName, info, &attributes)) return s;
-    *out = new BilateralSplat(attributes);
-    return nullptr;
-  }
-
-  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
-    const float* image = nullptr;
-    const float* guide = nullptr;
-    Shape is, gs;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 0, "image", &image, &is)) return s;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 1, "guide", &guide, &gs)) return s;
-    if (is.rank != 4 || is[0] < 1 || is[1] < 1 || is[2] < 1 || is[3] < 1) {
-      return op_error(api, kName, "image must be (N, C, H, W) with every size >= 1, got " +
-                                      is.str());
-    }
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<2>& in) const {
+    const float* image = in[0].data;
+    const float* guide = in[1].data;
+    const Shape& is = in[0].shape;
+    if (OrtStatus* s = check_planes(api, kName, "image", is)) return s;
+    if (OrtStatus* s = check_planes_like(api, kName, "guide", in[1].shape, 1, is)) return s;
     const int64_t N = is[0], C = is[1], H = is[2], W = is[3];
-    if (gs.rank != 4 || gs[0] != N || gs[1] != 1 || gs[2] != H || gs[3] != W) {
-      return op_error(api, kName, "guide must be (N, 1, H, W) = (" + std::to_string(N) + ", 1, " +
-                                      std::to_string(H) + ", " + std::to_string(W) +
-                                      ") like the image, got " + gs.str());
-    }
     const int64_t D = attributes_.depth;
     const int64_t GH = grid::spatial_cells(H, attributes_.sigma_s);
     const int64_t GW = grid::spatial_cells(W, attributes_.sigma_s);
@@ -397,15 +378,8 @@ class BilateralSplat {
     const SplatJob job{image, guide, grid_data, weight_data, C, H, W, D, GH, GW, &range,
                        &xs, &ys, band_count(GH, N, grid::kMinRowsPerBand), fast};
     auto task = [&job](size_t i) { splat_band(job, static_cast<int64_t>(i)); };
-    if (!parallel_for(ctx, static_cast<size_t>(N * job.bands), task)) {
-      return op_error(api, kName, "out of memory for scratch buffers", ORT_FAIL);
-    }
-    return nullptr;
+    return run_tasks(api, kName, ctx, N * job.bands, task, "out of memory for scratch buffers");
   }
-
- private:
-  explicit BilateralSplat(const grid::Attributes& attributes) : attributes_(attributes) {}
-  grid::Attributes attributes_;
 };
 
 }  // namespace

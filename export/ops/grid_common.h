@@ -425,12 +425,6 @@ struct Attributes {
   int64_t depth = 0;    // D, range cells
 };
 
-inline std::string format_float(double v) {
-  char text[32];
-  std::snprintf(text, sizeof text, "%.9g", v);
-  return text;
-}
-
 // Reads and validates sigma_s, sigma_r and grid_depth, once per kernel.
 inline OrtStatus* read_attributes(const ort::Api& api, const char* op, const OrtKernelInfo* info,
                                   Attributes* out) {

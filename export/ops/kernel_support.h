@@ -1,16 +1,22 @@
 // Plumbing shared by the ops: errors as OrtStatus, tensor access, attributes, and the OrtCustomOp
 // table built from a kernel class (threads and bands: runtime_support.h).
 //
-// A kernel class K provides
-//   static constexpr const char* kName;  static constexpr size_t kInputs, kOutputs;
-//   static OrtStatus* Create(const qf::ort::Api&, const OrtKernelInfo*, K** out);  // validates
-//   OrtStatus* Compute(const qf::ort::Api&, OrtKernelContext*) const;  // thread-safe
-// and optionally static ONNXTensorElementDataType input_type(size_t index) (default: float32).
+// A kernel class K derives from Kernel<K, Attributes, read> (below) and declares
+//   static constexpr const char* kName;
+//   static constexpr const char* kInputNames[];  // every input, in order: their count too
+//   static constexpr size_t kOutputs;            // float32 outputs
+//   OrtStatus* Run(const qf::ort::Api&, OrtKernelContext*, const FloatInputs<n>&) const;
+// and optionally static constexpr size_t kFloatInputs (the inputs from that index on are
+// int64; default: every input is float32). Kernel gives it Create (the attributes read and
+// checked once, at kernel creation, kept in `attributes_`) and Compute (the float32 inputs
+// read, then Run; const, so thread-safe).
 #pragma once
 
 #include <array>
 #include <cstddef>
 #include <cstdint>
+#include <cstdio>
+#include <iterator>
 #include <stdexcept>
 #include <string>
 #include <type_traits>
@@ -45,6 +51,13 @@ inline OrtStatus* op_error_from(const ort::Api& api, const char* op, const std::
       return ::qf::op_error_from((api), (op), (doing), qf_status_); \
     }                                                             \
   } while (0)
+
+// A float as an error message shows it: every digit a float32 has.
+inline std::string format_float(double v) {
+  char text[32];
+  std::snprintf(text, sizeof text, "%.9g", v);
+  return text;
+}
 
 // ---- tensors ----------------------------------------------------------------------------------
 
@@ -140,6 +153,62 @@ inline OrtStatus* get_float_output(const ort::Api& api, const char* op, OrtKerne
   return nullptr;
 }
 
+// A float32 input as read: data and shape.
+struct FloatInput {
+  const float* data = nullptr;
+  Shape shape;
+};
+template <size_t n>
+using FloatInputs = std::array<FloatInput, n>;
+
+// The float32 inputs 0 … n-1, named `names`.
+template <size_t n>
+inline OrtStatus* get_float_inputs(const ort::Api& api, const char* op, OrtKernelContext* ctx,
+                                   const char* const* names, FloatInputs<n>* out) {
+  for (size_t i = 0; i < n; ++i) {
+    FloatInput& input = (*out)[i];
+    if (OrtStatus* s = get_float_input(api, op, ctx, i, names[i], &input.data, &input.shape)) {
+      return s;
+    }
+  }
+  return nullptr;
+}
+
+// `shape` (input `name`) must be (N, C, H, W) with every size >= 1.
+inline OrtStatus* check_planes(const ort::Api& api, const char* op, const char* name,
+                               const Shape& shape) {
+  if (shape.rank == 4 && shape[0] >= 1 && shape[1] >= 1 && shape[2] >= 1 && shape[3] >= 1) {
+    return nullptr;
+  }
+  return op_error(api, op, std::string(name) +
+                               " must be (N, C, H, W) with every size >= 1, got " + shape.str());
+}
+
+// `shape` (input `name`) must be (N, channels, H, W) of the (N, C, H, W) image `like`.
+inline OrtStatus* check_planes_like(const ort::Api& api, const char* op, const char* name,
+                                    const Shape& shape, int64_t channels, const Shape& like) {
+  const int64_t N = like[0], H = like[2], W = like[3];
+  if (shape.rank == 4 && shape[0] == N && shape[1] == channels && shape[2] == H &&
+      shape[3] == W) {
+    return nullptr;
+  }
+  const std::string c = std::to_string(channels);
+  return op_error(api, op, std::string(name) + " must be (N, " + c + ", H, W) = (" +
+                               std::to_string(N) + ", " + c + ", " + std::to_string(H) + ", " +
+                               std::to_string(W) + ") like the image, got " + shape.str());
+}
+
+// Runs task(i) for i in [0, count) (parallel_for); `failure` is the error if a task threw.
+template <class Task>
+inline OrtStatus* run_tasks(const ort::Api& api, const char* op, OrtKernelContext* ctx,
+                            int64_t count, const Task& task,
+                            const char* failure = "a worker task failed") {
+  if (!parallel_for(ctx, static_cast<size_t>(count), task)) {
+    return op_error(api, op, failure, ORT_FAIL);
+  }
+  return nullptr;
+}
+
 // ---- attributes -------------------------------------------------------------------------------
 
 inline OrtStatus* get_int_attribute(const ort::Api& api, const char* op, const OrtKernelInfo* info,
@@ -160,17 +229,52 @@ inline OrtStatus* get_float_attribute(const ort::Api& api, const char* op,
   return nullptr;
 }
 
-// ---- the OrtCustomOp table --------------------------------------------------------------------
+// A kernel with no attributes.
+struct NoAttributes {};
+inline OrtStatus* read_no_attributes(const ort::Api&, const char*, const OrtKernelInfo*,
+                                     NoAttributes*) {
+  return nullptr;
+}
 
-// K::input_type(i) where the kernel declares it, else float32 for every input.
+// How many of K's inputs there are, and how many of them (the first ones) are float32: all of
+// them unless K declares kFloatInputs (the rest are int64).
 template <class K, class = void>
-struct InputTypes {
-  static ONNXTensorElementDataType of(size_t) { return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT; }
+struct InputCounts {
+  static constexpr size_t kAll = std::size(K::kInputNames);
+  static constexpr size_t kFloat = kAll;
 };
 template <class K>
-struct InputTypes<K, std::void_t<decltype(K::input_type(size_t{}))>> {
-  static ONNXTensorElementDataType of(size_t index) { return K::input_type(index); }
+struct InputCounts<K, std::void_t<decltype(K::kFloatInputs)>> {
+  static constexpr size_t kAll = std::size(K::kInputNames);
+  static constexpr size_t kFloat = K::kFloatInputs;
 };
+
+// What every kernel shares: `Read` reads and checks the attributes once (its errors name the
+// op) and the kernel keeps them; each run reads the float32 inputs, then K::Run.
+template <class K, class Attributes,
+          OrtStatus* (*Read)(const ort::Api&, const char*, const OrtKernelInfo*, Attributes*)>
+class Kernel {
+ public:
+  explicit Kernel(const Attributes& attributes) : attributes_(attributes) {}
+
+  static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, K** out) {
+    Attributes attributes{};
+    if (OrtStatus* s = Read(api, K::kName, info, &attributes)) return s;
+    *out = new K(attributes);
+    return nullptr;
+  }
+
+  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
+    FloatInputs<InputCounts<K>::kFloat> in;
+    if (OrtStatus* s = get_float_inputs(api, K::kName, ctx, K::kInputNames, &in)) return s;
+    return static_cast<const K*>(this)->Run(api, ctx, in);
+  }
+
+ protected:
+  const Attributes attributes_;
+};
+
+// ---- the OrtCustomOp table --------------------------------------------------------------------
 
 template <class K>
 class CustomOp {
@@ -192,8 +296,11 @@ class CustomOp {
     op.CreateKernel = &CreateV1;
     op.GetName = [](const OrtCustomOp*) { return K::kName; };
     op.GetExecutionProviderType = [](const OrtCustomOp*) -> const char* { return nullptr; };
-    op.GetInputType = [](const OrtCustomOp*, size_t index) { return InputTypes<K>::of(index); };
-    op.GetInputTypeCount = [](const OrtCustomOp*) { return K::kInputs; };
+    op.GetInputType = [](const OrtCustomOp*, size_t index) {
+      return index < InputCounts<K>::kFloat ? ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT
+                                            : ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64;
+    };
+    op.GetInputTypeCount = [](const OrtCustomOp*) { return InputCounts<K>::kAll; };
     op.GetOutputType = [](const OrtCustomOp*, size_t) {
       return ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT;
     };

@@ -97,23 +97,16 @@ void upsample_band(const UpsampleJob& j, int64_t plane_index, int64_t ya, int64_
   }
 }
 
-class UpsampleBilinear {
+class UpsampleBilinear : public Kernel<UpsampleBilinear, NoAttributes, read_no_attributes> {
  public:
+  using Kernel::Kernel;
   static constexpr const char* kName = "UpsampleBilinear";
-  static constexpr size_t kInputs = 2;
+  static constexpr const char* kInputNames[] = {"image", "like"};  // like: the output's size
   static constexpr size_t kOutputs = 1;
 
-  static OrtStatus* Create(const ort::Api&, const OrtKernelInfo*, UpsampleBilinear** out) {
-    *out = new UpsampleBilinear();
-    return nullptr;
-  }
-
-  OrtStatus* Compute(const ort::Api& api, OrtKernelContext* ctx) const {
-    const float* image = nullptr;
-    const float* like_data = nullptr;
-    Shape is, ls;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 0, "image", &image, &is)) return s;
-    if (OrtStatus* s = get_float_input(api, kName, ctx, 1, "like", &like_data, &ls)) return s;
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<2>& in) const {
+    const float* image = in[0].data;
+    const Shape &is = in[0].shape, &ls = in[1].shape;
     if (is.rank != 4 || is[2] < 1 || is[3] < 1) {
       return op_error(api, kName, "image must be (N, C, h, w) with h, w >= 1, got " + is.str());
     }
@@ -144,10 +137,7 @@ class UpsampleBilinear {
       upsample_band(j, plane, band_start(band, j.bands, j.H), band_start(band + 1, j.bands, j.H),
                     scratch.data());
     };
-    if (!parallel_for(ctx, static_cast<size_t>(job.planes * job.bands), task)) {
-      return op_error(api, kName, "a worker task failed", ORT_FAIL);
-    }
-    return nullptr;
+    return run_tasks(api, kName, ctx, job.planes * job.bands, task);
   }
 };
 
