@@ -11,10 +11,12 @@ CYCLES_PYTHON ?= python3.11
 
 .PHONY: test serve lint bench clean cycles
 
+# A virtualenv with a current pip: $(call new-venv,PYTHON,DIR)
+new-venv = $(1) -m venv $(2) && $(2)/bin/python -m pip install $(PIP) --upgrade pip
+
 # torch first and pinned: 2.13.0 is the CPU build; anything else pulls several GB of CUDA wheels.
 $(VENV)/.base:
-	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install $(PIP) --upgrade pip
+	$(call new-venv,$(PYTHON),$(VENV))
 	$(VENV)/bin/python -m pip install $(PIP) torch==2.13.0
 	touch $@
 
@@ -27,8 +29,7 @@ test: install-dev
 	$(VENV)/bin/python -m pytest tests
 
 $(SERVE_VENV)/.base:
-	$(PYTHON) -m venv $(SERVE_VENV)
-	$(SERVE_VENV)/bin/python -m pip install $(PIP) --upgrade pip
+	$(call new-venv,$(PYTHON),$(SERVE_VENV))
 	touch $@
 
 serve: $(SERVE_VENV)/.base
@@ -38,8 +39,7 @@ serve: $(SERVE_VENV)/.base
 # Blender Cycles (bpy 4.5, Python 3.11) in a venv of its own: the Cycles renders and the tests
 # that run Blender (tests/cycles_support.py finds it; skipped without it). CI installs it.
 $(CYCLES_VENV)/.base:
-	$(CYCLES_PYTHON) -m venv $(CYCLES_VENV)
-	$(CYCLES_VENV)/bin/python -m pip install $(PIP) --upgrade pip
+	$(call new-venv,$(CYCLES_PYTHON),$(CYCLES_VENV))
 	touch $@
 
 cycles: $(CYCLES_VENV)/.base

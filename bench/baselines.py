@@ -66,6 +66,14 @@ def _planar(x: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(x, -1, 0))  # (H, W, C) → (C, H, W)
 
 
+def _demodulated(buffers: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """What the temporal baselines filter: radiance (3, H, W) demodulated by the safe albedo
+    (3, H, W), normal (3, H, W), depth (H, W) and motion (H, W, 2)."""
+    color, albedo, normal, depth, motion = _canonical(buffers)
+    albedo_p = _planar(safe_albedo(albedo))
+    return _planar(color) / albedo_p, albedo_p, _planar(normal), depth[..., 0], motion
+
+
 def safe_albedo(albedo: np.ndarray) -> np.ndarray:
     albedo = np.maximum(albedo, 0)
     ramp = np.minimum(albedo.max(axis=-1, keepdims=True) / ALBEDO_DEMODULATION_FLOOR, 1)
@@ -131,10 +139,7 @@ class TemporalAccumulation:
         self._state = None
 
     def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
-        color, albedo, normal, depth, motion = _canonical(buffers)
-        normal_p, depth_p = _planar(normal), depth[..., 0]
-        albedo_p = _planar(safe_albedo(albedo))
-        radiance = _planar(color) / albedo_p  # (3, H, W)
+        radiance, albedo_p, normal_p, depth_p, motion = _demodulated(buffers)
         warped, count = _reproject(self._state, motion, depth_p, normal_p, 1 / MIN_CURRENT_WEIGHT)
         if warped is not None:
             radiance = _blend(radiance, warped[:3], np.maximum(1 / count, MIN_CURRENT_WEIGHT))
@@ -263,10 +268,7 @@ class SVGFStyleFilter:
             self._pool = None
 
     def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
-        color, albedo, normal, depth, motion = _canonical(buffers)
-        normal_p, depth_p = _planar(normal), depth[..., 0]
-        albedo_p = _planar(safe_albedo(albedo))
-        radiance = _planar(color) / albedo_p  # (3, H, W)
+        radiance, albedo_p, normal_p, depth_p, motion = _demodulated(buffers)
         lum = _luminance(radiance)
         moments = np.stack([lum, lum * lum])  # (2, H, W)
         warped, count = _reproject(self._state, motion, depth_p, normal_p, _MAX_HISTORY)

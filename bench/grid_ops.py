@@ -25,7 +25,7 @@ import argparse
 
 import numpy as np
 
-from quietframe.bench.timing import Timing, time_ms
+from quietframe.bench.timing import Timing, time_ms, timing_table
 from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
 
 HEIGHT, WIDTH = 720, 1280
@@ -157,19 +157,11 @@ def report(threads: int = 2, guide: str = "smooth", repeats: int = 15,
     more about the code than the median does."""
     results = measure(threads=threads, guide=guide, repeats=repeats, backends=backends)
     backends = sorted({b for r in results.values() for b in r}, key=["onnxruntime", "torch"].index)
-    lines = [
-        f"splat + slice, {WIDTH}x{HEIGHT}, 3 channels, {guide} guides, {threads} threads, "
-        f"ms per call: median wall (min; CPU) of {repeats} calls (PyTorch: of 5)",
-        "",
-        "| grid (σs, σr) | " + " | ".join(backends) + " |",
-        "|---|" + "---:|" * len(backends),
-    ]
+    title = (f"splat + slice, {WIDTH}x{HEIGHT}, 3 channels, {guide} guides, {threads} threads, "
+             f"ms per call: median wall (min; CPU) of {repeats} calls (PyTorch: of 5)")
     labels = {f"sigma_s={s}": f"({s}, {r:g})" for s, r in SCALES} | {"all": "all three"}
-    for case, timings in results.items():
-        cells = [f"{t.median_ms:.1f} ({t.min_ms:.1f}; {t.cpu_ms:.1f})" if (t := timings.get(b))
-                 else "–" for b in backends]
-        lines.append(f"| {labels[case]} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    rows = {labels[case]: timings for case, timings in results.items()}
+    return timing_table(title, "grid (σs, σr)", backends, rows)
 
 
 WARP_CHANNELS = ((8, "bilinear"), (4, "nearest"))  # the pre-stage's two warps
@@ -268,18 +260,9 @@ def warp_report(threads: int = 2, repeats: int = 15) -> str:
     """Markdown table of `measure_warp`: ms per frame, median wall time (minimum; CPU)."""
     results = measure_warp(threads=threads, repeats=repeats)
     ops = ("BackwardWarp", "GridSample")
-    lines = [
-        f"temporal warps (8 channels bilinear + 4 nearest), {WIDTH}x{HEIGHT}, {threads} threads, "
-        f"ms per frame: median wall (min; CPU) of {repeats} calls",
-        "",
-        "| motion | " + " | ".join(ops) + " |",
-        "|---|" + "---:|" * len(ops),
-    ]
-    for kind, timings in results.items():
-        cells = [f"{timings[op].median_ms:.1f} ({timings[op].min_ms:.1f}; "
-                 f"{timings[op].cpu_ms:.1f})" for op in ops]
-        lines.append(f"| {kind} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    title = (f"temporal warps (8 channels bilinear + 4 nearest), {WIDTH}x{HEIGHT}, {threads} "
+             f"threads, ms per frame: median wall (min; CPU) of {repeats} calls")
+    return timing_table(title, "motion", ops, results)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 
@@ -46,3 +46,16 @@ def time_ms(fn: Callable[[], object], *, warmup: int = 2, repeats: int = 10) -> 
         statistics.median(samples), min(samples), max(samples), tuple(samples),
         statistics.median(cpu),
     )
+
+
+def timing_table(title: str, first: str, columns: Sequence[str],
+                 rows: Mapping[str, Mapping[str, Timing]]) -> str:
+    """Markdown: `title`, then a row per label with a cell per column: median wall ms (minimum;
+    CPU), "–" where that column was not timed."""
+    lines = [title, "", f"| {first} | " + " | ".join(columns) + " |",
+             "|---|" + "---:|" * len(columns)]
+    for label, timings in rows.items():
+        cells = [f"{t.median_ms:.1f} ({t.min_ms:.1f}; {t.cpu_ms:.1f})" if (t := timings.get(c))
+                 else "–" for c in columns]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

@@ -15,10 +15,8 @@
 namespace qf {
 namespace {
 
-class AffinityFilter
-    : public Kernel<AffinityFilter, affinity::Attributes, affinity::read_attributes> {
- public:
-  using Kernel::Kernel;
+struct AffinityFilter
+    : Kernel<AffinityFilter, affinity::Attributes, affinity::read_attributes> {
   static constexpr const char* kName = "AffinityFilter";
   static constexpr const char* kInputNames[] = {"radiance", "features", "bandwidth", "center",
                                                 "kernel_size"};

@@ -18,10 +18,8 @@
 namespace qf {
 namespace {
 
-class AffinityTemporalFilter
-    : public Kernel<AffinityTemporalFilter, affinity::Attributes, affinity::read_attributes> {
- public:
-  using Kernel::Kernel;
+struct AffinityTemporalFilter
+    : Kernel<AffinityTemporalFilter, affinity::Attributes, affinity::read_attributes> {
   static constexpr const char* kName = "AffinityTemporalFilter";
   static constexpr const char* kInputNames[] = {
       "radiance",           "features",    "bandwidth",   "center",

@@ -421,9 +421,7 @@ OrtStatus* read_mode(const ort::Api& api, const char* op, const OrtKernelInfo* i
   return nullptr;
 }
 
-class BackwardWarp : public Kernel<BackwardWarp, Mode, read_mode> {
- public:
-  using Kernel::Kernel;
+struct BackwardWarp : Kernel<BackwardWarp, Mode, read_mode> {
   static constexpr const char* kName = "BackwardWarp";
   static constexpr const char* kInputNames[] = {"image", "motion"};
   static constexpr size_t kOutputs = 2;  // warped, inside

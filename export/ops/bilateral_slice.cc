@@ -315,12 +315,9 @@ void write_row(const SliceJob& j, const SliceScratch& s, int64_t n, int64_t y) {
 
 // Task: the pixel rows of image n whose first y-cell is in [va, vb).
 void slice_band(const SliceJob& j, int64_t task) {
-  const int64_t n = task / j.bands, band = task % j.bands;
-  const int64_t va = band_start(band, j.bands, j.GH);
-  const int64_t vb = band_start(band + 1, j.bands, j.GH);
-  grid::Carver measure(nullptr);
-  SliceScratch{measure, j};
-  grid::Carver carver(grid::thread_scratch().get(measure.used()));
+  const grid::Band band = grid::task_band(task, j.bands, j.GH);
+  const int64_t n = band.n, va = band.va, vb = band.vb;
+  grid::Carver carver = grid::scratch_carver<SliceScratch>(j);
   SliceScratch s(carver, j);
   const AxisTaps& xs = *j.xs;
   const AxisTaps& ys = *j.ys;
@@ -340,9 +337,7 @@ void slice_band(const SliceJob& j, int64_t task) {
   }
 }
 
-class BilateralSlice : public Kernel<BilateralSlice, grid::Attributes, grid::read_attributes> {
- public:
-  using Kernel::Kernel;
+struct BilateralSlice : Kernel<BilateralSlice, grid::Attributes, grid::read_attributes> {
   static constexpr const char* kName = "BilateralSlice";
   static constexpr const char* kInputNames[] = {"grid", "weight", "guide"};
   static constexpr size_t kOutputs = 1;  // image

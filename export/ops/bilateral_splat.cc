@@ -285,12 +285,9 @@ void finish_row(const SplatJob& j, int64_t n, int64_t v, RowBuffer& row, float* 
 
 // Task: grid rows [va, vb) of image n.
 void splat_band(const SplatJob& j, int64_t task) {
-  const int64_t n = task / j.bands, band = task % j.bands;
-  const int64_t va = band_start(band, j.bands, j.GH);
-  const int64_t vb = band_start(band + 1, j.bands, j.GH);
-  grid::Carver measure(nullptr);
-  SplatScratch{measure, j};
-  grid::Carver carver(grid::thread_scratch().get(measure.used()));
+  const grid::Band band = grid::task_band(task, j.bands, j.GH);
+  const int64_t n = band.n, va = band.va, vb = band.vb;
+  grid::Carver carver = grid::scratch_carver<SplatScratch>(j);
   const SplatScratch s(carver, j);
   const size_t row_bytes = sizeof(float) * j.D * j.GW * j.cell_values();
   std::memset(s.rows[0], 0, row_bytes);
@@ -336,9 +333,7 @@ void splat_band(const SplatJob& j, int64_t task) {
   out.finish();
 }
 
-class BilateralSplat : public Kernel<BilateralSplat, grid::Attributes, grid::read_attributes> {
- public:
-  using Kernel::Kernel;
+struct BilateralSplat : Kernel<BilateralSplat, grid::Attributes, grid::read_attributes> {
   static constexpr const char* kName = "BilateralSplat";
   static constexpr const char* kInputNames[] = {"image", "guide"};
   static constexpr size_t kOutputs = 2;  // grid, weight

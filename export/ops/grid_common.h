@@ -414,6 +414,25 @@ class Carver {
   size_t used_ = 0;
 };
 
+// One task of a banded grid op: image n, grid rows [va, vb) of `rows`, the tasks being
+// (image, band) pairs, `bands` per image.
+struct Band {
+  int64_t n, va, vb;
+};
+inline Band task_band(int64_t task, int64_t bands, int64_t rows) {
+  const int64_t band = task % bands;
+  return {task / bands, band_start(band, bands, rows), band_start(band + 1, bands, rows)};
+}
+
+// A carver on this thread's scratch, sized for one S (S(carver, job) lays out its arrays):
+// measured by a layout on a carver without a block first.
+template <class S, class Job>
+inline Carver scratch_carver(const Job& j) {
+  Carver measure(nullptr);
+  S{measure, j};
+  return Carver(thread_scratch().get(measure.used()));
+}
+
 // ---- attributes shared by both ops --------------------------------------------------------------
 
 constexpr int64_t kMaxSigmaS = 65536;

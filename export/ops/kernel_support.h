@@ -255,12 +255,12 @@ template <class K, class Attributes,
           OrtStatus* (*Read)(const ort::Api&, const char*, const OrtKernelInfo*, Attributes*)>
 class Kernel {
  public:
-  explicit Kernel(const Attributes& attributes) : attributes_(attributes) {}
-
   static OrtStatus* Create(const ort::Api& api, const OrtKernelInfo* info, K** out) {
     Attributes attributes{};
     if (OrtStatus* s = Read(api, K::kName, info, &attributes)) return s;
-    *out = new K(attributes);
+    K* kernel = new K();
+    static_cast<Kernel*>(kernel)->attributes_ = attributes;  // before any run: never changes
+    *out = kernel;
     return nullptr;
   }
 
@@ -271,7 +271,7 @@ class Kernel {
   }
 
  protected:
-  const Attributes attributes_;
+  Attributes attributes_{};
 };
 
 // ---- the OrtCustomOp table --------------------------------------------------------------------

@@ -97,9 +97,7 @@ void upsample_band(const UpsampleJob& j, int64_t plane_index, int64_t ya, int64_
   }
 }
 
-class UpsampleBilinear : public Kernel<UpsampleBilinear, NoAttributes, read_no_attributes> {
- public:
-  using Kernel::Kernel;
+struct UpsampleBilinear : Kernel<UpsampleBilinear, NoAttributes, read_no_attributes> {
   static constexpr const char* kName = "UpsampleBilinear";
   static constexpr const char* kInputNames[] = {"image", "like"};  // like: the output's size
   static constexpr size_t kOutputs = 1;
