@@ -70,13 +70,12 @@ def measure(path: Path, threads: int, repeats: int) -> dict[str, Timing]:
              **{f"state_in.{k}": v for k, v in state.items()}}
     feeds = {k: v for k, v in feeds.items() if k in runtime.input_names}
     first = runtime.color_stage  # a graph stage before OIDN: quietframe's time too
-    first_state = first.own_state(state) if first is not None else None
     first_feeds = {name: plane[None] for name, plane in planes.items()}
     _, height, width = planes["color"].shape
 
     def stage() -> None:
         if first is not None:
-            first.run(first_feeds, first_state, height, width)
+            first.run(first_feeds, state, height, width)  # reads its namespace of `state`
         runtime.session.run(None, feeds)
 
     return {

@@ -206,10 +206,6 @@ class GraphRunner:
         """This graph's own interface (its state by its own names)."""
         return model_info(Path(self.stage.file or f"{self.card.name}.onnx"), self.card)
 
-    def own_state(self, state: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """This stage's state out of a composition's state dict, by the stage's own names."""
-        return {s.name: state[self.stage.state_key(s.name)] for s in self.card.state}
-
     def run(self, feeds: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
             height: int, width: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """(output (1, 3, H, W), new state by the stage's own names); `state` None: fresh."""
