@@ -41,9 +41,15 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.bench.evaluate import AUX
-from quietframe.model import metrics
+from quietframe.bench.harness import (
+    Frames,
+    ImageMethod,
+    Method,
+    RuntimeMethod,
+    planar_frames,
+    score_sequence,
+)
 from quietframe.runtime import Denoiser, default_model_path, installed_models
-from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 from quietframe.scenes.render import TOPUP_KEY
 from quietframe.service.model_choice import (
@@ -65,7 +71,8 @@ BUFFER_SETS: dict[str, tuple[str, ...]] = {
 ABSENT = ("albedo", "normal", "depth", "motion")
 TOLERANCE_DB, SPEED_SHARE = 0.3, 0.6  # the issue's acceptance target
 
-Frames = list[tuple[dict[str, np.ndarray], np.ndarray, bool]]  # (buffers HWC, reference, reset)
+# (buffers as (H, W, C) images, reference, reset): what the loaders give; planar_frames converts
+ImageFrames = list[tuple[dict[str, np.ndarray], np.ndarray, bool]]
 
 
 @dataclass
@@ -75,7 +82,7 @@ class Run:
     ms: float  # mean per frame
 
 
-def load_frames(folder: Path, spp: int, max_frames: int) -> Frames:
+def load_frames(folder: Path, spp: int, max_frames: int) -> ImageFrames:
     from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
 
     frames = []
@@ -86,7 +93,7 @@ def load_frames(folder: Path, spp: int, max_frames: int) -> Frames:
     return frames
 
 
-def synthetic_frames(seed: int, spp: int, count: int = 3, size: int = 48) -> Frames:
+def synthetic_frames(seed: int, spp: int, count: int = 3, size: int = 48) -> ImageFrames:
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:size, 0:size] / size
     albedo = np.repeat(rng.uniform(0.2, 0.9, (size, size, 1)), 3, -1).astype(np.float32)
@@ -103,45 +110,28 @@ def synthetic_frames(seed: int, spp: int, count: int = 3, size: int = 48) -> Fra
     return frames
 
 
-def frame_noise(buffers: dict[str, np.ndarray]) -> dict[str, float | None]:
+def frame_noise(buffers: dict[str, np.ndarray]) -> dict[str, float | None]:  # planes
     """The first frame's noise statistic (log2), demodulated and of the colour alone: what
     bench/model_metrics.py --noise-points stamps as a model's by_noise points."""
-    color, albedo = (buffers[k].transpose(2, 0, 1) for k in ("color", "albedo"))
+    color, albedo = buffers["color"], buffers["albedo"]
     return {"log2_sigma": log2_statistic(noise_statistic(color, albedo)),
             "log2_sigma_colour": log2_statistic(noise_statistic(color, None))}
 
 
-def run_model(denoise, frames: Frames, present: tuple[str, ...]) -> Run:
-    """One sequence through a per-frame callable (planes, state) -> (HWC image, state)."""
-    state, preds, refs, ms, psnrs = None, [], [], [], []
-    for buffers, reference, reset in frames:
-        if reset:
-            state = None
-        planes = planes_from_hwc({k: v for k, v in buffers.items() if k in present})
-        start = time.perf_counter()
-        pred, state = denoise(planes, state)
-        ms.append(1e3 * (time.perf_counter() - start))
-        psnrs.append(metrics.psnr(pred, reference))
-        preds.append(pred)
-        refs.append(reference)
-    trmae = metrics.trmae(np.stack(preds), np.stack(refs)) if len(preds) > 1 else float("nan")
-    return Run(float(np.mean(psnrs)), trmae, float(np.mean(ms)))
+def run_model(method: Method, frames: Frames, present: tuple[str, ...]) -> Run:
+    """One sequence through the harness's loop, the method given only the `present` buffers."""
+    score = score_sequence(method, frames,
+                           inputs=lambda planes: {k: v for k, v in planes.items() if k in present})
+    return Run(score.mean("psnr"), score.trmae, float(np.mean(score.ms)))
 
 
-def runtime_call(denoiser: Denoiser, zeros_for_required: bool = False):
-    """The runtime as a per-frame callable; `zeros_for_required` feeds zeros for absent
-    required buffers too (the absence table: what the model would see without them)."""
-    def call(planes, state):
-        if zeros_for_required:
-            _, h, w = planes["color"].shape
-            for name in denoiser.info.required_buffers:
-                planes.setdefault(name, np.zeros((BUFFER_CHANNELS[name], h, w), np.float32))
-        result = denoiser.denoise(planes, state)
-        return result.color.transpose(1, 2, 0), result.state
-    return call
+def runtime_call(denoiser: Denoiser, zeros_for_required: bool = False) -> RuntimeMethod:
+    """The runtime as a method; `zeros_for_required` feeds zeros for absent required buffers
+    too (the absence table: what the model would see without them)."""
+    return RuntimeMethod(denoiser, zeros_for_required=zeros_for_required)
 
 
-def oidn_call(present: tuple[str, ...], threads: int):
+def oidn_call(present: tuple[str, ...], threads: int) -> ImageMethod:
     """OIDN (balanced) given the same buffers: colour, + albedo, + normal (OIDN takes a normal
     only together with an albedo)."""
     from quietframe.bench.baselines import OIDNDenoiser
@@ -149,15 +139,9 @@ def oidn_call(present: tuple[str, ...], threads: int):
     aux = ("albedo", "normal") if {"albedo", "normal"} <= set(present) else (
         ("albedo",) if "albedo" in present else ())
     oidn = OIDNDenoiser("balanced", num_threads=threads, aux=aux)
-
-    def call(planes, state):
-        hwc = {k: v.transpose(1, 2, 0) for k, v in planes.items()}
-        for name in ("albedo", "normal"):
-            hwc.setdefault(name, np.zeros_like(hwc["color"]))
-        hwc.setdefault("depth", np.ones_like(hwc["color"][..., :1]))
-        hwc.setdefault("motion", np.zeros_like(hwc["color"][..., :2]))
-        return oidn(hwc), None
-    return call
+    return ImageMethod(oidn, fill={"albedo": np.zeros_like, "normal": np.zeros_like,
+                                   "depth": lambda c: np.ones_like(c[..., :1]),
+                                   "motion": lambda c: np.zeros_like(c[..., :2])})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,8 +203,9 @@ def main(argv: list[str] | None = None) -> int:
     rows, absence = [], []
     for name, levels, where in sources:
         for spp in levels:
-            frames = (synthetic_frames(where, spp) if args.synthetic  # type: ignore[arg-type]
-                      else load_frames(where, spp, args.max_frames))  # type: ignore[arg-type]
+            frames = planar_frames(
+                synthetic_frames(where, spp) if args.synthetic  # type: ignore[arg-type]
+                else load_frames(where, spp, args.max_frames))  # type: ignore[arg-type]
             looks = frame_noise(frames[0][0])
             for set_name, present in buffer_sets.items():
                 fixed = {m: run_model(runtime_call(d), frames, present)
@@ -230,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
                        "fixed": {m: vars(r) for m, r in fixed.items()}}
                 for mode in ("header", "estimate"):
                     start = time.perf_counter()  # the service measures the statistic either way
-                    first = planes_from_hwc(frames[0][0])
+                    first = frames[0][0]
                     albedo = first["albedo"] if "albedo" in present else None
                     stated = NoiseLevel(spp, "header") if mode == "header" else None
                     noise = estimate_spp(first["color"], albedo, calibration, header=stated)

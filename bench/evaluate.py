@@ -22,7 +22,6 @@ import json
 import os
 import re
 import sys
-import time
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,39 +29,24 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench.harness import (
+    FRAME_METRICS,
+    Frames,
+    ImageMethod,
+    RuntimeMethod,
+    SequenceScore,
+    planar_frames,
+    score_sequence,
+)
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
-from quietframe.runtime.buffers import planes_from_hwc
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
 AUX = ("albedo", "normal", "depth", "motion")
 STORED_BLENDER = "blender_denoise"  # a stored output in a Cycles frame's buffers, not an input
-
-
-class RuntimeMethod:
-    """A shipped model as a per-sequence method: keeps the state between frames, unless
-    `single_frame` (every frame starts from an empty history, as after a cut: the temporal
-    model's single-frame behaviour). `options`: the model's run-time inputs (kernel_size)."""
-
-    def __init__(self, path: Path, threads: int, options: dict | None = None,
-                 single_frame: bool = False) -> None:
-        self.denoiser = Denoiser(path, threads=threads, options=options)
-        self.single_frame = single_frame
-        self.state: dict | None = None
-
-    def reset(self) -> None:
-        self.state = None
-
-    def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
-        """(H, W, C) images like the other methods; the runtime takes and returns planes."""
-        if self.single_frame:
-            self.state = None
-        result = self.denoiser.denoise(planes_from_hwc(buffers), self.state)
-        self.state = result.state
-        return result.color.transpose(1, 2, 0)
 
 
 def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
@@ -84,11 +68,13 @@ def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
 
 
 class Noisy:
+    """The input itself: the floor every method is measured against."""
+
     def reset(self) -> None:
         pass
 
-    def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
-        return buffers["color"]
+    def __call__(self, planes: dict[str, np.ndarray]) -> np.ndarray:
+        return planes["color"]
 
 
 class BlenderDenoise:
@@ -101,8 +87,8 @@ class BlenderDenoise:
     def reset(self) -> None:
         pass
 
-    def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
-        return buffers[STORED_BLENDER]
+    def __call__(self, planes: dict[str, np.ndarray]) -> np.ndarray:
+        return planes[STORED_BLENDER]
 
 
 def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int, ...] = (),
@@ -119,12 +105,12 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
         methods["blender-denoise"] = BlenderDenoise
     if "accumulation" in models:
         methods["accumulation"] = lambda: RuntimeMethod(models["accumulation"], threads)
-    methods["svgf"] = lambda: baselines.SVGFStyleFilter(num_threads=threads)
+    methods["svgf"] = lambda: ImageMethod(baselines.SVGFStyleFilter(num_threads=threads))
     for quality in ("fast", "balanced", "high"):
         methods[f"oidn-{quality}"] = (
-            lambda q=quality: baselines.OIDNDenoiser(q, num_threads=threads))
-    methods["oidn-high-cleanaux"] = lambda: baselines.OIDNDenoiser(
-        "high", prefilter_aux=True, num_threads=threads)
+            lambda q=quality: ImageMethod(baselines.OIDNDenoiser(q, num_threads=threads)))
+    methods["oidn-high-cleanaux"] = lambda: ImageMethod(baselines.OIDNDenoiser(
+        "high", prefilter_aux=True, num_threads=threads))
     for name, path in models.items():
         if name != "accumulation":
             methods[name] = lambda p=path: RuntimeMethod(p, threads)
@@ -170,10 +156,20 @@ def load_sequence(folder: Path, spp: int) -> list[tuple[dict, np.ndarray, bool]]
 
 @dataclass
 class Scores:
+    """One method's sequences at one spp, gathered for its row."""
+
     per_frame: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
     trmae: list[float] = field(default_factory=list)
     flicker: list[float] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
+
+    def add(self, sequence: SequenceScore) -> None:
+        for name, values in sequence.per_frame.items():
+            self.per_frame[name] += values
+        self.trmae.append(sequence.trmae)
+        if sequence.flicker is not None:
+            self.flicker.append(sequence.flicker)
+        self.ms += sequence.ms
 
     def summary(self) -> dict[str, float]:
         out = {k: float(np.mean(v)) for k, v in self.per_frame.items()}
@@ -183,29 +179,20 @@ class Scores:
         return out
 
 
-def run_sequence(method, frames, scores: Scores, keep: list | None = None,
+def run_sequence(method, frames: Frames, scores: Scores, keep: list | None = None,
                  locked_off: bool = False) -> None:
-    """Score `method` over one sequence; `locked_off` (a static shot) also scores flicker."""
-    method.reset()
-    preds, refs = [], []
-    for buffers, reference, reset in frames:
-        if reset:
-            method.reset()
-        inputs = buffers if getattr(method, "reads_stored", False) else {
-            k: v for k, v in buffers.items() if k != STORED_BLENDER}
-        start = time.perf_counter()
-        pred = np.asarray(method(inputs), np.float32)
-        scores.ms.append(1e3 * (time.perf_counter() - start))
-        for name, fn in (("psnr", metrics.psnr), ("ssim", metrics.ssim),
-                         ("smape", metrics.smape), ("relmse", metrics.relmse)):
-            scores.per_frame[name].append(fn(pred, reference))
-        preds.append(pred)
-        refs.append(reference)
-    scores.trmae.append(metrics.trmae(np.stack(preds), np.stack(refs)))
-    if locked_off:
-        scores.flicker.append(metrics.flicker(np.stack(preds)))
+    """Score `method` over one sequence of planar frames (harness.score_sequence, every frame
+    metric); `locked_off` (a static shot) also scores flicker. Only a method that reads a
+    stored output (Blender's denoise) is given it."""
+    inputs = None if getattr(method, "reads_stored", False) else _inputs
+    sequence = score_sequence(method, frames, tuple(FRAME_METRICS), locked_off, inputs)
+    scores.add(sequence)
     if keep is not None:
-        keep.append(preds[-1])
+        keep.append(sequence.outputs[-1])
+
+
+def _inputs(planes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: v for k, v in planes.items() if k != STORED_BLENDER}
 
 
 def prepass_shares(method, threads: int) -> dict[str, float]:
@@ -226,7 +213,7 @@ def time_720p(factory, threads: int) -> float:
     method = factory()
     if getattr(method, "reads_stored", False):
         return float("nan")
-    buffers = {k: v.transpose(1, 2, 0) for k, v in frame_buffers().items()}  # (H, W, C) images
+    buffers = frame_buffers()  # (C, H, W) planes
     method.reset()
     method(buffers)
     return time_ms(lambda: method(buffers), warmup=1, repeats=3).median_ms
@@ -362,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, crops, ms_720p = [], defaultdict(list), {}
     crop_spp = spp_levels[0]
     for spp in spp_levels:
-        sequences = [load_sequence(f, spp) for f in folders]
+        sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
         for name, factory in list(methods.items()):
             try:
                 method, scores = factory(), Scores()

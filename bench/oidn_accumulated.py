@@ -18,32 +18,43 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.bench.baselines import OIDNDenoiser
-from quietframe.bench.evaluate import RuntimeMethod, load_sequence, sequence_dirs
-from quietframe.model import metrics
+from quietframe.bench.evaluate import load_sequence, sequence_dirs
+from quietframe.bench.harness import ImageMethod, RuntimeMethod, planar_frames, score_sequence
 from quietframe.models import MODELS_DIR
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
 
+class OIDNOnAccumulation:
+    """OIDN given the accumulation's output as its colour (what oidn-temporal's prepass sees)."""
+
+    def __init__(self, accumulation: RuntimeMethod, oidn: ImageMethod) -> None:
+        self.accumulation, self.oidn = accumulation, oidn
+
+    def reset(self) -> None:
+        self.accumulation.reset()
+
+    def __call__(self, planes: dict[str, np.ndarray]) -> np.ndarray:
+        return self.oidn({**planes, "color": self.accumulation(planes)})
+
+
 def compare(folders: list[Path], spp: int, accumulation: Path, oidn: OIDNDenoiser,
             threads: int) -> dict[str, tuple[float, float]]:
-    """Method -> (mean PSNR over frames, mean TRMAE over sequences)."""
-    psnr: dict[str, list[float]] = {"oidn": [], "accumulation": [], "oidn(accumulation)": []}
-    trmae: dict[str, list[float]] = {k: [] for k in psnr}
+    """Method -> (mean PSNR over frames, mean TRMAE over sequences), each method scored by the
+    harness's one loop."""
+    methods = {
+        "oidn": lambda: ImageMethod(oidn),
+        "accumulation": lambda: RuntimeMethod(accumulation, threads),
+        "oidn(accumulation)": lambda: OIDNOnAccumulation(RuntimeMethod(accumulation, threads),
+                                                         ImageMethod(oidn)),
+    }
+    psnr: dict[str, list[float]] = {k: [] for k in methods}
+    trmae: dict[str, list[float]] = {k: [] for k in methods}
     for folder in folders:
-        acc = RuntimeMethod(accumulation, threads)
-        outputs: dict[str, list[np.ndarray]] = {k: [] for k in psnr}
-        refs = []
-        for buffers, reference, reset in load_sequence(folder, spp):
-            if reset:
-                acc.reset()
-            accumulated = acc(buffers)
-            outputs["oidn"].append(oidn(buffers))
-            outputs["accumulation"].append(accumulated)
-            outputs["oidn(accumulation)"].append(oidn({**buffers, "color": accumulated}))
-            refs.append(reference)
-        for name, frames in outputs.items():
-            psnr[name] += [metrics.psnr(p, r) for p, r in zip(frames, refs, strict=True)]
-            trmae[name].append(metrics.trmae(np.stack(frames), np.stack(refs)))
+        frames = planar_frames(load_sequence(folder, spp))
+        for name, make in methods.items():
+            score = score_sequence(make(), frames)
+            psnr[name] += score.per_frame["psnr"]
+            trmae[name].append(score.trmae)
     return {k: (float(np.mean(psnr[k])), float(np.mean(trmae[k]))) for k in psnr}
 
 

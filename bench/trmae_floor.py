@@ -97,30 +97,14 @@ def second_reference(
     return image
 
 
-class _Recorder:
-    """Wraps a method for `evaluate.run_sequence` and keeps every output."""
-
-    def __init__(self, method: object) -> None:
-        self.method = method
-        self.outputs: list[np.ndarray] = []
-
-    def reset(self) -> None:
-        self.method.reset()
-
-    def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
-        out = np.asarray(self.method(buffers), np.float32)
-        self.outputs.append(out)
-        return out
-
-
 def method_trmae(method: object, frames: list, at: list[int]) -> float:
-    """TRMAE at frames `at` of a method run like quietframe-eval runs it (from frame 0, state
-    carried, reset at cuts); `frames` as `evaluate.load_sequence` returns them."""
-    from quietframe.bench.evaluate import Scores, run_sequence
+    """TRMAE at frames `at` of a (planar) method run like quietframe-eval runs it (the
+    harness's loop: from frame 0, state carried, reset at cuts); `frames` as
+    `evaluate.load_sequence` returns them."""
+    from quietframe.bench.harness import planar_frames, score_sequence
 
-    recorder = _Recorder(method)
-    run_sequence(recorder, frames[: max(at) + 1], Scores())
-    preds = np.stack([recorder.outputs[t] for t in at])
+    score = score_sequence(method, planar_frames(frames[: max(at) + 1]), ())
+    preds = np.stack([score.outputs[t] for t in at])
     return metrics.trmae(preds, np.stack([frames[t][1] for t in at]))
 
 
