@@ -40,9 +40,11 @@ def test_card_reports_architecture_data_speed_and_metrics(tmp_path):
 
 
 def test_card_says_when_the_data_is_absent(tmp_path):
+    # a measured 720p time in the card: quoted, not timed again (timing: the test above)
     path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "m.onnx",
-                      training={"data": str(tmp_path / "nowhere")})
+                      training={"data": str(tmp_path / "nowhere")}, metrics={"ms_720p": 5.0})
     card = write_model_card(path, threads=1).read_text()
+    assert "5 ms per 1280×720 frame through quietframe.runtime: the card's figure" in card
     assert "not present on the machine that wrote this card" in card
     assert "no evaluation run given" in card
 
@@ -59,12 +61,14 @@ def test_stamp_writes_the_evaluation_into_the_metadata_then_the_card(tmp_path):
 
     path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "m.onnx")
     row = {"method": "m", "spp": 2, "psnr": 24.25, "ssim": 0.6, "smape": 0.1, "relmse": 0.2,
-           "trmae": 0.75}
+           "trmae": 0.75, "ms_720p": 7.0}
     evaluation = tmp_path / "benchmarks.json"
     evaluation.write_text(json.dumps({"rows": [row], "meta": {"split": "validation"}}))
     assert model_card.main(["--stamp", "--evaluation", str(evaluation), str(path)]) == 0
     props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
     table = ModelCard.from_props(props, "m").measured(None)
     assert [(r.spp, r.psnr, r.trmae) for r in table.by_spp] == [(2, 24.25, 0.75)]
+    assert table.ms_720p == 7.0
     card = path.with_suffix(".md").read_text()
     assert "| 2 | 24.25 | 0.6000 | 0.1000 | 0.2000 | 0.7500 |" in card
+    assert "7 ms per 1280×720 frame through quietframe.runtime: the card's figure" in card
