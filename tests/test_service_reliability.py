@@ -8,6 +8,7 @@ import json
 import logging
 import re
 import socket
+import sys
 import time
 import zlib
 
@@ -498,11 +499,38 @@ def test_openexr_warnings_go_to_the_log(capsys, caplog):
     for i in range(header.header_bytes + 400, len(data) - 100, 7):
         data[i] ^= 0x5A
     sources = frames.resolve(header.channels, ["color"], [])
+    stdout = sys.stdout
     with caplog.at_level(logging.WARNING), pytest.raises(errors.BadExr):
         frames.decode(bytes(data), sources)
+    assert sys.stdout is stdout  # routed while decoding only, not replaced for the process
     assert "Warning:" not in capsys.readouterr().out
     records = [r for r in caplog.records if getattr(r, "openexr", None)]
     assert records and any("Warning:" in line for line in records[0].openexr)
+
+
+def test_openexr_warnings_of_concurrent_decodes_stay_with_their_frame(capsys, caplog):
+    """Each decoding thread's printed warning goes to its own record, none to stdout."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from quietframe.service import errors, frames
+
+    data = bytearray(frame_bytes())
+    header = frames.read_header(data, 8192, 8192)
+    for i in range(header.header_bytes + 400, len(data) - 100, 7):
+        data[i] ^= 0x5A
+    sources = frames.resolve(header.channels, ["color"], [])
+
+    def decode(_: int) -> None:
+        with pytest.raises(errors.BadExr):
+            frames.decode(bytes(data), sources)
+
+    stdout = sys.stdout
+    with caplog.at_level(logging.WARNING), ThreadPoolExecutor(4) as pool:
+        list(pool.map(decode, range(8)))
+    assert sys.stdout is stdout
+    assert "Warning:" not in capsys.readouterr().out
+    records = [r.openexr for r in caplog.records if getattr(r, "openexr", None)]
+    assert len(records) == 8 and all(len(lines) == 1 for lines in records), records
 
 
 # ---- the corpus --------------------------------------------------------------------------------
