@@ -57,11 +57,12 @@ def export_cases(variants: list[str], kernels: list[tuple[int, int]], widths: li
     return paths
 
 
-def measure(path: Path, threads: int, repeats: int) -> dict[str, Timing]:
-    """oidn / stage / total timings of one model on a 720p frame, history carried; the stage is
-    everything but OIDN (the graph, and a prepass's color_from model)."""
+def measure(path: Path, threads: int, repeats: int,
+            size: tuple[int, int] = (720, 1280)) -> dict[str, Timing]:
+    """oidn / stage / total timings of one model on a (height, width) frame (720p), history
+    carried; the stage is everything but OIDN (the graph, and a prepass's color_from model)."""
     runtime = Denoiser(path, threads=threads)
-    planes = frame_buffers()
+    planes = frame_buffers(*size)
     state = runtime.denoise(planes, None).state
     oidn = runtime.prepass({b: planes[b] for b in PREPASS_BUFFERS})
     feeds = {"oidn": oidn, **{b: planes[b][None] for b in ("albedo", "normal", "depth",

@@ -566,3 +566,17 @@ def test_absent_aux_buffers_are_left_out_of_oidn_not_given_as_zeros(tmp_path):
                                                       "normal": 0 * hwc["normal"]})
     colour_only = runtime.denoise({"color": frame["color"]}, None).color.transpose(1, 2, 0)
     assert np.abs(colour_only - zeros).max() > 1e-3  # what feeding zeros would have given
+
+
+@pytest.mark.parametrize("name", ["oidn-fast-acc", "oidn-frame"])
+def test_prepass_timing_splits_a_shipped_composition(name):
+    """quietframe-eval's OIDN / stage split (bench/oidn_temporal.measure) runs each stage of a
+    shipped composition with its own state namespace (a graph before OIDN included)."""
+    pytest.importorskip("pyoidn")
+    from quietframe.bench.oidn_temporal import measure
+    from quietframe.runtime import installed_models
+
+    path = next(p for p in installed_models() if p.stem == name)
+    timings = measure(path, threads=1, repeats=1, size=(48, 64))
+    assert set(timings) == {"oidn", "stage", "total"}
+    assert all(t.median_ms > 0 for t in timings.values())
