@@ -31,16 +31,18 @@ def colour(data: bytes) -> np.ndarray:
     raise AssertionError(f"no colour channels in {sorted(channels)}")
 
 
-def run_sequence(url: str, frames: list[bytes], first: int = 0) -> list[bytes]:
+def run_sequence(url: str, frames: list[bytes], first: int = 0,
+                 model: str = "auto") -> list[bytes]:
     with Client(url) as client:
-        sid = client.create_session(*SIZE)["id"]
+        sid = client.create_session(*SIZE, model)["id"]
         return [client.send_frame(sid, first + i, f).exr for i, f in enumerate(frames)]
 
 
 def test_sequence_round_trip(live_server):
-    frames = shot(6, "blender")
+    # A model with history: auto serves a static shot (all-zero Vector) per frame.
+    frames, model = shot(6, "blender"), "nbg-2l-3g"
     with Client(live_server.url) as client:
-        session = client.create_session(*SIZE, precision="half")
+        session = client.create_session(*SIZE, model, precision="half")
         results = [client.send_frame(session["id"], i, f) for i, f in enumerate(frames)]
         status = client.session(session["id"])
         client.delete_session(session["id"])
@@ -58,7 +60,7 @@ def test_sequence_round_trip(live_server):
     assert np.isfinite(colour(results[-1].exr)).all()
     assert status["frames_done"] == 6 and status["last_index"] == 5
     # Temporal history is used: the last frame differs from the same frame denoised alone.
-    alone = run_sequence(live_server.url, frames[-1:])[0]
+    alone = run_sequence(live_server.url, frames[-1:], model=model)[0]
     assert not np.allclose(colour(results[-1].exr), colour(alone), rtol=1e-3, atol=1e-4)
 
 
