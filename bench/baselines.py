@@ -447,8 +447,9 @@ class OIDNDenoiser:
     (H, W, C) images. It is the runtime's OIDN prepass (runtime/oidn_prepass.py), so this
     baseline and the oidn-temporal tier run the same OIDN code with the same settings.
 
-    With `prefilter_aux`, albedo and normal are first denoised by their own RT filters and the main
-    filter is told `cleanAux` (OIDN's documented workflow for noisy auxiliary buffers). `aux`
+    With `prefilter_aux`, albedo and normal are first denoised by their own RT filters (at
+    `aux_quality`, default the main filter's) and the main filter is told `cleanAux` (OIDN's
+    documented workflow for noisy auxiliary buffers; Blender's Accurate prefilter). `aux`
     chooses what OIDN is given besides the colour (a normal only together with an albedo).
     """
 
@@ -458,13 +459,15 @@ class OIDNDenoiser:
         prefilter_aux: bool = False,
         num_threads: int = 0,
         aux: tuple[str, ...] = ("albedo", "normal"),
+        aux_quality: str = "",
     ) -> None:
         from quietframe.runtime.oidn_prepass import QUALITIES, OIDNPrepass, OIDNSettings
 
         if quality not in QUALITIES:
             raise ValueError(f"OIDNDenoiser: quality must be fast, balanced or high: {quality!r}")
         self.quality, self.prefilter_aux = quality, prefilter_aux
-        self._prepass = OIDNPrepass(OIDNSettings(quality, prefilter_aux, aux=aux), num_threads)
+        settings = OIDNSettings(quality, prefilter_aux, aux=aux, aux_quality=aux_quality)
+        self._prepass = OIDNPrepass(settings, num_threads)
 
     def reset(self) -> None:
         """Single-frame: nothing to forget (resources are kept for the next frame)."""

@@ -111,6 +111,10 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
             lambda q=quality: ImageMethod(baselines.OIDNDenoiser(q, num_threads=threads)))
     methods["oidn-high-cleanaux"] = lambda: ImageMethod(baselines.OIDNDenoiser(
         "high", prefilter_aux=True, num_threads=threads))
+    for aux_quality in ("fast", "balanced"):  # a cheaper prefilter of the aux alone
+        methods[f"oidn-high-cleanaux-{aux_quality}"] = lambda q=aux_quality: ImageMethod(
+            baselines.OIDNDenoiser("high", prefilter_aux=True, num_threads=threads,
+                                   aux_quality=q))
     for name, path in models.items():
         if name != "accumulation":
             methods[name] = lambda p=path: RuntimeMethod(p, threads)

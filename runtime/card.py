@@ -126,15 +126,17 @@ class OIDNStage:
     input: str = "oidn"  # the graph input that receives OIDN's output
     aux: tuple[str, ...] = ("albedo", "normal")  # what OIDN is given besides the colour
     color_from: str = ""
+    aux_quality: str = ""  # the aux prefilters' quality ("": the main filter's)
 
     def __post_init__(self) -> None:
         if self.color_from and (Path(self.color_from).name != self.color_from
                                 or not self.color_from.endswith(".onnx")):
             raise ValueError(f"prepass: color_from must name an .onnx file in the model's own "
                              f"folder, got {self.color_from!r}")
-        if self.quality not in OIDN_QUALITIES:
-            raise ValueError(f"prepass: OIDN quality must be one of {list(OIDN_QUALITIES)}, "
-                             f"got {self.quality!r}")
+        for quality in (self.quality, self.aux_quality or self.quality):
+            if quality not in OIDN_QUALITIES:
+                raise ValueError(f"prepass: OIDN quality must be one of {list(OIDN_QUALITIES)}, "
+                                 f"got {quality!r}")
         if set(self.aux) - {"albedo", "normal"} or ("normal" in self.aux
                                                      and "albedo" not in self.aux):
             raise ValueError(f"prepass: OIDN aux must be (), ('albedo',) or ('albedo', 'normal') "
@@ -144,6 +146,8 @@ class OIDNStage:
         out: dict = {"quality": self.quality, "prefilter_aux": self.prefilter_aux}
         if self.aux != OIDNStage.aux:
             out["aux"] = list(self.aux)
+        if self.aux_quality:
+            out["aux_quality"] = self.aux_quality
         return out
 
 
@@ -164,7 +168,8 @@ def prepass_stage(spec: Mapping) -> OIDNStage:
                      prefilter_aux=bool(oidn.get("prefilter_aux", False)),
                      input=spec.get("input", "oidn"),
                      aux=tuple(oidn.get("aux", OIDNStage.aux)),
-                     color_from=spec.get("color_from", ""))
+                     color_from=spec.get("color_from", ""),
+                     aux_quality=oidn.get("aux_quality", ""))
 
 
 def stages_from_prepass(prepass: OIDNStage | None) -> tuple[Stage, ...]:

@@ -90,17 +90,18 @@ class _FilterSet:
         images = {name: name for name in aux}
         if settings.prefilter_aux:
             for name in aux:
-                self._add({name: name, "output": f"clean_{name}"}, settings)
+                self._add({name: name, "output": f"clean_{name}"}, settings,
+                          settings.aux_quality or settings.quality)
             images = {name: f"clean_{name}" for name in aux}
-        self._add({"color": "color", **images, "output": "output"}, settings)
+        self._add({"color": "color", **images, "output": "output"}, settings, settings.quality)
 
-    def _add(self, images: dict[str, str], settings: OIDNSettings) -> None:
+    def _add(self, images: dict[str, str], settings: OIDNSettings, quality: str) -> None:
         oidn = self._oidn
         flt = oidn.Filter(self._device, oidn.OIDN_FILTER_TYPE_RT)
         self.filters.append(flt)  # released by close() even if configuring fails
         for slot, key in images.items():
             flt.set_image(slot, self.bound[key], oidn.OIDN_FORMAT_FLOAT3)
-        flt.set_quality(getattr(oidn, QUALITIES[settings.quality]))
+        flt.set_quality(getattr(oidn, QUALITIES[quality]))
         if self._max_memory_mb:  # OIDN tiles the image itself to fit (its own overlap)
             flt.set_int("maxMemoryMB", int(self._max_memory_mb))
         if "color" in images:

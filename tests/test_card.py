@@ -22,6 +22,7 @@ from quietframe.runtime.card import (
     SppRow,
     StateSpec,
     Tiling,
+    prepass_stage,
 )
 from quietframe.service.model_choice import ModelProfile
 
@@ -110,3 +111,13 @@ def test_exporters_build_the_card():
     shipped = ModelCard.from_props(shipped_props(
         next(p for p in installed_models() if p.stem == "oidn-acc")))
     assert only.stages == shipped.stages and only.tiling == shipped.tiling
+
+
+def test_oidn_stage_keeps_a_separate_aux_prefilter_quality():
+    stage = OIDNStage(quality="high", prefilter_aux=True, aux_quality="fast")
+    spec = {"oidn": stage.oidn_dict(), "input": "oidn"}
+    assert spec["oidn"]["aux_quality"] == "fast"
+    assert prepass_stage(json.loads(json.dumps(spec))) == stage
+    assert "aux_quality" not in OIDNStage(prefilter_aux=True).oidn_dict()  # as before
+    with pytest.raises(ValueError, match="quality"):
+        OIDNStage(prefilter_aux=True, aux_quality="best")
