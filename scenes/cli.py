@@ -219,7 +219,7 @@ def write_split_manifest(root: Path, args: argparse.Namespace, cfg, seeds: list[
             else None,
         },
     }
-    from .render import write_json
+    from .manifest import write_json
 
     write_json(path, manifest)
 

@@ -36,8 +36,8 @@ import numpy as np
 from . import cycles_scene, preview
 from .generator import GENERATOR_VERSION, generate, summary
 from .layout import DATA_DIR, split_dir, split_seeds
+from .manifest import MANIFEST, open_sequence, write_json
 
-MANIFEST = "manifest.json"
 LUMA = preview.LUMA
 REFERENCE_HALVES = {"reference_a": 1_000_003, "reference_b": 2_000_003}  # dir -> seed salt
 
@@ -219,12 +219,6 @@ def choose_scene(seed: int, n_frames: int, cfg: CyclesConfig, work: Path, tries:
 # One sequence
 
 
-def write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
 def _frame_count(seed: int, cfg: CyclesConfig) -> int:
     lo, hi = cfg.frames
     return int(np.random.default_rng([seed, 1]).integers(lo, hi + 1))
@@ -243,11 +237,8 @@ def _todo(out: Path, cfg: CyclesConfig, n_frames: int) -> list[tuple[int, str]]:
 
 def render_sequence(seed: int, out: Path, cfg: CyclesConfig, log=print) -> dict:
     """Render (or finish) sequence `seed` into `out`; returns the manifest."""
-    out.mkdir(parents=True, exist_ok=True)
     mpath = out / MANIFEST
-    manifest = json.loads(mpath.read_text()) if mpath.exists() else None
-    if manifest and manifest["config"] != cfg.key():
-        raise ValueError(f"{out}: rendered with {manifest['config']}, asked for {cfg.key()}")
+    manifest = open_sequence(out, cfg.key())
     n_frames = _frame_count(seed, cfg)
     todo = _todo(out, cfg, n_frames)
     if manifest and not todo:

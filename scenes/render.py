@@ -22,8 +22,8 @@ import numpy as np
 from . import exr_io, preview
 from .camera import Camera, motion_for_pass
 from .generator import GENERATOR_VERSION, build, generate, mover_meshes, summary
+from .manifest import MANIFEST, open_sequence, write_json
 
-MANIFEST = "manifest.json"
 LUMA = preview.LUMA
 
 
@@ -365,14 +365,6 @@ def choose_scene(
     return desc, scene, reference, table, attempt, exposure, stats
 
 
-def write_json(path: Path, data: dict) -> None:
-    """Write a manifest atomically (temp file, then rename): a killed render never leaves a
-    torn one."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
 def render_sequence(
     seed: int,
     out_dir: str | Path,
@@ -385,11 +377,8 @@ def render_sequence(
     import mitsuba as mi
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     mpath = out / MANIFEST
-    manifest = json.loads(mpath.read_text()) if mpath.exists() else None
-    if manifest and manifest["config"] != cfg.key():
-        raise ValueError(f"{out}: rendered with {manifest['config']}, asked for {cfg.key()}")
+    manifest = open_sequence(out, cfg.key())
     n_frames = _frame_count(seed, cfg)
     done = {f["index"] for f in (manifest or {}).get("frames", []) if (out / f["file"]).exists()}
     if manifest and len(done) == n_frames:
