@@ -166,18 +166,8 @@ def sun_enters(desc: dict) -> bool:
 
 WALL_ROLES = ("paint", "paint", "wallpaper", "wall_tiles", "brick")
 FLOOR_ROLES = ("floor_wood", "floor_wood", "floor_tiles", "carpet", "stone")
-PIECE_ROLES = (
-    "wood",
-    "fabric",
-    "metal",
-    "glass",
-    "ceramic",
-    "paper",
-    "dark",
-    "leaf",
-    "carpet",
-    "stone",
-)
+PIECE_ROLES = ("wood", "fabric", "metal", "glass", "ceramic", "paper", "dark", "leaf",
+               "carpet", "stone")
 
 
 def _materials(rng: np.random.Generator, layout: dict) -> tuple[list[dict], dict, dict]:
