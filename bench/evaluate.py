@@ -329,6 +329,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--single-frame", default="",
                         help="comma list of models: also rows <model>/frame, history cleared "
                              "every frame")
+    parser.add_argument("--no-timing", action="store_true",
+                        help="skip the 720p timing of each method (quality figures only; the "
+                             "table shows – for ms/frame 720p)")
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args(argv)
     missing = [str(p) for p in args.model if not p.is_file()]
@@ -367,7 +370,9 @@ def main(argv: list[str] | None = None) -> int:
             if spp == crop_spp:
                 crops["reference"] = [s[-1][1] for s in sequences[:3]]
             row = {"method": name, "spp": spp, **scores.summary()}
-            if name not in ms_720p:  # speed does not depend on the spp: time once per method
+            if name not in ms_720p and args.no_timing:
+                ms_720p[name] = {"ms_720p": float("nan")}
+            elif name not in ms_720p:  # speed does not depend on the spp: time once per method
                 ms_720p[name] = {"ms_720p": time_720p(factory, args.threads),
                                  **prepass_shares(method, args.threads)}
             row |= ms_720p[name]

@@ -107,6 +107,7 @@ def test_evaluation_scores_blender_denoise_as_a_method(tiny_split, tmp_path):
 
     evaluate.main(["--data", str(tiny_split), "--renderer", "cycles", "--split", "test",
                    "--spp", "1,2", "--methods", "noisy,blender-denoise", "--threads", "1",
+                   "--no-timing",
                    "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "benchmarks.json").read_text())["rows"]
     by = {(r["method"], r["spp"]): r for r in rows}

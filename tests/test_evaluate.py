@@ -68,7 +68,7 @@ def test_eval_rows_per_kernel_size_and_single_frame(data, tmp_path):
     out = tmp_path / "report"
     evaluate.main(["--data", str(data), "--spp", "1", "--threads", "1", "--methods",
                    "noisy,accumulation,nbg-2l-3g,aff", "--model", str(extra), "--kernel-sizes",
-                   "5,13,6", "--single-frame", "accumulation", "--out", str(out)])
+                   "5,13,6", "--single-frame", "accumulation", "--no-timing", "--out", str(out)])
     rows = {r["method"]: r for r in json.loads((out / "benchmarks.json").read_text())["rows"]}
     # 13 is the default (the plain row), 6 is not an allowed size; NBG has no kernel size
     assert set(rows) == {"noisy", "accumulation", "accumulation/frame", "nbg-2l-3g", "aff",
