@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Render the Cycles splits of the g2 scenes (issue 23), staged and resumable like
-# render_splits.sh: test, validation, the locked-off test/validation shots, then train.
+# render_splits.sh: test, the locked-off test shots, validation (and its locked-off shots),
+# then train.
 # Finished files are skipped, so re-running continues where a stopped render left off.
 #   nohup nice -n 10 scenes/render_cycles_splits.sh > ~/.cache/quietframe/logs/render_cycles.log 2>&1 &
 # CYCLES_PYTHON: the interpreter of the Cycles venv (python3.11 -m venv V && V/bin/pip install
@@ -16,7 +17,7 @@ render() {  # split sequences size reference_spp [more args]
         || echo "split $split: some sequences failed (re-run to retry)"
 }
 render test "${TEST_SEQUENCES:-8}" 192x192 512
+render test-static "${STATIC_SEQUENCES:-2}" 192x192 512  # flicker on locked-off shots (issue 24)
 render validation "${VALIDATION_SEQUENCES:-8}" 192x192 512
-render test-static "${STATIC_SEQUENCES:-2}" 192x192 512
 render validation-static "${STATIC_SEQUENCES:-2}" 192x192 512
 render train "${TRAIN_SEQUENCES:-40}" 128x128 256 --reference-min-spp 32
