@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
+import signal
 
 import numpy as np
 import pytest
@@ -225,3 +227,20 @@ class LiveServer:
 def live_server():
     with LiveServer() as server:
         yield server
+
+
+@contextlib.contextmanager
+def hard_timeout(seconds: int):
+    """Raise TimeoutError in the test once it runs past `seconds` (pytest-timeout is not a
+    dependency): tests that drive servers and sockets must not hang the suite."""
+
+    def expire(*_) -> None:
+        raise TimeoutError(f"test ran past {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)

@@ -10,13 +10,12 @@ Skipped where redis-server or haproxy is not installed (.ci/run installs both).
 from __future__ import annotations
 
 import shutil
-import signal
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import write_exr
+from conftest import hard_timeout, write_exr
 
 ROOT = Path(__file__).resolve().parents[1]
 HARD_TIMEOUT_S = 150
@@ -31,15 +30,9 @@ pytestmark = pytest.mark.skipif(
 
 
 @pytest.fixture(autouse=True)
-def hard_timeout():
-    def expire(*_) -> None:
-        raise TimeoutError(f"test ran past {HARD_TIMEOUT_S} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(HARD_TIMEOUT_S)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, previous)
+def time_limit():
+    with hard_timeout(HARD_TIMEOUT_S):
+        yield
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,6 @@ work nothing here allocates more than a few tens of MiB; every socket has a time
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import struct
 import subprocess
@@ -16,7 +15,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
-from conftest import frame_bytes, layout_plain, make_buffers, write_exr
+from conftest import frame_bytes, hard_timeout, layout_plain, make_buffers, write_exr
 from test_service_reliability_defects import box, set_box
 
 BUDGET_MB = 64
@@ -28,17 +27,9 @@ HARD_TIMEOUT_S = 120
 
 
 @pytest.fixture(autouse=True)
-def hard_timeout():
-    """No test here may hang the suite (pytest-timeout is not a dependency)."""
-
-    def expire(*_) -> None:
-        raise TimeoutError(f"test ran past {HARD_TIMEOUT_S} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(HARD_TIMEOUT_S)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, previous)
+def time_limit():
+    with hard_timeout(HARD_TIMEOUT_S):
+        yield
 
 
 class ServerProcess:
