@@ -1,5 +1,8 @@
 """Ctrl-C and SIGTERM stop a run in the request under way, as one exception the CLI turns into
-one line and exit code 130 / 143 (a farm manager stops a task with SIGTERM, then SIGKILL)."""
+one line and exit code 130 / 143 (a farm manager stops a task with SIGTERM, then SIGKILL).
+
+A few steps must not be cut in two (an output and the record that vouches for it): inside
+`signals_deferred()` a signal is noted and raised when the block ends."""
 
 from __future__ import annotations
 
@@ -18,6 +21,11 @@ class Interrupted(BaseException):
         self.signal_name = signal_name
 
 
+class _Deferral:
+    depth = 0  # nesting of signals_deferred() blocks in the main thread
+    pending: str | None = None  # the signal that arrived inside one
+
+
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[None]:
     """SIGINT and SIGTERM raise Interrupted in the main thread (a blocking socket read is
@@ -27,7 +35,11 @@ def stop_on_signals() -> Iterator[None]:
         return
 
     def stop(number: int, _frame) -> None:
-        raise Interrupted(signal.Signals(number).name)
+        name = signal.Signals(number).name
+        if _Deferral.depth:
+            _Deferral.pending = _Deferral.pending or name
+            return
+        raise Interrupted(name)
 
     previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -35,3 +47,19 @@ def stop_on_signals() -> Iterator[None]:
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Run the block whole: a signal that arrives inside it raises Interrupted once it ends."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _Deferral.depth += 1
+    try:
+        yield
+    finally:
+        _Deferral.depth -= 1
+        if not _Deferral.depth and _Deferral.pending:
+            name, _Deferral.pending = _Deferral.pending, None
+            raise Interrupted(name)

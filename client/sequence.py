@@ -36,6 +36,7 @@ from quietframe.client.frame_source import (
     frame_number,
     select_frames,
 )
+from quietframe.client.interrupt import signals_deferred
 from quietframe.client.protocol import view_layers
 
 if TYPE_CHECKING:  # the clients call into this module (denoise_sequence): no import back
@@ -160,11 +161,13 @@ class Job:
     def write_output(self, i: int, data: bytes, settings: dict | None = None,
                      source: dict | None = None, **extra) -> None:
         """The output, then (with `settings`) its record: the source's stamp (`source`, or
-        read now) and what made it."""
-        _atomic_write(self.output(i), data)
-        if settings is not None:
-            stamp = source or records.source_stamp(self.files[i])
-            records.write_record(self.output(i), stamp, settings, len(data), **extra)
+        read now) and what made it. A signal waits until both are written: an output without
+        its record would count as foreign on resume."""
+        stamp = None if settings is None else source or records.source_stamp(self.files[i])
+        with signals_deferred():
+            _atomic_write(self.output(i), data)
+            if stamp is not None:
+                records.write_record(self.output(i), stamp, settings, len(data), **extra)
 
 
 def job_settings(

@@ -4,6 +4,7 @@ are never silently ignored."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -56,6 +57,30 @@ def test_a_signal_stops_the_run_within_one_frame(tmp_path, live_server, signal_n
     assert err.count("run the same command again to resume") == 1
     assert main(cli(live_server, src, out, "--model", "nbg-2l-3g")) == 0  # it resumes
     assert len(list(out.glob("*.exr"))) == total
+
+
+def test_a_signal_between_an_output_and_its_record_waits_for_the_record(tmp_path, monkeypatch):
+    """The race CI once hit: SIGINT after the output was in place but before its record left a
+    file the resume refused as foreign. The pair is written whole, then the run stops."""
+    from quietframe.client import output_records
+    from quietframe.client.interrupt import Interrupted, stop_on_signals
+    from quietframe.client.sequence import Job, job_settings
+
+    src, out = tmp_path / "in", tmp_path / "out"
+    write_shot(src, 2, height=24, width=32)
+    job = Job.plan(src, out)
+    settings = job_settings(model="nbg-2l-3g")
+    write_record = output_records.write_record
+
+    def signal_first(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # arrives with the output written, the record not
+        write_record(*args, **kwargs)
+
+    monkeypatch.setattr(output_records, "write_record", signal_first)
+    with stop_on_signals(), pytest.raises(Interrupted):
+        job.write_output(0, (src / "shot_1001.exr").read_bytes(), settings)
+    check = output_records.check(job.output(0), job.files[0], settings)
+    assert check.status is output_records.Status.DONE
 
 
 def test_files_not_written_by_this_job_are_refused_or_redone_with_force(
