@@ -1,0 +1,150 @@
+"""Ablation for issue 24: history kept in output space on top of per-frame OIDN, next to
+per-frame OIDN and the shipped accumulation tier, scored in one run.
+
+    python -m quietframe.bench.output_history [--renderer cycles] [--split test-static]
+        [--spp 1,2,4,8,16,64] [--sequences N] [--json rows.json]
+
+The shipped `*-acc` tiers reproject the noisy accumulation and run OIDN on it; the issue asks
+whether reprojecting OIDN's per-frame output instead, and only where that stays sharp, can
+keep per-frame OIDN's detail and still be steadier. Each candidate is `OutputHistory` over
+`oidn-frame` (the shipped per-frame model, run by the runtime), or with `acc+` over the
+shipped `oidn-acc` (OIDN on the accumulation), so both kinds of history stack:
+
+- `out-history`: the previous output reprojected to the nearest pixel and blended with this
+  frame's OIDN output where the surface test passes (`model/temporal.history_valid`), with the
+  accumulation's weights (1/n, floored at MIN_CURRENT_WEIGHT);
+- `+clamp`: the reprojected output clipped to the 3×3 min/max of this frame's OIDN output
+  first (the issue's "obvious fix");
+- `+sharp`: history only where the motion vector is a whole number of pixels (a locked-off or
+  pixel-aligned pixel), where nearest reprojection is exact, so resampling never blurs.
+
+Rows per spp: PSNR, TRMAE (meaningless on locked-off splits: their reference is one frame's,
+so ∂t r = 0 and TRMAE is |∂t p| / ε), and on locked-off splits (`*-static`) flicker
+(`metrics.flicker`), each also as a ratio to `oidn-frame`'s (the issue's targets: PSNR at
+least oidn-frame's and Blender's denoise; flicker ≤ 0.5×; TRMAE ≤ 0.7×). The candidates'
+extra cost is a few elementwise passes over the frame (no second OIDN pass).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from quietframe.bench.harness import Method, Planes, RuntimeMethod
+from quietframe.model.temporal import MIN_CURRENT_WEIGHT, backward_warp, history_valid
+
+SHARP_TOLERANCE = 1 / 64  # px: a motion this close to a whole pixel counts as pixel-aligned
+BASELINES = ("oidn-frame", "oidn-acc", "blender-denoise")
+# name: (base model, clamp, sharp only)
+CANDIDATES = {"out-history": ("oidn-frame", False, False),
+              "out-history+clamp": ("oidn-frame", True, False),
+              "out-history+sharp": ("oidn-frame", False, True),
+              "out-history+sharp+clamp": ("oidn-frame", True, True),
+              "acc+out-history": ("oidn-acc", False, False),
+              "acc+out-history+sharp": ("oidn-acc", False, True)}
+
+
+class OutputHistory:
+    """`base`'s output blended with its own reprojected previous output (module docstring)."""
+
+    def __init__(self, base: Method, clamp: bool = False, sharp_only: bool = False) -> None:
+        self.base, self.clamp, self.sharp_only = base, clamp, sharp_only
+        self.state: torch.Tensor | None = None  # (1, 8, H, W): output, depth, normal, count
+
+    def reset(self) -> None:
+        self.base.reset()
+        self.state = None
+
+    def __call__(self, planes: Planes) -> np.ndarray:
+        current = torch.from_numpy(np.asarray(self.base(planes), np.float32))[None]
+        depth = torch.from_numpy(planes["depth"])[None]
+        normal = torch.from_numpy(planes["normal"])[None]
+        motion = torch.from_numpy(planes.get("motion", np.zeros_like(planes["color"][:2])))[None]
+        count = torch.ones_like(depth)
+        out = current
+        if self.state is not None:
+            warped, inside = backward_warp(self.state, motion, mode="nearest")
+            keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
+            if self.sharp_only:
+                off = (motion - motion.round()).abs().amax(dim=1, keepdim=True)
+                keep = keep * (off <= SHARP_TOLERANCE).to(keep.dtype)
+            previous = warped[:, 0:3]
+            if self.clamp:
+                lo = -torch.nn.functional.max_pool2d(-current, 3, 1, 1)
+                hi = torch.nn.functional.max_pool2d(current, 3, 1, 1)
+                previous = torch.minimum(torch.maximum(previous, lo), hi)
+            count = keep * warped[:, 7:8].clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
+            alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)
+            out = alpha * current + (1 - alpha) * previous
+        self.state = torch.cat((out, depth, normal, count), dim=1)
+        return out[0].numpy()
+
+
+def main(argv: list[str] | None = None) -> int:
+    from quietframe.bench.evaluate import (
+        Scores,
+        build_methods,
+        load_sequence,
+        run_sequence,
+        sequence_dirs,
+    )
+    from quietframe.bench.harness import planar_frames
+    from quietframe.runtime import find_model
+    from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, default=DATA_DIR)
+    p.add_argument("--renderer", default="cycles", choices=("cycles", "mitsuba"))
+    p.add_argument("--split", default="test-static")
+    p.add_argument("--spp", default="1,2,4,8,16,64")
+    p.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
+    p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    p.add_argument("--json", type=Path)
+    args = p.parse_args(argv)
+    levels = tuple(int(s) for s in args.spp.split(","))
+    folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, levels)
+    folders = folders[: args.sequences] if args.sequences else folders
+    if not folders:
+        print(f"no finished {args.renderer} {args.split} sequences under {args.data}",
+              file=sys.stderr)
+        return 1
+    locked_off = args.split.endswith("-static")
+    known = build_methods(args.threads, renderer=args.renderer)
+    methods = {name: known[name] for name in BASELINES if name in known}
+    for name, (model, clamp, sharp) in CANDIDATES.items():
+        path = find_model(model)
+        methods[name] = lambda m=path, c=clamp, s=sharp: OutputHistory(
+            RuntimeMethod(m, args.threads), clamp=c, sharp_only=s)
+    rows = []
+    for spp in levels:
+        sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
+        for name, factory in methods.items():
+            method, scores = factory(), Scores()
+            for frames in sequences:
+                run_sequence(method, frames, scores, None, locked_off)
+            rows.append({"method": name, "spp": spp, **scores.summary()})
+    base = {r["spp"]: r for r in rows if r["method"] == "oidn-frame"}
+    print(f"{args.renderer} {args.split}: {len(folders)} sequence(s) "
+          f"({', '.join(f.name for f in folders)}); ratios to oidn-frame in brackets\n")
+    flick = " flicker (×) |" if locked_off else ""
+    print(f"| method | spp | PSNR (Δ dB) | TRMAE (×) |{flick}")
+    print("|---|---|---|---|" + ("---|" if locked_off else ""))
+    for r in rows:
+        b = base[r["spp"]]
+        line = (f"| {r['method']} | {r['spp']} | {r['psnr']:.2f} ({r['psnr'] - b['psnr']:+.2f}) "
+                f"| {r['trmae']:.3f} ({r['trmae'] / b['trmae']:.2f}) |")
+        if locked_off:
+            line += f" {r['flicker']:.4f} ({r['flicker'] / b['flicker']:.2f}) |"
+        print(line)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,62 @@
+"""bench/output_history.OutputHistory: history in output space over a per-frame method."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+from quietframe.bench.output_history import OutputHistory  # noqa: E402
+from quietframe.model import metrics  # noqa: E402
+
+
+class Passthrough:
+    """A 'denoiser' that returns its input, so the history's effect is all there is."""
+
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, planes):
+        return planes["color"]
+
+
+def frames(n: int, motion: float = 0.0, seed: int = 0) -> list[dict[str, np.ndarray]]:
+    rng = np.random.default_rng(seed)
+    h = w = 12
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1
+    return [{"color": rng.gamma(2.0, 0.25, (3, h, w)).astype(np.float32),
+             "depth": np.full((1, h, w), 2.0, np.float32), "normal": normal,
+             "motion": np.full((2, h, w), motion, np.float32)} for _ in range(n)]
+
+
+def run(method, sequence) -> np.ndarray:
+    method.reset()
+    return np.stack([method(p) for p in sequence])
+
+
+def test_static_history_lowers_flicker_and_starts_from_the_frame():
+    seq = frames(8)
+    out = run(OutputHistory(Passthrough()), seq)
+    np.testing.assert_array_equal(out[0], seq[0]["color"])  # no history yet
+    np.testing.assert_allclose(out[1], (seq[0]["color"] + seq[1]["color"]) / 2, rtol=1e-6)
+    inputs = np.stack([p["color"] for p in seq])
+    hwc = lambda x: x.transpose(0, 2, 3, 1)  # noqa: E731
+    assert metrics.flicker(hwc(out[2:])) < 0.6 * metrics.flicker(hwc(inputs[2:]))
+
+
+def test_sharp_only_uses_no_history_under_sub_pixel_motion():
+    seq = frames(4, motion=0.5)
+    out = run(OutputHistory(Passthrough(), sharp_only=True), seq)
+    np.testing.assert_array_equal(out, np.stack([p["color"] for p in seq]))
+    blended = run(OutputHistory(Passthrough()), seq)  # nearest reprojection reuses it
+    assert not np.allclose(blended[1:], out[1:])
+
+
+def test_clamp_keeps_the_output_within_the_frame_neighbourhood():
+    seq = frames(5)
+    seq[0]["color"][:] = 100.0  # a bright history the current frames do not support
+    out = run(OutputHistory(Passthrough(), clamp=True), seq)
+    for t in range(1, 5):
+        assert out[t].max() <= seq[t]["color"].max() + 1e-5
+    assert run(OutputHistory(Passthrough()), seq)[1].max() > 40
