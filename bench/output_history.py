@@ -18,6 +18,11 @@ shipped `oidn-acc` (OIDN on the accumulation), so both kinds of history stack:
 - `+sharp`: history only where the motion vector is a whole number of pixels (a locked-off or
   pixel-aligned pixel), where nearest reprojection is exact, so resampling never blurs.
 
+And the accumulation itself restricted the same way (`AccumulatedOIDN`): `acc-torch` is
+`oidn-acc` rebuilt from the PyTorch pre-stage (its row checks the composition), `aligned-acc`
+keeps history only under pixel-aligned motion, `aligned-acc+out-history` adds the sharp output
+history on top.
+
 Rows per spp: PSNR, TRMAE (meaningless on locked-off splits: their reference is one frame's,
 so ∂t r = 0 and TRMAE is |∂t p| / ε), and on locked-off splits (`*-static`) flicker
 (`metrics.flicker`), each also as a ratio to `oidn-frame`'s (the issue's targets: PSNR at
@@ -44,9 +49,8 @@ BASELINES = ("oidn-frame", "oidn-acc", "blender-denoise")
 CANDIDATES = {"out-history": ("oidn-frame", False, False),
               "out-history+clamp": ("oidn-frame", True, False),
               "out-history+sharp": ("oidn-frame", False, True),
-              "out-history+sharp+clamp": ("oidn-frame", True, True),
-              "acc+out-history": ("oidn-acc", False, False),
-              "acc+out-history+sharp": ("oidn-acc", False, True)}
+              "acc+out-history": ("oidn-acc", False, False)}
+OUT_OF_FRAME = 1e6  # px: a motion vector that sends the reprojection outside the frame
 
 
 class OutputHistory:
@@ -71,8 +75,7 @@ class OutputHistory:
             warped, inside = backward_warp(self.state, motion, mode="nearest")
             keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
             if self.sharp_only:
-                off = (motion - motion.round()).abs().amax(dim=1, keepdim=True)
-                keep = keep * (off <= SHARP_TOLERANCE).to(keep.dtype)
+                keep = keep * aligned(motion).to(keep.dtype)
             previous = warped[:, 0:3]
             if self.clamp:
                 lo = -torch.nn.functional.max_pool2d(-current, 3, 1, 1)
@@ -83,6 +86,49 @@ class OutputHistory:
             out = alpha * current + (1 - alpha) * previous
         self.state = torch.cat((out, depth, normal, count), dim=1)
         return out[0].numpy()
+
+
+def aligned(motion: torch.Tensor) -> torch.Tensor:
+    """(N, 1, H, W) bool: the motion is a whole number of pixels (nearest reprojection exact)."""
+    return (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= SHARP_TOLERANCE
+
+
+class AccumulatedOIDN:
+    """OIDN-high (plain aux) on the accumulation, as the shipped `oidn-acc` composes it, from
+    the PyTorch pre-stage (`model/nbg.AccumulationDenoiser`). With `aligned_only` the history
+    is dropped wherever the motion is not pixel-aligned (its reprojection is sent out of the
+    frame, so the accumulation's own in-frame test rejects it): the accumulation then never
+    resamples, at the price of no history under sub-pixel motion."""
+
+    def __init__(self, aligned_only: bool, threads: int) -> None:
+        from quietframe.model.nbg import AccumulationDenoiser
+        from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+
+        self.aligned_only = aligned_only
+        self.accumulation = AccumulationDenoiser()
+        self.oidn = OIDNPrepass(OIDNSettings("high", False), threads)
+        self.state: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        self.state = None
+
+    def __call__(self, planes: Planes) -> np.ndarray:
+        from quietframe.runtime.sanitize import sanitize_buffer
+
+        clean = {k: sanitize_buffer(k, planes[k])[0]  # what the runtime feeds its graphs
+                 for k in ("color", "albedo", "normal", "depth", "motion")}
+        t = {k: torch.from_numpy(np.ascontiguousarray(v))[None] for k, v in clean.items()}
+        motion = t["motion"]
+        if self.aligned_only:
+            motion = torch.where(aligned(motion), motion, torch.full_like(motion, OUT_OF_FRAME))
+        reset = torch.tensor([1.0 if self.state is None else 0.0])
+        if self.state is None:
+            self.state = self.accumulation.initial_state(1, *t["color"].shape[-2:])
+        with torch.no_grad():
+            acc, self.state = self.accumulation(t["color"], t["albedo"], t["normal"], t["depth"],
+                                                motion, reset, self.state)
+        return self.oidn({"color": acc[0].numpy(), "albedo": clean["albedo"],
+                          "normal": clean["normal"]})[0]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -120,6 +166,10 @@ def main(argv: list[str] | None = None) -> int:
         path = find_model(model)
         methods[name] = lambda m=path, c=clamp, s=sharp: OutputHistory(
             RuntimeMethod(m, args.threads), clamp=c, sharp_only=s)
+    methods["acc-torch"] = lambda: AccumulatedOIDN(False, args.threads)  # = oidn-acc
+    methods["aligned-acc"] = lambda: AccumulatedOIDN(True, args.threads)
+    methods["aligned-acc+out-history"] = lambda: OutputHistory(
+        AccumulatedOIDN(True, args.threads), sharp_only=True)
     rows = []
     for spp in levels:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
