@@ -21,7 +21,10 @@ shipped `oidn-acc` (OIDN on the accumulation), so both kinds of history stack:
 And the accumulation itself restricted the same way (`AccumulatedOIDN`): `acc-torch` is
 `oidn-acc` rebuilt from the PyTorch pre-stage (its row checks the composition), `aligned-acc`
 keeps history only under pixel-aligned motion, `aligned-acc+out-history` adds the sharp output
-history on top.
+history on top. `acc-nearest` is the same accumulation through `OutputHistory` over the noisy
+colour (demodulated) then OIDN, which should equal `acc-torch`; `acc-bicubic` fetches that
+history bicubically instead (the issue's "resampling that does not blur"), and
+`out-history+bicubic` (`+clamp`) does the same to OIDN's output.
 
 Rows per spp: PSNR, TRMAE (meaningless on locked-off splits: their reference is one frame's,
 so ∂t r = 0 and TRMAE is |∂t p| / ε), and on locked-off splits (`*-static`) flicker
@@ -53,11 +56,29 @@ CANDIDATES = {"out-history": ("oidn-frame", False, False),
 OUT_OF_FRAME = 1e6  # px: a motion vector that sends the reprojection outside the frame
 
 
-class OutputHistory:
-    """`base`'s output blended with its own reprojected previous output (module docstring)."""
+def resample_bicubic(image: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+    """image(t-1) at p + motion(p), bicubic (PyTorch's a = -0.75 kernel), negatives cut to 0;
+    the same pixel-centre mapping as `backward_warp`, border-clamped."""
+    n, _, h, w = image.shape
+    xs = torch.arange(w, dtype=image.dtype).view(1, 1, w) + motion[:, 0]
+    ys = torch.arange(h, dtype=image.dtype).view(1, h, 1) + motion[:, 1]
+    grid = torch.stack(((2 * xs + 1) / w - 1, (2 * ys + 1) / h - 1), dim=-1)
+    out = torch.nn.functional.grid_sample(image, grid, mode="bicubic", padding_mode="border",
+                                          align_corners=False)
+    return out.clamp_min(0)
 
-    def __init__(self, base: Method, clamp: bool = False, sharp_only: bool = False) -> None:
+
+class OutputHistory:
+    """`base`'s output blended with its own reprojected previous output (module docstring).
+    `resample`: how the previous output is fetched ("nearest", or "bicubic"; the surface test
+    always reads the nearest pixel's depth and normal). `demodulate`: blend albedo-divided
+    values and multiply the current albedo back (the shipped accumulation's way, so texture
+    does not go through the history)."""
+
+    def __init__(self, base: Method, clamp: bool = False, sharp_only: bool = False,
+                 resample: str = "nearest", demodulate: bool = False) -> None:
         self.base, self.clamp, self.sharp_only = base, clamp, sharp_only
+        self.resample, self.demodulate = resample, demodulate
         self.state: torch.Tensor | None = None  # (1, 8, H, W): output, depth, normal, count
 
     def reset(self) -> None:
@@ -66,6 +87,12 @@ class OutputHistory:
 
     def __call__(self, planes: Planes) -> np.ndarray:
         current = torch.from_numpy(np.asarray(self.base(planes), np.float32))[None]
+        divisor = torch.ones(())
+        if self.demodulate:
+            from quietframe.model.nbg import demodulation_divisor
+
+            divisor = demodulation_divisor(torch.from_numpy(planes["albedo"])[None])
+            current = current / divisor
         depth = torch.from_numpy(planes["depth"])[None]
         normal = torch.from_numpy(planes["normal"])[None]
         motion = torch.from_numpy(planes.get("motion", np.zeros_like(planes["color"][:2])))[None]
@@ -77,6 +104,8 @@ class OutputHistory:
             if self.sharp_only:
                 keep = keep * aligned(motion).to(keep.dtype)
             previous = warped[:, 0:3]
+            if self.resample == "bicubic":
+                previous = resample_bicubic(self.state[:, 0:3], motion)
             if self.clamp:
                 lo = -torch.nn.functional.max_pool2d(-current, 3, 1, 1)
                 hi = torch.nn.functional.max_pool2d(current, 3, 1, 1)
@@ -85,7 +114,37 @@ class OutputHistory:
             alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)
             out = alpha * current + (1 - alpha) * previous
         self.state = torch.cat((out, depth, normal, count), dim=1)
-        return out[0].numpy()
+        return (out * divisor)[0].numpy()
+
+
+class ThenOIDN:
+    """OIDN-high (plain aux) on what `first` makes of the frame: a history of the noisy
+    colour, then OIDN, as the `*-acc` tiers compose it."""
+
+    def __init__(self, first: Method, threads: int) -> None:
+        from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+
+        self.first = first
+        self.oidn = OIDNPrepass(OIDNSettings("high", False), threads)
+
+    def reset(self) -> None:
+        self.first.reset()
+
+    def __call__(self, planes: Planes) -> np.ndarray:
+        from quietframe.runtime.sanitize import sanitize_buffer
+
+        clean = {k: sanitize_buffer(k, planes[k])[0]
+                 for k in ("color", "albedo", "normal", "depth", "motion")}
+        color = np.ascontiguousarray(self.first(clean), np.float32)
+        return self.oidn({**clean, "color": color})[0]
+
+
+class NoisyColour:
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, planes: Planes) -> np.ndarray:
+        return planes["color"]
 
 
 def aligned(motion: torch.Tensor) -> torch.Tensor:
@@ -167,6 +226,13 @@ def main(argv: list[str] | None = None) -> int:
         methods[name] = lambda m=path, c=clamp, s=sharp: OutputHistory(
             RuntimeMethod(m, args.threads), clamp=c, sharp_only=s)
     methods["acc-torch"] = lambda: AccumulatedOIDN(False, args.threads)  # = oidn-acc
+    for resample in ("nearest", "bicubic"):  # acc-nearest: oidn-acc by OutputHistory's code
+        methods[f"acc-{resample}"] = lambda r=resample: ThenOIDN(OutputHistory(
+            NoisyColour(), resample=r, demodulate=True), args.threads)
+    methods["out-history+bicubic"] = lambda: OutputHistory(
+        RuntimeMethod(find_model("oidn-frame"), args.threads), resample="bicubic")
+    methods["out-history+bicubic+clamp"] = lambda: OutputHistory(
+        RuntimeMethod(find_model("oidn-frame"), args.threads), clamp=True, resample="bicubic")
     methods["aligned-acc"] = lambda: AccumulatedOIDN(True, args.threads)
     methods["aligned-acc+out-history"] = lambda: OutputHistory(
         AccumulatedOIDN(True, args.threads), sharp_only=True)
