@@ -24,7 +24,9 @@ keeps history only under pixel-aligned motion, `aligned-acc+out-history` adds th
 history on top. `acc-nearest` is the same accumulation through `OutputHistory` over the noisy
 colour (demodulated) then OIDN, which should equal `acc-torch`; `acc-bicubic` fetches that
 history bicubically instead (the issue's "resampling that does not blur"), and
-`out-history+bicubic` (`+clamp`) does the same to OIDN's output.
+`out-history+bicubic` (`+clamp`) does the same to OIDN's output. `out-history+hybrid` takes
+the exact pixel where the motion is pixel-aligned and the clamped bicubic fetch elsewhere, and
+`aligned-acc+hybrid` puts that over the pixel-aligned accumulation.
 
 Rows per spp: PSNR, TRMAE (meaningless on locked-off splits: their reference is one frame's,
 so ∂t r = 0 and TRMAE is |∂t p| / ε), and on locked-off splits (`*-static`) flicker
@@ -68,10 +70,19 @@ def resample_bicubic(image: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     return out.clamp_min(0)
 
 
+def clamp_to_neighbourhood(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    """`previous` clipped to the per-channel 3×3 min/max of `current`."""
+    lo = -torch.nn.functional.max_pool2d(-current, 3, 1, 1)
+    hi = torch.nn.functional.max_pool2d(current, 3, 1, 1)
+    return torch.minimum(torch.maximum(previous, lo), hi)
+
+
 class OutputHistory:
     """`base`'s output blended with its own reprojected previous output (module docstring).
-    `resample`: how the previous output is fetched ("nearest", or "bicubic"; the surface test
-    always reads the nearest pixel's depth and normal). `demodulate`: blend albedo-divided
+    `resample`: how the previous output is fetched ("nearest"; "bicubic"; "hybrid": the
+    nearest pixel, unclamped, where the motion is pixel-aligned, else bicubic clamped to the
+    current 3×3 neighbourhood; the surface test always reads the nearest pixel's depth and
+    normal). `demodulate`: blend albedo-divided
     values and multiply the current albedo back (the shipped accumulation's way, so texture
     does not go through the history)."""
 
@@ -104,12 +115,15 @@ class OutputHistory:
             if self.sharp_only:
                 keep = keep * aligned(motion).to(keep.dtype)
             previous = warped[:, 0:3]
-            if self.resample == "bicubic":
-                previous = resample_bicubic(self.state[:, 0:3], motion)
-            if self.clamp:
-                lo = -torch.nn.functional.max_pool2d(-current, 3, 1, 1)
-                hi = torch.nn.functional.max_pool2d(current, 3, 1, 1)
-                previous = torch.minimum(torch.maximum(previous, lo), hi)
+            if self.resample in ("bicubic", "hybrid"):
+                fetched = resample_bicubic(self.state[:, 0:3], motion)
+                if self.clamp or self.resample == "hybrid":
+                    fetched = clamp_to_neighbourhood(fetched, current)
+                # hybrid: the exact pixel, unclamped, where the motion is pixel-aligned
+                previous = (torch.where(aligned(motion), previous, fetched)
+                            if self.resample == "hybrid" else fetched)
+            elif self.clamp:
+                previous = clamp_to_neighbourhood(previous, current)
             count = keep * warped[:, 7:8].clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
             alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)
             out = alpha * current + (1 - alpha) * previous
@@ -233,6 +247,10 @@ def main(argv: list[str] | None = None) -> int:
         RuntimeMethod(find_model("oidn-frame"), args.threads), resample="bicubic")
     methods["out-history+bicubic+clamp"] = lambda: OutputHistory(
         RuntimeMethod(find_model("oidn-frame"), args.threads), clamp=True, resample="bicubic")
+    methods["out-history+hybrid"] = lambda: OutputHistory(
+        RuntimeMethod(find_model("oidn-frame"), args.threads), resample="hybrid")
+    methods["aligned-acc+hybrid"] = lambda: OutputHistory(
+        AccumulatedOIDN(True, args.threads), resample="hybrid")
     methods["aligned-acc"] = lambda: AccumulatedOIDN(True, args.threads)
     methods["aligned-acc+out-history"] = lambda: OutputHistory(
         AccumulatedOIDN(True, args.threads), sharp_only=True)

@@ -77,3 +77,15 @@ def test_accumulated_oidn_is_the_shipped_oidn_acc_and_aligned_drops_sub_pixel_hi
     single = np.stack([run(AccumulatedOIDN(False, 1), [p])[0] for p in seq])
     np.testing.assert_array_equal(run(AccumulatedOIDN(True, 1), seq), single)
     assert not np.allclose(shipped[1:], single[1:], atol=1e-3)  # the shipped one kept history
+
+
+def test_hybrid_takes_the_exact_pixel_when_aligned_and_a_clamped_fetch_otherwise():
+    still = frames(3)
+    exact = run(OutputHistory(Passthrough()), still)
+    np.testing.assert_allclose(run(OutputHistory(Passthrough(), resample="hybrid"), still),
+                               exact, rtol=1e-6)
+    moving = frames(3, motion=0.5)
+    moving[0]["color"][:] = 100.0
+    out = run(OutputHistory(Passthrough(), resample="hybrid"), moving)
+    assert out[1].max() <= moving[1]["color"].max() + 1e-5  # the fetch was clamped
+    assert run(OutputHistory(Passthrough(), resample="bicubic"), moving)[1].max() > 40
