@@ -18,7 +18,7 @@ shipped `oidn-acc` (OIDN on the accumulation), so both kinds of history stack:
 - `+sharp`: history only where the motion vector is a whole number of pixels (a locked-off or
   pixel-aligned pixel), where nearest reprojection is exact, so resampling never blurs.
 
-And the accumulation itself restricted the same way (`AccumulatedOIDN`): `acc-torch` is
+And the accumulation itself restricted the same way (`accumulated_oidn`): `acc-torch` is
 `oidn-acc` rebuilt from the PyTorch pre-stage (its row checks the composition), `aligned-acc`
 keeps history only under pixel-aligned motion, `aligned-acc+out-history` adds the sharp output
 history on top. `acc-nearest` is the same accumulation through `OutputHistory` over the noisy
@@ -131,9 +131,18 @@ class OutputHistory:
         return (out * divisor)[0].numpy()
 
 
+def aligned(motion: torch.Tensor) -> torch.Tensor:
+    """(N, 1, H, W) bool: the motion is a whole number of pixels (nearest reprojection exact)."""
+    return (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= SHARP_TOLERANCE
+
+
+RUNTIME_BUFFERS = ("color", "albedo", "normal", "depth", "motion")
+
+
 class ThenOIDN:
-    """OIDN-high (plain aux) on what `first` makes of the frame: a history of the noisy
-    colour, then OIDN, as the `*-acc` tiers compose it."""
+    """OIDN-high (plain aux) on what `first` makes of the sanitised frame (what the runtime
+    feeds its graphs): a history of the noisy colour, then OIDN, as the `*-acc` tiers
+    compose it."""
 
     def __init__(self, first: Method, threads: int) -> None:
         from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
@@ -147,50 +156,30 @@ class ThenOIDN:
     def __call__(self, planes: Planes) -> np.ndarray:
         from quietframe.runtime.sanitize import sanitize_buffer
 
-        clean = {k: sanitize_buffer(k, planes[k])[0]
-                 for k in ("color", "albedo", "normal", "depth", "motion")}
+        clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
         color = np.ascontiguousarray(self.first(clean), np.float32)
         return self.oidn({**clean, "color": color})[0]
 
 
-class NoisyColour:
-    def reset(self) -> None:
-        pass
+class PreStage:
+    """The shipped accumulation (`model/nbg.AccumulationDenoiser`) on planes. With
+    `aligned_only` the history is dropped wherever the motion is not pixel-aligned (its
+    reprojection is sent out of the frame, so the accumulation's own in-frame test rejects
+    it): the accumulation then never resamples, at the price of no history under sub-pixel
+    motion."""
 
-    def __call__(self, planes: Planes) -> np.ndarray:
-        return planes["color"]
-
-
-def aligned(motion: torch.Tensor) -> torch.Tensor:
-    """(N, 1, H, W) bool: the motion is a whole number of pixels (nearest reprojection exact)."""
-    return (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= SHARP_TOLERANCE
-
-
-class AccumulatedOIDN:
-    """OIDN-high (plain aux) on the accumulation, as the shipped `oidn-acc` composes it, from
-    the PyTorch pre-stage (`model/nbg.AccumulationDenoiser`). With `aligned_only` the history
-    is dropped wherever the motion is not pixel-aligned (its reprojection is sent out of the
-    frame, so the accumulation's own in-frame test rejects it): the accumulation then never
-    resamples, at the price of no history under sub-pixel motion."""
-
-    def __init__(self, aligned_only: bool, threads: int) -> None:
+    def __init__(self, aligned_only: bool) -> None:
         from quietframe.model.nbg import AccumulationDenoiser
-        from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
 
         self.aligned_only = aligned_only
         self.accumulation = AccumulationDenoiser()
-        self.oidn = OIDNPrepass(OIDNSettings("high", False), threads)
         self.state: torch.Tensor | None = None
 
     def reset(self) -> None:
         self.state = None
 
     def __call__(self, planes: Planes) -> np.ndarray:
-        from quietframe.runtime.sanitize import sanitize_buffer
-
-        clean = {k: sanitize_buffer(k, planes[k])[0]  # what the runtime feeds its graphs
-                 for k in ("color", "albedo", "normal", "depth", "motion")}
-        t = {k: torch.from_numpy(np.ascontiguousarray(v))[None] for k, v in clean.items()}
+        t = {k: torch.from_numpy(np.ascontiguousarray(planes[k]))[None] for k in RUNTIME_BUFFERS}
         motion = t["motion"]
         if self.aligned_only:
             motion = torch.where(aligned(motion), motion, torch.full_like(motion, OUT_OF_FRAME))
@@ -200,12 +189,17 @@ class AccumulatedOIDN:
         with torch.no_grad():
             acc, self.state = self.accumulation(t["color"], t["albedo"], t["normal"], t["depth"],
                                                 motion, reset, self.state)
-        return self.oidn({"color": acc[0].numpy(), "albedo": clean["albedo"],
-                          "normal": clean["normal"]})[0]
+        return acc[0].numpy()
+
+
+def accumulated_oidn(aligned_only: bool, threads: int) -> ThenOIDN:
+    """`oidn-acc` rebuilt from the PyTorch pre-stage (or its pixel-aligned-only variant)."""
+    return ThenOIDN(PreStage(aligned_only), threads)
 
 
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import (
+        Noisy,
         Scores,
         build_methods,
         load_sequence,
@@ -239,10 +233,10 @@ def main(argv: list[str] | None = None) -> int:
         path = find_model(model)
         methods[name] = lambda m=path, c=clamp, s=sharp: OutputHistory(
             RuntimeMethod(m, args.threads), clamp=c, sharp_only=s)
-    methods["acc-torch"] = lambda: AccumulatedOIDN(False, args.threads)  # = oidn-acc
+    methods["acc-torch"] = lambda: accumulated_oidn(False, args.threads)  # = oidn-acc
     for resample in ("nearest", "bicubic"):  # acc-nearest: oidn-acc by OutputHistory's code
         methods[f"acc-{resample}"] = lambda r=resample: ThenOIDN(OutputHistory(
-            NoisyColour(), resample=r, demodulate=True), args.threads)
+            Noisy(), resample=r, demodulate=True), args.threads)
     methods["out-history+bicubic"] = lambda: OutputHistory(
         RuntimeMethod(find_model("oidn-frame"), args.threads), resample="bicubic")
     methods["out-history+bicubic+clamp"] = lambda: OutputHistory(
@@ -250,10 +244,10 @@ def main(argv: list[str] | None = None) -> int:
     methods["out-history+hybrid"] = lambda: OutputHistory(
         RuntimeMethod(find_model("oidn-frame"), args.threads), resample="hybrid")
     methods["aligned-acc+hybrid"] = lambda: OutputHistory(
-        AccumulatedOIDN(True, args.threads), resample="hybrid")
-    methods["aligned-acc"] = lambda: AccumulatedOIDN(True, args.threads)
+        accumulated_oidn(True, args.threads), resample="hybrid")
+    methods["aligned-acc"] = lambda: accumulated_oidn(True, args.threads)
     methods["aligned-acc+out-history"] = lambda: OutputHistory(
-        AccumulatedOIDN(True, args.threads), sharp_only=True)
+        accumulated_oidn(True, args.threads), sharp_only=True)
     rows = []
     for spp in levels:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]

@@ -65,7 +65,7 @@ def test_clamp_keeps_the_output_within_the_frame_neighbourhood():
 def test_accumulated_oidn_is_the_shipped_oidn_acc_and_aligned_drops_sub_pixel_history():
     pytest.importorskip("pyoidn")
     from quietframe.bench.harness import RuntimeMethod
-    from quietframe.bench.output_history import AccumulatedOIDN
+    from quietframe.bench.output_history import accumulated_oidn
     from quietframe.runtime import find_model
 
     rng = np.random.default_rng(3)
@@ -73,9 +73,9 @@ def test_accumulated_oidn_is_the_shipped_oidn_acc_and_aligned_drops_sub_pixel_hi
     for p in seq:
         p["albedo"] = rng.uniform(0.2, 0.8, p["color"].shape).astype(np.float32)
     shipped = run(RuntimeMethod(find_model("oidn-acc"), threads=1), seq)
-    np.testing.assert_allclose(run(AccumulatedOIDN(False, 1), seq), shipped, atol=1e-4)
-    single = np.stack([run(AccumulatedOIDN(False, 1), [p])[0] for p in seq])
-    np.testing.assert_array_equal(run(AccumulatedOIDN(True, 1), seq), single)
+    np.testing.assert_allclose(run(accumulated_oidn(False, 1), seq), shipped, atol=1e-4)
+    single = np.stack([run(accumulated_oidn(False, 1), [p])[0] for p in seq])
+    np.testing.assert_array_equal(run(accumulated_oidn(True, 1), seq), single)
     assert not np.allclose(shipped[1:], single[1:], atol=1e-3)  # the shipped one kept history
 
 
