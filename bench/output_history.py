@@ -205,6 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         load_sequence,
         run_sequence,
         sequence_dirs,
+        time_720p,
     )
     from quietframe.bench.harness import planar_frames
     from quietframe.runtime import find_model
@@ -218,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
     p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
     p.add_argument("--json", type=Path)
+    p.add_argument("--timing", action="store_true",
+                   help="also ms per 1280x720 frame of each method (evaluate.time_720p), "
+                        "in one run, and its ratio to oidn-frame's")
     args = p.parse_args(argv)
     levels = tuple(int(s) for s in args.spp.split(","))
     folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, levels)
@@ -248,6 +252,12 @@ def main(argv: list[str] | None = None) -> int:
     methods["aligned-acc"] = lambda: accumulated_oidn(True, args.threads)
     methods["aligned-acc+out-history"] = lambda: OutputHistory(
         accumulated_oidn(True, args.threads), sharp_only=True)
+    if args.timing:
+        ms = {name: time_720p(factory, args.threads) for name, factory in methods.items()}
+        print("| method | ms per 720p frame | ÷ oidn-frame |\n|---|---|---|")
+        for name, value in ms.items():
+            print(f"| {name} | {value:.0f} | {value / ms['oidn-frame']:.2f} |")
+        print()
     rows = []
     for spp in levels:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
