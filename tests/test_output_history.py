@@ -89,3 +89,27 @@ def test_hybrid_takes_the_exact_pixel_when_aligned_and_a_clamped_fetch_otherwise
     out = run(OutputHistory(Passthrough(), resample="hybrid"), moving)
     assert out[1].max() <= moving[1]["color"].max() + 1e-5  # the fetch was clamped
     assert run(OutputHistory(Passthrough(), resample="bicubic"), moving)[1].max() > 40
+
+
+def test_the_bench_scores_every_row_on_a_split(tmp_path, capsys):
+    """main() over a tiny Mitsuba-format split whose camera slides by whole pixels: every row
+    scored, and the pixel-aligned accumulation keeps its history there."""
+    pytest.importorskip("pyoidn")
+    import json
+
+    from dataset_support import write_sequence
+
+    from quietframe.bench.output_history import CANDIDATES, main
+    from quietframe.scenes.generator import GENERATOR_VERSION
+
+    write_sequence(tmp_path / GENERATOR_VERSION / "test", 41, frames=3, levels=(1,), noise=0.5)
+    out = tmp_path / "rows.json"
+    assert main(["--data", str(tmp_path), "--renderer", "mitsuba", "--split", "test",
+                 "--spp", "1", "--threads", "1", "--json", str(out)]) == 0
+    rows = {r["method"]: r for r in json.loads(out.read_text())}
+    assert {"oidn-frame", "oidn-acc", "aligned-acc+hybrid", *CANDIDATES} <= set(rows)
+    assert all(np.isfinite(r["psnr"]) for r in rows.values())
+    assert rows["acc-torch"]["psnr"] == pytest.approx(rows["oidn-acc"]["psnr"], abs=1e-3)
+    assert rows["aligned-acc"]["psnr"] == pytest.approx(rows["acc-torch"]["psnr"], abs=1e-6)
+    assert rows["aligned-acc"]["psnr"] != pytest.approx(rows["oidn-frame"]["psnr"], abs=1e-3)
+    assert "| aligned-acc+hybrid | 1 |" in capsys.readouterr().out
