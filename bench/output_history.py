@@ -82,9 +82,8 @@ class OutputHistory:
     `resample`: how the previous output is fetched ("nearest"; "bicubic"; "hybrid": the
     nearest pixel, unclamped, where the motion is pixel-aligned, else bicubic clamped to the
     current 3×3 neighbourhood; the surface test always reads the nearest pixel's depth and
-    normal). `demodulate`: blend albedo-divided
-    values and multiply the current albedo back (the shipped accumulation's way, so texture
-    does not go through the history)."""
+    normal). `demodulate`: blend albedo-divided values and multiply the current albedo back
+    (the shipped accumulation's way, so texture does not go through the history)."""
 
     def __init__(self, base: Method, clamp: bool = False, sharp_only: bool = False,
                  resample: str = "nearest", demodulate: bool = False) -> None:
