@@ -17,16 +17,23 @@ NORMAL_MIN_DOT = 0.9  # n_prev · n
 # before that (after a reset or disocclusion) 1/n, i.e. a plain mean of the frames seen so far,
 # so that fresh history is not dominated by its first noisy frame.
 MIN_CURRENT_WEIGHT = 0.2
+# A motion this close to a whole number of pixels counts as pixel-aligned: nearest reprojection
+# is exact there (a locked-off shot, a pan by whole pixels), so a history kept only there never
+# blurs (docs/evaluation/cycles-locked-off).
+ALIGNED_TOLERANCE = 1 / 64  # px
 # Channels of the accumulation state: radiance (3), depth (1), normal (3), history length (1).
 STATE_CHANNELS = 8
 
 
-WARP_MODES = ("bilinear", "nearest")  # ai.quietframe::BackwardWarp attribute mode = index
+# ai.quietframe::BackwardWarp attribute mode = index. Bicubic is PyTorch's (a = -0.75, each of
+# the 4×4 taps clamped to the image): it resamples without bilinear's blur, for clean images
+# (a denoised output); on noisy radiance it rings (docs/evaluation/cycles-locked-off).
+WARP_MODES = ("bilinear", "nearest", "bicubic")
 
 
 @torch.library.custom_op("quietframe::backward_warp", mutates_args=())
 def backward_warp(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
-    """Fetch image(t-1) at p + motion(p) (`mode`: bilinear or nearest); also the in-frame mask.
+    """Fetch image(t-1) at p + motion(p) (`mode`: WARP_MODES); also the in-frame mask.
 
     image (N, C, H, W), motion (N, 2, H, W) in pixels -> ((N, C, H, W), (N, 1, H, W))
 
@@ -84,6 +91,19 @@ def history_valid(
     return (depth_ok & normal_ok).to(depth.dtype)
 
 
+def pixel_aligned(motion: Tensor) -> Tensor:
+    """(N, 1, H, W) bool: both motion components are whole pixels (NaN: not aligned)."""
+    return (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= ALIGNED_TOLERANCE
+
+
+def history_weights(keep: Tensor, previous_count: Tensor) -> tuple[Tensor, Tensor]:
+    """(weight of the current frame, new history length) where `keep` (0/1) says whether the
+    reprojected history is kept: 1/n over the first frames of a history, then the fixed
+    MIN_CURRENT_WEIGHT (an exponential history). One rule for every history quietframe keeps."""
+    count = keep * previous_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
+    return (1 / count).clamp_min(MIN_CURRENT_WEIGHT), count
+
+
 def accumulate(
     radiance: Tensor,
     depth: Tensor,
@@ -91,11 +111,16 @@ def accumulate(
     motion: Tensor,
     reset: Tensor,
     state: Tensor,
+    aligned_only: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """One step of temporal accumulation of demodulated radiance (NBG §4.6).
 
     radiance (N, 3, H, W), depth (N, 1, H, W), normal (N, 3, H, W), motion (N, 2, H, W),
     reset (N,) 1 = drop history, state (N, 8, H, W) -> (accumulated radiance, new state).
+    `aligned_only`: keep history only where the motion is pixel-aligned (`pixel_aligned`), so
+    the accumulation never resamples: under sub-pixel motion even the nearest fetch is half a
+    pixel off, and OIDN on such a history lost up to 1 dB to OIDN on the frame alone on moving
+    Cycles shots (docs/evaluation/cycles-locked-off).
     """
     # Nearest-pixel reprojection of the whole state: the surface test then checks exactly the
     # pixel whose radiance is reused. Bilinear radiance mixed a tap from across a silhouette
@@ -106,8 +131,9 @@ def accumulate(
     prev_radiance, prev_count = warped[:, 0:3], warped[:, 7:8]
     keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
     keep = keep * (1 - reset.view(-1, 1, 1, 1))
-    count = keep * prev_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
-    alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)  # (N, 1, H, W) weight of the current frame
+    if aligned_only:
+        keep = keep * pixel_aligned(motion).to(keep.dtype)
+    alpha, count = history_weights(keep, prev_count)  # (N, 1, H, W) weight of the current frame
     accumulated = alpha * radiance + (1 - alpha) * prev_radiance
     new_state = torch.cat((accumulated, depth, normal, count), dim=1)
     return accumulated, new_state

@@ -4,7 +4,8 @@ that the exporter maps onto it.
 
 Criterion as in test_ops_parity: assert_allclose(ours, reference, rtol=1e-5,
 atol=1e-5 * max|reference|); the `inside` masks must agree exactly. (The op repeats the
-reference's float32 coordinate arithmetic, so on an FMA machine the results are bit-identical.)
+reference's float32 coordinate arithmetic, so on an FMA machine bilinear and nearest are
+bit-identical; bicubic agrees to float rounding.)
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
 torch = pytest.importorskip("torch")
 temporal = pytest.importorskip("quietframe.model.temporal")
 
-MODES = {"bilinear": 0, "nearest": 1}
+MODES = {"bilinear": 0, "nearest": 1, "bicubic": 2}
 SIZES = [(1, 1), (3, 5), (37, 53), (16, 64), (7, 528), (5, 515)]  # 528, 515: several segments
 
 
@@ -60,6 +61,13 @@ def reference(image, motion, mode):
     warped, inside = temporal.backward_warp(torch.from_numpy(image), torch.from_numpy(motion),
                                             mode)
     return warped.numpy(), inside.numpy()
+
+
+def far_for_nonfinite(motion):
+    """The motion that bicubic reads like `motion`: PyTorch's bicubic turns a non-finite position
+    (±Inf, NaN, or 3e38, whose grid value overflows) into NaN, while the op clamps it to the
+    border (NaN like -Inf), as it does a position far out of the frame."""
+    return np.where(np.isnan(motion), -1e6, np.clip(motion, -1e6, 1e6)).astype(np.float32)
 
 
 def assert_parity(ours, theirs, what):
@@ -104,8 +112,10 @@ def test_matches_grid_sample(warp, mode, h, w):
     image = rng.standard_normal((n, c, h, w)).astype(np.float32)
     for name, motion in motions(n, h, w, seed=h + w).items():
         motion = np.ascontiguousarray(motion, dtype=np.float32)
-        assert_parity(warp(image, motion, mode), reference(image, motion, mode),
-                      f"{mode}, {h}x{w}, {name} motion")
+        expected = reference(image, motion, mode)
+        if mode == "bicubic" and name == "nonfinite":
+            expected = (reference(image, far_for_nonfinite(motion), mode)[0], expected[1])
+        assert_parity(warp(image, motion, mode), expected, f"{mode}, {h}x{w}, {name} motion")
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -120,8 +130,8 @@ def test_channel_counts(warp, mode):
 @pytest.mark.parametrize("mode", MODES)
 def test_static_and_integer_motion_copy_pixels(warp, mode):
     # Up to rounding: like the reference, the op maps positions to [-1, 1] and back, which is
-    # exact only for power-of-two sizes (W = 32 here, H = 12 not), so a bilinear copy may blend
-    # in 1e-7 of a neighbour.
+    # exact only for power-of-two sizes (W = 32 here, H = 12 not), so a bilinear or bicubic copy
+    # may blend in 1e-7 of a neighbour.
     rng = np.random.default_rng(4)
     image = rng.random((1, 3, 12, 32), dtype=np.float32)
     motion = np.zeros((1, 2, 12, 32), np.float32)
@@ -137,6 +147,7 @@ def test_static_and_integer_motion_copy_pixels(warp, mode):
 
 @pytest.mark.parametrize("mode", MODES)
 def test_nonfinite_motion_is_outside_and_reads_inside_the_image(warp, mode):
+    # Bicubic too: at its clamped positions every tap but one has weight exactly 0.
     rng = np.random.default_rng(5)
     image = rng.random((1, 2, 6, 9), dtype=np.float32)
     motion = np.full((1, 2, 6, 9), np.nan, np.float32)
@@ -161,6 +172,32 @@ def test_nearest_rounds_half_to_even(warp):
     np.testing.assert_array_equal(warped, reference(image, motion, "nearest")[0])
 
 
+def test_bicubic_resamples_a_smooth_image_better_than_bilinear(warp):
+    h, w, period = 24, 40, 8.0
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+
+    def f(x, y):
+        return np.sin(2 * np.pi / period * x + 0.3) * np.cos(1.4 * np.pi / period * y)
+
+    image = f(xx, yy).astype(np.float32)[None, None]
+    motion = np.zeros((1, 2, h, w), np.float32)
+    motion[0, 0], motion[0, 1] = 0.37, -0.45
+    core = (slice(3, -3), slice(3, -3))  # away from the border
+    truth = f(xx + 0.37, yy - 0.45)[core]
+    error = {mode: np.abs(warp(image, motion, mode)[0][0, 0][core] - truth).max()
+             for mode in ("bilinear", "bicubic")}
+    assert error["bicubic"] < 0.5 * error["bilinear"], error
+
+
+def test_bicubic_overshoots_at_an_edge_like_the_reference(warp):
+    image = np.zeros((1, 1, 4, 12), np.float32)
+    image[..., 6:] = 1.0
+    motion = np.full((1, 2, 4, 12), 0.5, np.float32)
+    warped, inside = warp(image, motion, "bicubic")
+    assert warped.min() < -0.01 and warped.max() > 1.01  # not clamped to the texels' range
+    assert_parity((warped, inside), reference(image, motion, "bicubic"), "edge")
+
+
 @pytest.mark.parametrize("mode", MODES)
 def test_results_do_not_depend_on_thread_count(warp, mode):
     rng = np.random.default_rng(6)
@@ -175,7 +212,7 @@ def test_results_do_not_depend_on_thread_count(warp, mode):
 # ---- errors: an exception whose message names the op, never a crash ---------------------------
 
 
-@pytest.mark.parametrize("mode", [None, 2, -1])
+@pytest.mark.parametrize("mode", [None, 3, -1])
 def test_bad_mode_raises(ops_library, mode):
     with pytest.raises(Exception) as error:
         make_session(ops_library, warp_model(mode))
@@ -213,7 +250,7 @@ def test_custom_op_fake_shapes_and_schema():
     torch.library.opcheck(torch.ops.quietframe.backward_warp.default, (image, motion, "nearest"),
                           test_utils=("test_schema", "test_faketensor"))
     with pytest.raises(ValueError, match="mode"):
-        temporal.backward_warp(image, motion, "bicubic")
+        temporal.backward_warp(image, motion, "lanczos")
 
 
 def test_export_maps_the_warp_to_the_custom_op(tmp_path):

@@ -1,5 +1,5 @@
 // BackwardWarp(image (N,C,H,W), motion (N,2,H,W)) -> warped (N,C,H,W), inside (N,1,H,W)
-// attribute mode: int, 0 = bilinear, 1 = nearest
+// attribute mode: int, 0 = bilinear, 1 = nearest, 2 = bicubic
 //
 // Temporal reprojection (quietframe.model.temporal.backward_warp): output pixel p = (x, y) reads
 // `image` at s = (x + motion_x, y + motion_y) in pixel-centre coordinates, with the position
@@ -8,22 +8,36 @@
 //
 // The reference is F.grid_sample(padding_mode="border", align_corners=False) on the grid
 // g = (2s + 1)/size - 1, and this op does the same float32 operations as PyTorch's CPU kernel,
-// so that both pick the same texels with the same weights (bit-identical on an FMA machine):
+// so that both pick the same texels with the same weights (bit-identical on an FMA machine for
+// bilinear and nearest):
 //   i = fma(g + 1, size/2, -0.5), clamped to [0, size - 1] with NaN -> 0;
 //   bilinear: x0 = floor(i_x), fx = i_x - x0, weights nw = (1-fy)(1-fx), ne = (1-fy)fx,
 //     sw = fy(1-fx), se = fy·fx, out = fma(se_v, se, fma(sw_v, sw, fma(ne_v, ne, nw·nw_v))),
 //     where a corner past the last column or row reads 0 (its weight is 0 anyway);
 //   nearest: the texel at round-half-to-even(i).
-// The clamp comes before any index is formed, so no motion value (±Inf, NaN, 1e38) can make an
-// out-of-bounds read. Image values pass through like the reference's (a non-finite texel in the
-// 2×2 footprint makes the output non-finite).
+//   bicubic (PyTorch's cubic convolution, A = -0.75): i is not clamped to the image but to
+//     [-2, size + 1] with NaN -> -2 (beyond those all four taps are the same border texel, so
+//     the result is the reference's up to the rounding of its weights' sum); x0 = floor(i),
+//     t = i - x0, taps x0-1 … x0+2, each clamped to [0, size - 1] (border padding), weights
+//     (get_cubic_coefficients, evaluated operation by operation)
+//       w0 = ((A(t+1) - 5A)(t+1) + 8A)(t+1) - 4A,   w1 = ((A+2)t - (A+3))·t·t + 1,
+//       w2 = the same of 1 - t,                      w3 = the same as w0 of 2 - t;
+//     row r = fma chain w0·v0 + w1·v1 + w2·v2 + w3·v3 along x, then the same of the 4 rows with
+//     the y weights. The reference's compiler contracts its products differently, so this one
+//     matches it to float rounding (~1e-7 relative), not bit for bit. Not clamped: it may
+//     overshoot the texels' range, like the reference.
+// The clamps come before any index is formed, so no motion value (±Inf, NaN, 1e38) can make an
+// out-of-bounds read. (Bicubic there reads a border texel where the reference, whose t is then
+// NaN, returns NaN.) Image values pass through like the reference's (a non-finite texel in the
+// footprint makes the output non-finite).
 //
 // Parallel over bands of output rows. Each row is done in segments of kSegment pixels: first the
 // footprint of every pixel (texel offset, weights, border masks) into stack arrays, then each
 // channel plane is read through it, 8 pixels at a time. Where the 8 footprints are consecutive
 // texels of one row (smooth motion: the usual case) the corners are plain vector loads, else
 // AVX2 gathers (bilinear: of the west/east texel pairs, 8 bytes each, when no footprint touches
-// the last column or row). The op moves far more memory than it computes on, so when every row
+// the last column or row; bicubic: pairs likewise when no tap is clamped, else 16 gathers of the
+// clamped taps). The op moves far more memory than it computes on, so when every row
 // starts on a cache line (W a multiple of 16: 720p, 1080p, 4K) the outputs are written with
 // streaming stores of whole lines, which skip reading each line before writing it.
 #include <algorithm>
@@ -40,9 +54,10 @@
 namespace qf {
 namespace {
 
-enum class Mode : int64_t { kBilinear = 0, kNearest = 1 };
+enum class Mode : int64_t { kBilinear = 0, kNearest = 1, kBicubic = 2 };
 
-constexpr int64_t kSegment = 256;  // pixels whose footprints are kept at once (7 KB, in L1)
+// Pixels whose footprints are kept at once (bilinear 7 KB, bicubic 17 KB: in L1).
+constexpr int64_t kSegment = 256;
 constexpr int64_t kLanes = 8;
 // Output rows per band at least, for band_count (a band re-reads the footprint rows at its
 // edges; the warp is cheap per row, so its bands are thicker than the grid ops').
@@ -73,60 +88,96 @@ inline void store8(float* p, __m256 v) {
 
 // How the 8 pixels 8k..8k+7 of a segment read their texels.
 enum Chunk : uint8_t {
-  kMasked,       // bilinear: some east column or south row is past the image (those read 0)
-  kInterior,     // bilinear: all four corners of every pixel in the image
-  kConsecutive,  // offsets o, o + 1, …, o + 7 (and, bilinear, interior): vector loads
+  kMasked,       // bilinear: some east column or south row is past the image (those read 0);
+                 // bicubic: some tap is clamped (read through `col`, `row`)
+  kInterior,     // bilinear: all four corners of every pixel in the image; bicubic: all 16 taps
+  kConsecutive,  // offsets o, o + 1, …, o + 7 (and, bilinear/bicubic, interior): vector loads
 };
 
 // Footprints of the pixels of one segment. Bilinear: `offset` = y0·W + x0 of the north-west
 // texel, the four weights, and the masks (-1 / 0) of the east column (x0 + 1 < W) and the south
-// row (y0 + 1 < H). Nearest: `offset` only.
+// row (y0 + 1 < H). Nearest: `offset` only. Bicubic: `offset` = (y0-1)·W + (x0-1) of the
+// north-west tap (meaningful in interior chunks only), the clamped tap columns `col[k]` =
+// clamp(x0-1+k) and row offsets `row[k]` = clamp(y0-1+k)·W, and the weights `wx[k]`, `wy[k]`.
 struct Footprints {
   alignas(32) int32_t offset[kSegment];
   alignas(32) float nw[kSegment], ne[kSegment], sw[kSegment], se[kSegment];
   alignas(32) int32_t east[kSegment], south[kSegment];
+  alignas(32) int32_t col[4][kSegment], row[4][kSegment];
+  alignas(32) float wx[4][kSegment], wy[4][kSegment];
   Chunk chunk[kSegment / kLanes];
 };
 
 // One axis of the reference's coordinate arithmetic: the clamped source index of position s.
 struct Axis {
-  float size;       // W or H
-  float half_size;  // size/2
-  float last;       // size - 1
-  float high;       // size - 0.5, the inside bound
+  float size;        // W or H
+  float half_size;   // size/2
+  float last;        // size - 1
+  float high;        // size - 0.5, the inside bound
+  float cubic_high;  // size + 1, bicubic's bound of i
 
   explicit Axis(int64_t n)
       : size(static_cast<float>(n)),
         half_size(static_cast<float>(n) / 2),
         last(static_cast<float>(n - 1)),
-        high(static_cast<float>(n) - 0.5f) {}
+        high(static_cast<float>(n) - 0.5f),
+        cubic_high(static_cast<float>(n) + 1.0f) {}
 
-  // g = (2s + 1)/size - 1; i = (g + 1)·size/2 - 0.5 (one fma); clamp with NaN -> 0.
-  float index(float s) const {
+  // g = (2s + 1)/size - 1; i = (g + 1)·size/2 - 0.5 (one fma), not clamped.
+  float unnormalized(float s) const {
     const float g = (2.0f * s + 1.0f) / size - 1.0f;
-    const float i = std::fma(g + 1.0f, half_size, -0.5f);
+    return std::fma(g + 1.0f, half_size, -0.5f);
+  }
+  // i clamped to [0, size - 1] with NaN -> 0 (bilinear, nearest).
+  float index(float s) const {
+    const float i = unnormalized(s);
     const float low = i > 0.0f ? i : 0.0f;  // NaN fails the test: 0
     return low < last ? low : last;
+  }
+  // i clamped to [-2, size + 1] with NaN -> -2 (bicubic).
+  float cubic_index(float s) const {
+    const float i = unnormalized(s);
+    const float low = i > -2.0f ? i : -2.0f;  // NaN fails the test: -2
+    return low < cubic_high ? low : cubic_high;
   }
   bool contains(float s) const { return s > -0.5f && s < high; }
 };
 
+// PyTorch's cubic convolution weights (A = -0.75) of the taps -1, 0, 1, 2 at fraction t, each
+// operation rounded like get_cubic_coefficients' (the library is built without contraction).
+constexpr float kCubicA = -0.75f;
+inline float cubic_outer(float x) {  // 1 <= x <= 2
+  const float A = kCubicA;
+  return ((A * x - 5.0f * A) * x + 8.0f * A) * x - 4.0f * A;
+}
+inline float cubic_inner(float x) {  // 0 <= x <= 1
+  const float A = kCubicA;
+  return ((A + 2.0f) * x - (A + 3.0f)) * x * x + 1.0f;
+}
+
 #if QF_HAVE_AVX2
 struct Axis8 {
-  __m256 size, half_size, last, high;
+  __m256 size, half_size, last, high, cubic_high;
   explicit Axis8(const Axis& a)
       : size(_mm256_set1_ps(a.size)),
         half_size(_mm256_set1_ps(a.half_size)),
         last(_mm256_set1_ps(a.last)),
-        high(_mm256_set1_ps(a.high)) {}
+        high(_mm256_set1_ps(a.high)),
+        cubic_high(_mm256_set1_ps(a.cubic_high)) {}
 
-  __m256 index(__m256 s) const {
+  __m256 unnormalized(__m256 s) const {
     const __m256 one = _mm256_set1_ps(1.0f);
     const __m256 g = _mm256_sub_ps(
         _mm256_div_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_set1_ps(2.0f), s), one), size), one);
-    const __m256 i = _mm256_fmadd_ps(_mm256_add_ps(g, one), half_size, _mm256_set1_ps(-0.5f));
+    return _mm256_fmadd_ps(_mm256_add_ps(g, one), half_size, _mm256_set1_ps(-0.5f));
+  }
+  __m256 index(__m256 s) const {
     // max returns its second operand when either is NaN: NaN -> 0.
-    return _mm256_min_ps(_mm256_max_ps(i, _mm256_setzero_ps()), last);
+    return _mm256_min_ps(_mm256_max_ps(unnormalized(s), _mm256_setzero_ps()), last);
+  }
+  // Axis::cubic_index (NaN -> -2 likewise).
+  __m256 cubic_index(__m256 s) const {
+    return _mm256_min_ps(_mm256_max_ps(unnormalized(s), _mm256_set1_ps(-2.0f)), cubic_high);
   }
   __m256 contains(__m256 s) const {
     return _mm256_and_ps(_mm256_cmp_ps(s, _mm256_set1_ps(-0.5f), _CMP_GT_OQ),
@@ -136,7 +187,49 @@ struct Axis8 {
 
 // 0, 1, …, 7 (a function, not a global: the library runs no AVX2 code when it is loaded).
 inline __m256i iota() { return _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7); }
+
+// cubic_outer, cubic_inner of 8 values, operation by operation the same.
+inline __m256 cubic_outer8(__m256 x) {
+  const __m256 A = _mm256_set1_ps(kCubicA);
+  __m256 r = _mm256_sub_ps(_mm256_mul_ps(A, x), _mm256_set1_ps(5.0f * kCubicA));
+  r = _mm256_add_ps(_mm256_mul_ps(r, x), _mm256_set1_ps(8.0f * kCubicA));
+  return _mm256_sub_ps(_mm256_mul_ps(r, x), _mm256_set1_ps(4.0f * kCubicA));
+}
+inline __m256 cubic_inner8(__m256 x) {
+  const __m256 r = _mm256_sub_ps(_mm256_mul_ps(_mm256_set1_ps(kCubicA + 2.0f), x),
+                                 _mm256_set1_ps(kCubicA + 3.0f));
+  return _mm256_add_ps(_mm256_mul_ps(_mm256_mul_ps(r, x), x), _mm256_set1_ps(1.0f));
+}
 #endif
+
+// footprints_scalar of bicubic.
+void footprints_bicubic_scalar(const WarpJob& j, const float* mx, const float* my, int64_t y,
+                               int64_t x, int64_t begin, int64_t count, float* inside,
+                               Footprints& f) {
+  const Axis ax(j.W), ay(j.H);
+  const int32_t W = static_cast<int32_t>(j.W), H = static_cast<int32_t>(j.H);
+  for (int64_t i = begin; i < count; ++i) {
+    const float sx = static_cast<float>(x + i) + mx[i];
+    const float sy = static_cast<float>(y) + my[i];
+    inside[i] = ax.contains(sx) && ay.contains(sy) ? 1.0f : 0.0f;
+    const float ix = ax.cubic_index(sx), iy = ay.cubic_index(sy);
+    const float x0 = std::floor(ix), y0 = std::floor(iy);
+    const float tx = ix - x0, ty = iy - y0;
+    f.wx[0][i] = cubic_outer(tx + 1.0f);
+    f.wx[1][i] = cubic_inner(tx);
+    f.wx[2][i] = cubic_inner(1.0f - tx);
+    f.wx[3][i] = cubic_outer(2.0f - tx);
+    f.wy[0][i] = cubic_outer(ty + 1.0f);
+    f.wy[1][i] = cubic_inner(ty);
+    f.wy[2][i] = cubic_inner(1.0f - ty);
+    f.wy[3][i] = cubic_outer(2.0f - ty);
+    const int32_t x0i = static_cast<int32_t>(x0), y0i = static_cast<int32_t>(y0);  // [-2, n+1]
+    for (int32_t k = 0; k < 4; ++k) {
+      f.col[k][i] = std::min(std::max(x0i - 1 + k, 0), W - 1);
+      f.row[k][i] = std::min(std::max(y0i - 1 + k, 0), H - 1) * W;
+    }
+  }
+}
 
 // Footprints of pixels [x + begin, x + count) of row y (segment positions begin..count), and
 // their inside mask (written to `inside`).
@@ -145,6 +238,10 @@ void footprints_scalar(const WarpJob& j, const float* mx, const float* my, int64
   const Axis ax(j.W), ay(j.H);
   const int32_t W = static_cast<int32_t>(j.W), H = static_cast<int32_t>(j.H);
   const bool bilinear = j.mode == Mode::kBilinear;
+  if (j.mode == Mode::kBicubic) {
+    footprints_bicubic_scalar(j, mx, my, y, x, begin, count, inside, f);
+    return;
+  }
   for (int64_t i = begin; i < count; ++i) {
     const float sx = static_cast<float>(x + i) + mx[i];
     const float sy = static_cast<float>(y) + my[i];
@@ -170,11 +267,77 @@ void footprints_scalar(const WarpJob& j, const float* mx, const float* my, int64
 }
 
 #if QF_HAVE_AVX2
+// footprints_bicubic_scalar 8 pixels at a time, from the start of the segment, and the Chunk of
+// each 8. Returns the pixels done.
+template <bool kStream>
+int64_t footprints_bicubic_avx2(const WarpJob& j, const float* mx, const float* my, int64_t y,
+                                int64_t x, int64_t count, float* inside, Footprints& f) {
+  const Axis ax(j.W), ay(j.H);
+  const Axis8 vx(ax), vy(ay);
+  const int32_t W = static_cast<int32_t>(j.W), H = static_cast<int32_t>(j.H);
+  const __m256 one = _mm256_set1_ps(1.0f), two = _mm256_set1_ps(2.0f);
+  const __m256 fy = _mm256_set1_ps(static_cast<float>(y));
+  const __m256i width = _mm256_set1_epi32(W), lanes = iota(), zero = _mm256_setzero_si256();
+  const __m256i last_x = _mm256_set1_epi32(W - 1), last_y = _mm256_set1_epi32(H - 1);
+  // Interior: taps x0-1 … x0+2 in [0, W - 1], i.e. 0 < x0 < W - 2 (and the same of y).
+  const __m256i inner_x = _mm256_set1_epi32(W - 2), inner_y = _mm256_set1_epi32(H - 2);
+  int64_t i = 0;
+  for (; i + kLanes <= count; i += kLanes) {
+    const __m256 px = _mm256_cvtepi32_ps(
+        _mm256_add_epi32(_mm256_set1_epi32(static_cast<int32_t>(x + i)), lanes));
+    const __m256 sx = _mm256_add_ps(px, _mm256_loadu_ps(mx + i));
+    const __m256 sy = _mm256_add_ps(fy, _mm256_loadu_ps(my + i));
+    store8<kStream>(inside + i,
+                    _mm256_and_ps(_mm256_and_ps(vx.contains(sx), vy.contains(sy)), one));
+    const __m256 ix = vx.cubic_index(sx), iy = vy.cubic_index(sy);
+    const __m256 x0 = _mm256_floor_ps(ix), y0 = _mm256_floor_ps(iy);
+    const __m256 tx = _mm256_sub_ps(ix, x0), ty = _mm256_sub_ps(iy, y0);
+    _mm256_store_ps(f.wx[0] + i, cubic_outer8(_mm256_add_ps(tx, one)));
+    _mm256_store_ps(f.wx[1] + i, cubic_inner8(tx));
+    _mm256_store_ps(f.wx[2] + i, cubic_inner8(_mm256_sub_ps(one, tx)));
+    _mm256_store_ps(f.wx[3] + i, cubic_outer8(_mm256_sub_ps(two, tx)));
+    _mm256_store_ps(f.wy[0] + i, cubic_outer8(_mm256_add_ps(ty, one)));
+    _mm256_store_ps(f.wy[1] + i, cubic_inner8(ty));
+    _mm256_store_ps(f.wy[2] + i, cubic_inner8(_mm256_sub_ps(one, ty)));
+    _mm256_store_ps(f.wy[3] + i, cubic_outer8(_mm256_sub_ps(two, ty)));
+    const __m256i x0i = _mm256_cvttps_epi32(x0), y0i = _mm256_cvttps_epi32(y0);  // [-2, n+1]
+    const __m256i minus1 = _mm256_set1_epi32(-1);
+    const __m256i in_x = _mm256_and_si256(_mm256_cmpgt_epi32(x0i, zero),
+                                          _mm256_cmpgt_epi32(inner_x, x0i));
+    const __m256i in_y = _mm256_and_si256(_mm256_cmpgt_epi32(y0i, zero),
+                                          _mm256_cmpgt_epi32(inner_y, y0i));
+    const bool interior = _mm256_testc_si256(_mm256_and_si256(in_x, in_y), minus1);
+    if (!interior) {  // the clamped taps, read by kMasked chunks only
+      for (int32_t k = 0; k < 4; ++k) {
+        const __m256i d = _mm256_set1_epi32(k - 1);
+        const __m256i cx =
+            _mm256_min_epi32(_mm256_max_epi32(_mm256_add_epi32(x0i, d), zero), last_x);
+        const __m256i cy =
+            _mm256_min_epi32(_mm256_max_epi32(_mm256_add_epi32(y0i, d), zero), last_y);
+        _mm256_store_si256(reinterpret_cast<__m256i*>(f.col[k] + i), cx);
+        _mm256_store_si256(reinterpret_cast<__m256i*>(f.row[k] + i),
+                           _mm256_mullo_epi32(cy, width));
+      }
+    }
+    const __m256i offset = _mm256_add_epi32(
+        _mm256_mullo_epi32(_mm256_add_epi32(y0i, minus1), width), _mm256_add_epi32(x0i, minus1));
+    _mm256_store_si256(reinterpret_cast<__m256i*>(f.offset + i), offset);
+    const __m256i expected =
+        _mm256_add_epi32(_mm256_broadcastd_epi32(_mm256_castsi256_si128(offset)), lanes);
+    const bool consecutive = _mm256_testc_si256(_mm256_cmpeq_epi32(offset, expected), minus1);
+    f.chunk[i / kLanes] = !interior ? kMasked : consecutive ? kConsecutive : kInterior;
+  }
+  return i;
+}
+
 // footprints_scalar 8 pixels at a time, from the start of the segment; also sorts each 8 into a
 // Chunk. Returns the pixels done.
 template <bool kStream>
 int64_t footprints_avx2(const WarpJob& j, const float* mx, const float* my, int64_t y,
                         int64_t x, int64_t count, float* inside, Footprints& f) {
+  if (j.mode == Mode::kBicubic) {
+    return footprints_bicubic_avx2<kStream>(j, mx, my, y, x, count, inside, f);
+  }
   const Axis ax(j.W), ay(j.H);  // vectorised as Axis8
   const int32_t W = static_cast<int32_t>(j.W), H = static_cast<int32_t>(j.H);
   const bool bilinear = j.mode == Mode::kBilinear;
@@ -366,6 +529,85 @@ void sample_nearest(const float* plane, const Footprints& f, int64_t count, floa
   sample_nearest_scalar(plane, f, i, count, out);
 }
 
+// out[begin..count) = bicubic samples of `plane` (one channel, H·W floats) at the footprints.
+void sample_bicubic_scalar(const float* plane, const Footprints& f, int64_t begin, int64_t count,
+                           float* out) {
+  for (int64_t i = begin; i < count; ++i) {
+    float r = 0.0f;
+    for (int k = 0; k < 4; ++k) {
+      const float* p = plane + f.row[k][i];
+      float v = f.wx[0][i] * p[f.col[0][i]];
+      v = std::fma(p[f.col[1][i]], f.wx[1][i], v);
+      v = std::fma(p[f.col[2][i]], f.wx[2][i], v);
+      v = std::fma(p[f.col[3][i]], f.wx[3][i], v);
+      r = k == 0 ? f.wy[0][i] * v : std::fma(v, f.wy[k][i], r);
+    }
+    out[i] = r;
+  }
+}
+
+#if QF_HAVE_AVX2
+// sample_bicubic_scalar 8 pixels at a time (vector loads, pair gathers or gathers of the clamped
+// taps by Chunk); returns the pixels done.
+template <bool kStream>
+int64_t sample_bicubic_avx2(const float* plane, int64_t W, const Footprints& f, int64_t count,
+                            float* out) {
+  int64_t i = 0;
+  for (; i + kLanes <= count; i += kLanes) {
+    const Chunk chunk = f.chunk[i / kLanes];
+    const __m256i offset = _mm256_load_si256(reinterpret_cast<const __m256i*>(f.offset + i));
+    const __m256 wx0 = _mm256_load_ps(f.wx[0] + i), wx1 = _mm256_load_ps(f.wx[1] + i);
+    const __m256 wx2 = _mm256_load_ps(f.wx[2] + i), wx3 = _mm256_load_ps(f.wx[3] + i);
+    __m256 r = _mm256_setzero_ps();
+    for (int k = 0; k < 4; ++k) {
+      __m256 a, b, c, d;  // the taps x0-1 … x0+2 of row y0-1+k
+      if (chunk == kConsecutive) {
+        const float* p = plane + f.offset[i] + k * W;
+        a = _mm256_loadu_ps(p);
+        b = _mm256_loadu_ps(p + 1);
+        c = _mm256_loadu_ps(p + 2);
+        d = _mm256_loadu_ps(p + 3);
+      } else if (chunk == kInterior) {
+        const float* p = plane + k * W;
+        gather_pairs(p, offset, &a, &b);
+        gather_pairs(p + 2, offset, &c, &d);
+      } else {
+        const __m256i row = _mm256_load_si256(reinterpret_cast<const __m256i*>(f.row[k] + i));
+        const auto tap = [&](int t) {
+          const __m256i col = _mm256_load_si256(reinterpret_cast<const __m256i*>(f.col[t] + i));
+          return _mm256_i32gather_ps(plane, _mm256_add_epi32(row, col), 4);
+        };
+        a = tap(0);
+        b = tap(1);
+        c = tap(2);
+        d = tap(3);
+      }
+      __m256 v = _mm256_mul_ps(wx0, a);
+      v = _mm256_fmadd_ps(b, wx1, v);
+      v = _mm256_fmadd_ps(c, wx2, v);
+      v = _mm256_fmadd_ps(d, wx3, v);
+      const __m256 wy = _mm256_load_ps(f.wy[k] + i);
+      r = k == 0 ? _mm256_mul_ps(wy, v) : _mm256_fmadd_ps(v, wy, r);
+    }
+    store8<kStream>(out + i, r);
+  }
+  return i;
+}
+#endif
+
+// out[0..count) = bicubic samples of `plane` (one channel, H·W floats) at the footprints.
+template <bool kStream>
+void sample_bicubic(const float* plane, int64_t W, const Footprints& f, int64_t count,
+                    float* out) {
+  int64_t i = 0;
+#if QF_HAVE_AVX2
+  if (simd_enabled()) i = sample_bicubic_avx2<kStream>(plane, W, f, count, out);
+#else
+  (void)W;
+#endif
+  sample_bicubic_scalar(plane, f, i, count, out);
+}
+
 // Task: output rows [ya, yb) of image n.
 template <bool kStream>
 void warp_rows(const WarpJob& j, int64_t task) {
@@ -384,10 +626,18 @@ void warp_rows(const WarpJob& j, int64_t task) {
       footprints<kStream>(j, mx + x, my + x, y, x, count, inside + x, f);
       const int64_t at = y * j.W + x;
       for (int64_t c = 0; c < j.C; ++c) {
-        if (j.mode == Mode::kBilinear) {
-          sample_bilinear<kStream>(image + c * plane, j.W, f, count, warped + c * plane + at);
-        } else {
-          sample_nearest<kStream>(image + c * plane, f, count, warped + c * plane + at);
+        const float* src = image + c * plane;
+        float* dst = warped + c * plane + at;
+        switch (j.mode) {
+          case Mode::kBilinear:
+            sample_bilinear<kStream>(src, j.W, f, count, dst);
+            break;
+          case Mode::kNearest:
+            sample_nearest<kStream>(src, f, count, dst);
+            break;
+          case Mode::kBicubic:
+            sample_bicubic<kStream>(src, j.W, f, count, dst);
+            break;
         }
       }
     }
@@ -407,14 +657,15 @@ void warp_band(const WarpJob& j, int64_t task) {
 
 bool line_aligned(const void* p) { return (reinterpret_cast<uintptr_t>(p) & 63) == 0; }
 
-// mode: 0 bilinear, 1 nearest.
+// mode: 0 bilinear, 1 nearest, 2 bicubic.
 OrtStatus* read_mode(const ort::Api& api, const char* op, const OrtKernelInfo* info, Mode* out) {
   int64_t mode = -1;
   if (OrtStatus* s = get_int_attribute(api, op, info, "mode", &mode)) return s;
   if (mode != static_cast<int64_t>(Mode::kBilinear) &&
-      mode != static_cast<int64_t>(Mode::kNearest)) {
+      mode != static_cast<int64_t>(Mode::kNearest) &&
+      mode != static_cast<int64_t>(Mode::kBicubic)) {
     return op_error(api, op,
-                    "attribute mode must be 0 (bilinear) or 1 (nearest), got " +
+                    "attribute mode must be 0 (bilinear), 1 (nearest) or 2 (bicubic), got " +
                         std::to_string(mode));
   }
   *out = static_cast<Mode>(mode);
