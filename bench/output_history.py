@@ -46,35 +46,25 @@ import numpy as np
 import torch
 
 from quietframe.bench.harness import Method, Planes, RuntimeMethod
-from quietframe.model.temporal import MIN_CURRENT_WEIGHT, backward_warp, history_valid
+from quietframe.model.output_history import clamp_to_neighbourhood
+from quietframe.model.temporal import (
+    backward_warp,
+    history_valid,
+    history_weights,
+    pixel_aligned,
+)
 
-SHARP_TOLERANCE = 1 / 64  # px: a motion this close to a whole pixel counts as pixel-aligned
 BASELINES = ("oidn-frame", "oidn-acc", "blender-denoise")
 # name: (base model, clamp, sharp only)
 CANDIDATES = {"out-history": ("oidn-frame", False, False),
               "out-history+clamp": ("oidn-frame", True, False),
               "out-history+sharp": ("oidn-frame", False, True),
               "acc+out-history": ("oidn-acc", False, False)}
-OUT_OF_FRAME = 1e6  # px: a motion vector that sends the reprojection outside the frame
 
 
 def resample_bicubic(image: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
-    """image(t-1) at p + motion(p), bicubic (PyTorch's a = -0.75 kernel), negatives cut to 0;
-    the same pixel-centre mapping as `backward_warp`, border-clamped."""
-    n, _, h, w = image.shape
-    xs = torch.arange(w, dtype=image.dtype).view(1, 1, w) + motion[:, 0]
-    ys = torch.arange(h, dtype=image.dtype).view(1, h, 1) + motion[:, 1]
-    grid = torch.stack(((2 * xs + 1) / w - 1, (2 * ys + 1) / h - 1), dim=-1)
-    out = torch.nn.functional.grid_sample(image, grid, mode="bicubic", padding_mode="border",
-                                          align_corners=False)
-    return out.clamp_min(0)
-
-
-def clamp_to_neighbourhood(previous: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
-    """`previous` clipped to the per-channel 3×3 min/max of `current`."""
-    lo = -torch.nn.functional.max_pool2d(-current, 3, 1, 1)
-    hi = torch.nn.functional.max_pool2d(current, 3, 1, 1)
-    return torch.minimum(torch.maximum(previous, lo), hi)
+    """image(t-1) at p + motion(p), bicubic (BackwardWarp's bicubic mode), negatives cut to 0."""
+    return backward_warp(image, motion, mode="bicubic")[0].clamp_min(0)
 
 
 class OutputHistory:
@@ -112,27 +102,21 @@ class OutputHistory:
             warped, inside = backward_warp(self.state, motion, mode="nearest")
             keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
             if self.sharp_only:
-                keep = keep * aligned(motion).to(keep.dtype)
+                keep = keep * pixel_aligned(motion).to(keep.dtype)
             previous = warped[:, 0:3]
             if self.resample in ("bicubic", "hybrid"):
                 fetched = resample_bicubic(self.state[:, 0:3], motion)
                 if self.clamp or self.resample == "hybrid":
                     fetched = clamp_to_neighbourhood(fetched, current)
                 # hybrid: the exact pixel, unclamped, where the motion is pixel-aligned
-                previous = (torch.where(aligned(motion), previous, fetched)
+                previous = (torch.where(pixel_aligned(motion), previous, fetched)
                             if self.resample == "hybrid" else fetched)
             elif self.clamp:
                 previous = clamp_to_neighbourhood(previous, current)
-            count = keep * warped[:, 7:8].clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT) + 1
-            alpha = (1 / count).clamp_min(MIN_CURRENT_WEIGHT)
+            alpha, count = history_weights(keep, warped[:, 7:8])
             out = alpha * current + (1 - alpha) * previous
         self.state = torch.cat((out, depth, normal, count), dim=1)
         return (out * divisor)[0].numpy()
-
-
-def aligned(motion: torch.Tensor) -> torch.Tensor:
-    """(N, 1, H, W) bool: the motion is a whole number of pixels (nearest reprojection exact)."""
-    return (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= SHARP_TOLERANCE
 
 
 RUNTIME_BUFFERS = ("color", "albedo", "normal", "depth", "motion")
@@ -162,16 +146,14 @@ class ThenOIDN:
 
 class PreStage:
     """The shipped accumulation (`model/nbg.AccumulationDenoiser`) on planes. With
-    `aligned_only` the history is dropped wherever the motion is not pixel-aligned (its
-    reprojection is sent out of the frame, so the accumulation's own in-frame test rejects
-    it): the accumulation then never resamples, at the price of no history under sub-pixel
-    motion."""
+    `aligned_only` the history is dropped wherever the motion is not pixel-aligned (the
+    `aligned-accumulation` model): the accumulation then never resamples, at the price of no
+    history under sub-pixel motion."""
 
     def __init__(self, aligned_only: bool) -> None:
         from quietframe.model.nbg import AccumulationDenoiser
 
-        self.aligned_only = aligned_only
-        self.accumulation = AccumulationDenoiser()
+        self.accumulation = AccumulationDenoiser(aligned_history=aligned_only)
         self.state: torch.Tensor | None = None
 
     def reset(self) -> None:
@@ -179,15 +161,12 @@ class PreStage:
 
     def __call__(self, planes: Planes) -> np.ndarray:
         t = {k: torch.from_numpy(np.ascontiguousarray(planes[k]))[None] for k in RUNTIME_BUFFERS}
-        motion = t["motion"]
-        if self.aligned_only:
-            motion = torch.where(aligned(motion), motion, torch.full_like(motion, OUT_OF_FRAME))
         reset = torch.tensor([1.0 if self.state is None else 0.0])
         if self.state is None:
             self.state = self.accumulation.initial_state(1, *t["color"].shape[-2:])
         with torch.no_grad():
             acc, self.state = self.accumulation(t["color"], t["albedo"], t["normal"], t["depth"],
-                                                motion, reset, self.state)
+                                                t["motion"], reset, self.state)
         return acc[0].numpy()
 
 

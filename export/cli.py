@@ -13,8 +13,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-export", description=__doc__)
     parser.add_argument("--variant", default="nbg-2l-3g",
                         help="architecture when untrained (nbg-…, oidn-temporal-…, affinity-…); "
-                             "'accumulation' = the pre-stage alone; oidn-acc, oidn-fast-acc = "
-                             "OIDN on the accumulation, no learned stage")
+                             "'accumulation' = the pre-stage alone, 'aligned-accumulation' = "
+                             "the same kept only under pixel-aligned motion; oidn-acc, "
+                             "oidn-fast-acc = OIDN on the accumulation, no learned stage; "
+                             "oidn-history, oidn-fast-history = OIDN on the aligned "
+                             "accumulation, then a history of OIDN's output")
     parser.add_argument("--checkpoint", type=Path, help="training checkpoint (.pt)")
     parser.add_argument("--width", type=int, help="GuideNet width (untrained only)")
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
@@ -28,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from quietframe.export.affinity_export import export_affinity
     from quietframe.export.onnx_export import export_nbg
-    from quietframe.model import affinity, oidn_temporal
+    from quietframe.model import affinity, oidn_temporal, output_history
     from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
 
     if args.variant in oidn_temporal.OIDN_ONLY_VARIANTS and not args.checkpoint:
@@ -38,8 +41,12 @@ def main(argv: list[str] | None = None) -> int:
                                 version=args.version)
         print(f"wrote {path}")
         return 0
-    if args.variant == "accumulation" and not args.checkpoint:
-        model, training, metrics = AccumulationDenoiser(), {"trained": False}, {}
+    if args.variant in ("accumulation", "aligned-accumulation") and not args.checkpoint:
+        model = AccumulationDenoiser(aligned_history=args.variant == "aligned-accumulation")
+        training, metrics = {"trained": False}, {}
+    elif args.variant in output_history.VARIANTS and not args.checkpoint:
+        model = output_history.OutputHistory(output_history.VARIANTS[args.variant])
+        training, metrics = {"trained": False, "learned_stage": False}, {}
     elif args.checkpoint:
         saved = torch.load(args.checkpoint, map_location="cpu", weights_only=True)["config"]
         if affinity.is_affinity_config(saved):

@@ -48,6 +48,9 @@ class NBGConfig:
     # LED fireflies (100–1000×) do not. bench/clamp_energy.py on 22 validation frames: the 3σ
     # clamp kept 61% of the 1-spp energy, with a floor of 128 means 87%, none 100%.
     outlier_floor: float = 0.0
+    # Keep the accumulated history only where the motion is pixel-aligned
+    # (model/temporal.accumulate aligned_only): the input of the oidn-history tiers' OIDN pass.
+    aligned_history: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -106,6 +109,7 @@ def prestage(
     temporal: bool = True,
     outlier_sigmas: float = OUTLIER_SIGMAS,
     outlier_floor: float = 0.0,
+    aligned_history: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Demodulate, suppress outliers (unless outlier_sigmas is 0), accumulate over time ->
     (irradiance, safe albedo, state)."""
@@ -115,7 +119,8 @@ def prestage(
         irradiance = suppress_outliers(irradiance, sigmas=outlier_sigmas, floor=outlier_floor)
     if not temporal:
         return irradiance, safe_albedo, state
-    irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state)
+    irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state,
+                                       aligned_history)
     return irradiance, safe_albedo, new_state
 
 
@@ -202,7 +207,7 @@ class NBGDenoiser(nn.Module):
     ) -> tuple[Tensor, Tensor]:
         irradiance, safe_albedo, new_state = prestage(
             color, albedo, normal, depth, motion, reset, state, self.config.temporal,
-            self.config.outlier_sigmas, self.config.outlier_floor,
+            self.config.outlier_sigmas, self.config.outlier_floor, self.config.aligned_history,
         )
         guides, weights = self.guide_net(
             guide_features(irradiance * safe_albedo, albedo, normal, depth)
@@ -223,20 +228,23 @@ class AccumulationDenoiser(nn.Module):
     """The NBG pre-stage alone (reprojection + accumulation, no network): a baseline, a cheap
     preview model, and the input of oidn-temporal-acc's OIDN pass. Same call signature and state
     as NBGDenoiser. No firefly clamp by default: alone, nothing after it can give back the
-    energy the clamp takes from a sparse low-spp frame (NBGConfig.outlier_sigmas)."""
+    energy the clamp takes from a sparse low-spp frame (NBGConfig.outlier_sigmas).
+    `aligned_history`: the pixel-aligned accumulation (`aligned-accumulation`, NBGConfig)."""
 
     state_channels = STATE_CHANNELS
 
-    def __init__(self, outlier_sigmas: float = 0.0) -> None:
+    def __init__(self, outlier_sigmas: float = 0.0, aligned_history: bool = False) -> None:
         super().__init__()
-        self.config = NBGConfig(name="accumulation", layers=0, width=0, grids=0,
-                                outlier_sigmas=outlier_sigmas)
+        name = "aligned-accumulation" if aligned_history else "accumulation"
+        self.config = NBGConfig(name=name, layers=0, width=0, grids=0,
+                                outlier_sigmas=outlier_sigmas, aligned_history=aligned_history)
 
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
                 motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         irradiance, safe_albedo, new_state = prestage(
             color, albedo, normal, depth, motion, reset, state,
             outlier_sigmas=self.config.outlier_sigmas,
+            aligned_history=self.config.aligned_history,
         )
         return irradiance * safe_albedo, new_state
 

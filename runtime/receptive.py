@@ -29,6 +29,7 @@ NBG_BYTES_PER_PIXEL_PER_LAYER = 128  # per GuideNet layer + 1 (the prestage and 
 AFFINITY_BYTES_PER_PIXEL = 768
 OIDN_TEMPORAL_BYTES_PER_PIXEL = 320
 IDENTITY_BYTES_PER_PIXEL = 16
+OUTPUT_HISTORY_BYTES_PER_PIXEL = 160
 
 
 def nbg_tiling(arch: Mapping) -> Tiling:
@@ -86,6 +87,12 @@ def oidn_temporal_tiling(arch: Mapping) -> Tiling:
                   bytes_per_pixel=OIDN_TEMPORAL_BYTES_PER_PIXEL, size_ratios=scale > 1)
 
 
+def output_history_tiling() -> Tiling:
+    """model/output_history: the bicubic fetch reads 2 px beyond the motion target's pixel and
+    the clip the 3×3 neighbourhood of OIDN's output: 3 px with the warp's motion on top."""
+    return Tiling(radius=3, align=1, bytes_per_pixel=OUTPUT_HISTORY_BYTES_PER_PIXEL)
+
+
 def identity_tiling() -> Tiling:
     """A graph that passes a prepass result through (the OIDN-only compositions)."""
     return Tiling(radius=0, align=1, motion=False, bytes_per_pixel=IDENTITY_BYTES_PER_PIXEL)
@@ -97,6 +104,8 @@ def tiling_for(arch: Mapping, inputs: Sequence[InputSpec], has_prepass: bool) ->
     try:
         if arch.get("family") == "affinity":
             return affinity_tiling(arch, inputs)
+        if arch.get("family") == "output-history":
+            return output_history_tiling()
         if "grids" in arch and "layers" in arch:
             return nbg_tiling(arch)
         if has_prepass and "layers" in arch and "kernel_size" in arch:

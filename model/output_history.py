@@ -1,0 +1,100 @@
+"""The temporal stage of the `oidn-history` tiers: a history of OIDN's output, kept where it
+stays sharp (issue 24; the ablation behind it: docs/evaluation/cycles-locked-off).
+
+The runtime first runs `aligned-accumulation.onnx` (the accumulation of the noisy colour, kept
+only where the motion is a whole number of pixels, model/temporal.accumulate aligned_only),
+then OIDN on its output (D_t), then this graph:
+
+  P_t = O_{t-1}(p + m)      the nearest pixel, unclamped, where m is pixel-aligned (exact);
+        clip(max(B O_{t-1}(p + m), 0), min₃ₓ₃ D_t, max₃ₓ₃ D_t)   elsewhere, B = bicubic fetch
+  O_t = α D_t + (1 - α) P_t   where the reprojected surface is this one (history_valid),
+        α = max(1/n, 0.2) over the history's n frames (model/temporal.history_weights)
+
+Why each piece (measured on Cycles test shots, 1–64 spp): OIDN on a history fetched from the
+nearest pixel under sub-pixel motion lost up to 1 dB to OIDN on the frame alone, and a bicubic
+fetch of the noisy history rang (−4.6 dB at 1 spp); a bicubic fetch of OIDN's clean output,
+clipped to this frame's neighbourhood, kept its detail. State-in / state-out like every
+quietframe model (DESIGN.md): zeros and reset = 1 on a first frame or a cut.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from quietframe.model.oidn_temporal import prepass_spec
+from quietframe.model.temporal import (
+    backward_warp,
+    history_valid,
+    history_weights,
+    pixel_aligned,
+)
+
+FAMILY = "output-history"  # the architecture's family (runtime/receptive.py tiling rule)
+# State planes: previous output O (3), depth (1), normal (3), history length n (1).
+STATE_CHANNELS = 8
+
+
+@dataclass(frozen=True)
+class OutputHistoryConfig:
+    """Everything needed to rebuild the stage (no learned parameters); in ONNX metadata."""
+
+    name: str = "oidn-history"
+    quality: str = "high"  # the OIDN pass: high or fast
+    prefilter_aux: bool = False
+    color_from: str = "aligned-accumulation.onnx"
+    family: str = FAMILY
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def prepass(self) -> dict:
+        return prepass_spec(self.quality, self.prefilter_aux, self.color_from)
+
+
+VARIANTS: dict[str, OutputHistoryConfig] = {
+    "oidn-history": OutputHistoryConfig(),
+    "oidn-fast-history": OutputHistoryConfig(name="oidn-fast-history", quality="fast"),
+}
+
+
+def clamp_to_neighbourhood(previous: Tensor, current: Tensor) -> Tensor:
+    """`previous` clipped per channel to the 3×3 min/max of `current` (border: the pixels
+    inside the frame)."""
+    low = -F.max_pool2d(-current, 3, 1, 1)
+    high = F.max_pool2d(current, 3, 1, 1)
+    return torch.minimum(torch.maximum(previous, low), high)
+
+
+class OutputHistory(nn.Module):
+    """forward(oidn, albedo, normal, depth, motion, reset, state) -> (denoised, new_state);
+    `oidn` is OIDN's output for this frame, the rest as docs/model-interface.md (albedo is
+    not read: the blend is of final colours, whose texture OIDN has already restored)."""
+
+    state_channels = STATE_CHANNELS
+    inputs = ("oidn", "albedo", "normal", "depth", "motion")
+
+    def __init__(self, config: OutputHistoryConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or OutputHistoryConfig()
+
+    def forward(self, oidn: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
+        # The nearest pixel's depth and normal test the surface, as in the accumulation.
+        warped, inside = backward_warp(state, motion, mode="nearest")
+        keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
+        keep = keep * (1 - reset.view(-1, 1, 1, 1))
+        fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
+        fetched = clamp_to_neighbourhood(F.relu(fetched), oidn)  # bicubic overshoots below 0
+        previous = torch.where(pixel_aligned(motion), warped[:, 0:3], fetched)
+        alpha, count = history_weights(keep, warped[:, 7:8])
+        # Where the history is dropped the output is exactly this frame's OIDN, whatever the
+        # fetch read (a 0 weight would still let a NaN through).
+        output = torch.where(keep > 0, alpha * oidn + (1 - alpha) * previous, oidn)
+        return output, torch.cat((output, depth, normal, count), dim=1)
+
+    def initial_state(self, batch: int, height: int, width: int) -> Tensor:
+        return torch.zeros(batch, STATE_CHANNELS, height, width)

@@ -1,0 +1,176 @@
+"""The oidn-history tiers (model/output_history.py): the stage's behaviour in PyTorch, the
+composition (aligned accumulation -> OIDN -> output history) through the runtime against the
+same steps in PyTorch, and the stage against the ablation row it ships (bench/output_history)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+from quietframe.export.onnx_export import export_nbg  # noqa: E402
+from quietframe.model import output_history as oh  # noqa: E402
+from quietframe.model.nbg import AccumulationDenoiser  # noqa: E402
+from quietframe.model.temporal import MIN_CURRENT_WEIGHT  # noqa: E402
+
+H, W = 20, 28
+
+
+def surface(frames: int, motion: tuple[float, float], seed: int = 0) -> list[dict]:
+    """Noisy 'OIDN outputs' of one flat surface under a constant motion, as (1, C, H, W)
+    tensors: the stage's inputs."""
+    gen = torch.Generator().manual_seed(seed)
+    normal = torch.zeros(1, 3, H, W)
+    normal[:, 2] = 1
+    move = torch.tensor(motion, dtype=torch.float32).view(1, 2, 1, 1).expand(1, 2, H, W)
+    return [{"oidn": 0.5 + 0.2 * torch.rand(1, 3, H, W, generator=gen),
+             "albedo": torch.full((1, 3, H, W), 0.5), "normal": normal,
+             "depth": torch.full((1, 1, H, W), 3.0), "motion": move.contiguous()}
+            for _ in range(frames)]
+
+
+def run_stage(stage, frames: list[dict], reset_at: tuple[int, ...] = (0,)) -> list[torch.Tensor]:
+    state, outputs = stage.initial_state(1, H, W), []
+    for index, f in enumerate(frames):
+        reset = torch.tensor([1.0 if index in reset_at else 0.0])
+        with torch.no_grad():
+            out, state = stage(f["oidn"], f["albedo"], f["normal"], f["depth"], f["motion"],
+                               reset, state)
+        outputs.append(out)
+    return outputs
+
+
+def test_locked_off_history_is_the_running_mean_then_exponential():
+    frames = surface(8, (0.0, 0.0))
+    outputs = run_stage(oh.OutputHistory(), frames)
+    torch.testing.assert_close(outputs[0], frames[0]["oidn"])  # a first frame: no history
+    expected = frames[0]["oidn"]
+    for n, f in enumerate(frames[1:], start=2):
+        alpha = max(1 / n, MIN_CURRENT_WEIGHT)
+        expected = alpha * f["oidn"] + (1 - alpha) * expected
+        torch.testing.assert_close(outputs[n - 1], expected, rtol=1e-5, atol=1e-6)
+    noise = torch.stack([f["oidn"] for f in frames[3:]]).std(dim=0).mean()
+    assert torch.stack(outputs[3:]).std(dim=0).mean() < 0.5 * noise
+
+
+def test_sub_pixel_history_stays_within_the_frame_neighbourhood():
+    frames = surface(5, (0.37, -0.61))
+    frames[0]["oidn"] = frames[0]["oidn"] * 40  # a history the later frames do not support
+    outputs = run_stage(oh.OutputHistory(), frames)
+    for f, out in zip(frames[1:], outputs[1:], strict=True):
+        low = -torch.nn.functional.max_pool2d(-f["oidn"], 3, 1, 1)
+        high = torch.nn.functional.max_pool2d(f["oidn"], 3, 1, 1)
+        assert bool(((out >= low - 1e-6) & (out <= high + 1e-6)).all())
+
+
+def test_reset_disocclusion_and_nan_motion_drop_the_history():
+    frames = surface(3, (0.0, 0.0))
+    frames[1]["oidn"] = frames[1]["oidn"] + 5  # differs from frame 0 everywhere
+    outputs = run_stage(oh.OutputHistory(), frames, reset_at=(0, 1))
+    torch.testing.assert_close(outputs[1], frames[1]["oidn"])
+    moved = surface(2, (0.0, 0.0))
+    moved[1]["depth"][..., :, :10] = 9.0  # another surface came into view on the left
+    moved[1]["motion"][:, :, 0, 20] = float("nan")
+    out = run_stage(oh.OutputHistory(), moved)[1]
+    torch.testing.assert_close(out[..., :, :10], moved[1]["oidn"][..., :, :10])
+    torch.testing.assert_close(out[..., 0, 20], moved[1]["oidn"][..., 0, 20])
+    assert not torch.allclose(out[..., 1:, 12:], moved[1]["oidn"][..., 1:, 12:])
+    assert bool(torch.isfinite(out).all())
+
+
+class _Given:
+    """A per-frame 'method' that returns the stage's given OIDN output (bench interface)."""
+
+    def __init__(self, frames: list[dict]) -> None:
+        self.frames, self.index = frames, 0
+
+    def reset(self) -> None:
+        self.index = 0
+
+    def __call__(self, planes) -> np.ndarray:
+        self.index += 1
+        return self.frames[self.index - 1]["oidn"][0].numpy()
+
+
+def test_the_stage_is_the_ablation_row_it_ships():
+    """The shipped stage computes what bench/output_history's `+hybrid` history measured."""
+    from quietframe.bench.output_history import OutputHistory as AblationRow
+
+    frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:] + surface(
+        2, (-2.0, 1.0), seed=2)[1:]
+    ours = run_stage(oh.OutputHistory(), frames)
+    row = AblationRow(_Given(frames), resample="hybrid")
+    for f, out in zip(frames, ours, strict=True):
+        planes = {k: f[k][0].numpy() for k in ("depth", "normal", "motion")}
+        planes["color"] = f["oidn"][0].numpy()  # not read by the row (its base gives OIDN's)
+        np.testing.assert_allclose(row(planes), out[0].numpy(), rtol=1e-5, atol=1e-6)
+
+
+def _has_pyoidn() -> bool:
+    try:
+        import pyoidn  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+needs_pyoidn = pytest.mark.skipif(not _has_pyoidn(), reason="pyoidn not installed")
+
+
+@pytest.fixture(scope="module", params=sorted(oh.VARIANTS))
+def composed(request, tmp_path_factory) -> tuple[str, Path]:
+    folder = tmp_path_factory.mktemp("history")
+    export_nbg(AccumulationDenoiser(aligned_history=True), folder / "aligned-accumulation.onnx")
+    stage = oh.OutputHistory(oh.VARIANTS[request.param])
+    return request.param, export_nbg(stage, folder / f"{request.param}.onnx", version="t")
+
+
+def moving_planes(index: int) -> dict[str, np.ndarray]:
+    """A textured scene moving by whole pixels in one half of the frame and by fractions of a
+    pixel in the other, with noise of its own in every frame."""
+    rng = np.random.default_rng(index)
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+    shift = 0.3 * index
+    pattern = 0.5 + 0.4 * np.sin(0.7 * (xs + shift)) * np.cos(0.5 * ys)
+    color = pattern[None].repeat(3, 0) * rng.uniform(0.6, 1.4, (3, H, W))
+    normal = np.zeros((3, H, W), np.float32)
+    normal[2] = 1
+    motion = np.zeros((2, H, W), np.float32)
+    motion[0, :, : W // 2] = -1.0 if index else 0.0
+    motion[0, :, W // 2:] = -0.3 if index else 0.0
+    return {"color": color.astype(np.float32), "albedo": np.full((3, H, W), 0.6, np.float32),
+            "normal": normal, "depth": np.full((1, H, W), 2.0, np.float32), "motion": motion}
+
+
+@needs_pyoidn
+def test_runtime_composition_matches_pytorch_with_state_carried(composed):
+    from quietframe.runtime import Denoiser
+    from quietframe.runtime.oidn_prepass import OIDNPrepass
+
+    name, path = composed
+    runtime = Denoiser(path, threads=1)
+    assert [s.name for s in runtime.info.state_specs] == ["accumulation",
+                                                          "color_from.accumulation"]
+    accumulation, stage = AccumulationDenoiser(aligned_history=True), oh.OutputHistory(
+        oh.VARIANTS[name])
+    oidn = OIDNPrepass(runtime.card.prepass, num_threads=1)
+    acc_state, stage_state, state = torch.zeros(1, 8, H, W), torch.zeros(1, 8, H, W), None
+    for index in range(5):
+        planes = moving_planes(index)
+        t = {k: torch.from_numpy(v)[None] for k, v in planes.items()}
+        reset = torch.tensor([1.0 if index == 0 else 0.0])
+        with torch.no_grad():
+            acc, acc_state = accumulation(t["color"], t["albedo"], t["normal"], t["depth"],
+                                          t["motion"], reset, acc_state)
+            denoised = torch.from_numpy(oidn({**planes, "color": acc[0].numpy()}))
+            expected, stage_state = stage(denoised, t["albedo"], t["normal"], t["depth"],
+                                          t["motion"], reset, stage_state)
+        result = runtime.denoise(planes, state)
+        state = result.state
+        np.testing.assert_allclose(result.color, expected[0].numpy(), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(state["accumulation"], stage_state.numpy(), rtol=1e-4,
+                                   atol=1e-4)
+    fresh = runtime.denoise(planes, None)  # the history was used
+    assert np.abs(fresh.color - result.color).max() > 1e-3
