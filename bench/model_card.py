@@ -136,10 +136,11 @@ def card_lines(card: ModelCard) -> list[str]:
 
 
 def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: int = 2,
-                     split: str = "", measure: bool = False) -> Path:
+                     split: str = "", measure: bool = False, renderer: str = "") -> Path:
     """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model,
     measured on `split` (named in the card: test figures are reported, validation ones chose);
-    `measure`: time the model now instead of quoting the card's measured 720p time."""
+    `measure`: time the model now instead of quoting the card's measured 720p time;
+    `renderer`: whose frames the split is (named in the card when given)."""
     runtime = Denoiser(path, threads=threads)
     info = runtime.info
     card = path.with_suffix(".md")
@@ -155,14 +156,16 @@ def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: 
         "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
         *data_lines(info.training, previous),
         "## Speed", "", *speed_lines(runtime, threads, measure),
-        f"## Quality ({split} split)" if split else "## Quality", "",
+        f"## Quality ({' '.join(filter(None, (renderer, split)))} split)" if split
+        else "## Quality", "",
     ]
     rows = evaluation or []
     if rows:
         lines += ["| spp | PSNR | SSIM | SMAPE | relMSE | TRMAE |", "|---|---|---|---|---|---|"]
         lines += [f"| {r['spp']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['smape']:.4f} | "
                   f"{r['relmse']:.4f} | {r['trmae']:.4f} |" for r in rows]
-        lines += ["", f"From `quietframe-eval`{f' on the {split} split' if split else ''} "
+        on = " ".join(filter(None, (renderer, split)))
+        lines += ["", f"From `quietframe-eval`{f' on the {on} split' if split else ''} "
                   "(docs/benchmarks.md)."]
     else:
         lines.append(f"Metadata metrics: `{json.dumps(info.metrics)}` (no evaluation run given).")
@@ -191,7 +194,9 @@ def main(argv: list[str] | None = None) -> int:
             from quietframe.bench.model_metrics import metrics_from_rows, stamp
 
             stamp(path, metrics_from_rows(rows, meta))
-        print(f"wrote {write_model_card(path, rows, args.threads, split, args.measure)}")
+        card = write_model_card(path, rows, args.threads, split, args.measure,
+                                meta.get("renderer", ""))
+        print(f"wrote {card}")
     return 0
 
 
