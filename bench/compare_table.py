@@ -32,7 +32,7 @@ def compare(run: dict, static: dict | None, methods: list[str], against: list[st
     """(markdown lines of the per-spp table, markdown lines of the targets summary)."""
     spps = sorted({spp for (_, spp) in run})
     first = against[0]
-    head = ["method", "spp", "PSNR"] + [f"Δ {b}" for b in against] + [f"TRMAE ÷ {first}"]
+    head = ["method", "spp", "PSNR", "SSIM"] + [f"Δ {b}" for b in against] + [f"TRMAE ÷ {first}"]
     head += [f"flicker ÷ {first} (locked-off)"] if static else []
     head += ["ms 720p", f"ms ÷ {first}"]
     table = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -46,7 +46,7 @@ def compare(run: dict, static: dict | None, methods: list[str], against: list[st
             row = run.get((method, spp))
             if row is None:
                 continue
-            cells = [method, str(spp), f"{row['psnr']:.2f}"]
+            cells = [method, str(spp), f"{row['psnr']:.2f}", f"{row['ssim']:.4f}"]
             for b in against:
                 delta = row["psnr"] - run[(b, spp)]["psnr"]
                 worst[b] = min(worst[b], delta)

@@ -175,6 +175,33 @@ def accumulated_oidn(aligned_only: bool, threads: int) -> ThenOIDN:
     return ThenOIDN(PreStage(aligned_only), threads)
 
 
+class ShippedStage:
+    """The shipped history stage (model/output_history.OutputHistory, `config`) over `base`'s
+    output: its rows measure the graph's own code (and variants of its config)."""
+
+    def __init__(self, base: Method, config) -> None:
+        from quietframe.model.output_history import OutputHistory as Stage
+
+        self.base, self.stage = base, Stage(config)
+        self.state: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        self.base.reset()
+        self.state = None
+
+    def __call__(self, planes: Planes) -> np.ndarray:
+        t = {k: torch.from_numpy(np.ascontiguousarray(planes[k]))[None]
+             for k in ("albedo", "normal", "depth", "motion")}
+        current = torch.from_numpy(np.asarray(self.base(planes), np.float32))[None]
+        reset = torch.tensor([1.0 if self.state is None else 0.0])
+        if self.state is None:
+            self.state = self.stage.initial_state(1, *current.shape[-2:])
+        with torch.no_grad():
+            out, self.state = self.stage(current, t["albedo"], t["normal"], t["depth"],
+                                         t["motion"], reset, self.state)
+        return out[0].numpy()
+
+
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import (
         Noisy,
@@ -197,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
     p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
     p.add_argument("--json", type=Path)
+    p.add_argument("--resampled-weights", default="",
+                   help="comma list: also rows aligned-acc+stage@w<W>, the shipped stage with "
+                        "that current-frame weight floor where the history is resampled")
+    p.add_argument("--only", default="", help="comma list: only these rows (and baselines)")
     p.add_argument("--timing", action="store_true",
                    help="also ms per 1280x720 frame of each method (evaluate.time_720p), "
                         "in one run, and its ratio to oidn-frame's")
@@ -230,6 +261,15 @@ def main(argv: list[str] | None = None) -> int:
     methods["aligned-acc"] = lambda: accumulated_oidn(True, args.threads)
     methods["aligned-acc+out-history"] = lambda: OutputHistory(
         accumulated_oidn(True, args.threads), sharp_only=True)
+    from quietframe.model.output_history import OutputHistoryConfig
+
+    for weight in filter(None, args.resampled_weights.split(",")):
+        config = OutputHistoryConfig(resampled_weight=float(weight))
+        methods[f"aligned-acc+stage@w{weight}"] = lambda c=config: ShippedStage(
+            accumulated_oidn(True, args.threads), c)
+    if args.only:
+        keep = {*BASELINES, *args.only.split(",")}
+        methods = {k: v for k, v in methods.items() if k in keep}
     if args.timing:
         ms = {name: time_720p(factory, args.threads) for name, factory in methods.items()}
         print("| method | ms per 720p frame | ÷ oidn-frame |\n|---|---|---|")

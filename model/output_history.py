@@ -27,6 +27,7 @@ from torch import Tensor, nn
 
 from quietframe.model.oidn_temporal import prepass_spec
 from quietframe.model.temporal import (
+    MIN_CURRENT_WEIGHT,
     backward_warp,
     history_valid,
     history_weights,
@@ -48,6 +49,15 @@ class OutputHistoryConfig:
     aux_quality: str = ""  # those prefilters' quality ("": the main filter's)
     color_from: str = "aligned-accumulation.onnx"
     family: str = FAMILY
+    # The current frame's weight where the history is fetched bicubically (sub-pixel motion) is
+    # at least this (elsewhere MIN_CURRENT_WEIGHT): every frame the history is resampled again,
+    # so a long history there compounds the resampling's error, which outweighs the noise it
+    # removes once OIDN's output is clean (MIN_CURRENT_WEIGHT there: -0.31 dB against OIDN on
+    # the frame at 64 spp on moving Cycles test shots). Chosen on the Cycles validation split
+    # as the weight whose worst PSNR gain over OIDN on the frame, over 1-64 spp, is largest
+    # (0.2 / 0.35 / 0.5 / 0.7: +0.05 / +0.09 / +0.12 / +0.11 dB; bench/output_history.py
+    # --resampled-weights, docs/evaluation/cycles-history/README.md).
+    resampled_weight: float = 0.5
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -98,8 +108,11 @@ class OutputHistory(nn.Module):
         keep = keep * (1 - reset.view(-1, 1, 1, 1))
         fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
         fetched = clamp_to_neighbourhood(F.relu(fetched), oidn)  # bicubic overshoots below 0
-        previous = torch.where(pixel_aligned(motion), warped[:, 0:3], fetched)
+        exact = pixel_aligned(motion)
+        previous = torch.where(exact, warped[:, 0:3], fetched)
         alpha, count = history_weights(keep, warped[:, 7:8])
+        if self.config.resampled_weight > MIN_CURRENT_WEIGHT:
+            alpha = torch.where(exact, alpha, alpha.clamp_min(self.config.resampled_weight))
         # Where the history is dropped the output is exactly this frame's OIDN, whatever the
         # fetch read (a 0 weight would still let a NaN through).
         output = torch.where(keep > 0, alpha * oidn + (1 - alpha) * previous, oidn)

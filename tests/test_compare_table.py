@@ -13,7 +13,8 @@ def write(path, rows):
 
 
 def row(method, spp, psnr, trmae=1.0, flicker=float("nan"), ms=100.0):
-    return {"method": method, "spp": spp, "psnr": psnr, "trmae": trmae, "flicker": flicker,
+    return {"method": method, "spp": spp, "psnr": psnr, "ssim": 0.5, "trmae": trmae,
+            "flicker": flicker,
             "ms_720p": ms}
 
 
@@ -29,7 +30,7 @@ def test_targets_met_and_missed_with_their_amounts(tmp_path, capsys):
     assert main([str(run), "--static", str(static), "--methods", "good,bad",
                  "--against", "base,ref"]) == 0
     out = capsys.readouterr().out
-    assert "| good | 1 | 30.60 | +0.60 | +0.10 | 0.60 | 0.40 | 110 | 1.10 |" in out
+    assert "| good | 1 | 30.60 | 0.5000 | +0.60 | +0.10 | 0.60 | 0.40 | 110 | 1.10 |" in out
     assert "| good | +0.10 | +0.10 | 0.65 | 0.45 | none |" in out
     assert ("| bad | -0.20 | -0.70 | 0.90 | 0.80 | PSNR 0.20 dB below base; PSNR 0.70 dB "
             "below ref; TRMAE 0.90× (target ≤ 0.7×); flicker 0.80× (target ≤ 0.5×) |") in out

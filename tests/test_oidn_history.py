@@ -80,6 +80,22 @@ def test_reset_disocclusion_and_nan_motion_drop_the_history():
     assert bool(torch.isfinite(out).all())
 
 
+def test_resampled_history_is_weighted_less_than_exact_history():
+    """Under sub-pixel motion the current frame weighs at least resampled_weight; under
+    whole-pixel motion the history keeps the accumulation's weights (here 1/6 -> 0.2)."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    for shift, alpha in ((1.0, MIN_CURRENT_WEIGHT), (0.5, 0.5)):
+        frames = surface(6, (shift, 0.0))
+        frames[0]["motion"] = torch.zeros_like(frames[0]["motion"])
+        for f in frames[:-1]:  # a constant history: any fetch of it reads 0.5
+            f["oidn"] = torch.full_like(f["oidn"], 0.5)
+        frames[-1]["oidn"] = stripes.contiguous()  # its 3x3 range [0.4, 1] does not clip 0.5
+        config = oh.OutputHistoryConfig(resampled_weight=0.5)
+        out = run_stage(oh.OutputHistory(config), frames)[-1]
+        centre = out[0, 0, H // 2, W // 2].item()  # an even column: the frame has 1.0 there
+        assert centre == pytest.approx(alpha * 1.0 + (1 - alpha) * 0.5, abs=1e-5)
+
+
 class _Given:
     """A per-frame 'method' that returns the stage's given OIDN output (bench interface)."""
 
@@ -100,7 +116,8 @@ def test_the_stage_is_the_ablation_row_it_ships():
 
     frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:] + surface(
         2, (-2.0, 1.0), seed=2)[1:]
-    ours = run_stage(oh.OutputHistory(), frames)
+    ablation = oh.OutputHistoryConfig(resampled_weight=MIN_CURRENT_WEIGHT)  # the row's weights
+    ours = run_stage(oh.OutputHistory(ablation), frames)
     row = AblationRow(_Given(frames), resample="hybrid")
     for f, out in zip(frames, ours, strict=True):
         planes = {k: f[k][0].numpy() for k in ("depth", "normal", "motion")}
@@ -119,10 +136,17 @@ def _has_pyoidn() -> bool:
 needs_pyoidn = pytest.mark.skipif(not _has_pyoidn(), reason="pyoidn not installed")
 
 
-@pytest.fixture(scope="module", params=sorted(oh.VARIANTS))
-def composed(request, tmp_path_factory) -> tuple[str, Path]:
+@pytest.fixture(scope="module")
+def history_folder(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("history")
     export_nbg(AccumulationDenoiser(aligned_history=True), folder / "aligned-accumulation.onnx")
+    return folder
+
+
+# oidn-fast-history differs from oidn-history only in OIDN's quality
+@pytest.fixture(scope="module", params=["oidn-history", "oidn-history-cleanaux"])
+def composed(request, history_folder) -> tuple[str, Path]:
+    folder = history_folder
     stage = oh.OutputHistory(oh.VARIANTS[request.param])
     return request.param, export_nbg(stage, folder / f"{request.param}.onnx", version="t")
 
