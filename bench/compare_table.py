@@ -3,6 +3,7 @@ the same run, at every spp, and whether it meets the targets (with the amount wh
 
     python -m quietframe.bench.compare_table RUN.json [--static STATIC.json]
         [--methods a,b] [--against oidn-frame,blender-denoise] [--trmae 0.7] [--flicker 0.5]
+        [--wide]
 
 RUN: an evaluation of moving shots (PSNR, TRMAE, ms at 720p); STATIC: one of locked-off shots
 (`*-static` splits), whose flicker (model/metrics.flicker) is scored against the first
@@ -75,6 +76,25 @@ def compare(run: dict, static: dict | None, methods: list[str], against: list[st
     return table, summary
 
 
+def wide(run: dict, methods: list[str], base: str) -> list[str]:
+    """One row per method: PSNR at each spp, with its difference to `base` in brackets, and
+    the run's ms per 720p frame (markdown lines)."""
+    spps = sorted({spp for (_, spp) in run})
+    lines = ["| method | " + " | ".join(f"{s} spp" for s in spps) + " | ms 720p |",
+             "|" + "---|" * (len(spps) + 2)]
+    for method in methods:
+        cells = []
+        for spp in spps:
+            row = run.get((method, spp))
+            cells.append("–" if row is None else
+                         f"{row['psnr']:.2f} ({row['psnr'] - run[(base, spp)]['psnr']:+.2f})")
+        ms = next((r.get("ms_720p", math.nan) for (m, _), r in run.items() if m == method),
+                  math.nan)
+        lines.append(f"| {method} | " + " | ".join(cells)
+                     + f" | {f'{ms:.0f}' if math.isfinite(ms) else '–'} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run", type=Path)
@@ -83,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--against", default="oidn-frame,blender-denoise")
     p.add_argument("--trmae", type=float, default=0.7)
     p.add_argument("--flicker", type=float, default=0.5)
+    p.add_argument("--wide", action="store_true",
+                   help="only PSNR by spp, one row per method, difference to the first baseline")
     args = p.parse_args(argv)
     run = load_rows(args.run)
     static = load_rows(args.static) if args.static else None
@@ -92,6 +114,9 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"{args.run} has no rows of {', '.join(missing)}")
     methods = (args.methods.split(",") if args.methods
                else list(dict.fromkeys(m for m, _ in run)))
+    if args.wide:
+        print("\n".join(wide(run, methods, against[0])))
+        return 0
     table, summary = compare(run, static, methods, against, args.trmae, args.flicker)
     print("\n".join(table), "", "\n".join(summary), sep="\n")
     return 0

@@ -202,9 +202,8 @@ def stage_to_dict(stage: Stage) -> dict:
 def stage_from_dict(d: Mapping) -> Stage:
     if "graph" in d:
         return GraphStage(d["graph"], d.get("namespace", ""))
-    oidn = d["oidn"]
-    return OIDNStage(oidn.get("quality", "high"), bool(oidn.get("prefilter_aux", False)),
-                     d.get("input", "oidn"), tuple(oidn.get("aux", OIDNStage.aux)))
+    # the prepass form's parser, so every key of oidn_dict (aux_quality too) is read back
+    return prepass_stage({"oidn": d["oidn"], "input": d.get("input", "oidn")})
 
 
 def check_stages(stages: Sequence[Stage]) -> None:

@@ -120,5 +120,8 @@ def test_oidn_stage_keeps_a_separate_aux_prefilter_quality():
     assert spec["oidn"]["aux_quality"] == "fast"
     assert prepass_stage(json.loads(json.dumps(spec))) == stage
     assert "aux_quality" not in OIDNStage(prefilter_aux=True).oidn_dict()  # as before
+    # and through a card's stage list, which is what the runtime builds its OIDN pass from
+    card = ModelCard("m", stages=(stage, GraphStage()))
+    assert ModelCard.from_props(card.to_props()).prepass == stage
     with pytest.raises(ValueError, match="quality"):
         OIDNStage(prefilter_aux=True, aux_quality="best")

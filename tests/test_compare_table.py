@@ -34,3 +34,10 @@ def test_targets_met_and_missed_with_their_amounts(tmp_path, capsys):
     assert "| good | +0.10 | +0.10 | 0.65 | 0.45 | none |" in out
     assert ("| bad | -0.20 | -0.70 | 0.90 | 0.80 | PSNR 0.20 dB below base; PSNR 0.70 dB "
             "below ref; TRMAE 0.90× (target ≤ 0.7×); flicker 0.80× (target ≤ 0.5×) |") in out
+
+
+def test_wide_table_has_one_row_per_method(tmp_path, capsys):
+    run = write(tmp_path / "run.json", [row("base", 1, 30.0), row("base", 4, 33.0),
+                                        row("good", 1, 30.6, ms=110), row("good", 4, 33.1)])
+    assert main([str(run), "--against", "base", "--methods", "good", "--wide"]) == 0
+    assert "| good | 30.60 (+0.60) | 33.10 (+0.10) | 110 |" in capsys.readouterr().out
