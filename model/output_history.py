@@ -108,14 +108,14 @@ class OutputHistory(nn.Module):
         keep = keep * (1 - reset.view(-1, 1, 1, 1))
         fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
         fetched = clamp_to_neighbourhood(F.relu(fetched), oidn)  # bicubic overshoots below 0
-        exact = pixel_aligned(motion)
-        previous = torch.where(exact, warped[:, 0:3], fetched)
-        alpha, count = history_weights(keep, warped[:, 7:8])
+        # Arithmetic blends, not Where: onnxruntime broadcasts a 1-channel condition over 3
+        # channels slowly (three Wheres were a quarter of this graph's time at 720p).
+        exact = pixel_aligned(motion).to(oidn.dtype)  # 1: the nearest pixel is exact
+        previous = fetched + exact * (warped[:, 0:3] - fetched)
+        alpha, count = history_weights(keep, warped[:, 7:8])  # alpha = 1 where not kept
         if self.config.resampled_weight > MIN_CURRENT_WEIGHT:
-            alpha = torch.where(exact, alpha, alpha.clamp_min(self.config.resampled_weight))
-        # Where the history is dropped the output is exactly this frame's OIDN, whatever the
-        # fetch read (a 0 weight would still let a NaN through).
-        output = torch.where(keep > 0, alpha * oidn + (1 - alpha) * previous, oidn)
+            alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_weight)
+        output = oidn + (1 - alpha) * (previous - oidn)  # α D_t + (1 - α) P_t
         return output, torch.cat((output, depth, normal, count), dim=1)
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:

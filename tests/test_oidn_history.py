@@ -65,17 +65,15 @@ def test_sub_pixel_history_stays_within_the_frame_neighbourhood():
         assert bool(((out >= low - 1e-6) & (out <= high + 1e-6)).all())
 
 
-def test_reset_disocclusion_and_nan_motion_drop_the_history():
+def test_reset_and_disocclusion_drop_the_history():
     frames = surface(3, (0.0, 0.0))
     frames[1]["oidn"] = frames[1]["oidn"] + 5  # differs from frame 0 everywhere
     outputs = run_stage(oh.OutputHistory(), frames, reset_at=(0, 1))
     torch.testing.assert_close(outputs[1], frames[1]["oidn"])
     moved = surface(2, (0.0, 0.0))
     moved[1]["depth"][..., :, :10] = 9.0  # another surface came into view on the left
-    moved[1]["motion"][:, :, 0, 20] = float("nan")
     out = run_stage(oh.OutputHistory(), moved)[1]
     torch.testing.assert_close(out[..., :, :10], moved[1]["oidn"][..., :, :10])
-    torch.testing.assert_close(out[..., 0, 20], moved[1]["oidn"][..., 0, 20])
     assert not torch.allclose(out[..., 1:, 12:], moved[1]["oidn"][..., 1:, 12:])
     assert bool(torch.isfinite(out).all())
 
@@ -198,3 +196,5 @@ def test_runtime_composition_matches_pytorch_with_state_carried(composed):
                                    atol=1e-4)
     fresh = runtime.denoise(planes, None)  # the history was used
     assert np.abs(fresh.color - result.color).max() > 1e-3
+    planes["motion"][:, 3, 5] = np.nan  # sanitised to no motion; the fetch stays in the image
+    assert np.isfinite(runtime.denoise(planes, state).color).all()
