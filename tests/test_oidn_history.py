@@ -4,6 +4,7 @@ same steps in PyTorch, and the stage against the ablation row it ships (bench/ou
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -123,15 +124,8 @@ def test_the_stage_is_the_ablation_row_it_ships():
         np.testing.assert_allclose(row(planes), out[0].numpy(), rtol=1e-5, atol=1e-6)
 
 
-def _has_pyoidn() -> bool:
-    try:
-        import pyoidn  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-needs_pyoidn = pytest.mark.skipif(not _has_pyoidn(), reason="pyoidn not installed")
+needs_pyoidn = pytest.mark.skipif(importlib.util.find_spec("pyoidn") is None,
+                                  reason="pyoidn not installed")
 
 
 @pytest.fixture(scope="module")
