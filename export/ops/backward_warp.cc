@@ -267,6 +267,21 @@ void footprints_scalar(const WarpJob& j, const float* mx, const float* my, int64
 }
 
 #if QF_HAVE_AVX2
+// The source positions s of pixels x … x+7 of row y (fy = y) and their in-frame mask, written
+// to `inside` (both footprint passes start so).
+template <bool kStream>
+inline void source8(const Axis8& vx, const Axis8& vy, __m256 fy, __m256i lanes, int64_t x,
+                    const float* mx, const float* my, float* inside, __m256* sx, __m256* sy) {
+  const __m256 px = _mm256_cvtepi32_ps(
+      _mm256_add_epi32(_mm256_set1_epi32(static_cast<int32_t>(x)), lanes));
+  *sx = _mm256_add_ps(px, _mm256_loadu_ps(mx));
+  *sy = _mm256_add_ps(fy, _mm256_loadu_ps(my));
+  store8<kStream>(inside, _mm256_and_ps(_mm256_and_ps(vx.contains(*sx), vy.contains(*sy)),
+                                        _mm256_set1_ps(1.0f)));
+}
+#endif
+
+#if QF_HAVE_AVX2
 // footprints_bicubic_scalar 8 pixels at a time, from the start of the segment, and the Chunk of
 // each 8. Returns the pixels done.
 template <bool kStream>
@@ -283,12 +298,8 @@ int64_t footprints_bicubic_avx2(const WarpJob& j, const float* mx, const float* 
   const __m256i inner_x = _mm256_set1_epi32(W - 2), inner_y = _mm256_set1_epi32(H - 2);
   int64_t i = 0;
   for (; i + kLanes <= count; i += kLanes) {
-    const __m256 px = _mm256_cvtepi32_ps(
-        _mm256_add_epi32(_mm256_set1_epi32(static_cast<int32_t>(x + i)), lanes));
-    const __m256 sx = _mm256_add_ps(px, _mm256_loadu_ps(mx + i));
-    const __m256 sy = _mm256_add_ps(fy, _mm256_loadu_ps(my + i));
-    store8<kStream>(inside + i,
-                    _mm256_and_ps(_mm256_and_ps(vx.contains(sx), vy.contains(sy)), one));
+    __m256 sx, sy;
+    source8<kStream>(vx, vy, fy, lanes, x + i, mx + i, my + i, inside + i, &sx, &sy);
     const __m256 ix = vx.cubic_index(sx), iy = vy.cubic_index(sy);
     const __m256 x0 = _mm256_floor_ps(ix), y0 = _mm256_floor_ps(iy);
     const __m256 tx = _mm256_sub_ps(ix, x0), ty = _mm256_sub_ps(iy, y0);
@@ -346,12 +357,8 @@ int64_t footprints_avx2(const WarpJob& j, const float* mx, const float* my, int6
   const __m256 one = _mm256_set1_ps(1.0f), fy = _mm256_set1_ps(static_cast<float>(y));
   const __m256i width = _mm256_set1_epi32(W), lanes = iota();
   for (; i + kLanes <= count; i += kLanes) {
-    const __m256 px = _mm256_cvtepi32_ps(
-        _mm256_add_epi32(_mm256_set1_epi32(static_cast<int32_t>(x + i)), lanes));
-    const __m256 sx = _mm256_add_ps(px, _mm256_loadu_ps(mx + i));
-    const __m256 sy = _mm256_add_ps(fy, _mm256_loadu_ps(my + i));
-    store8<kStream>(inside + i,
-                    _mm256_and_ps(_mm256_and_ps(vx.contains(sx), vy.contains(sy)), one));
+    __m256 sx, sy;
+    source8<kStream>(vx, vy, fy, lanes, x + i, mx + i, my + i, inside + i, &sx, &sy);
     const __m256 ix = vx.index(sx), iy = vy.index(sy);
     __m256i offset;
     bool interior = true;
@@ -485,17 +492,6 @@ int64_t sample_bilinear_avx2(const float* plane, int64_t W, const Footprints& f,
 }
 #endif
 
-// out[0..count) = bilinear samples of `plane` (one channel, H·W floats) at the footprints.
-template <bool kStream>
-void sample_bilinear(const float* plane, int64_t W, const Footprints& f, int64_t count,
-                     float* out) {
-  int64_t i = 0;
-#if QF_HAVE_AVX2
-  if (simd_enabled()) i = sample_bilinear_avx2<kStream>(plane, W, f, count, out);
-#endif
-  sample_bilinear_scalar(plane, W, f, i, count, out);
-}
-
 // out[begin..count) = the texels of `plane` at the footprints (nearest).
 void sample_nearest_scalar(const float* plane, const Footprints& f, int64_t begin, int64_t count,
                            float* out) {
@@ -518,16 +514,6 @@ int64_t sample_nearest_avx2(const float* plane, const Footprints& f, int64_t cou
   return i;
 }
 #endif
-
-// out[0..count) = the texels of `plane` at the footprints (nearest).
-template <bool kStream>
-void sample_nearest(const float* plane, const Footprints& f, int64_t count, float* out) {
-  int64_t i = 0;
-#if QF_HAVE_AVX2
-  if (simd_enabled()) i = sample_nearest_avx2<kStream>(plane, f, count, out);
-#endif
-  sample_nearest_scalar(plane, f, i, count, out);
-}
 
 // out[begin..count) = bicubic samples of `plane` (one channel, H·W floats) at the footprints.
 void sample_bicubic_scalar(const float* plane, const Footprints& f, int64_t begin, int64_t count,
@@ -595,17 +581,26 @@ int64_t sample_bicubic_avx2(const float* plane, int64_t W, const Footprints& f, 
 }
 #endif
 
-// out[0..count) = bicubic samples of `plane` (one channel, H·W floats) at the footprints.
+// out[0..count) = `mode`'s samples of `plane` (one channel, H·W floats) at the footprints: the
+// AVX2 path takes what it can, the scalar one the rest.
 template <bool kStream>
-void sample_bicubic(const float* plane, int64_t W, const Footprints& f, int64_t count,
-                    float* out) {
+void sample(Mode mode, const float* plane, int64_t W, const Footprints& f, int64_t count,
+            float* out) {
   int64_t i = 0;
 #if QF_HAVE_AVX2
-  if (simd_enabled()) i = sample_bicubic_avx2<kStream>(plane, W, f, count, out);
-#else
-  (void)W;
+  if (simd_enabled()) {
+    switch (mode) {
+      case Mode::kBilinear: i = sample_bilinear_avx2<kStream>(plane, W, f, count, out); break;
+      case Mode::kNearest: i = sample_nearest_avx2<kStream>(plane, f, count, out); break;
+      case Mode::kBicubic: i = sample_bicubic_avx2<kStream>(plane, W, f, count, out); break;
+    }
+  }
 #endif
-  sample_bicubic_scalar(plane, f, i, count, out);
+  switch (mode) {
+    case Mode::kBilinear: sample_bilinear_scalar(plane, W, f, i, count, out); break;
+    case Mode::kNearest: sample_nearest_scalar(plane, f, i, count, out); break;
+    case Mode::kBicubic: sample_bicubic_scalar(plane, f, i, count, out); break;
+  }
 }
 
 // Task: output rows [ya, yb) of image n.
@@ -626,19 +621,7 @@ void warp_rows(const WarpJob& j, int64_t task) {
       footprints<kStream>(j, mx + x, my + x, y, x, count, inside + x, f);
       const int64_t at = y * j.W + x;
       for (int64_t c = 0; c < j.C; ++c) {
-        const float* src = image + c * plane;
-        float* dst = warped + c * plane + at;
-        switch (j.mode) {
-          case Mode::kBilinear:
-            sample_bilinear<kStream>(src, j.W, f, count, dst);
-            break;
-          case Mode::kNearest:
-            sample_nearest<kStream>(src, f, count, dst);
-            break;
-          case Mode::kBicubic:
-            sample_bicubic<kStream>(src, j.W, f, count, dst);
-            break;
-        }
+        sample<kStream>(j.mode, image + c * plane, j.W, f, count, warped + c * plane + at);
       }
     }
   }
