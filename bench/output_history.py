@@ -49,9 +49,9 @@ from quietframe.bench.harness import Method, Planes, RuntimeMethod
 from quietframe.model.output_history import clamp_to_neighbourhood
 from quietframe.model.temporal import (
     backward_warp,
-    history_valid,
     history_weights,
     pixel_aligned,
+    reproject_history,
 )
 
 BASELINES = ("oidn-frame", "oidn-acc", "blender-denoise")
@@ -99,8 +99,7 @@ class OutputHistory:
         count = torch.ones_like(depth)
         out = current
         if self.state is not None:
-            warped, inside = backward_warp(self.state, motion, mode="nearest")
-            keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
+            warped, keep = reproject_history(self.state, motion, depth, normal, torch.zeros(1))
             if self.sharp_only:
                 keep = keep * pixel_aligned(motion).to(keep.dtype)
             previous = warped[:, 0:3]

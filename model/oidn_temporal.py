@@ -82,8 +82,13 @@ class OIDNTemporalConfig:
         return read_prepass({PREPASS_KEY: json.dumps(self.prepass())})
 
 
-def prepass_spec(quality: str, prefilter_aux: bool, color_from: str) -> dict:
-    spec = {"oidn": {"quality": quality, "prefilter_aux": prefilter_aux}, "input": "oidn"}
+def prepass_spec(quality: str, prefilter_aux: bool, color_from: str,
+                 aux_quality: str = "") -> dict:
+    """`quietframe.prepass` of a composition; `aux_quality` only when it differs ("": the
+    main filter's)."""
+    oidn = {"quality": quality, "prefilter_aux": prefilter_aux}
+    spec = {"oidn": oidn | ({"aux_quality": aux_quality} if aux_quality else {}),
+            "input": "oidn"}
     return {**spec, "color_from": color_from} if color_from else spec
 
 

@@ -29,9 +29,9 @@ from quietframe.model.oidn_temporal import prepass_spec
 from quietframe.model.temporal import (
     MIN_CURRENT_WEIGHT,
     backward_warp,
-    history_valid,
     history_weights,
     pixel_aligned,
+    reproject_history,
 )
 
 FAMILY = "output-history"  # the architecture's family (runtime/receptive.py tiling rule)
@@ -63,10 +63,7 @@ class OutputHistoryConfig:
         return asdict(self)
 
     def prepass(self) -> dict:
-        spec = prepass_spec(self.quality, self.prefilter_aux, self.color_from)
-        if self.aux_quality:
-            spec["oidn"]["aux_quality"] = self.aux_quality
-        return spec
+        return prepass_spec(self.quality, self.prefilter_aux, self.color_from, self.aux_quality)
 
 
 VARIANTS: dict[str, OutputHistoryConfig] = {
@@ -103,9 +100,7 @@ class OutputHistory(nn.Module):
     def forward(self, oidn: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
                 motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         # The nearest pixel's depth and normal test the surface, as in the accumulation.
-        warped, inside = backward_warp(state, motion, mode="nearest")
-        keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
-        keep = keep * (1 - reset.view(-1, 1, 1, 1))
+        warped, keep = reproject_history(state, motion, depth, normal, reset)
         fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
         fetched = clamp_to_neighbourhood(F.relu(fetched), oidn)  # bicubic overshoots below 0
         # Arithmetic blends, not Where: onnxruntime broadcasts a 1-channel condition over 3

@@ -104,6 +104,22 @@ def history_weights(keep: Tensor, previous_count: Tensor) -> tuple[Tensor, Tenso
     return (1 / count).clamp_min(MIN_CURRENT_WEIGHT), count
 
 
+def reproject_history(state: Tensor, motion: Tensor, depth: Tensor, normal: Tensor,
+                      reset: Tensor) -> tuple[Tensor, Tensor]:
+    """A history state laid out as the accumulation's (colour 3, depth, normal 3, length)
+    reprojected to the nearest pixel, and `keep` (N, 1, H, W): 1 where it is used (in the
+    frame, the same surface, no reset).
+
+    Nearest, for the whole state: the surface test then checks exactly the pixel whose colour
+    is reused. Bilinear radiance mixed a tap from across a silhouette into the history (a light
+    source next to a dark wall left a trail for frames) and blurred it a little more every
+    frame; on the validation set nearest halved relMSE and lowered TRMAE by 7% at equal PSNR
+    (docs/training.md)."""
+    warped, inside = backward_warp(state, motion, mode="nearest")
+    keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
+    return warped, keep * (1 - reset.view(-1, 1, 1, 1))
+
+
 def accumulate(
     radiance: Tensor,
     depth: Tensor,
@@ -122,15 +138,8 @@ def accumulate(
     pixel off, and OIDN on such a history lost up to 1 dB to OIDN on the frame alone on moving
     Cycles shots (docs/evaluation/cycles-locked-off).
     """
-    # Nearest-pixel reprojection of the whole state: the surface test then checks exactly the
-    # pixel whose radiance is reused. Bilinear radiance mixed a tap from across a silhouette
-    # into the history (a light source next to a dark wall left a trail for frames) and blurred
-    # it a little more every frame; on the validation set nearest halved relMSE and lowered
-    # TRMAE by 7% at equal PSNR (docs/training.md).
-    warped, inside = backward_warp(state, motion, mode="nearest")
+    warped, keep = reproject_history(state, motion, depth, normal, reset)
     prev_radiance, prev_count = warped[:, 0:3], warped[:, 7:8]
-    keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
-    keep = keep * (1 - reset.view(-1, 1, 1, 1))
     if aligned_only:
         keep = keep * pixel_aligned(motion).to(keep.dtype)
     alpha, count = history_weights(keep, prev_count)  # (N, 1, H, W) weight of the current frame
