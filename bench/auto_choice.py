@@ -53,13 +53,13 @@ from quietframe.runtime import Denoiser, default_model_path, installed_models
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 from quietframe.scenes.render import TOPUP_KEY
 from quietframe.service.model_choice import (
-    ModelProfile,
     NoiseLevel,
     choose,
     estimate_spp,
     load_calibration,
     log2_statistic,
     noise_statistic,
+    profile_of,
 )
 
 BUFFER_SETS: dict[str, tuple[str, ...]] = {
@@ -174,8 +174,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--only: no model {unknown}; known: {sorted(paths)}")
         paths = {name: paths[name] for name in args.only.split(",")}
     denoisers = {name: Denoiser(p, threads=args.threads) for name, p in paths.items()}
-    profiles = [ModelProfile.from_metadata(n, d.info.required_buffers, d.info.optional_buffers,
-                                           d.info.metrics) for n, d in denoisers.items()]
+    profiles = [profile_of(n, d) for n, d in denoisers.items()]
     default = default_model_path().stem  # the service's fallback for 'auto'
 
     calibration = load_calibration()

@@ -47,6 +47,8 @@ from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
 AUX = ("albedo", "normal", "depth", "motion")
 STORED_BLENDER = "blender_denoise"  # a stored output in a Cycles frame's buffers, not an input
+# Renderers whose EXR header states the spp (service/model_choice.samples_from_header)
+HEADER_STATES_SPP = ("cycles",)
 
 
 def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
@@ -115,6 +117,11 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
         methods[f"oidn-high-cleanaux-{aux_quality}"] = lambda q=aux_quality: ImageMethod(
             baselines.OIDNDenoiser("high", prefilter_aux=True, num_threads=threads,
                                    aux_quality=q))
+    if models:  # the service's choice among the installed models (bench/auto_method.py)
+        from quietframe.bench.auto_method import AutoMethod
+
+        installed = {p.stem: p for p in installed_models()}
+        methods["auto"] = lambda: AutoMethod(installed, threads, renderer)
     for name, path in models.items():
         if name != "accumulation":
             methods[name] = lambda p=path: RuntimeMethod(p, threads)
@@ -213,9 +220,9 @@ def prepass_shares(method, threads: int) -> dict[str, float]:
 
 def time_720p(factory, threads: int) -> float:
     """ms/frame at 1280×720 on synthetic buffers, state carried like a real sequence (nan for
-    a stored output: its time is the renderer's)."""
+    a stored output, whose time is the renderer's, and for auto, whose time is its choice's)."""
     method = factory()
-    if getattr(method, "reads_stored", False):
+    if getattr(method, "reads_stored", False) or getattr(method, "chooses", False):
         return float("nan")
     buffers = frame_buffers()  # (C, H, W) planes
     method.reset()
@@ -364,12 +371,16 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"skipping {name}: {exc}", flush=True)
                 del methods[name]
                 continue
+            if hasattr(method, "header_spp") and args.renderer in HEADER_STATES_SPP:
+                method.header_spp = spp  # auto reads the spp the frame header states
             for i, frames in enumerate(sequences):
                 keep = crops[name] if spp == crop_spp and i < 3 else None
                 run_sequence(method, frames, scores, keep, locked_off)
             if spp == crop_spp:
                 crops["reference"] = [s[-1][1] for s in sequences[:3]]
             row = {"method": name, "spp": spp, **scores.summary()}
+            if hasattr(method, "choices"):  # auto: the models it chose, shots each
+                row["chosen"] = dict(method.choices)
             if name not in ms_720p and args.no_timing:
                 ms_720p[name] = {"ms_720p": float("nan")}
             elif name not in ms_720p:  # speed does not depend on the spp: time once per method

@@ -9,9 +9,12 @@ buffer) and `absent_db_worst` (the largest loss over the run's sequences) from
 bench/auto_choice.py's buffer-absence rows; `--noise-points` adds `by_noise` from a validation
 run of bench/auto_choice.py (rows with every buffer: the first frame's log2 noise statistic,
 demodulated and not, and the model's PSNR on the sequence; service/model_choice.py).
-Existing keys (training's validation score) are kept. `--renderer` names whose frames were
-measured (the card keeps a table per renderer, runtime/card.py; default mitsuba, the renderer of
-every table so far). Nothing here is typed in: `model=auto` reads what a measurement wrote
+`--static-evaluation` adds each spp row's `flicker` from a run on locked-off shots (a
+`*-static` split: the temporal std of τ(output), which no reference noise limits), and
+`--timing` takes `ms_720p` from another run (a quiet one, e.g. with the renders paused) instead
+of the evaluation's own. Existing keys (training's validation score) are kept. `--renderer`
+names whose frames were measured (the card keeps a table per renderer, runtime/card.py; default
+mitsuba). Nothing here is typed in: `model=auto` reads what a measurement wrote
 (docs/model-interface.md).
 """
 
@@ -19,24 +22,40 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 import onnx
 
 from quietframe.runtime.card import DEFAULT_RENDERER, Measurements, ModelCard
 
+RUN_KEYS = ("command", "machine", "threads", "split", "resolution", "sequences")
 
-def metrics_from_rows(rows: list[dict], meta: dict) -> dict:
-    """`quietframe.metrics` additions for one model from its evaluation rows."""
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def metrics_from_rows(rows: list[dict], meta: dict, static_rows: list[dict] = (),
+                      static_meta: dict | None = None, timing_rows: list[dict] | None = None,
+                      timing_meta: dict | None = None) -> dict:
+    """`quietframe.metrics` additions for one model from its evaluation rows, plus flicker per
+    spp from its rows of a locked-off run and the 720p time from a timing run where given."""
     rows = sorted(rows, key=lambda r: r["spp"])
-    table = [{"spp": r["spp"], "psnr": round(r["psnr"], 3), "trmae": round(r["trmae"], 4)}
+    flicker = {r["spp"]: r["flicker"] for r in static_rows if _finite(r.get("flicker"))}
+    table = [{"spp": r["spp"], "psnr": round(r["psnr"], 3), "trmae": round(r["trmae"], 4),
+              **({"flicker": round(flicker[r["spp"]], 5)} if r["spp"] in flicker else {})}
              for r in rows]
     out: dict = {"by_spp": table}
-    timed = [r["ms_720p"] for r in rows if r.get("ms_720p")]
+    timed = [r["ms_720p"] for r in (rows if timing_rows is None else timing_rows)
+             if _finite(r.get("ms_720p"))]
     if timed:
         out["ms_720p"] = round(float(timed[0]), 1)
-    out["measured"] = {k: meta[k] for k in ("command", "machine", "threads", "split",
-                                            "resolution", "sequences") if k in meta}
+    out["measured"] = {k: meta[k] for k in RUN_KEYS if k in meta}
+    if flicker and static_meta:
+        out["measured"]["flicker"] = {k: static_meta[k] for k in RUN_KEYS if k in static_meta}
+    if timed and timing_rows is not None and timing_meta:
+        out["measured"]["timing"] = {k: timing_meta[k] for k in RUN_KEYS if k in timing_meta}
     return out
 
 
@@ -91,11 +110,27 @@ def main(argv: list[str] | None = None) -> int:
                         help="auto_choice.json: per-model PSNR change with each buffer absent")
     parser.add_argument("--noise-points", type=Path,
                         help="auto_choice.json of a validation run: by_noise points per model")
+    parser.add_argument("--static-evaluation", type=Path,
+                        help="benchmarks.json of a run on locked-off shots: flicker per spp")
+    parser.add_argument("--timing", type=Path,
+                        help="benchmarks.json whose ms_720p is stamped instead of the "
+                             "evaluation's (a quiet timing run)")
     parser.add_argument("--renderer", default=DEFAULT_RENDERER,
                         help="the renderer of the evaluated frames: the card keeps one table "
                              f"per renderer (default {DEFAULT_RENDERER})")
     args = parser.parse_args(argv)
     evaluation = json.loads(args.evaluation.read_text())
+    static = json.loads(args.static_evaluation.read_text()) if args.static_evaluation else None
+    timing = json.loads(args.timing.read_text()) if args.timing else None
+    for run, flag in ((evaluation, "--evaluation"), (static, "--static-evaluation")):
+        if run is not None and run.get("meta", {}).get("split", "").startswith("test"):
+            parser.error(f"{flag}: a test-split run; auto's tables come from validation "
+                         "(model selection never reads the test split)")
+    for run, flag in ((evaluation, "--evaluation"), (static, "--static-evaluation"),
+                      (timing, "--timing")):
+        renderer = (run or {}).get("meta", {}).get("renderer", DEFAULT_RENDERER)
+        if run is not None and renderer != args.renderer:
+            parser.error(f"{flag}: a run on {renderer} frames, not --renderer {args.renderer}")
     absence_run = json.loads(args.absent.read_text()) if args.absent else {}
     absent = absence_run.get("absent_db", {})
     choice_run = json.loads(args.noise_points.read_text()) if args.noise_points else None
@@ -107,7 +142,12 @@ def main(argv: list[str] | None = None) -> int:
         if not rows:
             print(f"{path}: no rows for {path.stem!r} in {args.evaluation}; left as it is")
             continue
-        additions = metrics_from_rows(rows, evaluation.get("meta", {}))
+        additions = metrics_from_rows(
+            rows, evaluation.get("meta", {}),
+            [r for r in static["rows"] if r["method"] == path.stem] if static else (),
+            static.get("meta") if static else None,
+            [r for r in timing["rows"] if r["method"] == path.stem] if timing else None,
+            timing.get("meta") if timing else None)
         if path.stem in absent:
             additions["absent_db"] = absent[path.stem]
             additions["absent_db_worst"] = worst_absent_db(absence_run, path.stem)

@@ -287,10 +287,14 @@ class SppRow:
     spp: float  # samples per pixel of the inputs
     psnr: float  # dB on the τ-mapped image, mean over frames
     trmae: float | None = None  # mean over sequences
+    # Mean over locked-off validation shots of the temporal std of τ(output) (issue 24's
+    # flicker: no reference needed); None where no locked-off shot was measured.
+    flicker: float | None = None
 
     def to_dict(self) -> dict:
         return {"spp": self.spp, "psnr": self.psnr,
-                **({} if self.trmae is None else {"trmae": self.trmae})}
+                **({} if self.trmae is None else {"trmae": self.trmae}),
+                **({} if self.flicker is None else {"flicker": self.flicker})}
 
 
 MEASUREMENT_KEYS = ("by_spp", "ms_720p", "measured", "absent_db", "absent_db_worst", "by_noise")
@@ -335,7 +339,7 @@ class Measurements:
     def from_dict(cls, d: Mapping) -> Measurements:
         noise = d.get("by_noise") or {}
         return cls(
-            by_spp=tuple(SppRow(r["spp"], r["psnr"], r.get("trmae"))
+            by_spp=tuple(SppRow(r["spp"], r["psnr"], r.get("trmae"), r.get("flicker"))
                          for r in sorted(d.get("by_spp") or [], key=lambda r: r["spp"])
                          if "psnr" in r),
             ms_720p=d.get("ms_720p"),

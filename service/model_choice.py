@@ -15,9 +15,13 @@ session's first frame and of a cut, and nowhere else, so a shot never switches m
 - each model's measured table (`ModelProfile.from_card`: the card's measurements for the
   frame's renderer, written by measurements into the ONNX metadata, docs/model-interface.md).
 
-Among the models that fit the latency budget and whose expected PSNR is within the quality's
-tolerance of the best expected PSNR, those that flicker more than STABILITY_SLACK above the
-steadiest of them (measured TRMAE) are dropped and the cheapest of the rest wins. Expected PSNR
+Among the models that fit the latency budget, whose expected PSNR is within the quality's
+tolerance of the best expected PSNR and not below the per-frame floor (per-frame OIDN-high's
+expected PSNR less PER_FRAME_FLOOR_DB: the product's promise is never to lose to the renderer's
+own per-frame denoise), the unsteady are dropped and the cheapest of the rest wins. Steadiness
+is the measured flicker on locked-off validation shots where every candidate has it (at most
+STEADY_FLICKER_SHARE of per-frame OIDN's), else TRMAE (at most STABILITY_SLACK above the
+steadiest candidate's). Expected PSNR
 comes from each model's `by_noise` points (validation sequences: the statistic of their first
 frame, the model's PSNR on them) weighted by closeness in log2 of the statistic, when every
 candidate has them and the frame's statistic is known; otherwise from the `by_spp` table at the
@@ -29,7 +33,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +50,11 @@ QUALITY_TOLERANCE_DB = {"fast": 1.0, "balanced": 0.3, "best": 0.0}
 # flickering more (docs/benchmarks.md). A model that is better than the tolerance is not held
 # back by it (e.g. per-frame OIDN where the accumulation would ghost without motion vectors).
 STABILITY_SLACK = 0.10
+# Issue 24: auto never picks a model whose validation figure at the shot's spp is more than
+# 0.3 dB below per-frame OIDN-high's; the default (balanced) and best do not go below it at all.
+PER_FRAME_FLOOR_DB = {"fast": 0.3, "balanced": 0.0, "best": 0.0}
+# Issue 24's steadiness target: flicker on locked-off shots at most half of per-frame OIDN's.
+STEADY_FLICKER_SHARE = 0.5
 DEFAULT_QUALITY = "balanced"
 REFERENCE_PIXELS = 1280 * 720  # `ms_720p` is per 1280×720 frame
 
@@ -84,6 +93,10 @@ class ModelProfile:
     ms_720p: float | None = None
     psnr_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, PSNR), spp ascending
     trmae_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, TRMAE) where measured
+    flicker_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, locked-off flicker)
+    # Per-frame OIDN-high on the frame's own colour and plain aux, no state: the baseline of the
+    # per-frame floor (what a renderer's own denoise gives, near enough; docs/benchmarks.md).
+    per_frame_oidn: bool = False
     absent_db: Mapping[str, float] = field(default_factory=dict)  # PSNR change, buffer absent
     # The largest loss measured per absent buffer; planned for when stamped (see expected_psnr)
     absent_db_worst: Mapping[str, float] = field(default_factory=dict)
@@ -94,8 +107,9 @@ class ModelProfile:
     def from_card(cls, card: ModelCard, renderer: str | None = None) -> ModelProfile:
         """A model's profile from its card: the renderer's measured table where it has one,
         else the default renderer's (runtime/card.py ModelCard.measured)."""
-        return cls.from_measurements(card.name, card.required, card.optional,
-                                     card.measured(renderer))
+        profile = cls.from_measurements(card.name, card.required, card.optional,
+                                        card.measured(renderer))
+        return replace(profile, per_frame_oidn=is_per_frame_oidn(card))
 
     @classmethod
     def from_metadata(
@@ -115,7 +129,9 @@ class ModelProfile:
             ms_720p=float(table.ms_720p) if table.ms_720p is not None else None,
             psnr_by_spp=tuple((float(r.spp), float(r.psnr)) for r in table.by_spp),
             trmae_by_spp=tuple((float(r.spp), float(r.trmae)) for r in table.by_spp
-                               if isinstance(r.trmae, (int, float)) and math.isfinite(r.trmae)),
+                               if _finite(r.trmae)),
+            flicker_by_spp=tuple((float(r.spp), float(r.flicker)) for r in table.by_spp
+                                 if _finite(r.flicker)),
             absent_db={k: float(v) for k, v in table.absent_db.items()},
             absent_db_worst={k: float(v) for k, v in table.absent_db_worst.items()},
             psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in table.by_noise),
@@ -154,16 +170,46 @@ class ModelProfile:
         return psnr + sum(change.get(b, 0.0) for b in self.optional if b not in have)
 
     def expected_trmae(self, spp: float) -> float | None:
-        """Measured flicker (TRMAE, all buffers) at `spp`, as expected_psnr interpolates."""
-        if not self.trmae_by_spp:
-            return None
-        levels = np.log2([s for s, _ in self.trmae_by_spp])
-        return float(np.interp(math.log2(max(spp, 1e-3)), levels,
-                               [t for _, t in self.trmae_by_spp]))
+        """Measured TRMAE (all buffers) at `spp`, as expected_psnr interpolates."""
+        return _at_spp(self.trmae_by_spp, spp)
+
+    def expected_flicker(self, spp: float) -> float | None:
+        """Measured flicker on locked-off shots at `spp`, as expected_psnr interpolates."""
+        return _at_spp(self.flicker_by_spp, spp)
 
     def expected_ms(self, pixels: int) -> float:
         assert self.ms_720p is not None
         return self.ms_720p * pixels / REFERENCE_PIXELS
+
+
+def profile_of(name: str, denoiser, renderer: str | None = None) -> ModelProfile:
+    """What `auto` knows of an installed model (a runtime Denoiser) for frames of `renderer`:
+    its own card's table (a composition is chosen on it), the buffers of the whole
+    composition."""
+    return replace(ModelProfile.from_card(denoiser.card, renderer), name=name,
+                   required=tuple(denoiser.info.required_buffers),
+                   optional=tuple(denoiser.info.optional_buffers))
+
+
+def _finite(value: object) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def _at_spp(table: Sequence[tuple[float, float]], spp: float) -> float | None:
+    """A per-spp figure, linear in log2(spp) between measured levels and flat beyond them."""
+    if not table:
+        return None
+    levels = np.log2([s for s, _ in table])
+    return float(np.interp(math.log2(max(spp, 1e-3)), levels, [v for _, v in table]))
+
+
+def is_per_frame_oidn(card: ModelCard) -> bool:
+    """Whether a card is per-frame OIDN-high: one OIDN stage (high, on the frame's colour, plain
+    albedo and normal) and a graph without state."""
+    oidn = card.prepass
+    return (oidn is not None and not card.state and len(card.stages) == 2
+            and oidn.quality == "high" and not oidn.prefilter_aux and not oidn.color_from
+            and set(oidn.aux) == {"albedo", "normal"})
 
 
 @dataclass(frozen=True)
@@ -326,19 +372,23 @@ def choose(
                 expected_psnr=round(fastest[1], 2),
                 expected_ms=round(fastest[2], 3),
             )
+    baseline = next((s for s in scored if s[0].per_frame_oidn), None)
+    if baseline is not None:  # the per-frame floor
+        floor = baseline[1] - PER_FRAME_FLOOR_DB[quality]
+        above = [s for s in pool if s[1] >= floor - 1e-9]
+        if above:
+            if len(above) < len(pool):
+                budget_note += (f", {len(pool) - len(above)} below per-frame "
+                                f"{baseline[0].name} less {PER_FRAME_FLOOR_DB[quality]:g} dB "
+                                "left out")
+            pool = above
+        else:  # only the latency budget can leave nothing above it: the budget is the user's
+            budget_note += f", none that fits is above per-frame {baseline[0].name}"
     best_psnr = max(s[1] for s in pool)
     tolerance = QUALITY_TOLERANCE_DB[quality]
     good = [s for s in pool if s[1] >= best_psnr - tolerance - 1e-9]
-    # Among the models good enough in PSNR, none that flickers clearly more than the steadiest.
-    flicker = {s[0].name: s[0].expected_trmae(noise.spp) for s in good}
-    steadiest = min((t for t in flicker.values() if t is not None), default=None)
-    if steadiest is not None:
-        steady = [s for s in good if flicker[s[0].name] is None
-                  or flicker[s[0].name] <= (1 + STABILITY_SLACK) * steadiest]
-        if len(steady) < len(good):
-            budget_note += (f", {len(good) - len(steady)} flickering more than "
-                            f"{1 + STABILITY_SLACK:g}× the steadiest left out")
-        good = steady
+    good, steady_note = steady_candidates(good, noise.spp, baseline)
+    budget_note += steady_note
     profile, psnr, ms = min(good, key=lambda s: (s[2], -s[1]))
     best_name = max(pool, key=lambda s: (s[1], -s[2]))[0].name
     relation = (
@@ -353,3 +403,34 @@ def choose(
     return Choice(
         profile.name, reason, **base, expected_psnr=round(psnr, 2), expected_ms=round(ms, 3)
     )
+
+
+Scored = tuple[ModelProfile, float, float]  # profile, expected PSNR, expected ms
+
+
+def steady_candidates(good: list[Scored], spp: float,
+                      baseline: Scored | None) -> tuple[list[Scored], str]:
+    """The candidates steady enough, and a note on those left out. Where every candidate and
+    the per-frame baseline have locked-off flicker: those at most STEADY_FLICKER_SHARE of the
+    baseline's (none qualifying: the steadiest within STABILITY_SLACK); otherwise by TRMAE,
+    none clearly above the steadiest (STABILITY_SLACK; unmeasured ones are kept)."""
+    flicker = {s[0].name: s[0].expected_flicker(spp) for s in good}
+    base = baseline[0].expected_flicker(spp) if baseline is not None else None
+    if base is not None and None not in flicker.values():
+        steady = [s for s in good if flicker[s[0].name] <= STEADY_FLICKER_SHARE * base + 1e-12]
+        if steady:
+            left = len(good) - len(steady)
+            return steady, (f", {left} flickering more than {STEADY_FLICKER_SHARE:g}× "
+                            f"{baseline[0].name} on locked-off shots left out" if left else "")
+        measure, kind = flicker, "locked-off flicker"
+    else:
+        measure = {s[0].name: s[0].expected_trmae(spp) for s in good}
+        kind = "TRMAE"
+    steadiest = min((t for t in measure.values() if t is not None), default=None)
+    if steadiest is None:
+        return good, ""
+    steady = [s for s in good if measure[s[0].name] is None
+              or measure[s[0].name] <= (1 + STABILITY_SLACK) * steadiest]
+    left = len(good) - len(steady)
+    return steady, (f", {left} flickering more than {1 + STABILITY_SLACK:g}× the steadiest "
+                    f"({kind}) left out" if left else "")

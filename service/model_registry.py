@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ from quietframe.runtime import (
 from quietframe.runtime.denoiser import check_options
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.service.errors import InvalidModelOptions, ModelUnavailable, UnknownModel
-from quietframe.service.model_choice import ModelProfile, load_calibration
+from quietframe.service.model_choice import ModelProfile, load_calibration, profile_of
 from quietframe.service.schemas import BufferSpec, ModelOption, ModelPublic
 from quietframe.service.settings import Settings
 
@@ -68,9 +67,7 @@ class ModelRegistry:
     def profiles_for(self, renderer: str | None) -> list[ModelProfile]:
         """What `auto` knows of each model for frames of `renderer` (None: the default
         renderer's tables); a composition is chosen on its own card's table."""
-        return [replace(ModelProfile.from_card(d.card, renderer), name=name,
-                        required=d.info.required_buffers, optional=d.info.optional_buffers)
-                for name, d in self._denoisers.items()]
+        return [profile_of(name, d, renderer) for name, d in self._denoisers.items()]
 
     def _runtime_default(self, paths: list[Path]) -> str:
         try:

@@ -106,12 +106,13 @@ def test_evaluation_scores_blender_denoise_as_a_method(tiny_split, tmp_path):
     from quietframe.bench import evaluate
 
     evaluate.main(["--data", str(tiny_split), "--renderer", "cycles", "--split", "test",
-                   "--spp", "1,2", "--methods", "noisy,blender-denoise", "--threads", "1",
-                   "--no-timing",
-                   "--out", str(tmp_path)])
+                   "--spp", "1,2", "--methods", "noisy,blender-denoise,auto", "--threads",
+                   "1", "--no-timing", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "benchmarks.json").read_text())["rows"]
     by = {(r["method"], r["spp"]): r for r in rows}
-    assert set(by) == {(m, s) for m in ("noisy", "blender-denoise") for s in LEVELS}
+    assert set(by) == {(m, s) for m in ("noisy", "blender-denoise", "auto") for s in LEVELS}
+    # auto chose once per shot, with the spp a Cycles header states
+    assert all(sum(by[("auto", s)]["chosen"].values()) == 1 for s in LEVELS)
     for spp in LEVELS:
         assert by[("blender-denoise", spp)]["psnr"] > by[("noisy", spp)]["psnr"] + 3
     assert "blender-denoise" in (tmp_path / "benchmarks.md").read_text()

@@ -77,3 +77,25 @@ def test_eval_rows_per_kernel_size_and_single_frame(data, tmp_path):
     # the accumulation without its history is the noisy input again, several dB below itself
     assert rows["accumulation/frame"]["psnr"] == pytest.approx(rows["noisy"]["psnr"], abs=0.5)
     assert rows["accumulation/frame"]["psnr"] < rows["accumulation"]["psnr"] - 1
+
+
+def test_auto_is_the_services_choice_made_once_per_shot(data, tmp_path):
+    """The `auto` row: at each sequence's first frame the service's choice among the installed
+    models, then that model's figures on the shot (not a blend, not re-chosen per frame)."""
+    out = tmp_path / "auto"
+    evaluate.main(["--data", str(data), "--spp", "1", "--threads", "1", "--methods", "auto",
+                   "--out", str(out)])
+    auto = json.loads((out / "benchmarks.json").read_text())["rows"][0]
+    assert auto["method"] == "auto" and sum(auto["chosen"].values()) == 2  # 2 shots, no cut
+    assert auto["ms_720p"] != auto["ms_720p"]  # nan: its time is its choice's
+    chosen = sorted(auto["chosen"])
+    out = tmp_path / "fixed"
+    evaluate.main(["--data", str(data), "--spp", "1", "--threads", "1", "--methods",
+                   ",".join(chosen), "--no-timing", "--out", str(out)])
+    fixed = {r["method"]: r for r in json.loads((out / "benchmarks.json").read_text())["rows"]}
+    if len(chosen) == 1:  # both shots went to one model: auto's figures are that model's
+        assert auto["psnr"] == pytest.approx(fixed[chosen[0]]["psnr"], abs=1e-6)
+        assert auto["trmae"] == pytest.approx(fixed[chosen[0]]["trmae"], abs=1e-6)
+    else:
+        assert min(r["psnr"] for r in fixed.values()) - 1e-6 <= auto["psnr"] <= max(
+            r["psnr"] for r in fixed.values()) + 1e-6

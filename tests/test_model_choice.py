@@ -4,6 +4,7 @@ choice from measured tables (service/model_choice.py)."""
 from __future__ import annotations
 
 import struct
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -228,3 +229,66 @@ def test_an_absent_buffer_costs_its_worst_measured_loss():
     assert choose(("color",), NoiseLevel(1, "x"), [accumulating, per_frame], "acc").model == "frame"
     assert choose(("color", "motion"), NoiseLevel(1, "x"), [accumulating, per_frame],
                   "acc").model == "acc"
+
+
+def _tier(name, ms, psnr_by_spp, flicker=None, per_frame=False):
+    """A profile with PSNR (and locked-off flicker) per spp; `per_frame`: the floor's baseline."""
+    rows = [{"spp": s, "psnr": p, "trmae": 1.0,
+             **({} if flicker is None else {"flicker": flicker})} for s, p in psnr_by_spp]
+    base = ModelProfile.from_metadata(name, ("color",), (), {"ms_720p": ms, "by_spp": rows})
+    return replace(base, per_frame_oidn=per_frame)
+
+
+def test_no_choice_below_per_frame_oidn_balanced_and_best_none_below_it_fast_within_03_db():
+    frame = _tier("oidn-frame", 100, [(1, 30.0), (64, 36.0)], per_frame=True)
+    cheap = _tier("cheap", 60, [(1, 29.8), (64, 35.8)])  # within 0.3 dB of the best, 0.2 below
+    cheaper = _tier("cheaper", 30, [(1, 29.5), (64, 35.5)])  # 0.5 below per-frame OIDN
+    tiers = [frame, cheap, cheaper]
+    balanced = choose(ALL, NoiseLevel(64, "x"), tiers, "oidn-frame")
+    assert balanced.model == "oidn-frame", balanced.reason
+    assert "2 below per-frame oidn-frame less 0 dB left out" in balanced.reason
+    fast = choose(ALL, NoiseLevel(1, "x"), tiers, "oidn-frame", quality="fast")
+    assert fast.model == "cheap", fast.reason  # 'cheaper' is within 1 dB of the best, not 0.3
+    # without a per-frame baseline installed the rule has nothing to hold to
+    assert choose(ALL, NoiseLevel(1, "x"), [cheap, cheaper], "cheap",
+                  quality="fast").model == "cheaper"
+    # a latency budget only the cheapest fits: the user's budget decides, and says so
+    budget = choose(ALL, NoiseLevel(1, "x"), tiers, "oidn-frame", latency_ms=40)
+    assert budget.model == "cheaper" and "none that fits is above" in budget.reason
+
+
+def test_locked_off_flicker_decides_steadiness_where_every_candidate_has_it():
+    frame = _tier("oidn-frame", 100, [(1, 30.0), (64, 36.0)], flicker=0.010, per_frame=True)
+    history = _tier("history", 112, [(1, 30.4), (64, 36.1)], flicker=0.0038)
+    fast = _tier("fast-history", 74, [(1, 30.2), (64, 36.0)], flicker=0.0042)
+    shimmer = _tier("shimmer", 50, [(1, 30.3), (64, 36.2)], flicker=0.0060)  # 0.6×: not steady
+    choice = choose(ALL, NoiseLevel(4, "x"), [frame, history, fast, shimmer], "oidn-frame")
+    # both history tiers are under half of per-frame OIDN's flicker: the cheaper one wins, not
+    # only the steadiest (TRMAE's 10% slack would have left out fast-history at 1.1× history)
+    assert choice.model == "fast-history", choice.reason
+    assert "2 flickering more than 0.5× oidn-frame on locked-off shots left out" in choice.reason
+    # none under half: the steadiest within the slack, by flicker
+    loose = [frame, replace(shimmer, name="a"), _tier("b", 40, [(1, 30.1), (64, 36.0)],
+                                                      flicker=0.0090)]
+    assert choose(ALL, NoiseLevel(4, "x"), loose, "oidn-frame").model == "a"
+    # a candidate without flicker: back to TRMAE for all (here equal, so the cheapest)
+    mixed = [frame, history, _tier("unmeasured", 60, [(1, 30.3), (64, 36.1)])]
+    assert choose(ALL, NoiseLevel(4, "x"), mixed, "oidn-frame").model == "unmeasured"
+
+
+def test_the_per_frame_baseline_is_recognised_from_the_shipped_cards():
+    import onnx
+
+    from quietframe.runtime import installed_models
+    from quietframe.runtime.card import ModelCard
+    from quietframe.service.model_choice import is_per_frame_oidn
+
+    def card(path):
+        model = onnx.load(str(path), load_external_data=False)
+        return ModelCard.from_props({p.key: p.value for p in model.metadata_props}, path.stem)
+
+    shipped = {p.stem: is_per_frame_oidn(card(p)) for p in installed_models()}
+    if "oidn-frame" not in shipped:
+        pytest.skip("no shipped oidn-frame model")
+    assert shipped.pop("oidn-frame") is True
+    assert not any(shipped.values()), shipped  # history, accumulation and learned tiers: no
