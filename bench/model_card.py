@@ -14,7 +14,7 @@ from pathlib import Path
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.runtime import Denoiser
-from quietframe.runtime.card import GraphStage, ModelCard, OIDNStage
+from quietframe.runtime.card import DEFAULT_RENDERER, GraphStage, ModelCard, OIDNStage
 
 
 def measure_720p_ms(runtime: Denoiser) -> float:
@@ -129,7 +129,9 @@ def card_lines(card: ModelCard) -> list[str]:
                   "runtime/tiling.py).", ""]
     for renderer, table in card.measurements.items():
         if table.complete:
-            rows = ", ".join(f"{r.spp:g} spp {r.psnr:.2f} dB" for r in table.by_spp)
+            rows = ", ".join(f"{r.spp:g} spp {r.psnr:.2f} dB"
+                             + (f" (locked-off flicker {r.flicker:.4f})" if r.flicker else "")
+                             for r in table.by_spp)
             lines += [f"Measured on {renderer} frames (what `auto` reads): {rows}; "
                       f"{table.ms_720p} ms at 720p.", ""]
     return lines
@@ -191,9 +193,13 @@ def main(argv: list[str] | None = None) -> int:
         rows = sorted((r for r in evaluation.get("rows", []) if r["method"] == path.stem),
                       key=lambda r: r["spp"])
         if args.stamp and rows:
-            from quietframe.bench.model_metrics import metrics_from_rows, stamp
+            from quietframe.bench.model_metrics import metrics_from_rows, run_problem, stamp
 
-            stamp(path, metrics_from_rows(rows, meta))
+            renderer = meta.get("renderer", DEFAULT_RENDERER)
+            problem = run_problem(renderer, evaluation=evaluation)
+            if problem:
+                parser.error(problem)
+            stamp(path, metrics_from_rows(rows, meta), renderer)
         card = write_model_card(path, rows, args.threads, split, args.measure,
                                 meta.get("renderer", ""))
         print(f"wrote {card}")

@@ -59,6 +59,23 @@ def metrics_from_rows(rows: list[dict], meta: dict, static_rows: list[dict] = ()
     return out
 
 
+def run_problem(renderer: str, **runs: dict | None) -> str | None:
+    """Why these quietframe-eval runs (benchmarks.json, by option name) cannot make `renderer`'s
+    table, or None: a quality run on the test split (model selection never reads it), or a run
+    on another renderer's frames."""
+    for option, run in runs.items():
+        if run is None:
+            continue
+        flag, meta = "--" + option.replace("_", "-"), run.get("meta", {})
+        if option != "timing" and meta.get("split", "").startswith("test"):
+            return (f"{flag}: a test-split run; auto's tables come from validation (model "
+                    "selection never reads the test split)")
+        if meta.get("renderer", DEFAULT_RENDERER) != renderer:
+            return (f"{flag}: a run on {meta.get('renderer', DEFAULT_RENDERER)} frames, not "
+                    f"{renderer}")
+    return None
+
+
 def noise_points(result: dict, model: str) -> dict | None:
     """`by_noise` for one model from a bench/auto_choice.py run (its rows with all buffers)."""
     points = [[round(r["noise"]["log2_sigma"], 4), round(r["noise"]["log2_sigma_colour"], 4),
@@ -122,15 +139,10 @@ def main(argv: list[str] | None = None) -> int:
     evaluation = json.loads(args.evaluation.read_text())
     static = json.loads(args.static_evaluation.read_text()) if args.static_evaluation else None
     timing = json.loads(args.timing.read_text()) if args.timing else None
-    for run, flag in ((evaluation, "--evaluation"), (static, "--static-evaluation")):
-        if run is not None and run.get("meta", {}).get("split", "").startswith("test"):
-            parser.error(f"{flag}: a test-split run; auto's tables come from validation "
-                         "(model selection never reads the test split)")
-    for run, flag in ((evaluation, "--evaluation"), (static, "--static-evaluation"),
-                      (timing, "--timing")):
-        renderer = (run or {}).get("meta", {}).get("renderer", DEFAULT_RENDERER)
-        if run is not None and renderer != args.renderer:
-            parser.error(f"{flag}: a run on {renderer} frames, not --renderer {args.renderer}")
+    problem = run_problem(args.renderer, evaluation=evaluation, static_evaluation=static,
+                          timing=timing)
+    if problem:
+        parser.error(problem)
     absence_run = json.loads(args.absent.read_text()) if args.absent else {}
     absent = absence_run.get("absent_db", {})
     choice_run = json.loads(args.noise_points.read_text()) if args.noise_points else None

@@ -72,3 +72,14 @@ def test_stamp_writes_the_evaluation_into_the_metadata_then_the_card(tmp_path):
     card = path.with_suffix(".md").read_text()
     assert "| 2 | 24.25 | 0.6000 | 0.1000 | 0.2000 | 0.7500 |" in card
     assert "7 ms per 1280×720 frame through quietframe.runtime: the card's figure" in card
+    # a Cycles run becomes the Cycles table; a test-split run is never stamped
+    evaluation.write_text(json.dumps({"rows": [{**row, "psnr": 21.5}], "meta": {
+        "split": "validation", "renderer": "cycles"}}))
+    assert model_card.main(["--stamp", "--evaluation", str(evaluation), str(path)]) == 0
+    props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+    stamped = ModelCard.from_props(props, "m")
+    assert stamped.measured("cycles").by_spp[0].psnr == 21.5
+    assert stamped.measured("mitsuba").by_spp[0].psnr == 24.25
+    evaluation.write_text(json.dumps({"rows": [row], "meta": {"split": "test"}}))
+    with pytest.raises(SystemExit):
+        model_card.main(["--stamp", "--evaluation", str(evaluation), str(path)])
