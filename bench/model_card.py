@@ -137,10 +137,19 @@ def card_lines(card: ModelCard) -> list[str]:
     return lines
 
 
+def quality_section(previous: list[str]) -> list[str]:
+    """An earlier card's quality table (its `## Quality` section to the end), if it had one."""
+    start = next((i for i, line in enumerate(previous) if line.startswith("## Quality")), None)
+    if start is None or not any(line.startswith("| spp |") for line in previous[start:]):
+        return []
+    return previous[start:]
+
+
 def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: int = 2,
                      split: str = "", measure: bool = False, renderer: str = "") -> Path:
     """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model,
-    measured on `split` (named in the card: test figures are reported, validation ones chose);
+    measured on `split` (named in the card: test figures are reported, validation ones chose;
+    none given: an earlier card's quality table is kept);
     `measure`: time the model now instead of quoting the card's measured 720p time;
     `renderer`: whose frames the split is (named in the card when given)."""
     runtime = Denoiser(path, threads=threads)
@@ -169,6 +178,8 @@ def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: 
         on = " ".join(filter(None, (renderer, split)))
         lines += ["", f"From `quietframe-eval`{f' on the {on} split' if split else ''} "
                   "(docs/benchmarks.md)."]
+    elif kept := quality_section(previous):  # re-written after a stamp: its table stays
+        lines = lines[:-2] + kept
     else:
         lines.append(f"Metadata metrics: `{json.dumps(info.metrics)}` (no evaluation run given).")
     card.write_text("\n".join(lines) + "\n")

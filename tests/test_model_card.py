@@ -80,6 +80,11 @@ def test_stamp_writes_the_evaluation_into_the_metadata_then_the_card(tmp_path):
     stamped = ModelCard.from_props(props, "m")
     assert stamped.measured("cycles").by_spp[0].psnr == 21.5
     assert stamped.measured("mitsuba").by_spp[0].psnr == 24.25
+    # re-written without a run (after bench/model_metrics stamped it): the quality table stays
+    assert model_card.main([str(path)]) == 0
+    card = path.with_suffix(".md").read_text()
+    assert "| 2 | 21.50 | 0.6000 |" in card and "no evaluation run given" not in card
+    assert "Measured on cycles frames (what `auto` reads): 2 spp 21.50 dB" in card
     evaluation.write_text(json.dumps({"rows": [row], "meta": {"split": "test"}}))
     with pytest.raises(SystemExit):
         model_card.main(["--stamp", "--evaluation", str(evaluation), str(path)])
