@@ -5,10 +5,13 @@
     quietframe-render bench --size 128x128 --seeds 3
     quietframe-render sheet --split train --output docs/contact_sheet.png
     quietframe-render topup --split test --spp 16
+    quietframe-render render --split test-static --sequences 2 --frames 8  # locked-off shots
 
 Data lands in <out>/<generator version>/<split>/<sequence seed>/ (default out:
 ~/.cache/quietframe/data). Sequence seeds come from disjoint ranges per split, so train,
-validation and test never share a scene. Re-running skips finished frames.
+validation and test never share a scene. A `*-static` split (test-static, validation-static)
+renders locked-off shots: static camera and scene, noise animated per frame, one reference at
+4x the reference spp for every frame. Re-running skips finished frames.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.scenes.layout import DATA_DIR, SPLIT_BASE, split_dir, split_seeds
+from quietframe.scenes.layout import DATA_DIR, SPLIT_BASE, is_locked_off, split_dir, split_seeds
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -48,6 +51,7 @@ def _config(args: argparse.Namespace):
         reference_spp=args.reference_spp,
         max_depth=args.max_depth,
         variant=args.variant,
+        locked_off=is_locked_off(getattr(args, "split", "")),  # bench has no split
     )
 
 

@@ -34,8 +34,14 @@ import bpy  # only in the Cycles venv
 import numpy as np
 
 from . import cycles_scene, preview
-from .generator import GENERATOR_VERSION, generate, summary
-from .layout import DATA_DIR, split_dir, split_seeds
+from .generator import (
+    GENERATOR_VERSION,
+    LOCKED_OFF_REFERENCE_SCALE,
+    generate,
+    locked_off,
+    summary,
+)
+from .layout import DATA_DIR, is_locked_off, split_dir, split_seeds
 from .manifest import MANIFEST, open_sequence, write_json
 
 LUMA = preview.LUMA
@@ -120,7 +126,7 @@ def _set_input_level(scene: bpy.types.Scene, spp: int, seed: int) -> None:
 
 def reference_scale(cfg: CyclesConfig) -> int:
     """Samples multiplier of a locked-off sequence's one reference (its frames share it)."""
-    return 4 if cfg.locked_off else 1
+    return LOCKED_OFF_REFERENCE_SCALE if cfg.locked_off else 1
 
 
 def _set_reference_half(scene: bpy.types.Scene, cfg: CyclesConfig, seed: int) -> None:
@@ -166,17 +172,6 @@ def read_layer(path: Path, layer: str) -> np.ndarray:
 # Scene choice and exposure (the Mitsuba renderer's rule, with Cycles previews)
 
 
-def _locked_off(desc: dict) -> dict:
-    """Every frame the first frame's camera and object poses: the true image is constant, so
-    frame-to-frame change in a denoised output is flicker (issue 24's stability measure)."""
-    n = len(desc["cameras"])
-    desc["cameras"] = [desc["cameras"][0]] * n
-    for m in desc["movers"]:
-        m["frames"] = [m["frames"][0]] * n
-    desc["cuts"], desc["shots"] = [], desc["shots"][:1]
-    return desc
-
-
 def choose_scene(seed: int, n_frames: int, cfg: CyclesConfig, work: Path, tries: int = 8):
     """Generate the description, rejecting scenes whose shots start blocked (> 20% of pixels
     nearer than 0.25 m) or near black (< 20% of pixels with any light in an 8-spp preview);
@@ -187,7 +182,7 @@ def choose_scene(seed: int, n_frames: int, cfg: CyclesConfig, work: Path, tries:
     def shot_previews(attempt: int):
         desc = generate(seed, n_frames, attempt)
         if cfg.locked_off:
-            desc = _locked_off(desc)
+            desc = locked_off(desc)
         scene = cycles_scene.build_scene(desc, 1.0)
         configure(scene, cfg)
         made.update(desc=desc, scene=scene)
@@ -396,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
         spp_levels=tuple(int(s) for s in args.spp.split(",")),
         reference_spp=args.reference_spp, reference_threshold=args.reference_threshold,
         reference_min_spp=args.reference_min_spp, guiding=not args.no_guiding,
-        threads=args.threads, locked_off=args.split.endswith("-static"),
+        threads=args.threads, locked_off=is_locked_off(args.split),
     )
     root = split_dir(args.out, args.split, renderer="cycles")
     seeds = split_seeds(args.split, args.sequences, args.start, renderer="cycles")

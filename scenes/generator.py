@@ -654,6 +654,26 @@ def generate(seed: int, n_frames: int, attempt: int = 0) -> dict:
     return desc
 
 
+# ---------------------------------------------------------------------------------------------
+# Locked-off shots (issue 24)
+
+# A locked-off sequence renders one reference, for frame 0, and every frame uses it (the true
+# image is constant): it gets this many times the reference spp. Both back ends read it.
+LOCKED_OFF_REFERENCE_SCALE = 4
+
+
+def locked_off(desc: dict) -> dict:
+    """The description with every frame given the first frame's camera and object poses, no
+    cuts and one shot: the true image is constant, so frame-to-frame change in a denoised
+    output is flicker (issue 24's stability measure). `desc` itself is left as it was."""
+    n = len(desc["cameras"])
+    out = dict(desc)
+    out["cameras"] = [desc["cameras"][0]] * n
+    out["movers"] = [{**m, "frames": [m["frames"][0]] * n} for m in desc["movers"]]
+    out["cuts"], out["shots"] = [], desc["shots"][:1]
+    return out
+
+
 def summary(desc: dict) -> dict:
     """Short, human-readable digest of a description for the manifest."""
     layout = desc["layout"]

@@ -2,7 +2,8 @@
 (quietframe-render, -train, -eval and the benchmarks): one definition each.
 
 Data lands in <data>/<generator version>/<split>/<sequence seed>/. Sequence seeds come from
-disjoint ranges per split, so train, validation and test never share a scene.
+disjoint ranges per split, so train, validation and test (and their locked-off `*-static`
+variants) never share a scene.
 """
 
 from __future__ import annotations
@@ -15,9 +16,16 @@ RUNS_DIR = CACHE_DIR / "runs"
 OIDN_CACHE_DIR = CACHE_DIR / "oidn"
 DEFAULT_THREADS = 2  # this project's machines have 2 cores
 
-SPLIT_BASE = {"train": 1_000_000, "validation": 2_000_000, "test": 3_000_000}
-# Cycles splits draw from their own ranges, disjoint from Mitsuba's and from each other; the
-# locked-off (static camera and scene) shots of issue 24 are splits of their own.
+# The locked-off (static camera and scene, animated noise) shots of issue 24 are splits of their
+# own, `*-static`, on both renderers; a split of that name renders and scores them locked off.
+SPLIT_BASE = {
+    "train": 1_000_000,
+    "validation": 2_000_000,
+    "test": 3_000_000,
+    "validation-static": 2_500_000,
+    "test-static": 3_500_000,
+}
+# Cycles splits draw from their own ranges, disjoint from Mitsuba's and from each other.
 CYCLES_SPLIT_BASE = {
     "train": 5_000_000,
     "validation": 6_000_000,
@@ -26,6 +34,12 @@ CYCLES_SPLIT_BASE = {
     "test-static": 7_500_000,
 }
 RENDERERS = ("mitsuba", "cycles")
+
+
+def is_locked_off(split: str) -> bool:
+    """A locked-off split (static camera and scene): rendered with one reference, scored for
+    flicker."""
+    return split.endswith("-static")
 
 
 def split_seeds(split: str, count: int, start: int = 0, renderer: str = "mitsuba") -> list[int]:

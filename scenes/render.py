@@ -1,6 +1,8 @@
 """Sequence renderer: one scene load per sequence, the camera moved per frame through
 `mi.traverse`, S one-sample passes per frame (radiance + AOVs, independent seeds), an
 independent-seed reference, motion vectors, one EXR per frame and a JSON manifest.
+A locked-off sequence (`RenderConfig.locked_off`: static camera and scene, noise animated per
+frame) renders one reference, for frame 0, and writes it into every frame.
 
 Resumable: a frame counts as done when its EXR exists and the manifest lists it; EXRs are
 written atomically. Deterministic: every seed derives from (sequence seed, frame, pass), and the
@@ -21,7 +23,15 @@ import numpy as np
 
 from . import exr_io, preview
 from .camera import Camera, motion_for_pass
-from .generator import GENERATOR_VERSION, build, generate, mover_meshes, summary
+from .generator import (
+    GENERATOR_VERSION,
+    LOCKED_OFF_REFERENCE_SCALE,
+    build,
+    generate,
+    locked_off,
+    mover_meshes,
+    summary,
+)
 from .manifest import MANIFEST, open_sequence, write_json
 
 LUMA = preview.LUMA
@@ -37,16 +47,24 @@ class RenderConfig:
     max_depth: int = 8  # path length for passes and reference alike
     variant: str = "auto"
     extra: dict = field(default_factory=dict)
+    locked_off: bool = False  # every frame frame 0's camera and poses (flicker shots, issue 24)
 
     @property
     def passes(self) -> int:
         return max(self.spp_levels)
+
+    @property
+    def reference_samples(self) -> int:
+        """Samples of a stored reference: a locked-off sequence's one reference gets more."""
+        return self.reference_spp * (LOCKED_OFF_REFERENCE_SCALE if self.locked_off else 1)
 
     def key(self) -> dict:
         """What must match for a resumed sequence to continue the same data."""
         d = asdict(self)
         d.pop("variant")
         d.pop("extra")
+        if not d["locked_off"]:  # absent when False: manifests from before it still resume
+            d.pop("locked_off")
         d["frames"] = list(d["frames"])
         d["spp_levels"] = list(d["spp_levels"])
         return d
@@ -339,6 +357,8 @@ def choose_scene(
 
     def shot_previews(attempt: int):
         desc = scene_fn(seed, n_frames, attempt)
+        if cfg.locked_off:
+            desc = locked_off(desc)
         scene, reference, table = load_scene(desc, cfg)
         made.update(desc=desc, scene=scene, reference=reference, table=table)
         movers = movers_of(scene, desc)
@@ -373,7 +393,8 @@ def render_sequence(
     scene_fn: Callable[[int, int, int], dict] = generate,
 ) -> dict:
     """Render (or finish) sequence `seed` into out_dir; returns the manifest. `scene_fn`
-    (seed, frames, attempt) -> description replaces the generator (tests pin cameras)."""
+    (seed, frames, attempt) -> description replaces the generator (tests pin cameras); a
+    locked-off config renders `locked_off` of its description."""
     import mitsuba as mi
 
     out = Path(out_dir)
@@ -396,6 +417,7 @@ def render_sequence(
             "attempt": attempt,
             "variant": mi.variant(),
             "config": cfg.key(),
+            "locked_off": cfg.locked_off,
             "frame_count": n_frames,
             "exposure": exposure,  # radiance scale applied to passes and reference
             "summary": summary(desc),
@@ -410,6 +432,11 @@ def render_sequence(
     cams = [Camera(**c) for c in desc["cameras"]]
     resets = {0, *desc["cuts"]}
     prev = None
+    # Locked-off: frame 0's reference (exposed, as stored) for every frame; a resumed sequence
+    # takes it from frame 0's EXR rather than rendering it again.
+    shared_ref = None
+    if cfg.locked_off and 0 in done:
+        shared_ref = exr_io.load_frame(out / "frame_0000.exr", ["reference"])["reference"]
     for t in range(n_frames):
         fname = f"frame_{t:04d}.exr"
         if t in done:
@@ -419,7 +446,7 @@ def render_sequence(
             prev = exr_io.load_frame(
                 out / f"frame_{t - 1:04d}.exr", ["position", "normal", "depth"]
             )
-        record, prev = _render_frame(
+        record, prev, ref_layer = _render_frame(
             scene,
             reference,
             table,
@@ -432,7 +459,10 @@ def render_sequence(
             exposure,
             cfg,
             out / fname,
+            shared_ref,
         )
+        if cfg.locked_off:
+            shared_ref = ref_layer
         manifest["frames"] = [f for f in manifest["frames"] if f["index"] != t] + [record]
         manifest["frames"].sort(key=lambda f: f["index"])
         write_json(mpath, manifest)
@@ -459,16 +489,25 @@ def _object_motion(
     return pos, nrm
 
 
-def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, exposure, cfg, path):
+def _render_frame(
+    scene, reference, table, movers, cams, t, reset, prev, seed, exposure, cfg, path,
+    shared_ref: np.ndarray | None = None,
+):
+    """Render and write frame t; returns its manifest record, the buffers frame t+1's motion
+    compares with, and the (exposed) reference layer written. `shared_ref` is written as the
+    reference instead of rendering one (a locked-off sequence's frame 0 reference)."""
     cam = cams[t]
     tp, cpu0 = time.perf_counter(), time.process_time()
     set_frame(scene, cam, movers, t)
     passes = render_passes(scene, reference, _seed(seed, t), cfg.passes, table)
     t_passes = time.perf_counter() - tp
     tr = time.perf_counter()
-    ref, ref_dropped = render_reference(
-        scene, reference, _seed(seed, t, 1_000_003), cfg.reference_spp
-    )
+    ref_dropped = 0
+    if shared_ref is None:
+        ref, ref_dropped = render_reference(
+            scene, reference, _seed(seed, t, 1_000_003), cfg.reference_samples
+        )
+        shared_ref = ref * exposure
     t_ref = time.perf_counter() - tr
 
     tw = time.perf_counter()
@@ -479,7 +518,7 @@ def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, e
             np.mean([p["radiance"] for p in passes[:n]], 0, dtype=np.float64).astype(np.float32)
             * exposure
         )
-    layers["reference"] = ref * exposure
+    layers["reference"] = shared_ref
     layers["albedo"] = np.mean([p["albedo"] for p in passes], 0)
     for name in ("normal", "depth", "position"):
         layers[name] = _hit_mean([p[name] for p in passes], hits)
@@ -511,7 +550,9 @@ def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, e
         "reset": bool(reset),
         "spp_levels": list(cfg.spp_levels),
         "passes": cfg.passes,
-        "reference_spp": cfg.reference_spp,
+        "reference_spp": cfg.reference_samples,
+        "locked_off": cfg.locked_off,
+        "reference_frame": 0 if cfg.locked_off else t,
         "camera": cam.as_dict(),
         "world_to_pixel": cam.world_to_pixel(w, h).tolist(),
         "to_world": cam.to_world().tolist(),
@@ -535,7 +576,7 @@ def _render_frame(scene, reference, table, movers, cams, t, reset, prev, seed, e
     }
     prev_next = {k: _half(layers[k]) for k in ("position", "normal")}
     prev_next["depth"] = _half(layers["depth"])[..., None]
-    return record, prev_next
+    return record, prev_next, shared_ref
 
 
 # ---------------------------------------------------------------------------------------------
@@ -555,6 +596,7 @@ def _config_of(manifest: dict) -> RenderConfig:
         spp_levels=tuple(c["spp_levels"]),
         reference_spp=c["reference_spp"],
         max_depth=c["max_depth"],
+        locked_off=c.get("locked_off", False),
     )
 
 
@@ -589,15 +631,16 @@ def render_second_reference(
     seq_dir: str | Path, frame: int, salt: int = REFERENCE_NOISE_SALT
 ) -> tuple[np.ndarray, float]:
     """Render another reference of one finished frame, independent of the stored one: the
-    sequence's scene, camera and movers at `frame`, `reference_spp` samples seeded from
-    (sequence seed, frame, `salt`). Returns the (H, W, 3) float32 radiance times the sequence's
-    exposure (comparable with the stored `reference` layer) and the render's seconds. A salt
-    other than 1_000_003 (the stored reference's) and REFERENCE_NOISE_SALT gives a reference
-    independent of both. Needs a Mitsuba variant set (`set_variant`)."""
+    sequence's scene, camera and movers at `frame`, as many samples as the stored reference
+    (`RenderConfig.reference_samples`) seeded from (sequence seed, frame, `salt`). Returns the
+    (H, W, 3) float32 radiance times the sequence's exposure (comparable with the stored
+    `reference` layer) and the render's seconds. A salt other than 1_000_003 (the stored
+    reference's) and REFERENCE_NOISE_SALT gives a reference independent of both. Needs a
+    Mitsuba variant set (`set_variant`)."""
     seq = SequenceScene(seq_dir).at(frame)
     t0 = time.perf_counter()
     second, _ = render_reference(seq.scene, seq.path, _seed(seq.seed, frame, salt),
-                                 seq.config.reference_spp)
+                                 seq.config.reference_samples)
     seconds = time.perf_counter() - t0
     return (second * seq.exposure).astype(np.float32), seconds
 

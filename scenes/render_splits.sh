@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Render the g2 splits in stages, a usable minimum of every split first, so training can start
-# while the rest renders: test (12 sequences, 1024-spp references), a first validation slice
-# (VALIDATION_FIRST, default 2), a first train slice (TRAIN_FIRST, default 16, 256-spp
-# references), then the rest of validation (12) and of train (TRAIN_SEQUENCES, default 120).
+# while the rest renders: test (12 sequences, 1024-spp references), the locked-off test and
+# validation shots (2 sequences each), a first validation slice (VALIDATION_FIRST, default 2),
+# a first train slice (TRAIN_FIRST, default 16, 256-spp references), then the rest of
+# validation (12) and of train (TRAIN_SEQUENCES, default 120).
 # All sequences: 8 frames, 256x256, inputs at 1,2,4,8 spp. Sequence seeds are fixed per split
 # and index, so a slice is the start of the full split. Every command resumes: finished frames
 # are skipped, so re-running this script continues where it stopped.
@@ -18,6 +19,10 @@ render() {  # split sequences reference_spp
         "${common[@]}" || echo "split $1: some sequences failed (re-run to retry)"
 }
 render test 12 1024
+# Locked-off shots (issue 24's flicker): static camera and scene, noise animated per frame; one
+# reference per sequence, for frame 0, at 4x the given spp (here 4096), shared by every frame.
+render test-static 2 1024
+render validation-static 2 1024
 render validation "${VALIDATION_FIRST:-2}" 1024
 render train "${TRAIN_FIRST:-16}" 256
 render validation 12 1024

@@ -362,3 +362,94 @@ def test_reader_reads_rendered_sequence(tiny):
     assert item["color"].shape == (2, 3, 24, 32) and item["color"].dtype == torch.float32
     assert item["motion"].shape == (2, 2, 24, 32)
     assert item["reset"].tolist() == [1.0, 0.0]
+
+
+@pytest.fixture(scope="module")
+def locked(tmp_path_factory):
+    """A tiny locked-off sequence of the fast pan: the camera must stay at frame 0's."""
+    from quietframe.scenes.render import RenderConfig, render_sequence, set_variant
+
+    set_variant("scalar_rgb")
+    cfg = RenderConfig(width=32, height=32, frames=(3, 3), spp_levels=(1, 2), reference_spp=16,
+                       variant="scalar_rgb", locked_off=True)
+    out = tmp_path_factory.mktemp("locked") / "11"
+    return out, cfg, render_sequence(11, out, cfg, scene_fn=_pinned_pan)
+
+
+def test_locked_off_sequence_shares_camera_and_reference_with_fresh_noise(locked):
+    out, cfg, manifest = locked
+    assert manifest["locked_off"] and manifest["config"]["locked_off"] is True
+    assert manifest["cuts"] == [] and len(manifest["scene"]["shots"]) == 1
+    frames = [exr_io.load_frame(out / f["file"]) for f in manifest["frames"]]
+    metas = [exr_io.read_meta(out / f["file"]) for f in manifest["frames"]]
+    assert len(frames) == 3
+    assert all(f["camera"] == manifest["frames"][0]["camera"] for f in manifest["frames"])
+    assert all(m["to_world"] == metas[0]["to_world"] for m in metas)
+    assert all(m["locked_off"] and m["reference_frame"] == 0 for m in metas)
+    assert all(m["reference_spp"] == 4 * cfg.reference_spp for m in metas)  # one, at 4x
+    for f in frames[1:]:
+        assert np.array_equal(f["reference"], frames[0]["reference"])
+        assert not np.array_equal(f["color_2spp"], frames[0]["color_2spp"])  # animated seed
+        assert not np.array_equal(f["pass0"], frames[0]["pass0"])
+    assert frames[0]["reference"].mean() > 0
+
+
+def test_locked_off_resume_reuses_frame_0_reference(locked, tmp_path, monkeypatch):
+    """Resuming after frame 0: the later frames take frame 0's stored reference (no new
+    reference render) and come out as before, bit for bit."""
+    import shutil
+
+    from quietframe.scenes import render
+
+    out, cfg, _ = locked
+    seq = tmp_path / out.name
+    shutil.copytree(out, seq)
+    before = exr_io.load_frame(seq / "frame_0002.exr")
+    for t in (1, 2):
+        (seq / f"frame_{t:04d}.exr").unlink()
+
+    def no_reference(*args, **kwargs):
+        raise AssertionError("a locked-off resume must reuse frame 0's reference")
+
+    monkeypatch.setattr(render, "render_reference", no_reference)
+    again = render.render_sequence(11, seq, cfg, scene_fn=_pinned_pan)
+    assert [f["index"] for f in again["frames"]] == [0, 1, 2]
+    after = exr_io.load_frame(seq / "frame_0002.exr")
+    for name in before:
+        assert np.array_equal(before[name], after[name]), name
+
+
+def test_render_config_key_resumes_old_manifests_and_splits_set_locked_off():
+    import argparse
+
+    from quietframe.scenes.cli import _config
+    from quietframe.scenes.generator import locked_off
+    from quietframe.scenes.render import RenderConfig
+
+    key = RenderConfig().key()
+    assert "locked_off" not in key  # key as before: sequences on disk still resume
+    assert set(key) == {"width", "height", "frames", "spp_levels", "reference_spp", "max_depth"}
+    assert RenderConfig(locked_off=True).key()["locked_off"] is True
+    args = argparse.Namespace(size="32x32", frames="3", spp="1,2", reference_spp=16, max_depth=8,
+                              variant="scalar_rgb")
+    assert _config(argparse.Namespace(**vars(args), split="test-static")).locked_off
+    assert not _config(argparse.Namespace(**vars(args), split="test")).locked_off
+    assert not _config(args).locked_off  # bench: no split
+
+    desc = generate(3_000_000, 4)
+    still = locked_off(desc)
+    assert still["cameras"] == [desc["cameras"][0]] * 4 and still["cuts"] == []
+    assert all(m["frames"] == [m["frames"][0]] * 4 for m in still["movers"])
+    assert desc == generate(3_000_000, 4)  # the input is left as it was
+
+
+def test_static_seed_ranges_are_disjoint_from_every_other_split():
+    from quietframe.scenes.layout import CYCLES_SPLIT_BASE, SPLIT_BASE, split_seeds
+
+    assert {"test-static", "validation-static"} <= set(SPLIT_BASE) & set(CYCLES_SPLIT_BASE)
+    bases = sorted([*SPLIT_BASE.values(), *CYCLES_SPLIT_BASE.values()])
+    assert min(np.diff(bases)) >= 500_000  # room for far more sequences than any split has
+    mitsuba = {s: set(split_seeds(s, 1000)) for s in SPLIT_BASE}
+    cycles = {s: set(split_seeds(s, 1000, renderer="cycles")) for s in CYCLES_SPLIT_BASE}
+    ranges = [*mitsuba.values(), *cycles.values()]
+    assert sum(map(len, ranges)) == len(set().union(*ranges))
