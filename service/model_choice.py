@@ -97,6 +97,7 @@ class ModelProfile:
     # Per-frame OIDN-high on the frame's own colour and plain aux, no state: the baseline of the
     # per-frame floor (what a renderer's own denoise gives, near enough; docs/benchmarks.md).
     per_frame_oidn: bool = False
+    temporal: bool = False  # keeps state between frames: reads the motion vectors' history
     absent_db: Mapping[str, float] = field(default_factory=dict)  # PSNR change, buffer absent
     # The largest loss measured per absent buffer; planned for when stamped (see expected_psnr)
     absent_db_worst: Mapping[str, float] = field(default_factory=dict)
@@ -107,9 +108,16 @@ class ModelProfile:
     def from_card(cls, card: ModelCard, renderer: str | None = None) -> ModelProfile:
         """A model's profile from its card: the renderer's measured table where it has one,
         else the default renderer's (runtime/card.py ModelCard.measured)."""
-        profile = cls.from_measurements(card.name, card.required, card.optional,
-                                        card.measured(renderer))
-        return replace(profile, per_frame_oidn=is_per_frame_oidn(card))
+        table = card.measured(renderer)
+        if not (table.absent_db or table.absent_db_worst):
+            # What a missing buffer costs is the model's design more than the renderer's look:
+            # the default renderer's figures stand in where this renderer's were not measured.
+            default = card.measured(None)
+            table = replace(table, absent_db=default.absent_db,
+                            absent_db_worst=default.absent_db_worst)
+        profile = cls.from_measurements(card.name, card.required, card.optional, table)
+        return replace(profile, per_frame_oidn=is_per_frame_oidn(card),
+                       temporal=bool(card.state))
 
     @classmethod
     def from_metadata(
@@ -188,7 +196,8 @@ def profile_of(name: str, denoiser, renderer: str | None = None) -> ModelProfile
     composition."""
     return replace(ModelProfile.from_card(denoiser.card, renderer), name=name,
                    required=tuple(denoiser.info.required_buffers),
-                   optional=tuple(denoiser.info.optional_buffers))
+                   optional=tuple(denoiser.info.optional_buffers),
+                   temporal=bool(denoiser.info.state_specs))
 
 
 def _finite(value: object) -> bool:
@@ -351,6 +360,15 @@ def choose(
     if not measured:
         name = default if any(p.name == default for p in accepting) else accepting[0].name
         return Choice(name, "no measured speed/error table: the default model", **base)
+    # A temporal model reads a frame without motion as a static camera: where what that costs
+    # it was never measured, it is not a candidate (on a moving shot it ghosts).
+    blind = [p for p in measured if p.temporal and "motion" in p.optional and "motion" not in have
+             and "motion" not in {**p.absent_db, **p.absent_db_worst}]
+    blind_note = ""
+    if blind and len(blind) < len(measured):
+        measured = [p for p in measured if p not in blind]
+        blind_note = (f", {len(blind)} temporal without a measured cost of absent motion left "
+                      "out")
     quality = quality or DEFAULT_QUALITY
     # by_noise only when every candidate has it: absolute PSNRs from different tables (or
     # different validation points) are not comparable.
@@ -358,7 +376,7 @@ def choose(
     lookup = noise if by_noise else None
     scored = [(p, p.expected_psnr(noise.spp, have, lookup), p.expected_ms(pixels))
               for p in measured]
-    pool, budget_note = scored, ""
+    pool, budget_note = scored, blind_note
     if latency_ms is not None:
         fits = [s for s in scored if s[2] <= latency_ms]
         if fits:

@@ -292,3 +292,17 @@ def test_the_per_frame_baseline_is_recognised_from_the_shipped_cards():
         pytest.skip("no shipped oidn-frame model")
     assert shipped.pop("oidn-frame") is True
     assert not any(shipped.values()), shipped  # history, accumulation and learned tiers: no
+
+
+def test_a_temporal_model_is_not_chosen_without_motion_where_that_was_never_measured():
+    frame = _tier("oidn-frame", 100, [(1, 30.0), (64, 36.0)], per_frame=True)
+    history = replace(_tier("history", 112, [(1, 30.6), (64, 36.4)]), temporal=True,
+                      optional=("motion",))
+    no_motion = ("color", "albedo", "normal", "depth")
+    choice = choose(no_motion, NoiseLevel(4, "x"), [frame, history], "oidn-frame")
+    assert choice.model == "oidn-frame" and "absent motion left out" in choice.reason
+    assert choose(ALL, NoiseLevel(4, "x"), [frame, history], "oidn-frame").model == "history"
+    # measured (its worst loss without motion is small): a candidate again
+    measured = replace(history, absent_db_worst={"motion": -0.1})
+    assert choose(no_motion, NoiseLevel(4, "x"), [frame, measured], "oidn-frame").model == \
+        "history"
