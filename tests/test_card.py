@@ -69,7 +69,7 @@ def test_compositions_are_explicit_stages():
 def test_measurements_are_kept_per_renderer():
     card = ModelCard.from_props(shipped_props(installed_models()[0]))
     mitsuba = card.measured(DEFAULT_RENDERER)
-    assert mitsuba.complete and card.measured("cycles") == mitsuba  # no Cycles table yet
+    assert mitsuba.complete and card.measured("arnold") == mitsuba  # no table: the default's
     cycles = Measurements(by_spp=(SppRow(1, 20.5, 1.1), SppRow(4, 22.0, 0.9)), ms_720p=99.0)
     both = card.with_measurements("cycles", cycles)
     metrics = json.loads(both.to_props()[PREFIX + "metrics"])
