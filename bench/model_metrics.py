@@ -22,18 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 import onnx
 
-from quietframe.runtime.card import DEFAULT_RENDERER, Measurements, ModelCard
+from quietframe.runtime.card import DEFAULT_RENDERER, Measurements, ModelCard, finite_figure
 
 RUN_KEYS = ("command", "machine", "threads", "split", "resolution", "sequences")
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and math.isfinite(value)
 
 
 def metrics_from_rows(rows: list[dict], meta: dict, static_rows: list[dict] = (),
@@ -42,13 +37,13 @@ def metrics_from_rows(rows: list[dict], meta: dict, static_rows: list[dict] = ()
     """`quietframe.metrics` additions for one model from its evaluation rows, plus flicker per
     spp from its rows of a locked-off run and the 720p time from a timing run where given."""
     rows = sorted(rows, key=lambda r: r["spp"])
-    flicker = {r["spp"]: r["flicker"] for r in static_rows if _finite(r.get("flicker"))}
+    flicker = {r["spp"]: r["flicker"] for r in static_rows if finite_figure(r.get("flicker"))}
     table = [{"spp": r["spp"], "psnr": round(r["psnr"], 3), "trmae": round(r["trmae"], 4),
               **({"flicker": round(flicker[r["spp"]], 5)} if r["spp"] in flicker else {})}
              for r in rows]
     out: dict = {"by_spp": table}
     timed = [r["ms_720p"] for r in (rows if timing_rows is None else timing_rows)
-             if _finite(r.get("ms_720p"))]
+             if finite_figure(r.get("ms_720p"))]
     if timed:
         out["ms_720p"] = round(float(timed[0]), 1)
     out["measured"] = {k: meta[k] for k in RUN_KEYS if k in meta}
@@ -57,6 +52,11 @@ def metrics_from_rows(rows: list[dict], meta: dict, static_rows: list[dict] = ()
     if timed and timing_rows is not None and timing_meta:
         out["measured"]["timing"] = {k: timing_meta[k] for k in RUN_KEYS if k in timing_meta}
     return out
+
+
+def rows_of(run: dict, method: str) -> list[dict]:
+    """One method's rows of a quietframe-eval run (benchmarks.json)."""
+    return [r for r in run["rows"] if r["method"] == method]
 
 
 def run_problem(renderer: str, **runs: dict | None) -> str | None:
@@ -150,16 +150,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--noise-points {args.noise_points}: not a validation run (model "
                      "selection never reads the test split)")
     for path in args.models:
-        rows = [r for r in evaluation["rows"] if r["method"] == path.stem]
+        rows = rows_of(evaluation, path.stem)
         if not rows:
             print(f"{path}: no rows for {path.stem!r} in {args.evaluation}; left as it is")
             continue
         additions = metrics_from_rows(
             rows, evaluation.get("meta", {}),
-            [r for r in static["rows"] if r["method"] == path.stem] if static else (),
-            static.get("meta") if static else None,
-            [r for r in timing["rows"] if r["method"] == path.stem] if timing else None,
-            timing.get("meta") if timing else None)
+            rows_of(static, path.stem) if static else (), static and static.get("meta"),
+            rows_of(timing, path.stem) if timing else None, timing and timing.get("meta"))
         if path.stem in absent:
             additions["absent_db"] = absent[path.stem]
             additions["absent_db_worst"] = worst_absent_db(absence_run, path.stem)

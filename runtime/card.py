@@ -14,6 +14,7 @@ its stages from `quietframe.prepass` and its tiling from its family's rule (runt
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -295,6 +296,11 @@ class SppRow:
         return {"spp": self.spp, "psnr": self.psnr,
                 **({} if self.trmae is None else {"trmae": self.trmae}),
                 **({} if self.flicker is None else {"flicker": self.flicker})}
+
+
+def finite_figure(value: object) -> bool:
+    """A measured figure that is a finite number (tables carry NaN where nothing was measured)."""
+    return isinstance(value, (int, float)) and math.isfinite(value)
 
 
 MEASUREMENT_KEYS = ("by_spp", "ms_720p", "measured", "absent_db", "absent_db_worst", "by_noise")

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.runtime.card import Measurements, ModelCard
+from quietframe.runtime.card import Measurements, ModelCard, finite_figure
 from quietframe.service.exr_header import attribute_number
 
 # dB below the best expected PSNR a quality accepts in exchange for speed. "balanced" matches
@@ -137,9 +137,9 @@ class ModelProfile:
             ms_720p=float(table.ms_720p) if table.ms_720p is not None else None,
             psnr_by_spp=tuple((float(r.spp), float(r.psnr)) for r in table.by_spp),
             trmae_by_spp=tuple((float(r.spp), float(r.trmae)) for r in table.by_spp
-                               if _finite(r.trmae)),
+                               if finite_figure(r.trmae)),
             flicker_by_spp=tuple((float(r.spp), float(r.flicker)) for r in table.by_spp
-                                 if _finite(r.flicker)),
+                                 if finite_figure(r.flicker)),
             absent_db={k: float(v) for k, v in table.absent_db.items()},
             absent_db_worst={k: float(v) for k, v in table.absent_db_worst.items()},
             psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in table.by_noise),
@@ -198,10 +198,6 @@ def profile_of(name: str, denoiser, renderer: str | None = None) -> ModelProfile
                    required=tuple(denoiser.info.required_buffers),
                    optional=tuple(denoiser.info.optional_buffers),
                    temporal=bool(denoiser.info.state_specs))
-
-
-def _finite(value: object) -> bool:
-    return isinstance(value, (int, float)) and math.isfinite(value)
 
 
 def _at_spp(table: Sequence[tuple[float, float]], spp: float) -> float | None:
