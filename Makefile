@@ -26,7 +26,7 @@ install-dev: $(VENV)/.base
 
 test: install-dev
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/python -m pytest tests
+	$(VENV)/bin/python -m pytest tests --durations=15
 
 $(SERVE_VENV)/.base:
 	$(call new-venv,$(PYTHON),$(SERVE_VENV))

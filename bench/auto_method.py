@@ -55,4 +55,5 @@ class AutoMethod:
                           quality=self.quality, pixels=h * w)
             self.choices[pick.model] += 1
             self.current = RuntimeMethod(self.denoisers[pick.model])
+            self.current.header_spp = pick.spp  # what the service gives a model that takes it
         return self.current(planes)

@@ -372,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
                 del methods[name]
                 continue
             if hasattr(method, "header_spp") and args.renderer in HEADER_STATES_SPP:
-                method.header_spp = spp  # auto reads the spp the frame header states
+                method.header_spp = spp  # the spp the header states (auto, oidn-history*)
             for i, frames in enumerate(sequences):
                 keep = crops[name] if spp == crop_spp and i < 3 else None
                 run_sequence(method, frames, scores, keep, locked_off)

@@ -23,6 +23,7 @@ import numpy as np
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser
 from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
+from quietframe.runtime.card import SAMPLES_INPUT
 
 Planes = dict[str, np.ndarray]  # canonical name -> (C, H, W) float32
 Frames = list[tuple[Planes, np.ndarray, bool]]  # (planes, reference (H, W, 3), reset)
@@ -46,7 +47,9 @@ class RuntimeMethod:
     """A shipped model through the runtime: keeps the state between frames, unless
     `single_frame` (every frame starts from an empty history, as after a cut). `options`: the
     model's run-time inputs (kernel_size); `zeros_for_required`: absent required buffers are
-    fed as zeros (what the model would see without them: the absence table)."""
+    fed as zeros (what the model would see without them: the absence table). `header_spp`:
+    the spp the frame header states (set by the evaluation where the renderer writes one),
+    given as the service gives it to a model that takes the frame's spp (SAMPLES_INPUT)."""
 
     def __init__(self, path: Path | Denoiser, threads: int = 2, options: dict | None = None,
                  single_frame: bool = False, zeros_for_required: bool = False) -> None:
@@ -54,6 +57,7 @@ class RuntimeMethod:
             path, threads=threads, options=options)
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
         self.state: dict | None = None
+        self.header_spp: float | None = None
 
     def reset(self) -> None:
         self.state = None
@@ -66,7 +70,10 @@ class RuntimeMethod:
             planes = {**planes, **{name: np.zeros((BUFFER_CHANNELS[name], h, w), np.float32)
                                    for name in self.denoiser.info.required_buffers
                                    if name not in planes}}
-        result = self.denoiser.denoise(planes, self.state)
+        takes_spp = any(i.name == SAMPLES_INPUT for i in self.denoiser.info.inputs)
+        options = ({SAMPLES_INPUT: max(1.0, float(self.header_spp))}
+                   if takes_spp and self.header_spp is not None else None)
+        result = self.denoiser.denoise(planes, self.state, options)
         self.state = result.state
         return result.color
 

@@ -12,7 +12,9 @@ demodulated and not, and the model's PSNR on the sequence; service/model_choice.
 `--static-evaluation` adds each spp row's `flicker` from a run on locked-off shots (a
 `*-static` split: the temporal std of τ(output), which no reference noise limits), and
 `--timing` takes `ms_720p` from another run (a quiet one, e.g. with the renders paused) instead
-of the evaluation's own. Existing keys (training's validation score) are kept. `--renderer`
+of the evaluation's own. Where the renderer has its own denoise and the run measured it
+(Blender's on Cycles: `blender-denoise`), each row also gets `renderer_denoise`, its PSNR on
+the same frames. Existing keys (training's validation score) are kept. `--renderer`
 names whose frames were measured (the card keeps a table per renderer, runtime/card.py; default
 mitsuba). Nothing here is typed in: `model=auto` reads what a measurement wrote
 (docs/model-interface.md).
@@ -29,17 +31,23 @@ import onnx
 from quietframe.runtime.card import DEFAULT_RENDERER, Measurements, ModelCard, finite_figure
 
 RUN_KEYS = ("command", "machine", "threads", "split", "resolution", "sequences")
+# The method of a quietframe-eval run that is the renderer's own denoise of the same frames
+# (stamped into every row as `renderer_denoise`: auto's floor on that renderer's frames).
+RENDERER_DENOISE_METHOD = {"cycles": "blender-denoise"}
 
 
 def metrics_from_rows(rows: list[dict], meta: dict, static_rows: list[dict] = (),
                       static_meta: dict | None = None, timing_rows: list[dict] | None = None,
-                      timing_meta: dict | None = None) -> dict:
+                      timing_meta: dict | None = None, renderer_rows: list[dict] = ()) -> dict:
     """`quietframe.metrics` additions for one model from its evaluation rows, plus flicker per
-    spp from its rows of a locked-off run and the 720p time from a timing run where given."""
+    spp from its rows of a locked-off run, the 720p time from a timing run where given, and
+    the renderer's own denoise PSNR per spp from the same evaluation's rows of it."""
     rows = sorted(rows, key=lambda r: r["spp"])
     flicker = {r["spp"]: r["flicker"] for r in static_rows if finite_figure(r.get("flicker"))}
+    own = {r["spp"]: r["psnr"] for r in renderer_rows if finite_figure(r.get("psnr"))}
     table = [{"spp": r["spp"], "psnr": round(r["psnr"], 3), "trmae": round(r["trmae"], 4),
-              **({"flicker": round(flicker[r["spp"]], 5)} if r["spp"] in flicker else {})}
+              **({"flicker": round(flicker[r["spp"]], 5)} if r["spp"] in flicker else {}),
+              **({"renderer_denoise": round(own[r["spp"]], 3)} if r["spp"] in own else {})}
              for r in rows]
     out: dict = {"by_spp": table}
     timed = [r["ms_720p"] for r in (rows if timing_rows is None else timing_rows)
@@ -157,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
         additions = metrics_from_rows(
             rows, evaluation.get("meta", {}),
             rows_of(static, path.stem) if static else (), static and static.get("meta"),
-            rows_of(timing, path.stem) if timing else None, timing and timing.get("meta"))
+            rows_of(timing, path.stem) if timing else None, timing and timing.get("meta"),
+            rows_of(evaluation, RENDERER_DENOISE_METHOD.get(args.renderer, "")))
         if path.stem in absent:
             additions["absent_db"] = absent[path.stem]
             additions["absent_db_worst"] = worst_absent_db(absence_run, path.stem)

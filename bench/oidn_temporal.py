@@ -68,7 +68,7 @@ def measure(path: Path, threads: int, repeats: int,
     feeds = {"oidn": oidn, **{b: planes[b][None] for b in ("albedo", "normal", "depth",
                                                            "motion")},
              "reset": np.zeros(1, np.float32),
-             **{f"state_in.{k}": v for k, v in state.items()}}
+             **{f"state_in.{k}": v for k, v in state.items()}, **runtime.option_feeds}
     feeds = {k: v for k, v in feeds.items() if k in runtime.input_names}
     first = runtime.color_stage  # a graph stage before OIDN: quietframe's time too
     first_feeds = {name: plane[None] for name, plane in planes.items()}

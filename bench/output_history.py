@@ -183,6 +183,7 @@ class ShippedStage:
 
         self.base, self.stage = base, Stage(config)
         self.state: torch.Tensor | None = None
+        self.header_spp: float | None = None  # the frame's spp, as the service gives it
 
     def reset(self) -> None:
         self.base.reset()
@@ -196,13 +197,15 @@ class ShippedStage:
         if self.state is None:
             self.state = self.stage.initial_state(1, *current.shape[-2:])
         with torch.no_grad():
+            spp = None if self.header_spp is None else torch.tensor([float(self.header_spp)])
             out, self.state = self.stage(current, t["albedo"], t["normal"], t["depth"],
-                                         t["motion"], reset, self.state)
+                                         t["motion"], reset, self.state, spp)
         return out[0].numpy()
 
 
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import (
+        HEADER_STATES_SPP,
         Noisy,
         Scores,
         build_methods,
@@ -262,10 +265,14 @@ def main(argv: list[str] | None = None) -> int:
         accumulated_oidn(True, args.threads), sharp_only=True)
     from quietframe.model.output_history import OutputHistoryConfig
 
-    for weight in filter(None, args.resampled_weights.split(",")):
-        config = OutputHistoryConfig(resampled_weight=float(weight))
+    for weight in filter(None, args.resampled_weights.split(",")):  # constant floors
+        config = OutputHistoryConfig(resampled_weight=float(weight),
+                                     resampled_weight_per_doubling=0.0)
         methods[f"aligned-acc+stage@w{weight}"] = lambda c=config: ShippedStage(
             accumulated_oidn(True, args.threads), c)
+    # the shipped floor, w(spp) from the frame's spp (given where the renderer states it)
+    methods["aligned-acc+stage@w(spp)"] = lambda: ShippedStage(
+        accumulated_oidn(True, args.threads), OutputHistoryConfig())
     if args.only:
         keep = {*BASELINES, *args.only.split(",")}
         methods = {k: v for k, v in methods.items() if k in keep}
@@ -280,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
         for name, factory in methods.items():
             method, scores = factory(), Scores()
+            if hasattr(method, "header_spp") and args.renderer in HEADER_STATES_SPP:
+                method.header_spp = spp
             for frames in sequences:
                 run_sequence(method, frames, scores, None, locked_off)
             rows.append({"method": name, "spp": spp, **scores.summary()})

@@ -27,6 +27,7 @@ from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.card import (
     OUTPUT,
     RESET,
+    SAMPLES_INPUT,
     STATE_IN,
     STATE_OUT,
     InputSpec,
@@ -207,6 +208,15 @@ class _ExportWrapper(nn.Module):
         return self.model(color, albedo, normal, depth, motion, reset, state)
 
 
+class _ExportWrapperWithSamples(_ExportWrapper):
+    """The same, with the frame's samples per pixel (SAMPLES_INPUT, shape [1]) last."""
+
+    def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: Tensor,
+                spp: Tensor) -> tuple[Tensor, Tensor]:
+        return self.model(color, albedo, normal, depth, motion, reset, state, spp)
+
+
 def example_inputs(height: int = 48, width: int = 64, seed: int = 0,
                    state_channels: int = NBGDenoiser.state_channels) -> tuple[Tensor, ...]:
     """Plausible inputs (used for tracing and tests): (color, albedo, normal, depth, motion,
@@ -246,19 +256,30 @@ def export_nbg(
     dynamic = {name: image_dims for name in BUFFER_NAMES} | {"reset": None, "state": image_dims}
     table = custom_translation_table()
     graph_inputs = tuple(getattr(model, "inputs", BUFFER_NAMES))
+    # Run-time inputs after the state: the only one a graph of this kind takes is the frame's
+    # spp (model/output_history.py), fed by the runtime from its default or an option.
+    extra = model.run_time_inputs() if hasattr(model, "run_time_inputs") else []
+    if [i["name"] for i in extra] not in ([], [SAMPLES_INPUT]):
+        raise ValueError(f"export_nbg exports no run-time input but {SAMPLES_INPUT!r}")
+    wrapper = (_ExportWrapperWithSamples if extra else _ExportWrapper)(model).eval()
+    example = example_inputs(state_channels=model.state_channels)
+    if extra:
+        example = (*example, torch.full((1,), float(extra[0]["default"])))
+        dynamic |= {SAMPLES_INPUT: None}
     with torch.no_grad():
         program = torch.onnx.export(
-            _ExportWrapper(model).eval(),
-            example_inputs(state_channels=model.state_channels), dynamo=True,
+            wrapper, example, dynamo=True,
             opset_version=OPSET, custom_translation_table=table, dynamic_shapes=dynamic,
-            input_names=[*graph_inputs, RESET, STATE_IN + STATE_NAME],
+            input_names=[*graph_inputs, RESET, STATE_IN + STATE_NAME,
+                         *(i["name"] for i in extra)],
             output_names=[OUTPUT, STATE_OUT + STATE_NAME],
             verbose=False,
         )
     config = model.config
     prepass = config.prepass() if hasattr(config, "prepass") else None
     state = [{"name": STATE_NAME, "channels": model.state_channels}]
-    metadata = model_metadata(config, version, state, training, metrics, prepass=prepass)
+    metadata = model_metadata(config, version, state, training, metrics, inputs=extra or None,
+                              prepass=prepass)
     return save_described(program.model_proto, metadata, path)
 
 

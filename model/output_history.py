@@ -8,7 +8,8 @@ then OIDN on its output (D_t), then this graph:
   P_t = O_{t-1}(p + m)      the nearest pixel, unclamped, where m is pixel-aligned (exact);
         clip(max(B O_{t-1}(p + m), 0), min₃ₓ₃ D_t, max₃ₓ₃ D_t)   elsewhere, B = bicubic fetch
   O_t = α D_t + (1 - α) P_t   where the reprojected surface is this one (history_valid),
-        α = max(1/n, 0.2) over the history's n frames (model/temporal.history_weights)
+        α = max(1/n, 0.2) over the history's n frames (model/temporal.history_weights), and at
+        least w(spp) where the history was resampled (OutputHistoryConfig.resampled_floor)
 
 Why each piece (measured on Cycles test shots, 1–64 spp): OIDN on a history fetched from the
 nearest pixel under sub-pixel motion lost up to 1 dB to OIDN on the frame alone, and a bicubic
@@ -33,6 +34,7 @@ from quietframe.model.temporal import (
     pixel_aligned,
     reproject_history,
 )
+from quietframe.runtime.card import SAMPLES_INPUT
 
 FAMILY = "output-history"  # the architecture's family (runtime/receptive.py tiling rule)
 # State planes: previous output O (3), depth (1), normal (3), history length n (1).
@@ -50,14 +52,27 @@ class OutputHistoryConfig:
     color_from: str = "aligned-accumulation.onnx"
     family: str = FAMILY
     # The current frame's weight where the history is fetched bicubically (sub-pixel motion) is
-    # at least this (elsewhere MIN_CURRENT_WEIGHT): every frame the history is resampled again,
-    # so a long history there compounds the resampling's error, which outweighs the noise it
-    # removes once OIDN's output is clean (MIN_CURRENT_WEIGHT there: -0.31 dB against OIDN on
-    # the frame at 64 spp on moving Cycles test shots). Chosen on the Cycles validation split
-    # as the weight whose worst PSNR gain over OIDN on the frame, over 1-64 spp, is largest
-    # (0.2 / 0.35 / 0.5 / 0.7: +0.05 / +0.09 / +0.12 / +0.11 dB; bench/output_history.py
-    # --resampled-weights, docs/evaluation/cycles-history/README.md).
-    resampled_weight: float = 0.5
+    # at least w(spp) = clamp(resampled_weight + resampled_weight_per_doubling · log2 spp,
+    # MIN_CURRENT_WEIGHT, resampled_weight_max) (elsewhere MIN_CURRENT_WEIGHT): every frame the
+    # history is resampled again, so a long history there compounds the resampling's error,
+    # which outweighs the noise it removes once OIDN's output is clean, and the cleaner the
+    # input the sooner. The frame's spp is the run-time input `spp` (SAMPLES_INPUT: the
+    # renderer's count from the EXR header, auto's estimate, or a session option; default
+    # default_spp). Chosen on the Cycles validation split (8 moving sequences), per spp the
+    # floor with the largest gain over OIDN on the frame: 1-4 spp 0.35, 8 spp 0.5, 16 spp 0.6,
+    # 64 spp 0.7-0.85 (a constant 0.5 lost 0.04 dB at 64 spp; the schedule's worst gain over
+    # 1-64 spp is +0.07 dB; bench/output_history.py --resampled-weights,
+    # docs/evaluation/cycles-history/README.md).
+    resampled_weight: float = 0.35
+    resampled_weight_per_doubling: float = 0.075
+    resampled_weight_max: float = 0.85
+    default_spp: float = 4.0  # w = 0.5 there: the constant the tier shipped with before
+
+    def resampled_floor(self, spp: Tensor) -> Tensor:
+        """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
+        doublings = torch.log2(spp.clamp_min(1.0))
+        floor = self.resampled_weight + self.resampled_weight_per_doubling * doublings
+        return floor.clamp(MIN_CURRENT_WEIGHT, self.resampled_weight_max).view(-1, 1, 1, 1)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -98,7 +113,8 @@ class OutputHistory(nn.Module):
         self.config = config or OutputHistoryConfig()
 
     def forward(self, oidn: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
-                motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
+                motion: Tensor, reset: Tensor, state: Tensor,
+                spp: Tensor | None = None) -> tuple[Tensor, Tensor]:
         # The nearest pixel's depth and normal test the surface, as in the accumulation.
         warped, keep = reproject_history(state, motion, depth, normal, reset)
         fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
@@ -108,10 +124,18 @@ class OutputHistory(nn.Module):
         exact = pixel_aligned(motion).to(oidn.dtype)  # 1: the nearest pixel is exact
         previous = fetched + exact * (warped[:, 0:3] - fetched)
         alpha, count = history_weights(keep, warped[:, 7:8])  # alpha = 1 where not kept
-        if self.config.resampled_weight > MIN_CURRENT_WEIGHT:
-            alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_weight)
+        if spp is None:
+            spp = torch.full((1,), self.config.default_spp)
+        alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_floor(spp))
         output = oidn + (1 - alpha) * (previous - oidn)  # α D_t + (1 - α) P_t
         return output, torch.cat((output, depth, normal, count), dim=1)
+
+    def run_time_inputs(self) -> list[dict]:
+        """`quietframe.inputs` of the exported graph: the frame's samples per pixel."""
+        return [{"name": SAMPLES_INPUT, "dtype": "float32", "shape": [1],
+                 "default": self.config.default_spp, "allowed": None, "minimum": 1.0,
+                 "doc": "the frame's samples per pixel (the service fills it from the EXR "
+                        "header, or auto's estimate): how long a resampled history is kept"}]
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)

@@ -63,11 +63,16 @@ class InputSpec:
     default: float | int
     allowed: tuple[float | int, ...] | None = None  # None: any value
     doc: str = ""
+    minimum: float | None = None  # the smallest value it takes (None: no bound)
 
     def check(self, value: float | int) -> None:
         """ValueError for a value this input does not take."""
         if self.allowed is not None and value not in self.allowed:
             raise ValueError(f"{self.name} must be one of {list(self.allowed)}, got {value!r}")
+        if not math.isfinite(float(value)):
+            raise ValueError(f"{self.name} must be a finite number, got {value!r}")
+        if self.minimum is not None and value < self.minimum:
+            raise ValueError(f"{self.name} must be at least {self.minimum:g}, got {value!r}")
         if np.dtype(self.dtype).kind in "iu" and not float(value).is_integer():
             raise ValueError(f"{self.name} is an integer, got {value!r}")  # not truncated
 
@@ -78,18 +83,27 @@ class InputSpec:
     def describe(self) -> str:
         """E.g. 'kernel_size (one of [5, 7, 9], default 5)', for messages and listings."""
         values = f"one of {list(self.allowed)}, " if self.allowed is not None else ""
+        if self.minimum is not None:
+            values += f"at least {self.minimum:g}, "
         return f"{self.name} ({values}default {self.default})"
 
     def to_dict(self) -> dict:
         allowed = list(self.allowed) if self.allowed is not None else None
         return {"name": self.name, "dtype": self.dtype, "shape": list(self.shape),
-                "default": self.default, "allowed": allowed, "doc": self.doc}
+                "default": self.default, "allowed": allowed, "doc": self.doc,
+                **({} if self.minimum is None else {"minimum": self.minimum})}
 
     @classmethod
     def from_dict(cls, d: Mapping) -> InputSpec:
         allowed = tuple(d["allowed"]) if d.get("allowed") is not None else None
         return cls(d["name"], d["dtype"], tuple(d["shape"]), d["default"], allowed,
-                   d.get("doc", ""))
+                   d.get("doc", ""), d.get("minimum"))
+
+
+# The run-time input of a model whose behaviour depends on the frame's samples per pixel
+# (model/output_history.py): the service feeds it from the EXR header where the renderer wrote
+# its count, else auto's estimate of the shot, unless the session sets it (model_options).
+SAMPLES_INPUT = "spp"
 
 
 # ---- the composition ------------------------------------------------------------------------
@@ -291,11 +305,16 @@ class SppRow:
     # Mean over locked-off validation shots of the temporal std of τ(output) (issue 24's
     # flicker: no reference needed); None where no locked-off shot was measured.
     flicker: float | None = None
+    # PSNR of the renderer's own denoise of the same validation frames (Blender's, on Cycles),
+    # measured in the same run: auto's floor where the renderer has one (service/model_choice).
+    renderer_denoise: float | None = None
 
     def to_dict(self) -> dict:
         return {"spp": self.spp, "psnr": self.psnr,
                 **({} if self.trmae is None else {"trmae": self.trmae}),
-                **({} if self.flicker is None else {"flicker": self.flicker})}
+                **({} if self.flicker is None else {"flicker": self.flicker}),
+                **({} if self.renderer_denoise is None
+                   else {"renderer_denoise": self.renderer_denoise})}
 
 
 def finite_figure(value: object) -> bool:
@@ -345,7 +364,8 @@ class Measurements:
     def from_dict(cls, d: Mapping) -> Measurements:
         noise = d.get("by_noise") or {}
         return cls(
-            by_spp=tuple(SppRow(r["spp"], r["psnr"], r.get("trmae"), r.get("flicker"))
+            by_spp=tuple(SppRow(r["spp"], r["psnr"], r.get("trmae"), r.get("flicker"),
+                                r.get("renderer_denoise"))
                          for r in sorted(d.get("by_spp") or [], key=lambda r: r["spp"])
                          if "psnr" in r),
             ms_720p=d.get("ms_720p"),

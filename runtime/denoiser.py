@@ -345,6 +345,11 @@ class Denoiser:
         feeds |= {name: specs[name].array(value) for name, value in options.items()}
         return feeds
 
+    @property
+    def option_feeds(self) -> dict[str, np.ndarray]:
+        """The extra inputs as this Denoiser feeds them (defaults and its options)."""
+        return dict(self._option_feeds)
+
     def check(self, present: Iterable[str]) -> tuple[str, ...]:
         """The one check of a frame's buffers against the model: the absent optional ones;
         MissingBuffers when a required one is absent. The service calls it from the EXR header,

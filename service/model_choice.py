@@ -94,6 +94,9 @@ class ModelProfile:
     psnr_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, PSNR), spp ascending
     trmae_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, TRMAE) where measured
     flicker_by_spp: tuple[tuple[float, float], ...] = ()  # (spp, locked-off flicker)
+    # (spp, PSNR of the renderer's own denoise of the same validation frames): the floor where
+    # the frame's renderer has a denoise of its own (Blender's on Cycles)
+    renderer_denoise_by_spp: tuple[tuple[float, float], ...] = ()
     # Per-frame OIDN-high on the frame's own colour and plain aux, no state: the baseline of the
     # per-frame floor (what a renderer's own denoise gives, near enough; docs/benchmarks.md).
     per_frame_oidn: bool = False
@@ -140,6 +143,9 @@ class ModelProfile:
                                if finite_figure(r.trmae)),
             flicker_by_spp=tuple((float(r.spp), float(r.flicker)) for r in table.by_spp
                                  if finite_figure(r.flicker)),
+            renderer_denoise_by_spp=tuple((float(r.spp), float(r.renderer_denoise))
+                                          for r in table.by_spp
+                                          if finite_figure(r.renderer_denoise)),
             absent_db={k: float(v) for k, v in table.absent_db.items()},
             absent_db_worst={k: float(v) for k, v in table.absent_db_worst.items()},
             psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in table.by_noise),
@@ -387,17 +393,9 @@ def choose(
                 expected_ms=round(fastest[2], 3),
             )
     baseline = next((s for s in scored if s[0].per_frame_oidn), None)
-    if baseline is not None:  # the per-frame floor
-        floor = baseline[1] - PER_FRAME_FLOOR_DB[quality]
-        above = [s for s in pool if s[1] >= floor - 1e-9]
-        if above:
-            if len(above) < len(pool):
-                budget_note += (f", {len(pool) - len(above)} below per-frame "
-                                f"{baseline[0].name} less {PER_FRAME_FLOOR_DB[quality]:g} dB "
-                                "left out")
-            pool = above
-        else:  # only the latency budget can leave nothing above it: the budget is the user's
-            budget_note += f", none that fits is above per-frame {baseline[0].name}"
+    if baseline is not None:
+        pool, floor_note = above_floor(pool, baseline, noise.spp, quality)
+        budget_note += floor_note
     best_psnr = max(s[1] for s in pool)
     tolerance = QUALITY_TOLERANCE_DB[quality]
     good = [s for s in pool if s[1] >= best_psnr - tolerance - 1e-9]
@@ -420,6 +418,28 @@ def choose(
 
 
 Scored = tuple[ModelProfile, float, float]  # profile, expected PSNR, expected ms
+
+
+def above_floor(pool: list[Scored], baseline: Scored, spp: float,
+                quality: str) -> tuple[list[Scored], str]:
+    """The candidates not below the per-frame floor, and a note on those left out. The floor
+    is the renderer's own denoise where the baseline's table has it (Blender's on Cycles: a
+    user could tick Denoise instead), else per-frame OIDN-high; less PER_FRAME_FLOOR_DB.
+    Where nothing reaches the renderer's, per-frame OIDN-high's; where nothing reaches that
+    either (only a latency budget can do it: the budget is the user's), all of `pool`."""
+    slack = PER_FRAME_FLOOR_DB[quality]
+    profile, expected = baseline[0], baseline[1]
+    floors = []
+    own, at = _at_spp(profile.renderer_denoise_by_spp, spp), _at_spp(profile.psnr_by_spp, spp)
+    if own is not None and at is not None and own > at:  # relative to the baseline's table
+        floors.append((expected + own - at - slack, "the renderer's own denoise"))
+    floors.append((expected - slack, f"per-frame {profile.name}"))
+    for floor, name in floors:
+        above = [s for s in pool if s[1] >= floor - 1e-9]
+        if above:
+            left = len(pool) - len(above)
+            return above, (f", {left} below {name} less {slack:g} dB left out" if left else "")
+    return pool, f", none that fits is above per-frame {profile.name}"
 
 
 def steady_candidates(good: list[Scored], spp: float,

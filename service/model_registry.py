@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from quietframe.runtime import (
     default_model_path,
     installed_models,
 )
+from quietframe.runtime.card import SAMPLES_INPUT
 from quietframe.runtime.denoiser import check_options
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.service.errors import InvalidModelOptions, ModelUnavailable, UnknownModel
@@ -27,11 +29,18 @@ log = logging.getLogger("quietframe.service")
 AUTO = "auto"
 
 
-def options_for(info: ModelInfo, options: Mapping[str, float | int]) -> dict[str, float | int]:
+def options_for(info: ModelInfo, options: Mapping[str, float | int],
+                samples: float | None = None) -> dict[str, float | int]:
     """The session options a model takes: those it declares (model=auto switches between
-    models, and one without an option ignores it)."""
+    models, and one without an option ignores it). A model that takes the frame's spp
+    (SAMPLES_INPUT) gets `samples` (the header's count or auto's estimate, at least 1) unless
+    the session set it."""
     names = {spec.name for spec in info.inputs}
-    return {name: value for name, value in options.items() if name in names}
+    chosen = {name: value for name, value in options.items() if name in names}
+    if SAMPLES_INPUT in names and SAMPLES_INPUT not in chosen and samples is not None \
+            and math.isfinite(samples):
+        chosen[SAMPLES_INPUT] = max(1.0, float(samples))
+    return chosen
 
 
 class ModelRegistry:

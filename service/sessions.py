@@ -261,6 +261,16 @@ def choice_header(choice: Choice) -> str:
 HEADER_WORDS = {"σ": "sigma", "×": "x", "≤": "<=", "≥": ">=", "–": "-", "—": "-", "·": "*"}
 
 
+def frame_samples(header: frames.ExrHeader, spec: SessionSpec,
+                  choice: Choice | None) -> float | None:
+    """The frame's spp for a model that takes it: the renderer's count in the header, else
+    (model=auto) the shot's estimate, else None (the model's default)."""
+    stated = model_choice.samples_from_header(header.attributes, spec.layer)
+    if stated is not None:
+        return stated.spp
+    return choice.spp if choice is not None else None
+
+
 def process_frame(
     denoiser: Denoiser,
     spec: SessionSpec,
@@ -270,13 +280,15 @@ def process_frame(
     reset: Reset,
     state: dict[str, np.ndarray] | None,
     choice: Choice | None = None,
+    samples: float | None = None,
 ) -> _Processed:
     """Decode, denoise, encode one frame (worker thread; touches no session field). `state`
-    is None when the history starts afresh; `choice` (model=auto) is said in a header."""
+    is None when the history starts afresh; `choice` (model=auto) is said in a header;
+    `samples`: the frame's spp where known (a model that takes it is given it)."""
     start = time.perf_counter()
     frame = frames.decode(body, sources)
     decoded = time.perf_counter()
-    options = options_for(denoiser.info, spec.model_options)  # auto: this model's, if any
+    options = options_for(denoiser.info, spec.model_options, samples)  # auto: this model's
     result = denoiser.denoise(frame.buffers, state, options)
     denoised = time.perf_counter()
     info = denoiser.info
@@ -530,7 +542,8 @@ class SessionRegistry:
                     history = None
             denoiser = self.models.denoiser(info.name)
             frame = await self._on_pool(
-                process_frame, denoiser, spec, index, body, sources, plan, history, choice
+                process_frame, denoiser, spec, index, body, sources, plan, history, choice,
+                frame_samples(header, spec, choice),
             )
             self._reserve_reply(session, len(frame.reply.body), info)
             if self.store is not None:

@@ -257,6 +257,31 @@ def test_no_choice_below_per_frame_oidn_balanced_and_best_none_below_it_fast_wit
     assert budget.model == "cheaper" and "none that fits is above" in budget.reason
 
 
+def test_the_renderers_own_denoise_is_the_floor_where_it_was_measured():
+    """On Cycles frames a user could tick Blender's Denoise: balanced does not choose below it
+    (its figure stamped beside per-frame OIDN's); where nothing reaches it, per-frame OIDN's
+    floor still holds."""
+    rows = [{"spp": 16, "psnr": 31.4, "renderer_denoise": 31.7},
+            {"spp": 64, "psnr": 32.3, "renderer_denoise": 32.5}]
+    frame = replace(ModelProfile.from_metadata("oidn-frame", ("color",), (),
+                                               {"ms_720p": 100, "by_spp": rows}),
+                    per_frame_oidn=True)
+    assert frame.renderer_denoise_by_spp == ((16.0, 31.7), (64.0, 32.5))
+    history = _tier("history", 110, [(16, 31.55), (64, 32.25)])  # above oidn-frame at 16 only
+    cleanaux = _tier("cleanaux", 400, [(16, 31.8), (64, 32.45)])  # above Blender at 16 only
+    at16 = choose(ALL, NoiseLevel(16, "x"), [frame, history, cleanaux], "oidn-frame")
+    assert at16.model == "cleanaux", at16.reason
+    assert "2 below the renderer's own denoise less 0 dB left out" in at16.reason
+    # at 64 spp none reaches Blender's 32.5: per-frame OIDN's floor (32.3) decides
+    at64 = choose(ALL, NoiseLevel(64, "x"), [frame, history, cleanaux], "oidn-frame")
+    assert at64.model == "oidn-frame", at64.reason  # the cheapest within 0.3 dB of the best
+    assert "1 below per-frame oidn-frame less 0 dB left out" in at64.reason
+    # a table without the renderer's figure (Mitsuba): per-frame OIDN alone
+    plain = _tier("oidn-frame", 100, [(16, 31.4), (64, 32.3)], per_frame=True)
+    assert choose(ALL, NoiseLevel(16, "x"), [plain, history, cleanaux],
+                  "oidn-frame").model == "history"
+
+
 def test_locked_off_flicker_decides_steadiness_where_every_candidate_has_it():
     frame = _tier("oidn-frame", 100, [(1, 30.0), (64, 36.0)], flicker=0.010, per_frame=True)
     history = _tier("history", 112, [(1, 30.4), (64, 36.1)], flicker=0.0038)

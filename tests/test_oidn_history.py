@@ -89,10 +89,48 @@ def test_resampled_history_is_weighted_less_than_exact_history():
         for f in frames[:-1]:  # a constant history: any fetch of it reads 0.5
             f["oidn"] = torch.full_like(f["oidn"], 0.5)
         frames[-1]["oidn"] = stripes.contiguous()  # its 3x3 range [0.4, 1] does not clip 0.5
-        config = oh.OutputHistoryConfig(resampled_weight=0.5)
+        config = oh.OutputHistoryConfig(resampled_weight=0.5, resampled_weight_per_doubling=0)
         out = run_stage(oh.OutputHistory(config), frames)[-1]
         centre = out[0, 0, H // 2, W // 2].item()  # an even column: the frame has 1.0 there
         assert centre == pytest.approx(alpha * 1.0 + (1 - alpha) * 0.5, abs=1e-5)
+
+
+def test_resampled_floor_rises_with_spp_within_its_bounds():
+    config = oh.OutputHistoryConfig()
+    floor = {spp: config.resampled_floor(torch.tensor([float(spp)])).item()
+             for spp in (0.25, 1, 4, 64, 1e6)}
+    assert floor[0.25] == pytest.approx(floor[1]) == pytest.approx(config.resampled_weight)
+    assert floor[4] == pytest.approx(0.5)  # the constant shipped before: the default spp
+    assert floor[1] < floor[4] < floor[64] < floor[1e6] == pytest.approx(
+        config.resampled_weight_max)
+
+
+def test_a_cleaner_frame_keeps_less_resampled_history():
+    """Under sub-pixel motion the current frame weighs w(spp); the default spp is 4 spp's;
+    under whole-pixel motion the spp changes nothing."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+
+    def centre(spp: float | None, shift: float) -> float:
+        frames = surface(6, (shift, 0.0))
+        frames[0]["motion"] = torch.zeros_like(frames[0]["motion"])
+        for f in frames[:-1]:  # a constant history: any fetch of it reads 0.5
+            f["oidn"] = torch.full_like(f["oidn"], 0.5)
+        frames[-1]["oidn"] = stripes.contiguous()  # its 3x3 range [0.4, 1] does not clip 0.5
+        stage = oh.OutputHistory()
+        state, given = stage.initial_state(1, H, W), None if spp is None else torch.tensor([spp])
+        for index, f in enumerate(frames):
+            with torch.no_grad():
+                out, state = stage(f["oidn"], f["albedo"], f["normal"], f["depth"],
+                                   f["motion"], torch.tensor([float(index == 0)]), state, given)
+        return out[0, 0, H // 2, W // 2].item()  # an even column: the frame has 1.0 there
+
+    floor = oh.OutputHistoryConfig().resampled_floor
+    for spp in (1.0, 64.0):
+        alpha = floor(torch.tensor([spp])).item()
+        assert centre(spp, 0.5) == pytest.approx(alpha + (1 - alpha) * 0.5, abs=1e-5)
+        assert centre(spp, 1.0) == pytest.approx(0.2 + 0.8 * 0.5, abs=1e-5)
+    assert centre(None, 0.5) == pytest.approx(centre(4.0, 0.5))
+    assert centre(1.0, 0.5) < centre(4.0, 0.5) < centre(64.0, 0.5)
 
 
 class _Given:
@@ -115,7 +153,8 @@ def test_the_stage_is_the_ablation_row_it_ships():
 
     frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:] + surface(
         2, (-2.0, 1.0), seed=2)[1:]
-    ablation = oh.OutputHistoryConfig(resampled_weight=MIN_CURRENT_WEIGHT)  # the row's weights
+    ablation = oh.OutputHistoryConfig(resampled_weight=MIN_CURRENT_WEIGHT,  # the row's weights
+                                      resampled_weight_per_doubling=0)
     ours = run_stage(oh.OutputHistory(ablation), frames)
     row = AblationRow(_Given(frames), resample="hybrid")
     for f, out in zip(frames, ours, strict=True):
@@ -188,6 +227,9 @@ def test_runtime_composition_matches_pytorch_with_state_carried(composed):
         np.testing.assert_allclose(result.color, expected[0].numpy(), rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose(state["accumulation"], stage_state.numpy(), rtol=1e-4,
                                    atol=1e-4)
+    assert runtime.info.inputs[0].name == "spp"  # the frame's spp changes the blend
+    clean = runtime.denoise(planes, state, {"spp": 64}).color
+    assert np.abs(clean - runtime.denoise(planes, state, {"spp": 1}).color).max() > 1e-4
     fresh = runtime.denoise(planes, None)  # the history was used
     assert np.abs(fresh.color - result.color).max() > 1e-3
     planes["motion"][:, 3, 5] = np.nan  # sanitised to no motion; the fetch stays in the image

@@ -215,3 +215,44 @@ def test_cli_denoise_sends_model_options(tmp_path, server, frames):
     with pytest.raises(SystemExit):  # a bad option is a usage error before any request
         main(["denoise", "--server", server.url, str(src), "--out", str(out),
               "--model-option", "kernel_size"])
+
+
+@pytest.fixture(scope="module")
+def history_server(tmp_path_factory):
+    """A server with oidn-history (which takes the frame's spp) and its pre-stage."""
+    pytest.importorskip("pyoidn")
+    from quietframe.runtime import find_model
+
+    folder = tmp_path_factory.mktemp("history-models")
+    for name in ("oidn-history", "aligned-accumulation"):
+        shutil.copy(find_model(name), folder / f"{name}.onnx")
+    with LiveServer(models_dir=str(folder)) as live:
+        yield live
+
+
+def sliding_shot(samples: str | None) -> list[bytes]:
+    """Three frames of one flat surface under a sub-pixel motion (a history that is resampled),
+    fresh noise each; `samples`: the Cycles header's spp (None: no such attribute)."""
+    from conftest import LAYOUTS, make_buffers, write_exr
+
+    out = []
+    for i in range(3):
+        b = make_buffers(height=SIZE[1], width=SIZE[0], noise=100 + i)
+        b["normal"][:] = (0.0, 0.0, 1.0)
+        b["depth"][:] = 5.0
+        header = {"cycles.ViewLayer.samples": samples} if samples else None
+        out.append(write_exr(LAYOUTS["plain-normal"](b), header))
+    return out
+
+
+def test_the_header_spp_reaches_a_model_that_takes_it(history_server):
+    """oidn-history keeps less resampled history for a cleaner frame: the spp comes from the
+    Cycles header, or the session's option where the file states none; 0 is refused."""
+    url = history_server.url
+    stated = {s: denoise(url, sliding_shot(s), "oidn-history") for s in ("1", "64")}
+    assert np.allclose(stated["1"][0], stated["64"][0], atol=1e-6)  # no history yet
+    assert not np.allclose(stated["1"][-1], stated["64"][-1], rtol=1e-3, atol=1e-4)
+    optioned = denoise(url, sliding_shot(None), "oidn-history", spp=64)
+    for a, b in zip(stated["64"], optioned, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert "spp must be at least 1, got 0" in refused(url, "oidn-history", {"spp": 0})
