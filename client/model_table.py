@@ -46,6 +46,8 @@ def _options(model: dict) -> str:
     for option in model.get("options") or ():
         allowed = option.get("allowed")
         values = f"; one of {', '.join(map(str, allowed))}" if allowed else ""
+        if option.get("minimum") is not None:
+            values += f"; at least {option['minimum']:g}"
         parts.append(f"{option['name']} (default {option['default']}{values})")
     return "; ".join(parts)
 

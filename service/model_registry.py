@@ -179,7 +179,7 @@ class ModelRegistry:
                 optional_buffers=list(d.info.optional_buffers),
                 state=[BufferSpec(name=s.name, channels=s.channels) for s in d.info.state_specs],
                 options=[
-                    ModelOption(name=i.name, default=i.default, doc=i.doc,
+                    ModelOption(name=i.name, default=i.default, doc=i.doc, minimum=i.minimum,
                                 allowed=list(i.allowed) if i.allowed is not None else None)
                     for i in d.info.inputs
                 ],

@@ -190,6 +190,7 @@ class ModelOption(BaseModel):
     name: str = Field(description="the key in a session's model_options")
     default: int | float = Field(description="the value when a session does not set it")
     allowed: list[int | float] | None = Field(description="the values it takes; None: any")
+    minimum: float | None = Field(default=None, description="the smallest value it takes")
     doc: str = ""
 
 

@@ -256,3 +256,6 @@ def test_the_header_spp_reaches_a_model_that_takes_it(history_server):
     for a, b in zip(stated["64"], optioned, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
     assert "spp must be at least 1, got 0" in refused(url, "oidn-history", {"spp": 0})
+    listed = {m["name"]: m["options"] for m in httpx.get(f"{url}/v1/models").json()["models"]}
+    assert [(o["name"], o["default"], o["minimum"]) for o in listed["oidn-history"]] == [
+        ("spp", 4.0, 1.0)]
