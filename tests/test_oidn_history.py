@@ -234,3 +234,26 @@ def test_runtime_composition_matches_pytorch_with_state_carried(composed):
     assert np.abs(fresh.color - result.color).max() > 1e-3
     planes["motion"][:, 3, 5] = np.nan  # sanitised to no motion; the fetch stays in the image
     assert np.isfinite(runtime.denoise(planes, state).color).all()
+
+
+def test_the_weight_ablations_spp_row_is_the_shipped_stage():
+    """bench/history_weight's `w(spp)` row computes what the shipped stage does at that spp."""
+    from quietframe.bench.history_weight import HistoryRule
+
+    frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:]
+    for spp in (1.0, 64.0):
+        state, shipped = oh.OutputHistory().initial_state(1, H, W), []
+        for index, f in enumerate(frames):
+            with torch.no_grad():
+                out, state = oh.OutputHistory()(
+                    f["oidn"], f["albedo"], f["normal"], f["depth"], f["motion"],
+                    torch.tensor([float(index == 0)]), state, torch.tensor([spp]))
+            shipped.append(out[0].numpy())
+        planes = [{k: f[k][0].numpy().copy() for k in ("depth", "normal", "motion")}
+                  | {"color": f["oidn"][0].numpy().copy()} for f in frames]
+        base = {p["color"].ctypes.data: f["oidn"][0].numpy()
+                for p, f in zip(planes, frames, strict=True)}
+        rule = HistoryRule(base, {}, "spp")
+        rule.header_spp = spp
+        for p, expected in zip(planes, shipped, strict=True):
+            np.testing.assert_allclose(rule(p), expected, rtol=1e-5, atol=1e-6)
