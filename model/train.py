@@ -42,7 +42,7 @@ from quietframe.model.oidn_temporal import VARIANTS as OIDN_VARIANTS
 from quietframe.model.oidn_temporal import OIDNTemporal, OIDNTemporalConfig
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.oidn_prepass import OIDNSettings
-from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS, RUNS_DIR, split_dir
+from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS, RENDERERS, RUNS_DIR, split_dir
 
 
 @dataclasses.dataclass
@@ -51,6 +51,9 @@ class TrainConfig:
     width: int = 0  # NBG GuideNet / oidn-temporal CNN width; 0 = the variant's own (NBG: 20);
     # an affinity variant names its U-Net widths
     data: str = str(DATA_DIR)
+    # The renderers whose splits are trained and validated on, comma-separated ("mitsuba",
+    # "cycles", "mitsuba,cycles"): the train split is the union of theirs, validation too.
+    renderers: str = "mitsuba"
     # or "l1" (paper §4.4: L1 on the LDR-mapped output), or "relmse+temporal" (unbiased under
     # noisy targets, losses.relmse_unbiased_loss), or "tau+temporal" (squared error in the
     # evaluation's τ space, Işık eq. 14-15: the loss whose optimum is the best PSNR)
@@ -234,8 +237,18 @@ def save(path: Path, model: nn.Module, optimizer, step: int, cfg: TrainConfig,
     tmp.replace(path)  # atomic: a killed run never leaves a torn checkpoint
 
 
-def split_root(cfg: TrainConfig, split: str) -> Path:
-    return split_dir(cfg.data, split)
+def renderers(cfg: TrainConfig) -> tuple[str, ...]:
+    """The run's renderers, in the order given; ValueError for an unknown or missing one."""
+    names = tuple(dict.fromkeys(r.strip() for r in cfg.renderers.split(",") if r.strip()))
+    unknown = [r for r in names if r not in RENDERERS]
+    if unknown or not names:
+        raise ValueError(f"renderers {cfg.renderers!r}: a comma-separated list of {RENDERERS}")
+    return names
+
+
+def split_roots(cfg: TrainConfig, split: str) -> list[Path]:
+    """The split's folder for each of the run's renderers (g2/<split>, g2-cycles/<split>)."""
+    return [split_dir(cfg.data, split, renderer=r) for r in renderers(cfg)]
 
 
 class TrainingBatches:
@@ -245,8 +258,16 @@ class TrainingBatches:
     def __init__(self, cfg: TrainConfig) -> None:
         from quietframe.model.data import CropDataset
 
-        self.dataset = CropDataset(split_root(cfg, "train"), crop=cfg.crop,
+        self.dataset = CropDataset(split_roots(cfg, "train"), crop=cfg.crop,
                                    history=cfg.frames - 1, oidn=oidn_settings(cfg))
+        # Mitsuba frames are 256², Cycles train frames 128²: crops larger than the smallest
+        # frame would differ in size and could not be stacked into one batch.
+        crops = {(min(cfg.crop, s.size[0]), min(cfg.crop, s.size[1]))
+                 for s in self.dataset.sequences}
+        if cfg.batch > 1 and len(crops) > 1:
+            raise ValueError(f"crop {cfg.crop}: the train frames give crops {sorted(crops)}, "
+                             "which cannot share a batch; use a crop no larger than the "
+                             "smallest frame, or batch 1")
         self.batch, self.seed = cfg.batch, cfg.seed
         self.per_epoch = max(len(self.dataset) // cfg.batch, 1)
         self._epoch, self._order = -1, torch.empty(0, dtype=torch.long)
@@ -266,13 +287,14 @@ class TrainingBatches:
 
 
 def validation_batches(cfg: TrainConfig, spp: int = 1) -> list[dict[str, Tensor]]:
-    """Whole validation sequences (batch of one each); empty until that split is rendered."""
+    """Whole validation sequences of the run's renderers (batch of one each); a renderer whose
+    split is not rendered yet adds none."""
     from quietframe.model.data import SequenceDataset
 
-    root = split_root(cfg, "validation")
-    if not root.exists():
+    roots = [root for root in split_roots(cfg, "validation") if root.exists()]
+    if not roots:
         return []
-    dataset = SequenceDataset(root, spp=spp, oidn=oidn_settings(cfg))
+    dataset = SequenceDataset(roots, spp=spp, oidn=oidn_settings(cfg))
     return [{k: v.unsqueeze(0) for k, v in dataset[i].items()} for i in range(len(dataset))]
 
 
@@ -378,6 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = resume_config(run, flags)
         dropped_buffers(cfg)
+        renderers(cfg)
     except ValueError as exc:
         parser.error(str(exc))
     best = train(cfg, run, stop_at)

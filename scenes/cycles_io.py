@@ -49,16 +49,23 @@ def _decode(path: Path, mapping: dict | None = None) -> dict[str, np.ndarray]:
     return {k: v.transpose(1, 2, 0) for k, v in decoded.buffers.items()}
 
 
-def load_frame(folder: Path, t: int, spp: int) -> dict[str, np.ndarray]:
-    """Frame t of a Cycles sequence at `spp`: the input buffers (motion zero where the file's
-    Vector is all zero), `blender_denoise` (Blender's OIDN output of that render) and
-    `reference` (the mean of the two halves; a locked-off shot's frames share frame 1's)."""
-    path = folder / level_dir(spp) / frame_file(t)
-    out = _decode(path)
+def load_inputs(folder: Path, t: int, spp: int) -> dict[str, np.ndarray]:
+    """Frame t's input buffers at `spp` as the service decodes them; one the file lacks (motion
+    where the Vector pass is all zero) is zeros, as the runtime feeds an absent buffer."""
+    out = _decode(folder / level_dir(spp) / frame_file(t))
     h, w = out["color"].shape[:2]
     for name in INPUT_BUFFERS:
         if name not in out:
             out[name] = np.zeros((h, w, BUFFER_CHANNELS[name]), np.float32)
+    return out
+
+
+def load_frame(folder: Path, t: int, spp: int) -> dict[str, np.ndarray]:
+    """Frame t of a Cycles sequence at `spp`: the input buffers (load_inputs),
+    `blender_denoise` (Blender's OIDN output of that render) and `reference` (the mean of the
+    two halves; a locked-off shot's frames share frame 1's)."""
+    path = folder / level_dir(spp) / frame_file(t)
+    out = load_inputs(folder, t, spp)
     out["blender_denoise"] = _decode(path, {"color": "ViewLayer.Combined"})["color"]
     out["reference"] = load_reference(folder, t)
     return out
