@@ -83,6 +83,9 @@ class TrainConfig:
     outlier_sigmas: float = -1.0
     outlier_floor: float = -1.0  # NBG: NBGConfig.outlier_floor (-1 = the variant's)
     net_scale: int = 0  # oidn-temporal: OIDNTemporalConfig.net_scale (0 = the variant's)
+    # Fine-tuning: a checkpoint whose model (architecture and weights) starts a new run, with a
+    # fresh optimizer and schedule (e.g. a shipped model on new data); empty: train from scratch
+    init: str = ""
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
@@ -311,10 +314,12 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     latest = run / "checkpoint.pt"
     ckpt = torch.load(latest, map_location="cpu", weights_only=False) if latest.exists() else None
     # A resumed run is the checkpoint's own model, whatever the flags say (resume_config).
-    model = build_model(cfg, ckpt["config"] if ckpt else None)
+    start = ckpt or (load_init(cfg) if cfg.init else None)
+    model = build_model(cfg, start["config"] if start else None)
+    if start:
+        model.load_state_dict(start["model"])
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if ckpt:
-        model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         step, best_psnr, metrics = ckpt["step"], ckpt["best_psnr"], ckpt["metrics"]
     train_batches = TrainingBatches(cfg)
@@ -364,21 +369,38 @@ ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fix
                        "outlier_sigmas", "outlier_floor", "net_scale")
 
 
+def load_init(cfg: TrainConfig) -> dict:
+    """The checkpoint a fine-tuning run starts from (FileNotFoundError naming it)."""
+    path = Path(cfg.init).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"--init {cfg.init}: no such checkpoint")
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
 def resume_config(run: Path, flags: dict) -> TrainConfig:
     """The run's configuration: a new run's from the flags given (defaults elsewhere); a
     resumed run's from its checkpoint, with the flags given on top except the architecture,
-    which a flag cannot change (ValueError naming the conflict)."""
+    which a flag cannot change (ValueError naming the conflict). A new run with --init takes
+    the architecture from the init checkpoint's training configuration the same way."""
     latest = run / "checkpoint.pt"
-    if not latest.exists():
+    if latest.exists():
+        source, verb = latest, "resumes"
+        saved = torch.load(latest, map_location="cpu", weights_only=False)["training"]
+        base = dict(saved)
+    elif flags.get("init"):
+        source, verb = Path(flags["init"]), "fine-tunes"
+        saved = load_init(TrainConfig(init=flags["init"]))["training"]
+        base = {k: saved[k] for k in ARCHITECTURE_FIELDS if k in saved}
+    else:
         return TrainConfig(**flags)
-    saved = torch.load(latest, map_location="cpu", weights_only=False)["training"]
     known = {f.name for f in dataclasses.fields(TrainConfig)}
-    base = {k: v for k, v in saved.items() if k in known}
+    base = {k: v for k, v in base.items() if k in known}
     clashes = [k for k in ARCHITECTURE_FIELDS if k in flags and flags[k] != base.get(k)]
     if clashes:
+        fix = "use a new --run" if verb == "resumes" else "drop the flag"
         raise ValueError(
-            f"{run} resumes a {base.get('variant')} run (width {base.get('width')}); "
-            f"--{'/--'.join(clashes)} cannot change a checkpoint's model: use a new --run"
+            f"{run} {verb} a {base.get('variant')} model (width {base.get('width')}, from "
+            f"{source}); --{'/--'.join(clashes)} cannot change a checkpoint's model: {fix}"
         )
     return TrainConfig(**{**base, **flags})
 
@@ -401,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = resume_config(run, flags)
         dropped_buffers(cfg)
         renderers(cfg)
-    except ValueError as exc:
+    except (ValueError, FileNotFoundError) as exc:
         parser.error(str(exc))
     best = train(cfg, run, stop_at)
     print(f"best checkpoint: {best}")

@@ -16,8 +16,13 @@ render() {  # split sequences size reference_spp [more args]
         --size "$size" --spp 1,2,4,8,16,64 --reference-spp "$ref" --threads "${THREADS:-2}" "$@" \
         || echo "split $split: some sequences failed (re-run to retry)"
 }
-render test "${TEST_SEQUENCES:-8}" 192x192 512
-render test-static "${STATIC_SEQUENCES:-2}" 192x192 512  # flicker on locked-off shots (issue 24)
-render validation "${VALIDATION_SEQUENCES:-8}" 192x192 512
-render validation-static "${STATIC_SEQUENCES:-2}" 192x192 512
-render train "${TRAIN_SEQUENCES:-40}" 128x128 256 --reference-min-spp 32
+if [ "${STAGES:-all}" = all ]; then
+    render test "${TEST_SEQUENCES:-8}" 192x192 512
+    render test-static "${STATIC_SEQUENCES:-2}" 192x192 512  # flicker on locked-off shots (issue 24)
+    render validation "${VALIDATION_SEQUENCES:-8}" 192x192 512
+    render validation-static "${STATIC_SEQUENCES:-2}" 192x192 512
+fi
+# Train: 4 frames a sequence (one 4-frame training window; scenes, not frames, are what the
+# learned tiers lack), so 40 sequences fit one 3-hour session (~2.8 CPU-hours). Later --frames
+# wins over the one above. STAGES=train renders train alone (a fresh machine needs it first).
+render train "${TRAIN_SEQUENCES:-40}" 128x128 256 --reference-min-spp 32 --frames 4

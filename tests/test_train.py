@@ -150,3 +150,28 @@ def test_outlier_sigmas_reaches_the_nbg_model_and_is_fixed_per_run(data, tmp_pat
     qt.train(cfg, tmp_path / "run")
     with pytest.raises(ValueError, match="outlier_sigmas"):
         qt.resume_config(tmp_path / "run", {"outlier_sigmas": 3.0})
+
+
+def test_fine_tuning_starts_from_the_init_checkpoints_weights_with_a_fresh_schedule(data, tmp_path):
+    qt.train(config(data, steps=3), tmp_path / "base")
+    init = str(tmp_path / "base" / "checkpoint.pt")
+    base = torch.load(init, weights_only=False)
+    flags = {"init": init, "data": str(data), "crop": 24, "frames": 2, "batch": 2, "steps": 2,
+             "eval_every": 2, "threads": 1}
+    # The architecture comes from the init checkpoint (no --variant/--width given).
+    cfg = qt.resume_config(tmp_path / "tuned", {**flags, "lr": 1e-3})
+    assert (cfg.variant, cfg.width) == ("nbg-2l-1g", 4)
+    # At lr 0 the run's weights are the init's, weight for weight: the weights were loaded.
+    frozen = qt.resume_config(tmp_path / "frozen", {**flags, "lr": 0.0})
+    qt.train(frozen, tmp_path / "frozen")
+    kept = torch.load(tmp_path / "frozen" / "checkpoint.pt", weights_only=False)
+    assert all(torch.equal(v, base["model"][n]) for n, v in kept["model"].items())
+    qt.train(cfg, tmp_path / "tuned")
+    tuned = torch.load(tmp_path / "tuned" / "checkpoint.pt", weights_only=False)
+    assert tuned["step"] == 2  # its own schedule, not the base's 3 steps continued
+    assert tuned["training"]["init"] == init
+    assert any(not torch.equal(v, base["model"][n]) for n, v in tuned["model"].items())
+    with pytest.raises(ValueError, match="drop the flag"):
+        qt.resume_config(tmp_path / "other", {"init": init, "width": 8})
+    with pytest.raises(SystemExit):  # a missing init checkpoint is a usage error
+        qt.main(["--run", str(tmp_path / "x"), "--init", str(tmp_path / "nope.pt")])

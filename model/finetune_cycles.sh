@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# The learned tiers retrained with Cycles in the mix (issue 23, deliverable 5): the shipped
+# nbg-2l-3g and affinity-h16-k5gc fine-tuned from their shipped checkpoints
+# (models/training/<name>/best.pt) on the union of the Mitsuba and Cycles train splits,
+# two runs side by side (one thread each), each resumable from its run directory.
+#   nohup nice -n 5 model/finetune_cycles.sh > ~/.cache/quietframe/logs/finetune.log 2>&1 &
+# Fine-tuning, not training from scratch: the shipped weights already hold what Mitsuba taught
+# them, and the issue ships a retrained model only if it loses at most 0.2 dB on the Mitsuba
+# test split; a short schedule at a third of the original learning rate moves them towards
+# Cycles frames (camera-space normals, Blackman-Harris pixels, 16-64 spp) without starting
+# over. Each run keeps its own data, loss, dropout and crop settings from the original run.
+# PYTHON: the interpreter (default python); RUNS: where runs go; NBG_STEPS / AFFINITY_STEPS:
+# schedule lengths (400 and 600).
+set -u
+PY=${PYTHON:-python}
+R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}
+mkdir -p "$R"
+run() {  # name, then quietframe-train flags
+    local name=$1
+    shift
+    "$PY" -m quietframe.model.train --run "$R/$name" --init "models/training/$name/best.pt" \
+        --renderers mitsuba,cycles --threads 1 --seed 1 "$@" > "$R/$name.out" 2>&1 \
+        || echo "run $name failed (see $R/$name.out)"
+    echo "run $name: $(tail -c 300 "$R/$name/log.txt" 2>/dev/null | tail -1)"
+}
+run nbg-2l-3g --steps "${NBG_STEPS:-400}" --eval-every 100 --lr 0.0003 --dropout 0.3 \
+    --loss smape+temporal --crop 128 --frames 4 --batch 4 &
+run affinity-h16-k5gc --steps "${AFFINITY_STEPS:-600}" --eval-every 150 --lr 0.00015 \
+    --loss tau+temporal --crop 128 --frames 4 --batch 4 &
+wait
