@@ -18,14 +18,15 @@ session's first frame and of a cut, and nowhere else, so a shot never switches m
 Among the models that fit the latency budget, whose expected PSNR is within the quality's
 tolerance of the best expected PSNR and not below the per-frame floor (per-frame OIDN-high's
 expected PSNR less PER_FRAME_FLOOR_DB: the product's promise is never to lose to the renderer's
-own per-frame denoise), the unsteady are dropped and the cheapest of the rest wins. Steadiness
-is the measured flicker on locked-off validation shots where every candidate has it (at most
-STEADY_FLICKER_SHARE of per-frame OIDN's), else TRMAE (at most STABILITY_SLACK above the
-steadiest candidate's). Expected PSNR
-comes from each model's `by_noise` points (validation sequences: the statistic of their first
-frame, the model's PSNR on them) weighted by closeness in log2 of the statistic, when every
-candidate has them and the frame's statistic is known; otherwise from the `by_spp` table at the
-frame's spp.
+own per-frame denoise), the unsteady are dropped and the cheapest of the rest wins. A model
+that keeps a history is a candidate only where its table vouches for it: with the motion
+vectors or a measured cost of their absence, and at an spp its table reaches
+(MEASURED_SPP_REACH). Steadiness is the measured flicker on locked-off validation shots where
+every candidate has it (at most STEADY_FLICKER_SHARE of per-frame OIDN's), else TRMAE (at most
+STABILITY_SLACK above the steadiest candidate's). Expected PSNR comes from each model's
+`by_noise` points (validation sequences: the statistic of their first frame, the model's PSNR
+on them) weighted by closeness in log2 of the statistic, when every candidate has them and the
+frame's statistic is known; otherwise from the `by_spp` table at the frame's spp.
 """
 
 from __future__ import annotations
@@ -55,6 +56,12 @@ STABILITY_SLACK = 0.10
 PER_FRAME_FLOOR_DB = {"fast": 0.3, "balanced": 0.0, "best": 0.0}
 # Issue 24's steadiness target: flicker on locked-off shots at most half of per-frame OIDN's.
 STEADY_FLICKER_SHARE = 0.5
+# A temporal model's table vouches for it up to this factor above the highest spp it was measured
+# at (half a level of the 1, 2, 4, … grid). Beyond that its flat extrapolation is a guess the
+# other way: a history blurs more, relative to the frame's own detail, the cleaner the frame
+# (on Cycles the accumulation tiers went from ahead of per-frame OIDN at 1-4 spp to 2.7-4.7 dB
+# behind Blender's denoise at 16), so a table measured to 8 spp says nothing of a 64-spp farm frame.
+MEASURED_SPP_REACH = 2**0.5
 DEFAULT_QUALITY = "balanced"
 REFERENCE_PIXELS = 1280 * 720  # `ms_720p` is per 1280×720 frame
 
@@ -154,6 +161,11 @@ class ModelProfile:
     @property
     def measured(self) -> bool:
         return self.ms_720p is not None and bool(self.psnr_by_spp)
+
+    def measured_at(self, spp: float) -> bool:
+        """Whether the table reaches `spp` (within MEASURED_SPP_REACH of its highest level)."""
+        top = max((s for s, _ in self.psnr_by_spp), default=0.0)
+        return spp <= MEASURED_SPP_REACH * top
 
     def accepts(self, present: Iterable[str]) -> bool:
         return set(self.required) <= set(present)
@@ -371,6 +383,13 @@ def choose(
         measured = [p for p in measured if p not in blind]
         blind_note = (f", {len(blind)} temporal without a measured cost of absent motion left "
                       "out")
+    # Nor is a temporal model at an spp its table does not reach (MEASURED_SPP_REACH), where a
+    # model that keeps no history can be chosen instead.
+    unreached = [p for p in measured if p.temporal and not p.measured_at(noise.spp)]
+    if unreached and len(unreached) < len(measured):
+        measured = [p for p in measured if p not in unreached]
+        blind_note += (f", {len(unreached)} temporal measured only below {noise.spp:g} spp "
+                       "left out")
     quality = quality or DEFAULT_QUALITY
     # by_noise only when every candidate has it: absolute PSNRs from different tables (or
     # different validation points) are not comparable.

@@ -331,3 +331,20 @@ def test_a_temporal_model_is_not_chosen_without_motion_where_that_was_never_meas
     measured = replace(history, absent_db_worst={"motion": -0.1})
     assert choose(no_motion, NoiseLevel(4, "x"), [frame, measured], "oidn-frame").model == \
         "history"
+
+
+def test_a_temporal_model_is_not_chosen_above_the_spp_its_table_reaches():
+    """A table measured to 8 spp (Mitsuba's) says nothing of a 64-spp farm frame: the history
+    tiers that led at 8 spp may blur there, so a model without history is chosen instead."""
+    frame = _tier("oidn-frame", 100, [(1, 30.0), (8, 34.0)], per_frame=True)
+    acc = replace(_tier("acc", 60, [(1, 31.0), (8, 34.5)]), temporal=True)
+    assert choose(ALL, NoiseLevel(8, "x"), [frame, acc], "oidn-frame").model == "acc"
+    assert choose(ALL, NoiseLevel(11, "x"), [frame, acc], "oidn-frame").model == "acc"  # < √2·8
+    high = choose(ALL, NoiseLevel(64, "x"), [frame, acc], "oidn-frame")
+    assert high.model == "oidn-frame"
+    assert "1 temporal measured only below 64 spp left out" in high.reason
+    # a table that reaches 64 spp vouches for it there
+    reaching = replace(_tier("acc64", 60, [(1, 31.0), (8, 34.5), (64, 37.0)]), temporal=True)
+    assert choose(ALL, NoiseLevel(64, "x"), [frame, acc, reaching], "oidn-frame").model == "acc64"
+    # with nothing but temporal models installed, one is still chosen
+    assert choose(ALL, NoiseLevel(64, "x"), [acc], "acc").model == "acc"
