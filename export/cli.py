@@ -78,3 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     path = export(model, args.out, version=args.version, training=training, metrics=metrics)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

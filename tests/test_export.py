@@ -148,3 +148,14 @@ def test_dropout_training_makes_buffers_optional(tmp_path):
     result = runtime.denoise({"color": color}, None)  # the colour-only path runs
     assert result.missing == ("albedo", "normal", "depth", "motion")
     assert result.color.shape == (3, HEIGHT, WIDTH) and np.isfinite(result.color).all()
+
+
+def test_the_export_module_runs_as_a_script():
+    """`python -m quietframe.export.cli` (model/*.sh call it so) runs main: without its
+    __main__ guard it imported the module and exited 0 without writing anything."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "quietframe.export.cli", "--help"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "--checkpoint" in done.stdout

@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Before and after for the learned tiers retrained with Cycles in the mix (issue 23,
+# deliverable 5), on both test splits in one run each, next to per-frame OIDN (and Blender's own
+# denoise on Cycles):
+#   export: the fine-tuned runs of model/finetune_cycles.sh as <name>-mix.onnx beside their
+#           checkpoints in models/training/<name>-mix/ (kept in git: the candidates);
+#   test:   quietframe-eval on the Mitsuba test split (1-16 spp) and the Cycles test split
+#           (1-64 spp) with the shipped and the fine-tuned models, and issue 24's comparison
+#           table per spp (bench/compare_table) under docs/evaluation/cycles-mix/.
+# A candidate is shipped only if it loses at most 0.2 dB on the Mitsuba test split at every spp
+# (the issue's rule); shipping also re-stamps its validation tables (bench/model_metrics).
+#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test
+set -eu
+PY=${PYTHON:-python}
+R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}
+OUT=${OUT:-docs/evaluation/cycles-mix}
+NAMES=(nbg-2l-3g affinity-h16-k5gc)
+declare -A VERSION=([nbg-2l-3g]=5 [affinity-h16-k5gc]=2)  # the shipped cards' versions + 1
+STAGE=${1:?export or test}
+
+if [ "$STAGE" = export ]; then
+    for name in "${NAMES[@]}"; do
+        dir=models/training/$name-mix
+        mkdir -p "$dir"
+        cp "$R/$name"/{best.pt,config.json,log.txt} "$dir/"
+        "$PY" -m quietframe.export.cli --checkpoint "$dir/best.pt" --out "$dir/$name-mix.onnx" \
+            --version "${VERSION[$name]}"
+    done
+    exit 0
+fi
+
+models=() methods=oidn-frame
+for name in "${NAMES[@]}"; do
+    models+=(--model "models/training/$name-mix/$name-mix.onnx")
+    methods+=",$name,$name-mix"
+done
+"$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --no-timing \
+    --methods "$methods" "${models[@]}" --out "$OUT/mitsuba-test"
+"$PY" -m quietframe.bench.evaluate --renderer cycles --split test --threads 2 --no-timing \
+    --methods "blender-denoise,$methods" "${models[@]}" --out "$OUT/cycles-test"
+for split in mitsuba-test cycles-test; do
+    against=oidn-frame
+    [ "$split" = cycles-test ] && against+=,blender-denoise
+    "$PY" -m quietframe.bench.compare_table "$OUT/$split/benchmarks.json" --wide \
+        --against "$against" > "$OUT/$split/targets.md"
+done
