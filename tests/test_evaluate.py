@@ -99,3 +99,14 @@ def test_auto_is_the_services_choice_made_once_per_shot(data, tmp_path):
     else:
         assert min(r["psnr"] for r in fixed.values()) - 1e-6 <= auto["psnr"] <= max(
             r["psnr"] for r in fixed.values()) + 1e-6
+
+
+def test_normal_absence_scores_a_model_with_and_without_normals(data, capsys):
+    from quietframe.bench import normal_absence
+
+    normal_absence.main(["--data", str(data), "--renderer", "mitsuba", "--split", "validation",
+                         "--sequences", "1", "--spp", "1", "nbg-2l-3g"])
+    row = next(r for r in capsys.readouterr().out.splitlines() if r.startswith("| nbg-2l-3g"))
+    given, no_normal, no_aux = (float(c) for c in row.strip("| ").split(" | ")[2:])
+    assert all(10 < v < 60 for v in (given, no_normal, no_aux))
+    assert given != no_normal  # the model reads the normals it is given
