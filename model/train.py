@@ -314,7 +314,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     latest = run / "checkpoint.pt"
     ckpt = torch.load(latest, map_location="cpu", weights_only=False) if latest.exists() else None
     # A resumed run is the checkpoint's own model, whatever the flags say (resume_config).
-    start = ckpt or (load_init(cfg) if cfg.init else None)
+    start = ckpt or (load_init(cfg.init) if cfg.init else None)
     model = build_model(cfg, start["config"] if start else None)
     if start:
         model.load_state_dict(start["model"])
@@ -369,11 +369,11 @@ ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fix
                        "outlier_sigmas", "outlier_floor", "net_scale")
 
 
-def load_init(cfg: TrainConfig) -> dict:
+def load_init(init: str) -> dict:
     """The checkpoint a fine-tuning run starts from (FileNotFoundError naming it)."""
-    path = Path(cfg.init).expanduser()
+    path = Path(init).expanduser()
     if not path.is_file():
-        raise FileNotFoundError(f"--init {cfg.init}: no such checkpoint")
+        raise FileNotFoundError(f"--init {init}: no such checkpoint")
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
@@ -385,11 +385,10 @@ def resume_config(run: Path, flags: dict) -> TrainConfig:
     latest = run / "checkpoint.pt"
     if latest.exists():
         source, verb = latest, "resumes"
-        saved = torch.load(latest, map_location="cpu", weights_only=False)["training"]
-        base = dict(saved)
+        base = torch.load(latest, map_location="cpu", weights_only=False)["training"]
     elif flags.get("init"):
         source, verb = Path(flags["init"]), "fine-tunes"
-        saved = load_init(TrainConfig(init=flags["init"]))["training"]
+        saved = load_init(flags["init"])["training"]
         base = {k: saved[k] for k in ARCHITECTURE_FIELDS if k in saved}
     else:
         return TrainConfig(**flags)

@@ -9,11 +9,12 @@
 # Budget (docs/data.md, "Cycles splits"): ~17 CPU-hours on this 2-core machine in all.
 set -u
 PY=${CYCLES_PYTHON:-$HOME/venv-bpy/bin/python}
-render() {  # split sequences size reference_spp [more args]
+render() {  # split sequences size reference_spp [more args]; FRAMES: frames a sequence (8)
     local split=$1 n=$2 size=$3 ref=$4
     shift 4
-    "$PY" -m quietframe.scenes.cycles_render --split "$split" --sequences "$n" --frames 8 \
-        --size "$size" --spp 1,2,4,8,16,64 --reference-spp "$ref" --threads "${THREADS:-2}" "$@" \
+    "$PY" -m quietframe.scenes.cycles_render --split "$split" --sequences "$n" \
+        --frames "${FRAMES:-8}" --size "$size" --spp 1,2,4,8,16,64 --reference-spp "$ref" \
+        --threads "${THREADS:-2}" "$@" \
         || echo "split $split: some sequences failed (re-run to retry)"
 }
 if [ "${STAGES:-all}" = all ]; then
@@ -23,6 +24,6 @@ if [ "${STAGES:-all}" = all ]; then
     render validation-static "${STATIC_SEQUENCES:-2}" 192x192 512
 fi
 # Train: 4 frames a sequence (one 4-frame training window; scenes, not frames, are what the
-# learned tiers lack), so 40 sequences fit one 3-hour session (~2.8 CPU-hours). Later --frames
-# wins over the one above. STAGES=train renders train alone (a fresh machine needs it first).
-render train "${TRAIN_SEQUENCES:-40}" 128x128 256 --reference-min-spp 32 --frames 4
+# learned tiers lack), so 40 sequences fit one 3-hour session (1.96 CPU-hours measured on
+# 2026-12-04). STAGES=train renders train alone (a fresh machine needs it first).
+FRAMES=4 render train "${TRAIN_SEQUENCES:-40}" 128x128 256 --reference-min-spp 32

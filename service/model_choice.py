@@ -378,18 +378,14 @@ def choose(
     # it was never measured, it is not a candidate (on a moving shot it ghosts).
     blind = [p for p in measured if p.temporal and "motion" in p.optional and "motion" not in have
              and "motion" not in {**p.absent_db, **p.absent_db_worst}]
-    blind_note = ""
-    if blind and len(blind) < len(measured):
-        measured = [p for p in measured if p not in blind]
-        blind_note = (f", {len(blind)} temporal without a measured cost of absent motion left "
-                      "out")
+    measured, blind_note = leave_out(measured, blind,
+                                     "temporal without a measured cost of absent motion")
     # Nor is a temporal model at an spp its table does not reach (MEASURED_SPP_REACH), where a
     # model that keeps no history can be chosen instead.
     unreached = [p for p in measured if p.temporal and not p.measured_at(noise.spp)]
-    if unreached and len(unreached) < len(measured):
-        measured = [p for p in measured if p not in unreached]
-        blind_note += (f", {len(unreached)} temporal measured only below {noise.spp:g} spp "
-                       "left out")
+    measured, unreached_note = leave_out(measured, unreached,
+                                         f"temporal measured only below {noise.spp:g} spp")
+    blind_note += unreached_note
     quality = quality or DEFAULT_QUALITY
     # by_noise only when every candidate has it: absolute PSNRs from different tables (or
     # different validation points) are not comparable.
@@ -434,6 +430,15 @@ def choose(
     return Choice(
         profile.name, reason, **base, expected_psnr=round(psnr, 2), expected_ms=round(ms, 3)
     )
+
+
+def leave_out(pool: list[ModelProfile], out: list[ModelProfile],
+              why: str) -> tuple[list[ModelProfile], str]:
+    """`pool` less `out`, and a note saying how many and why; all of `pool` where that would
+    leave no candidate."""
+    if not out or len(out) == len(pool):
+        return pool, ""
+    return [p for p in pool if p not in out], f", {len(out)} {why} left out"
 
 
 Scored = tuple[ModelProfile, float, float]  # profile, expected PSNR, expected ms
