@@ -6,17 +6,18 @@
 #           checkpoints in models/training/<name>-mix/ (kept in git: the candidates);
 #   test:   quietframe-eval on the Mitsuba test split (1-16 spp) and the Cycles test split
 #           (1-64 spp) with the shipped and the fine-tuned models, and issue 24's comparison
-#           table per spp (bench/compare_table) under docs/evaluation/cycles-mix/.
+#           table per spp (bench/compare_table) under docs/evaluation/cycles-mix/;
+#           test-mitsuba / test-cycles: one split alone (the other may still be rendering).
 # A candidate is shipped only if it loses at most 0.2 dB on the Mitsuba test split at every spp
 # (the issue's rule); shipping also re-stamps its validation tables (bench/model_metrics).
-#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test
+#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test|test-mitsuba|test-cycles
 set -eu
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}
 OUT=${OUT:-docs/evaluation/cycles-mix}
 NAMES=(nbg-2l-3g affinity-h16-k5gc)
 declare -A VERSION=([nbg-2l-3g]=5 [affinity-h16-k5gc]=2)  # the shipped cards' versions + 1
-STAGE=${1:?export or test}
+STAGE=${1:?export, test, test-mitsuba or test-cycles}
 
 if [ "$STAGE" = export ]; then
     for name in "${NAMES[@]}"; do
@@ -34,13 +35,30 @@ for name in "${NAMES[@]}"; do
     models+=(--model "models/training/$name-mix/$name-mix.onnx")
     methods+=",$name,$name-mix"
 done
-"$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --no-timing \
-    --methods "$methods" "${models[@]}" --out "$OUT/mitsuba-test"
-"$PY" -m quietframe.bench.evaluate --renderer cycles --split test --threads 2 --no-timing \
-    --methods "blender-denoise,$methods" "${models[@]}" --out "$OUT/cycles-test"
-for split in mitsuba-test cycles-test; do
-    against=oidn-frame
-    [ "$split" = cycles-test ] && against+=,blender-denoise
-    "$PY" -m quietframe.bench.compare_table "$OUT/$split/benchmarks.json" --wide \
-        --against "$against" > "$OUT/$split/targets.md"
-done
+before_after() {  # split folder: each fine-tuned model against its shipped self, per spp
+    for name in "${NAMES[@]}"; do
+        printf '\n%s against %s (PSNR, in brackets the difference):\n\n' "$name-mix" "$name"
+        "$PY" -m quietframe.bench.compare_table "$OUT/$1/benchmarks.json" --wide \
+            --methods "$name-mix" --against "$name"
+    done > "$OUT/$1/before_after.md"
+}
+mitsuba() {
+    "$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --no-timing \
+        --methods "$methods" "${models[@]}" --out "$OUT/mitsuba-test"
+    "$PY" -m quietframe.bench.compare_table "$OUT/mitsuba-test/benchmarks.json" --wide \
+        --against oidn-frame > "$OUT/mitsuba-test/targets.md"
+    before_after mitsuba-test
+}
+cycles() {
+    "$PY" -m quietframe.bench.evaluate --renderer cycles --split test --threads 2 --no-timing \
+        --methods "blender-denoise,$methods" "${models[@]}" --out "$OUT/cycles-test"
+    "$PY" -m quietframe.bench.compare_table "$OUT/cycles-test/benchmarks.json" --wide \
+        --against oidn-frame,blender-denoise > "$OUT/cycles-test/targets.md"
+    before_after cycles-test
+}
+case "$STAGE" in
+test) mitsuba; cycles ;;
+test-mitsuba) mitsuba ;;
+test-cycles) cycles ;;
+*) echo "unknown stage $STAGE" >&2; exit 2 ;;
+esac

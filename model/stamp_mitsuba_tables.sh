@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# auto's Mitsuba tables at 1-64 spp (issue 24). A frame whose header names no renderer with a
+# table of its own (Mitsuba, Arnold, RenderMan, V-Ray) is chosen for on each model's default
+# table. Those tables were stamped on an earlier Mitsuba validation split at 1-8 spp, and the
+# history tiers (oidn-history*) have none, so auto cannot pick them for such frames and, by
+# the reach rule (service/model_choice.MEASURED_SPP_REACH), falls back to oidn-frame above
+# 11 spp. This re-measures every shipped model on one set of validation frames at 1-64 spp and
+# stamps the tables; the test split then scores auto against per-frame OIDN.
+#   render:  the Mitsuba validation split (12 x 8 frames, 256^2, 1024-spp references) and its
+#            2 locked-off shots, with 16- and 64-spp inputs topped up (~4 CPU-hours on 2 cores,
+#            resumable: finished frames are skipped);
+#   measure: quietframe-eval on both, every shipped model (validation only: model selection);
+#   stamp:   bench/model_metrics --renderer mitsuba into models/*.onnx (then regenerate the
+#            cards: python -m quietframe.export.model_card models/*.onnx);
+#   test:    auto and the temporal tiers against oidn-frame on the Mitsuba test split and its
+#            locked-off shots (needs test topped up to 64 spp), and the targets table.
+#   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure|stamp|test
+set -eu
+PY=${PYTHON:-python}
+SPP=1,2,4,8,16,64
+OUT=${OUT:-docs/evaluation/mitsuba-tables}
+STAGE=${1:?render, measure, stamp or test}
+models() {  # the shipped models' method names (file stems), comma-separated
+    local names=() f
+    for f in models/*.onnx; do names+=("$(basename "$f" .onnx)"); done
+    (IFS=,; echo "${names[*]}")
+}
+render() {  # split sequences
+    "$PY" -m quietframe.scenes.cli render --split "$1" --sequences "$2" --reference-spp 1024 \
+        --frames 8 --size 256x256 --spp 1,2,4,8 --jobs "${JOBS:-2}"
+    "$PY" -m quietframe.scenes.cli topup --split "$1" --spp 16
+    "$PY" -m quietframe.scenes.cli topup --split "$1" --spp 64
+}
+evaluate() {  # split methods out [more args]
+    local split=$1 methods=$2 out=$3
+    shift 3
+    "$PY" -m quietframe.bench.evaluate --split "$split" --spp "$SPP" --threads 2 --no-timing \
+        --methods "$methods" --out "$out" "$@"
+}
+case "$STAGE" in
+render)
+    render validation-static 2
+    render validation 12
+    ;;
+measure)
+    evaluate validation "$(models),oidn-high-cleanaux-fast" "$OUT/validation"
+    evaluate validation-static "$(models),oidn-high-cleanaux-fast" "$OUT/validation-static"
+    ;;
+stamp)
+    "$PY" -m quietframe.bench.model_metrics --renderer mitsuba \
+        --evaluation "$OUT/validation/benchmarks.json" \
+        --static-evaluation "$OUT/validation-static/benchmarks.json" models/*.onnx
+    ;;
+test)
+    render test-static 2
+    "$PY" -m quietframe.scenes.cli topup --split test --spp 64
+    methods=auto,oidn-frame,oidn-high-cleanaux-fast,oidn-acc,oidn-fast-acc
+    methods+=,oidn-history,oidn-fast-history,oidn-history-cleanaux
+    evaluate test "$methods" "$OUT/test"
+    evaluate test-static "$methods" "$OUT/test-static"
+    "$PY" -m quietframe.bench.compare_table "$OUT/test/benchmarks.json" --wide \
+        --against oidn-frame --static "$OUT/test-static/benchmarks.json" > "$OUT/targets.md"
+    ;;
+*) echo "unknown stage $STAGE" >&2; exit 2 ;;
+esac
