@@ -11,7 +11,7 @@
 #            resumable: finished frames are skipped);
 #   measure: quietframe-eval on both, every shipped model (validation only: model selection);
 #   stamp:   bench/model_metrics --renderer mitsuba into models/*.onnx (then regenerate the
-#            cards: python -m quietframe.export.model_card models/*.onnx);
+#            cards: python -m quietframe.bench.model_card models/*.onnx);
 #   test:    auto and the temporal tiers against oidn-frame on the Mitsuba test split and its
 #            locked-off shots (needs test topped up to 64 spp), and the targets table.
 #   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure|stamp|test
