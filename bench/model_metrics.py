@@ -14,10 +14,12 @@ demodulated and not, and the model's PSNR on the sequence; service/model_choice.
 `--timing` takes `ms_720p` from another run (a quiet one, e.g. with the renders paused) instead
 of the evaluation's own. Where the renderer has its own denoise and the run measured it
 (Blender's on Cycles: `blender-denoise`), each row also gets `renderer_denoise`, its PSNR on
-the same frames. Existing keys (training's validation score) are kept. `--renderer`
-names whose frames were measured (the card keeps a table per renderer, runtime/card.py; default
-mitsuba). Nothing here is typed in: `model=auto` reads what a measurement wrote
-(docs/model-interface.md).
+the same frames. `--measured-as` stamps one model from another method's rows: a candidate
+measured beside the shipped models under its own name (e.g. `affinity-h16-k5gc-mix`), then
+installed under the shipped name. Existing keys (training's validation score) are kept.
+`--renderer` names whose frames were measured (the card keeps a table per renderer,
+runtime/card.py; default mitsuba). Nothing here is typed in: `model=auto` reads what a
+measurement wrote (docs/model-interface.md).
 """
 
 from __future__ import annotations
@@ -143,7 +145,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--renderer", default=DEFAULT_RENDERER,
                         help="the renderer of the evaluated frames: the card keeps one table "
                              f"per renderer (default {DEFAULT_RENDERER})")
+    parser.add_argument("--measured-as", metavar="METHOD",
+                        help="the method name the runs measured the (one) model under, where "
+                             "it is not the file stem: a candidate installed under the shipped "
+                             "name")
     args = parser.parse_args(argv)
+    if args.measured_as and len(args.models) != 1:
+        parser.error("--measured-as names one model's rows: give exactly one model")
     evaluation = json.loads(args.evaluation.read_text())
     static = json.loads(args.static_evaluation.read_text()) if args.static_evaluation else None
     timing = json.loads(args.timing.read_text()) if args.timing else None
@@ -158,19 +166,20 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--noise-points {args.noise_points}: not a validation run (model "
                      "selection never reads the test split)")
     for path in args.models:
-        rows = rows_of(evaluation, path.stem)
+        method = args.measured_as or path.stem
+        rows = rows_of(evaluation, method)
         if not rows:
-            print(f"{path}: no rows for {path.stem!r} in {args.evaluation}; left as it is")
+            print(f"{path}: no rows for {method!r} in {args.evaluation}; left as it is")
             continue
         additions = metrics_from_rows(
             rows, evaluation.get("meta", {}),
-            rows_of(static, path.stem) if static else (), static and static.get("meta"),
-            rows_of(timing, path.stem) if timing else None, timing and timing.get("meta"),
+            rows_of(static, method) if static else (), static and static.get("meta"),
+            rows_of(timing, method) if timing else None, timing and timing.get("meta"),
             rows_of(evaluation, RENDERER_DENOISE_METHOD.get(args.renderer, "")))
-        if path.stem in absent:
-            additions["absent_db"] = absent[path.stem]
-            additions["absent_db_worst"] = worst_absent_db(absence_run, path.stem)
-        by_noise = noise_points(choice_run, path.stem) if choice_run else None
+        if method in absent:
+            additions["absent_db"] = absent[method]
+            additions["absent_db_worst"] = worst_absent_db(absence_run, method)
+        by_noise = noise_points(choice_run, method) if choice_run else None
         if by_noise:
             additions["by_noise"] = by_noise
         metrics = stamp(path, additions, args.renderer)

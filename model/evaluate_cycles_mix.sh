@@ -8,16 +8,21 @@
 #           (1-64 spp) with the shipped and the fine-tuned models, and issue 24's comparison
 #           table per spp (bench/compare_table) under docs/evaluation/cycles-mix/;
 #           test-mitsuba / test-cycles: one split alone (the other may still be rendering).
+#   ship:   install the candidates under the shipped names (next version) with both renderers'
+#           tables, each measured on validation with the candidate under its own name
+#           (bench/model_metrics --measured-as): Mitsuba from model/stamp_mitsuba_tables.sh
+#           measure (run it first), Cycles from a run here on the Cycles validation splits,
+#           each with a quiet 720p timing run on that renderer's frames; then the cards.
 # A candidate is shipped only if it loses at most 0.2 dB on the Mitsuba test split at every spp
-# (the issue's rule); shipping also re-stamps its validation tables (bench/model_metrics).
-#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test|test-mitsuba|test-cycles
+# (the issue's rule; both pass it: docs/training.md, "Cycles in the mix").
+#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test|test-mitsuba|test-cycles|ship
 set -eu
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}
 OUT=${OUT:-docs/evaluation/cycles-mix}
 NAMES=(nbg-2l-3g affinity-h16-k5gc)
 declare -A VERSION=([nbg-2l-3g]=5 [affinity-h16-k5gc]=2)  # the shipped cards' versions + 1
-STAGE=${1:?export, test, test-mitsuba or test-cycles}
+STAGE=${1:?export, test, test-mitsuba, test-cycles or ship}
 
 if [ "$STAGE" = export ]; then
     for name in "${NAMES[@]}"; do
@@ -56,8 +61,41 @@ cycles() {
         --against oidn-frame,blender-denoise > "$OUT/cycles-test/targets.md"
     before_after cycles-test
 }
+ship() {
+    local mitsuba=${MITSUBA_TABLES:-docs/evaluation/mitsuba-tables} name renderer
+    local candidates
+    candidates=$(printf '%s-mix,' "${NAMES[@]}")
+    candidates=${candidates%,}
+    for split in validation validation-static; do
+        "$PY" -m quietframe.bench.evaluate --renderer cycles --split "$split" --threads 2 \
+            --no-timing --methods "blender-denoise,oidn-frame,$candidates" "${models[@]}" \
+            --out "$OUT/cycles-$split"
+    done
+    # quiet 720p timing on each renderer's frames (the tables are per renderer)
+    "$PY" -m quietframe.bench.evaluate --renderer cycles --split validation --sequences 1 \
+        --spp 1 --threads 2 --methods "oidn-frame,$candidates" "${models[@]}" \
+        --out "$OUT/timing-cycles"
+    "$PY" -m quietframe.bench.evaluate --split validation --sequences 1 --spp 1 --threads 2 \
+        --methods "oidn-frame,$candidates" "${models[@]}" --out "$OUT/timing-mitsuba"
+    for name in "${NAMES[@]}"; do
+        "$PY" -m quietframe.export.cli --checkpoint "models/training/$name-mix/best.pt" \
+            --out "models/$name.onnx" --version "${VERSION[$name]}"
+        "$PY" -m quietframe.bench.model_metrics "models/$name.onnx" --measured-as "$name-mix" \
+            --renderer mitsuba --evaluation "$mitsuba/validation/benchmarks.json" \
+            --static-evaluation "$mitsuba/validation-static/benchmarks.json" \
+            --noise-points "$mitsuba/noise-points/auto_choice.json" \
+            --absent "$mitsuba/absence/auto_choice.json" \
+            --timing "$OUT/timing-mitsuba/benchmarks.json"
+        "$PY" -m quietframe.bench.model_metrics "models/$name.onnx" --measured-as "$name-mix" \
+            --renderer cycles --evaluation "$OUT/cycles-validation/benchmarks.json" \
+            --static-evaluation "$OUT/cycles-validation-static/benchmarks.json" \
+            --timing "$OUT/timing-cycles/benchmarks.json"
+    done
+    "$PY" -m quietframe.bench.model_card $(printf 'models/%s.onnx ' "${NAMES[@]}")
+}
 case "$STAGE" in
 test) mitsuba; cycles ;;
+ship) ship ;;
 test-mitsuba) mitsuba ;;
 test-cycles) cycles ;;
 *) echo "unknown stage $STAGE" >&2; exit 2 ;;

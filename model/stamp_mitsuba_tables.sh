@@ -9,7 +9,11 @@
 #   render:  the Mitsuba validation split (12 x 8 frames, 256^2, 1024-spp references) and its
 #            2 locked-off shots, with 16- and 64-spp inputs topped up (~4 CPU-hours on 2 cores,
 #            resumable: finished frames are skipped);
-#   measure: quietframe-eval on both, every shipped model (validation only: model selection);
+#   measure: quietframe-eval on both, every shipped model (validation only: model selection),
+#            and beside them the retrained candidates of model/evaluate_cycles_mix.sh under
+#            their own names (<name>-mix), with the noise points and buffer-absence figures
+#            of bench/auto_choice.py, so shipping one stamps it from these same runs
+#            (bench/model_metrics --measured-as);
 #   stamp:   bench/model_metrics --renderer mitsuba into models/*.onnx (then regenerate the
 #            cards: python -m quietframe.bench.model_card models/*.onnx);
 #   test:    auto and the temporal tiers against oidn-frame on the Mitsuba test split and its
@@ -20,16 +24,18 @@ PY=${PYTHON:-python}
 SPP=1,2,4,8,16,64
 OUT=${OUT:-docs/evaluation/mitsuba-tables}
 STAGE=${1:?render, measure, stamp or test}
-models() {  # the shipped models' method names (file stems), comma-separated
+CANDIDATES=(models/training/*-mix/*-mix.onnx)
+models() {  # the shipped models' and the candidates' method names (file stems), comma-separated
     local names=() f
-    for f in models/*.onnx; do names+=("$(basename "$f" .onnx)"); done
+    for f in models/*.onnx "${CANDIDATES[@]}"; do names+=("$(basename "$f" .onnx)"); done
     (IFS=,; echo "${names[*]}")
 }
-render() {  # split sequences
-    "$PY" -m quietframe.scenes.cli render --split "$1" --sequences "$2" --reference-spp 1024 \
-        --frames 8 --size 256x256 --spp 1,2,4,8 --jobs "${JOBS:-2}"
-    "$PY" -m quietframe.scenes.cli topup --split "$1" --spp 16
-    "$PY" -m quietframe.scenes.cli topup --split "$1" --spp 64
+candidate_args() {  # --model PATH per candidate
+    local f
+    for f in "${CANDIDATES[@]}"; do printf -- '--model\n%s\n' "$f"; done
+}
+render() {  # splits (space-separated), with the 16- and 64-spp top-ups
+    STAGES="$1" TOPUP_SPP="16 64" PYTHON="$PY" scenes/render_splits.sh
 }
 evaluate() {  # split methods out [more args]
     local split=$1 methods=$2 out=$3
@@ -39,12 +45,19 @@ evaluate() {  # split methods out [more args]
 }
 case "$STAGE" in
 render)
-    render validation-static 2
-    render validation 12
+    render "validation-static validation"
     ;;
 measure)
-    evaluate validation "$(models),oidn-high-cleanaux-fast" "$OUT/validation"
-    evaluate validation-static "$(models),oidn-high-cleanaux-fast" "$OUT/validation-static"
+    mapfile -t extra < <(candidate_args)
+    evaluate validation "$(models),oidn-high-cleanaux-fast" "$OUT/validation" "${extra[@]}"
+    evaluate validation-static "$(models),oidn-high-cleanaux-fast" "$OUT/validation-static" \
+        "${extra[@]}"
+    only=$(for f in "${CANDIDATES[@]}"; do basename "$f" .onnx; done | paste -sd,)
+    "$PY" -m quietframe.bench.auto_choice --split validation --threads 2 --max-frames 3 \
+        --buffer-sets all --no-absence "${extra[@]}" --only "$only" --out "$OUT/noise-points"
+    "$PY" -m quietframe.bench.auto_choice --split validation --threads 2 --max-frames 3 \
+        --buffer-sets all --sequences 6 --spp 1,8 "${extra[@]}" --only "$only" \
+        --out "$OUT/absence"
     ;;
 stamp)
     "$PY" -m quietframe.bench.model_metrics --renderer mitsuba \
@@ -52,8 +65,7 @@ stamp)
         --static-evaluation "$OUT/validation-static/benchmarks.json" models/*.onnx
     ;;
 test)
-    render test-static 2
-    "$PY" -m quietframe.scenes.cli topup --split test --spp 64
+    render "test-static test"  # test is rendered: this adds its 64-spp top-up
     methods=auto,oidn-frame,oidn-high-cleanaux-fast,oidn-acc,oidn-fast-acc
     methods+=,oidn-history,oidn-fast-history,oidn-history-cleanaux
     evaluate test "$methods" "$OUT/test"

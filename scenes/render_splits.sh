@@ -8,15 +8,29 @@
 # and index, so a slice is the start of the full split. Every command resumes: finished frames
 # are skipped, so re-running this script continues where it stopped.
 #   nohup nice -n 10 scenes/render_splits.sh > ~/.cache/quietframe/logs/render_g2.log 2>&1 &
+# STAGES: the splits to render, space-separated (default: all, in the order above), e.g.
+#   STAGES="validation-static validation" TOPUP_SPP="16 64" scenes/render_splits.sh
+# TOPUP_SPP: colour levels above 8 spp added to every rendered split (evaluation only; see
+# `quietframe-render topup`).
 # PYTHON / PYTHONPATH select the interpreter and the checkout (default: `python` and the
 # installed quietframe).
 set -u
 PY=${PYTHON:-python}
 JOBS=${JOBS:-2}
+STAGES=${STAGES:-all}
 common=(--frames 8 --size 256x256 --spp 1,2,4,8 --jobs "$JOBS")
+selected() {  # split: whether STAGES names it
+    [ "$STAGES" = all ] || [[ " $STAGES " == *" $1 "* ]]
+}
 render() {  # split sequences reference_spp
+    selected "$1" || return 0
     "$PY" -m quietframe.scenes.cli render --split "$1" --sequences "$2" --reference-spp "$3" \
         "${common[@]}" || echo "split $1: some sequences failed (re-run to retry)"
+    local spp
+    for spp in ${TOPUP_SPP:-}; do
+        "$PY" -m quietframe.scenes.cli topup --split "$1" --spp "$spp" \
+            || echo "split $1: the $spp-spp top-up failed (re-run to retry)"
+    done
 }
 render test 12 1024
 # Locked-off shots (issue 24's flicker): static camera and scene, noise animated per frame; one

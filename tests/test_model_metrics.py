@@ -70,3 +70,17 @@ def test_tables_never_come_from_the_test_split_or_another_renderer(tmp_path):
     with pytest.raises(SystemExit):  # a Cycles run stamped as the Mitsuba table
         model_metrics.main([str(model), "--evaluation", str(validation)])
     assert _card(model).measurements == before  # nothing was written
+
+
+def test_a_candidate_measured_under_its_own_name_is_stamped_under_the_shipped_one(tmp_path):
+    model = tmp_path / "oidn-frame.onnx"
+    shutil.copy(find_model("oidn-frame"), model)
+    run = _run(tmp_path / "val.json", "validation", [
+        {"method": m, "spp": 1, "psnr": psnr, "trmae": 0.5, "ms_720p": 900.0}
+        for m, psnr in (("oidn-frame", 30.0), ("oidn-frame-mix", 31.5))])
+    assert model_metrics.main([str(model), "--evaluation", str(run), "--renderer", "cycles",
+                               "--measured-as", "oidn-frame-mix"]) == 0
+    assert [r.psnr for r in _card(model).measured("cycles").by_spp] == [31.5]
+    with pytest.raises(SystemExit):  # one method's rows cannot stand for two models
+        model_metrics.main([str(model), str(model), "--evaluation", str(run), "--renderer",
+                            "cycles", "--measured-as", "oidn-frame-mix"])
