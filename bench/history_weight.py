@@ -44,7 +44,7 @@ FRAME_NOISE_FIT = (0.445, -0.17)
 LOCAL_WINDOW = 9
 
 
-def _key(planes: dict) -> int:
+def frame_key(planes: dict) -> int:
     return planes["color"].ctypes.data  # the same frame arrays for every row of one spp
 
 
@@ -58,7 +58,7 @@ class Cached:
         pass
 
     def __call__(self, planes: dict) -> np.ndarray:
-        return self.table[_key(planes)]
+        return self.table[frame_key(planes)]
 
 
 def noise_log2(colour: torch.Tensor, denoised: torch.Tensor, local: bool) -> torch.Tensor:
@@ -100,13 +100,13 @@ class HistoryRule:
         if self.floor == "spp":
             spp = self.header_spp if self.header_spp is not None else self.config.default_spp
             return self.config.resampled_floor(torch.tensor([float(spp)]))
-        colour = torch.from_numpy(self.noisy[_key(planes)])[None]
+        colour = torch.from_numpy(self.noisy[frame_key(planes)])[None]
         a, b = FRAME_NOISE_FIT
         return (a + b * noise_log2(colour, current, self.floor == "local")).clamp(
             self.config.resampled_weight, self.config.resampled_weight_max)
 
     def __call__(self, planes: dict) -> np.ndarray:
-        current = torch.from_numpy(self.base[_key(planes)])[None]
+        current = torch.from_numpy(self.base[frame_key(planes)])[None]
         depth = torch.from_numpy(planes["depth"])[None]
         normal = torch.from_numpy(planes["normal"])[None]
         motion = torch.from_numpy(planes["motion"])[None]
@@ -166,9 +166,9 @@ def main(argv: list[str] | None = None) -> int:
                     pre.reset()
                 clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
                 accumulated = np.ascontiguousarray(pre(clean), np.float32)
-                base[_key(planes)] = oidn({**clean, "color": accumulated})[0]
-                frame[_key(planes)] = oidn(clean)[0]
-                noisy[_key(planes)] = clean["color"]
+                base[frame_key(planes)] = oidn({**clean, "color": accumulated})[0]
+                frame[frame_key(planes)] = oidn(clean)[0]
+                noisy[frame_key(planes)] = clean["color"]
         methods = {
             "oidn-frame": Cached(frame),
             "w0.5": HistoryRule(base, noisy, "constant", 0.5),

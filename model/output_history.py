@@ -115,6 +115,15 @@ class OutputHistory(nn.Module):
     def forward(self, oidn: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
                 motion: Tensor, reset: Tensor, state: Tensor,
                 spp: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        previous, alpha, count, _ = self.history(oidn, normal, depth, motion, reset, state, spp)
+        output = oidn + (1 - alpha) * (previous - oidn)  # α D_t + (1 - α) P_t
+        return output, torch.cat((output, depth, normal, count), dim=1)
+
+    def history(self, oidn: Tensor, normal: Tensor, depth: Tensor, motion: Tensor,
+                reset: Tensor, state: Tensor, spp: Tensor | None = None
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(P_t, α, the new history length, `exact`) of the module docstring: the history
+        fetched to this frame, this frame's weight by the rule, and where the fetch is exact."""
         # The nearest pixel's depth and normal test the surface, as in the accumulation.
         warped, keep = reproject_history(state, motion, depth, normal, reset)
         fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
@@ -127,8 +136,7 @@ class OutputHistory(nn.Module):
         if spp is None:
             spp = torch.full((1,), self.config.default_spp)
         alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_floor(spp))
-        output = oidn + (1 - alpha) * (previous - oidn)  # α D_t + (1 - α) P_t
-        return output, torch.cat((output, depth, normal, count), dim=1)
+        return previous, alpha, count, exact
 
     def run_time_inputs(self) -> list[dict]:
         """`quietframe.inputs` of the exported graph: the frame's samples per pixel."""

@@ -31,16 +31,8 @@ STATE_CHANNELS = 8
 WARP_MODES = ("bilinear", "nearest", "bicubic")
 
 
-@torch.library.custom_op("quietframe::backward_warp", mutates_args=())
-def backward_warp(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
-    """Fetch image(t-1) at p + motion(p) (`mode`: WARP_MODES); also the in-frame mask.
-
-    image (N, C, H, W), motion (N, 2, H, W) in pixels -> ((N, C, H, W), (N, 1, H, W))
-
-    A custom op so that the ONNX export maps it to ai.quietframe::BackwardWarp (export/ops),
-    which computes exactly this with the same float32 coordinate arithmetic; this grid_sample
-    code is its reference. No gradient (see _warp_backward).
-    """
+def _grid_fetch(image: Tensor, motion: Tensor, mode: str) -> tuple[Tensor, Tensor]:
+    """backward_warp's computation (its docstring), differentiable in `image`."""
     if mode not in WARP_MODES:
         raise ValueError(f"backward_warp: mode must be one of {WARP_MODES}, got {mode!r}")
     n, _, h, w = image.shape
@@ -55,6 +47,19 @@ def backward_warp(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tupl
     return warped, inside.unsqueeze(1).to(image.dtype)
 
 
+@torch.library.custom_op("quietframe::backward_warp", mutates_args=())
+def backward_warp(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
+    """Fetch image(t-1) at p + motion(p) (`mode`: WARP_MODES); also the in-frame mask.
+
+    image (N, C, H, W), motion (N, 2, H, W) in pixels -> ((N, C, H, W), (N, 1, H, W))
+
+    A custom op so that the ONNX export maps it to ai.quietframe::BackwardWarp (export/ops),
+    which computes exactly this with the same float32 coordinate arithmetic; this grid_sample
+    code is its reference. Differentiable in `image` only (see _warp_backward).
+    """
+    return _grid_fetch(image, motion, mode)
+
+
 @backward_warp.register_fake
 def _warp_fake(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
     n, _, h, w = image.shape  # h, w may be symbolic
@@ -62,17 +67,27 @@ def _warp_fake(image: Tensor, motion: Tensor, mode: str = "bilinear") -> tuple[T
 
 
 def _warp_setup_context(ctx, inputs, output) -> None:
-    pass
+    image, motion, mode = inputs
+    ctx.save_for_backward(motion)
+    ctx.mode, ctx.image_shape, ctx.image_dtype = mode, image.shape, image.dtype
 
 
 def _warp_backward(ctx, grad_warped: Tensor | None, grad_inside: Tensor | None):
-    # The warped tensor is the accumulation state (radiance, depth, normal, history length):
-    # nothing upstream of it has learned parameters, so training never needs this gradient.
-    # Raise rather than return None, which would silently cut a gradient path someone adds.
-    raise RuntimeError(
-        "backward_warp has no gradient: warp only tensors that do not require grad "
-        "(detach the state, or add a backward to quietframe.model.temporal.backward_warp)"
-    )
+    # Gradient to the image: a history of a learned output (model/learned_blend.py) is trained
+    # through its unrolled frames. The fetch is linear in the image, so its gradient is the
+    # same at any image: differentiate grid_sample at zeros. Not to the motion: nothing
+    # learns motion, and grid_sample's coordinate gradient is not the native op's.
+    if ctx.needs_input_grad[1]:
+        raise RuntimeError("backward_warp has no gradient for the motion vectors: detach them")
+    (motion,) = ctx.saved_tensors
+    if grad_warped is None:
+        return None, None, None
+    with torch.enable_grad():
+        probe = torch.zeros(ctx.image_shape, dtype=ctx.image_dtype, device=motion.device,
+                            requires_grad=True)
+        warped, _ = _grid_fetch(probe, motion.detach(), ctx.mode)
+        (grad_image,) = torch.autograd.grad(warped, probe, grad_warped)
+    return grad_image, None, None
 
 
 backward_warp.register_autograd(_warp_backward, setup_context=_warp_setup_context)
