@@ -48,6 +48,26 @@ def frame_key(planes: dict) -> int:
     return planes["color"].ctypes.data  # the same frame arrays for every row of one spp
 
 
+def base_outputs(frames, oidn) -> tuple[dict, dict, dict]:
+    """Per frame of one sequence (by frame_key): OIDN on the pixel-aligned accumulation (the
+    history tiers' base, what `oidn-history` composes), OIDN on the frame alone (oidn-frame),
+    and the sanitised noisy colour."""
+    from quietframe.bench.output_history import RUNTIME_BUFFERS, PreStage
+    from quietframe.runtime.sanitize import sanitize_buffer
+
+    base, frame, noisy = {}, {}, {}
+    pre = PreStage(aligned_only=True)
+    for planes, _, reset in frames:
+        if reset:
+            pre.reset()
+        clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
+        accumulated = np.ascontiguousarray(pre(clean), np.float32)
+        base[frame_key(planes)] = oidn({**clean, "color": accumulated})[0]
+        frame[frame_key(planes)] = oidn(clean)[0]
+        noisy[frame_key(planes)] = clean["color"]
+    return base, frame, noisy
+
+
 class Cached:
     """A per-frame 'method' returning the cached base output of the frame."""
 
@@ -136,9 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         sequence_dirs,
     )
     from quietframe.bench.harness import planar_frames
-    from quietframe.bench.output_history import RUNTIME_BUFFERS, PreStage
     from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-    from quietframe.runtime.sanitize import sanitize_buffer
     from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -160,15 +178,8 @@ def main(argv: list[str] | None = None) -> int:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
         base, frame, noisy = {}, {}, {}
         for frames in sequences:  # one OIDN pass per frame, shared by every row
-            pre = PreStage(aligned_only=True)
-            for planes, _, reset in frames:
-                if reset:
-                    pre.reset()
-                clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
-                accumulated = np.ascontiguousarray(pre(clean), np.float32)
-                base[frame_key(planes)] = oidn({**clean, "color": accumulated})[0]
-                frame[frame_key(planes)] = oidn(clean)[0]
-                noisy[frame_key(planes)] = clean["color"]
+            for table, part in zip((base, frame, noisy), base_outputs(frames, oidn), strict=True):
+                table.update(part)
         methods = {
             "oidn-frame": Cached(frame),
             "w0.5": HistoryRule(base, noisy, "constant", 0.5),

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from quietframe.bench.history_weight import Cached, frame_key
+from quietframe.bench.history_weight import Cached, base_outputs, frame_key
 from quietframe.model.learned_blend import LearnedBlendHistory
 from quietframe.model.losses import tonemap_tau
 
@@ -52,24 +52,6 @@ class Item:
     spp: float | None
 
 
-def base_outputs(frames, oidn) -> tuple[dict, dict]:
-    """Per frame (by frame_key): OIDN on the pixel-aligned accumulation (the history tier's
-    base) and OIDN on the frame alone (oidn-frame), over one sequence."""
-    from quietframe.bench.output_history import RUNTIME_BUFFERS, PreStage
-    from quietframe.runtime.sanitize import sanitize_buffer
-
-    base, frame = {}, {}
-    pre = PreStage(aligned_only=True)
-    for planes, _, reset in frames:
-        if reset:
-            pre.reset()
-        clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
-        accumulated = np.ascontiguousarray(pre(clean), np.float32)
-        base[frame_key(planes)] = oidn({**clean, "color": accumulated})[0]
-        frame[frame_key(planes)] = oidn(clean)[0]
-    return base, frame
-
-
 def gather(folders: list[Path], levels: tuple[int, ...], header_spp: bool, oidn) -> list[Item]:
     """Training items of a split: every sequence at every spp level."""
     from quietframe.bench.evaluate import load_sequence
@@ -79,7 +61,7 @@ def gather(folders: list[Path], levels: tuple[int, ...], header_spp: bool, oidn)
     for folder in folders:
         for spp in levels:
             frames = planar_frames(load_sequence(folder, spp))
-            base, _ = base_outputs(frames, oidn)
+            base, _, _ = base_outputs(frames, oidn)
             planes = [p for p, _, _ in frames]
             stack = {k: torch.from_numpy(np.stack([p[k] for p in planes]))
                      for k in ("albedo", "normal", "depth", "motion")}
@@ -188,7 +170,7 @@ def score(models: dict[str, LearnedBlendHistory], folders: list[Path], levels, h
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
         base, frame = {}, {}
         for frames in sequences:
-            b, f = base_outputs(frames, oidn)
+            b, f, _ = base_outputs(frames, oidn)
             base.update(b)
             frame.update(f)
         methods = {"oidn-frame": Cached(frame)}
