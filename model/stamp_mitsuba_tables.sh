@@ -9,7 +9,8 @@
 #   render:  the Mitsuba validation split (12 x 8 frames, 256^2, 1024-spp references) and its
 #            2 locked-off shots, with 16- and 64-spp inputs topped up (~4 CPU-hours on 2 cores,
 #            resumable: finished frames are skipped);
-#   measure: quietframe-eval on both, every shipped model (validation only: model selection),
+#   measure: quietframe-eval on both (measure-static: the locked-off shots alone, which render
+#            first), every shipped model (validation only: model selection),
 #            and beside them the retrained candidates of model/evaluate_cycles_mix.sh under
 #            their own names (<name>-mix), with the noise points and buffer-absence figures
 #            of bench/auto_choice.py, so shipping one stamps it from these same runs
@@ -18,12 +19,12 @@
 #            cards: python -m quietframe.bench.model_card models/*.onnx);
 #   test:    auto and the temporal tiers against oidn-frame on the Mitsuba test split and its
 #            locked-off shots (needs test topped up to 64 spp), and the targets table.
-#   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure|stamp|test
+#   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure-static|measure|stamp|test
 set -eu
 PY=${PYTHON:-python}
 SPP=1,2,4,8,16,64
 OUT=${OUT:-docs/evaluation/mitsuba-tables}
-STAGE=${1:?render, measure, stamp or test}
+STAGE=${1:?render, measure-static, measure, stamp or test}
 CANDIDATES=(models/training/*-mix/*-mix.onnx)
 models() {  # the shipped models' and the candidates' method names (file stems), comma-separated
     local names=() f
@@ -47,11 +48,15 @@ case "$STAGE" in
 render)
     render "validation-static validation"
     ;;
+measure-static)  # the locked-off shots alone (rendered first, so this can run beside the rest)
+    mapfile -t extra < <(candidate_args)
+    evaluate validation-static "$(models),oidn-high-cleanaux-fast" "$OUT/validation-static" \
+        "${extra[@]}"
+    ;;
 measure)
     mapfile -t extra < <(candidate_args)
     evaluate validation "$(models),oidn-high-cleanaux-fast" "$OUT/validation" "${extra[@]}"
-    evaluate validation-static "$(models),oidn-high-cleanaux-fast" "$OUT/validation-static" \
-        "${extra[@]}"
+    [ -f "$OUT/validation-static/benchmarks.json" ] || "$0" measure-static
     only=$(for f in "${CANDIDATES[@]}"; do basename "$f" .onnx; done | paste -sd,)
     "$PY" -m quietframe.bench.auto_choice --split validation --threads 2 --max-frames 3 \
         --buffer-sets all --no-absence "${extra[@]}" --only "$only" --out "$OUT/noise-points"
