@@ -75,44 +75,48 @@ def gather(folders: list[Path], levels: tuple[int, ...], header_spp: bool, oidn)
 
 def batch(items: list[Item], size: int, crop: int, rng: random.Random) -> list[dict]:
     """`size` random 4-frame windows, each cropped to `crop`² at a random place, stacked per
-    frame: [{name: (B, C, crop, crop)}] × WINDOW, the first frame of each window a reset."""
+    frame: [{name: (B, C, crop, crop)}] × WINDOW, `reset` (B,) 1 on each window's first frame
+    and at a cut inside it."""
     picked = []
     for item in rng.choices(items, k=size):
         t0 = rng.randrange(len(item.resets) - WINDOW + 1)
         h, w = item.base.shape[-2:]
         y, x = rng.randrange(h - crop + 1), rng.randrange(w - crop + 1)
         window = slice(t0, t0 + WINDOW)
+        resets = [t == 0 or item.resets[t0 + t] for t in range(WINDOW)]  # a cut inside too
         picked.append({k: getattr(item, k)[window, :, y:y + crop, x:x + crop]
                        for k in ("base", "albedo", "normal", "depth", "motion", "reference")}
-                      | {"spp": item.spp})
+                      | {"spp": item.spp, "reset": resets})
     frames = []
     for t in range(WINDOW):
         frames.append({k: torch.stack([p[k][t] for p in picked])
                        for k in ("base", "albedo", "normal", "depth", "motion", "reference")}
-                      | {"spp": torch.tensor([p["spp"] or 0.0 for p in picked])})
+                      | {"spp": torch.tensor([p["spp"] or 0.0 for p in picked]),
+                         "reset": torch.tensor([float(p["reset"][t]) for p in picked])})
     return frames
 
 
 def unrolled_loss(model: LearnedBlendHistory, frames: list[dict]) -> torch.Tensor:
     """τ-MSE of every frame after the first (which has no history to blend) plus the weighted
-    τ-MSE of consecutive frames' differences, through the unrolled history."""
+    τ-MSE of consecutive frames' differences (not across a cut), through the unrolled
+    history."""
     first = frames[0]
     state = model.initial_state(*first["base"].shape[:1], *first["base"].shape[-2:])
     outputs = []
-    for t, f in enumerate(frames):
-        reset = torch.full((f["base"].shape[0],), 1.0 if t == 0 else 0.0)
+    for f in frames:
         # spp 0 marks "not given" (Mitsuba): the default, as the service runs the tier there
         spp = torch.where(f["spp"] > 0, f["spp"], model.rule.config.default_spp)
-        out, state = model(f["base"], f["albedo"], f["normal"], f["depth"], f["motion"], reset,
-                           state, spp)
+        out, state = model(f["base"], f["albedo"], f["normal"], f["depth"], f["motion"],
+                           f["reset"], state, spp)
         outputs.append(out)
     loss, previous = 0.0, None
     for t, (out, f) in enumerate(zip(outputs, frames, strict=True)):
         tau_out, tau_ref = tonemap_tau(out), tonemap_tau(f["reference"])
         if t > 0:
             loss = loss + (tau_out - tau_ref).square().mean()
-            loss = loss + TEMPORAL_WEIGHT * ((tau_out - previous[0]) - (tau_ref - previous[1])
-                                             ).square().mean()
+            continuing = (1 - f["reset"]).view(-1, 1, 1, 1)  # no frame difference across a cut
+            change = (tau_out - previous[0]) - (tau_ref - previous[1])
+            loss = loss + TEMPORAL_WEIGHT * (continuing * change.square()).mean()
         previous = (tau_out, tau_ref)
     return loss / (len(frames) - 1)
 

@@ -196,12 +196,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stamp", action="store_true",
                         help="first stamp --evaluation's rows into each model's measured table "
                              "(what `model=auto` reads; bench/model_metrics.py)")
+    parser.add_argument("--measured-as", metavar="METHOD",
+                        help="the method name --evaluation measured the (one) model under: a "
+                             "candidate installed under the shipped name (model_metrics)")
     args = parser.parse_args(argv)
+    if args.measured_as and len(args.models) != 1:
+        parser.error("--measured-as names one model's rows: give exactly one model")
     evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else {}
     meta = evaluation.get("meta", {})
     split = meta.get("split", "")
     for path in args.models:
-        rows = sorted((r for r in evaluation.get("rows", []) if r["method"] == path.stem),
+        method = args.measured_as or path.stem
+        rows = sorted((r for r in evaluation.get("rows", []) if r["method"] == method),
                       key=lambda r: r["spp"])
         if args.stamp and rows:
             from quietframe.bench.model_metrics import metrics_from_rows, run_problem, stamp

@@ -78,7 +78,12 @@ ship() {
     "$PY" -m quietframe.bench.evaluate --split validation --sequences 1 --spp 1 --threads 2 \
         --methods "oidn-frame,$candidates" "${models[@]}" --out "$OUT/timing-mitsuba"
     for name in "${NAMES[@]}"; do
-        "$PY" -m quietframe.export.cli --checkpoint "models/training/$name-mix/best.pt" \
+        # The shipped run's files become the candidate's (tests/test_export checks that
+        # models/<name>.onnx is the export of models/training/<name>/best.pt); the old run
+        # stays in git history. A fine-tune keeps no resumable checkpoint.pt of its own.
+        rm -f "models/training/$name/checkpoint.pt"
+        cp "models/training/$name-mix"/{best.pt,config.json,log.txt} "models/training/$name/"
+        "$PY" -m quietframe.export.cli --checkpoint "models/training/$name/best.pt" \
             --out "models/$name.onnx" --version "${VERSION[$name]}"
         "$PY" -m quietframe.bench.model_metrics "models/$name.onnx" --measured-as "$name-mix" \
             --renderer mitsuba --evaluation "$mitsuba/validation/benchmarks.json" \
@@ -91,7 +96,11 @@ ship() {
             --static-evaluation "$OUT/cycles-validation-static/benchmarks.json" \
             --timing "$OUT/timing-cycles/benchmarks.json"
     done
-    "$PY" -m quietframe.bench.model_card $(printf 'models/%s.onnx ' "${NAMES[@]}")
+    for name in "${NAMES[@]}"; do
+        "$PY" -m quietframe.bench.model_card "models/$name.onnx" --measured-as "$name-mix" \
+            --evaluation "$mitsuba/validation/benchmarks.json"
+        rm -r "models/training/$name-mix"  # shipped now
+    done
 }
 case "$STAGE" in
 test) mitsuba; cycles ;;

@@ -70,8 +70,12 @@ def test_training_step_reaches_every_weight_through_the_unrolled_history():
 
     model = LearnedBlendHistory(width=4)
     torch.nn.init.normal_(model.net.layers[-1].weight, std=0.1)  # a non-zero correction
-    frames = bench.batch([item(4.0), item(None)], 2, 8, random.Random(0))
+    cut = item(None)
+    cut.resets = [False, False, True, False, False]  # a cut: every window holds a reset there
+    frames = bench.batch([item(4.0), cut], 2, 8, random.Random(0))
     assert len(frames) == bench.WINDOW and frames[0]["base"].shape == (2, 3, 8, 8)
+    assert frames[0]["reset"].tolist() == [1.0, 1.0]
+    assert sum(f["reset"].sum() for f in frames) > 2  # the cut, wherever the windows start
     loss = bench.unrolled_loss(model, frames)
     loss.backward()
     assert torch.isfinite(loss)

@@ -88,3 +88,23 @@ def test_stamp_writes_the_evaluation_into_the_metadata_then_the_card(tmp_path):
     evaluation.write_text(json.dumps({"rows": [row], "meta": {"split": "test"}}))
     with pytest.raises(SystemExit):
         model_card.main(["--stamp", "--evaluation", str(evaluation), str(path)])
+
+
+def test_card_of_a_candidate_measured_under_its_own_name(tmp_path):
+    """A retrained candidate scored as `<name>-mix` beside the shipped models, then installed as
+    `<name>`: `--measured-as` takes its rows, and only for one model."""
+    import json
+
+    from quietframe.bench import model_card
+
+    path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "m.onnx")
+    rows = [{"method": name, "spp": 1, "psnr": psnr, "ssim": 0.5, "smape": 0.1, "relmse": 0.2,
+             "trmae": 0.75} for name, psnr in (("m", 20.0), ("m-mix", 23.0))]
+    evaluation = tmp_path / "benchmarks.json"
+    evaluation.write_text(json.dumps({"rows": rows, "meta": {"split": "validation"}}))
+    assert model_card.main(["--evaluation", str(evaluation), "--measured-as", "m-mix",
+                            str(path)]) == 0
+    assert "| 1 | 23.00 | 0.5000 |" in path.with_suffix(".md").read_text()
+    with pytest.raises(SystemExit):
+        model_card.main(["--evaluation", str(evaluation), "--measured-as", "m-mix", str(path),
+                         str(path)])
