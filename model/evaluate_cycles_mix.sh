@@ -12,17 +12,22 @@
 #           tables, each measured on validation with the candidate under its own name
 #           (bench/model_metrics --measured-as): Mitsuba from model/stamp_mitsuba_tables.sh
 #           measure (run it first), Cycles from a run here on the Cycles validation splits,
-#           each with a quiet 720p timing run on that renderer's frames; then the cards.
+#           each with a quiet 720p timing run on that renderer's frames; then the cards;
+#   docs:   after ship, the reports that show the learned tiers, re-run with the new ones
+#           installed: docs/benchmarks.md's Mitsuba test table (the same methods; the file's
+#           later sections, from the auto_choice marker on, are kept) and the Cycles test run
+#           (docs/evaluation/cycles-test; its table in docs/benchmarks.md is pasted by hand,
+#           python -m quietframe.bench.compare_table ... --against blender-denoise --wide).
 # A candidate is shipped only if it loses at most 0.2 dB on the Mitsuba test split at every spp
 # (the issue's rule; both pass it: docs/training.md, "Cycles in the mix").
-#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test|test-mitsuba|test-cycles|ship
+#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test|test-mitsuba|test-cycles|ship|docs
 set -eu
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}
 OUT=${OUT:-docs/evaluation/cycles-mix}
 NAMES=(nbg-2l-3g affinity-h16-k5gc)
 declare -A VERSION=([nbg-2l-3g]=5 [affinity-h16-k5gc]=2)  # the shipped cards' versions + 1
-STAGE=${1:?export, test, test-mitsuba, test-cycles or ship}
+STAGE=${1:?export, test, test-mitsuba, test-cycles, ship or docs}
 
 if [ "$STAGE" = export ]; then
     for name in "${NAMES[@]}"; do
@@ -102,9 +107,23 @@ ship() {
         rm -r "models/training/$name-mix"  # shipped now
     done
 }
+docs() {
+    local t=${TMPDIR:-/tmp}/cycles-mix-docs
+    "$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --methods \
+        noisy,accumulation,oidn-fast,oidn-high,nbg-2l-1g,nbg-2l-3g,nbg-7l-3g,oidn-temporal-acc,oidn-acc,oidn-fast-acc,oidn-frame,affinity-h16-k5gc \
+        --kernel-sizes 9,13 --single-frame affinity-h16-k5gc --out "$t/test"
+    "$PY" -c "import pathlib, sys; from quietframe.bench.auto_choice import MARK_BEGIN as m; \
+old = pathlib.Path('docs/benchmarks.md').read_text(); \
+new = pathlib.Path(sys.argv[1]).read_text().rstrip() + '\n\n' + m + old.split(m, 1)[1]; \
+pathlib.Path('docs/benchmarks.md').write_text(new)" "$t/test/benchmarks.md"
+    cp "$t"/test/{benchmarks.json,psnr_vs_ms.png,crops.png} docs/
+    "$PY" -m quietframe.bench.evaluate --renderer cycles --split test \
+        --out docs/evaluation/cycles-test
+}
 case "$STAGE" in
 test) mitsuba; cycles ;;
 ship) ship ;;
+docs) docs ;;
 test-mitsuba) mitsuba ;;
 test-cycles) cycles ;;
 *) echo "unknown stage $STAGE" >&2; exit 2 ;;
