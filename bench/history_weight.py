@@ -48,23 +48,24 @@ def frame_key(planes: dict) -> int:
     return planes["color"].ctypes.data  # the same frame arrays for every row of one spp
 
 
-def base_outputs(frames, oidn) -> tuple[dict, dict, dict]:
-    """Per frame of one sequence (by frame_key): OIDN on the pixel-aligned accumulation (the
+def base_outputs(sequences, oidn) -> tuple[dict, dict, dict]:
+    """Per frame of the sequences (by frame_key): OIDN on the pixel-aligned accumulation (the
     history tiers' base, what `oidn-history` composes), OIDN on the frame alone (oidn-frame),
-    and the sanitised noisy colour."""
+    and the sanitised noisy colour. One OIDN pass per frame, shared by every row."""
     from quietframe.bench.output_history import RUNTIME_BUFFERS, PreStage
     from quietframe.runtime.sanitize import sanitize_buffer
 
     base, frame, noisy = {}, {}, {}
-    pre = PreStage(aligned_only=True)
-    for planes, _, reset in frames:
-        if reset:
-            pre.reset()
-        clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
-        accumulated = np.ascontiguousarray(pre(clean), np.float32)
-        base[frame_key(planes)] = oidn({**clean, "color": accumulated})[0]
-        frame[frame_key(planes)] = oidn(clean)[0]
-        noisy[frame_key(planes)] = clean["color"]
+    for frames in sequences:
+        pre = PreStage(aligned_only=True)
+        for planes, _, reset in frames:
+            if reset:
+                pre.reset()
+            clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
+            accumulated = np.ascontiguousarray(pre(clean), np.float32)
+            base[frame_key(planes)] = oidn({**clean, "color": accumulated})[0]
+            frame[frame_key(planes)] = oidn(clean)[0]
+            noisy[frame_key(planes)] = clean["color"]
     return base, frame, noisy
 
 
@@ -176,10 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for spp in levels:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
-        base, frame, noisy = {}, {}, {}
-        for frames in sequences:  # one OIDN pass per frame, shared by every row
-            for table, part in zip((base, frame, noisy), base_outputs(frames, oidn), strict=True):
-                table.update(part)
+        base, frame, noisy = base_outputs(sequences, oidn)
         methods = {
             "oidn-frame": Cached(frame),
             "w0.5": HistoryRule(base, noisy, "constant", 0.5),

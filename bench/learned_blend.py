@@ -61,7 +61,7 @@ def gather(folders: list[Path], levels: tuple[int, ...], header_spp: bool, oidn)
     for folder in folders:
         for spp in levels:
             frames = planar_frames(load_sequence(folder, spp))
-            base, _, _ = base_outputs(frames, oidn)
+            base, _, _ = base_outputs([frames], oidn)
             planes = [p for p, _, _ in frames]
             stack = {k: torch.from_numpy(np.stack([p[k] for p in planes]))
                      for k in ("albedo", "normal", "depth", "motion")}
@@ -139,47 +139,21 @@ def train(model: LearnedBlendHistory, items: list[Item], steps: int, seed: int, 
             print(f"step {step}: loss {loss.item():.6f} ({log[-1]['s']} s)", flush=True)
 
 
-class Blend:
-    """A harness method: the blend over the cached base (reset per sequence and at cuts)."""
-
-    def __init__(self, model: LearnedBlendHistory, base: dict, spp: float | None) -> None:
-        self.model, self.base, self.spp = model, base, spp
-        self.state: torch.Tensor | None = None
-
-    def reset(self) -> None:
-        self.state = None
-
-    def __call__(self, planes: dict) -> np.ndarray:
-        t = {k: torch.from_numpy(np.ascontiguousarray(planes[k]))[None]
-             for k in ("albedo", "normal", "depth", "motion")}
-        current = torch.from_numpy(self.base[frame_key(planes)])[None]
-        reset = torch.tensor([1.0 if self.state is None else 0.0])
-        if self.state is None:
-            self.state = self.model.initial_state(1, *current.shape[-2:])
-        spp = None if self.spp is None else torch.tensor([self.spp])
-        with torch.no_grad():
-            out, self.state = self.model(current, t["albedo"], t["normal"], t["depth"],
-                                         t["motion"], reset, self.state, spp)
-        return out[0].numpy()
-
-
 def score(models: dict[str, LearnedBlendHistory], folders: list[Path], levels, header_spp,
           oidn, renderer: str) -> list[dict]:
     """Rows (method, spp, PSNR, SSIM, TRMAE, ...) of oidn-frame and each blend on a split."""
     from quietframe.bench.evaluate import Scores, load_sequence, run_sequence
     from quietframe.bench.harness import planar_frames
+    from quietframe.bench.output_history import ShippedStage
 
     rows = []
     for spp in levels:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
-        base, frame = {}, {}
-        for frames in sequences:
-            b, f, _ = base_outputs(frames, oidn)
-            base.update(b)
-            frame.update(f)
+        base, frame, _ = base_outputs(sequences, oidn)
         methods = {"oidn-frame": Cached(frame)}
-        methods.update({name: Blend(m, base, float(spp) if header_spp else None)
-                        for name, m in models.items()})
+        for name, model in models.items():
+            methods[name] = ShippedStage(Cached(base), stage=model)
+            methods[name].header_spp = float(spp) if header_spp else None
         for name, method in methods.items():
             scores = Scores()
             for frames in sequences:

@@ -176,12 +176,13 @@ def accumulated_oidn(aligned_only: bool, threads: int) -> ThenOIDN:
 
 class ShippedStage:
     """The shipped history stage (model/output_history.OutputHistory, `config`) over `base`'s
-    output: its rows measure the graph's own code (and variants of its config)."""
+    output: its rows measure the graph's own code (and variants of its config). `stage`: a
+    module with the same interface instead (model/learned_blend.LearnedBlendHistory)."""
 
-    def __init__(self, base: Method, config) -> None:
+    def __init__(self, base: Method, config=None, stage: torch.nn.Module | None = None) -> None:
         from quietframe.model.output_history import OutputHistory as Stage
 
-        self.base, self.stage = base, Stage(config)
+        self.base, self.stage = base, stage if stage is not None else Stage(config)
         self.state: torch.Tensor | None = None
         self.header_spp: float | None = None  # the frame's spp, as the service gives it
 

@@ -67,7 +67,7 @@ cycles() {
     before_after cycles-test
 }
 ship() {
-    local mitsuba=${MITSUBA_TABLES:-docs/evaluation/mitsuba-tables} name renderer
+    local mitsuba=${MITSUBA_TABLES:-docs/evaluation/mitsuba-tables} name
     local candidates
     candidates=$(printf '%s-mix,' "${NAMES[@]}")
     candidates=${candidates%,}
@@ -100,8 +100,6 @@ ship() {
             --renderer cycles --evaluation "$OUT/cycles-validation/benchmarks.json" \
             --static-evaluation "$OUT/cycles-validation-static/benchmarks.json" \
             --timing "$OUT/timing-cycles/benchmarks.json"
-    done
-    for name in "${NAMES[@]}"; do
         "$PY" -m quietframe.bench.model_card "models/$name.onnx" --measured-as "$name-mix" \
             --evaluation "$mitsuba/validation/benchmarks.json"
         rm -r "models/training/$name-mix"  # shipped now
