@@ -175,7 +175,7 @@ class GraphRunner:
                  tile_pixels: int | None, path: Path, threads: int) -> None:
         self.session, self.card, self.stage = session, card, stage
         self.tile_pixels = tile_pixels  # None: every frame whole
-        self._path, self._threads = path, threads
+        self.path, self._threads = path, threads  # path: the graph file (tiles remake it)
         self._tiled: TiledGraph | None = None  # made at the first frame run in tiles
         self._lock = threading.Lock()
         self.input_names = {i.name for i in session.get_inputs()}
@@ -187,7 +187,7 @@ class GraphRunner:
         """The graph as tiles run it (made once, at the first frame run in tiles)."""
         with self._lock:
             if self._tiled is None:
-                self._tiled = TiledGraph(self._path, self._threads)
+                self._tiled = TiledGraph(self.path, self._threads)
             return self._tiled
 
     def working_set_bytes(self, height: int, width: int) -> int:
