@@ -15,17 +15,21 @@
 #            their own names (<name>-mix), with the noise points and buffer-absence figures
 #            of bench/auto_choice.py, so shipping one stamps it from these same runs
 #            (bench/model_metrics --measured-as);
+#   measure-history: the noise points and buffer-absence figures of the history tiers, which
+#            had no Mitsuba table (bench/auto_choice; the other models have theirs);
+#   timing:  a quiet 720p timing run of every model on Mitsuba frames (pause the renders);
 #   stamp:   bench/model_metrics --renderer mitsuba into models/*.onnx (then regenerate the
 #            cards: python -m quietframe.bench.model_card models/*.onnx);
 #   test:    auto and the temporal tiers against oidn-frame on the Mitsuba test split and its
 #            locked-off shots (needs test topped up to 64 spp), and the targets table.
-#   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure-static|measure|stamp|test
+#   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure-static|measure|measure-history|timing|stamp|test
 set -eu
 PY=${PYTHON:-python}
 SPP=1,2,4,8,16,64
 OUT=${OUT:-docs/evaluation/mitsuba-tables}
-STAGE=${1:?render, measure-static, measure, stamp or test}
+STAGE=${1:?render, measure-static, measure, measure-history, timing, stamp or test}
 CANDIDATES=(models/training/*-mix/*-mix.onnx)
+HISTORY=oidn-history,oidn-fast-history,oidn-history-cleanaux  # no Mitsuba table before this
 models() {  # the shipped models' and the candidates' method names (file stems), comma-separated
     local names=() f
     for f in models/*.onnx "${CANDIDATES[@]}"; do names+=("$(basename "$f" .onnx)"); done
@@ -44,17 +48,16 @@ evaluate() {  # split methods out [more args]
     "$PY" -m quietframe.bench.evaluate --split "$split" --spp "$SPP" --threads 2 --no-timing \
         --methods "$methods" --out "$out" "$@"
 }
+mapfile -t extra < <(candidate_args)
 case "$STAGE" in
 render)
     render "validation-static validation"
     ;;
 measure-static)  # the locked-off shots alone (rendered first, so this can run beside the rest)
-    mapfile -t extra < <(candidate_args)
     evaluate validation-static "$(models),oidn-high-cleanaux-fast" "$OUT/validation-static" \
         "${extra[@]}"
     ;;
 measure)
-    mapfile -t extra < <(candidate_args)
     evaluate validation "$(models),oidn-high-cleanaux-fast" "$OUT/validation" "${extra[@]}"
     [ -f "$OUT/validation-static/benchmarks.json" ] || "$0" measure-static
     only=$(for f in "${CANDIDATES[@]}"; do basename "$f" .onnx; done | paste -sd,)
@@ -64,10 +67,33 @@ measure)
         --buffer-sets all --sequences 6 --spp 1,8 "${extra[@]}" --only "$only" \
         --out "$OUT/absence"
     ;;
+measure-history)  # the history tiers' noise points and absence figures (auto needs them)
+    "$PY" -m quietframe.bench.auto_choice --split validation --threads 2 --max-frames 3 \
+        --buffer-sets all --no-absence --only "$HISTORY" --out "$OUT/noise-points-history"
+    "$PY" -m quietframe.bench.auto_choice --split validation --threads 2 --max-frames 3 \
+        --buffer-sets all --sequences 6 --spp 1,8 --only "$HISTORY" --out "$OUT/absence-history"
+    ;;
+timing)  # quiet: pause the renders (kill -STOP) for the few minutes this takes
+    "$PY" -m quietframe.bench.evaluate --split validation --sequences 1 --spp 1 --threads 2 \
+        --methods "$(models)" "${extra[@]}" --out "$OUT/timing"
+    ;;
 stamp)
-    "$PY" -m quietframe.bench.model_metrics --renderer mitsuba \
-        --evaluation "$OUT/validation/benchmarks.json" \
-        --static-evaluation "$OUT/validation-static/benchmarks.json" models/*.onnx
+    # auto considers a model only with a 720p time on the table it reads; the history tiers
+    # also get their noise points and absence figures, which the others have from session 4
+    stamp() {  # more model_metrics args, then the models
+        "$PY" -m quietframe.bench.model_metrics --renderer mitsuba \
+            --evaluation "$OUT/validation/benchmarks.json" \
+            --static-evaluation "$OUT/validation-static/benchmarks.json" \
+            --timing "$OUT/timing/benchmarks.json" "$@"
+    }
+    history=() others=()
+    for f in models/*.onnx; do
+        if [[ ",$HISTORY," == *",$(basename "$f" .onnx),"* ]]; then history+=("$f")
+        else others+=("$f"); fi
+    done
+    stamp "${others[@]}"
+    stamp --noise-points "$OUT/noise-points-history/auto_choice.json" \
+        --absent "$OUT/absence-history/auto_choice.json" "${history[@]}"
     ;;
 test)
     render "test-static test"  # test is rendered: this adds its 64-spp top-up
