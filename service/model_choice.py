@@ -15,10 +15,11 @@ session's first frame and of a cut, and nowhere else, so a shot never switches m
 - each model's measured table (`ModelProfile.from_card`: the card's measurements for the
   frame's renderer, written by measurements into the ONNX metadata, docs/model-interface.md).
 
-Among the models that fit the latency budget, whose expected PSNR is within the quality's
-tolerance of the best expected PSNR and not below the per-frame floor (per-frame OIDN-high's
-expected PSNR less PER_FRAME_FLOOR_DB: the product's promise is never to lose to the renderer's
-own per-frame denoise), the unsteady are dropped and the cheapest of the rest wins. A model
+Among the models that fit the latency budget and are not below the per-frame floor
+(per-frame OIDN-high's expected PSNR less PER_FRAME_FLOOR_DB: the product's promise is never to
+lose to the renderer's own per-frame denoise), those that meet the flicker target are kept where
+any does; of these, the ones within the quality's tolerance of the best expected PSNR among
+them, less the unsteady, and the cheapest of the rest wins. A model
 that keeps a history is a candidate only where its table vouches for it: with the motion
 vectors or a measured cost of their absence, and at an spp its table reaches
 (MEASURED_SPP_REACH). Steadiness is the measured flicker on locked-off validation shots where
@@ -411,10 +412,15 @@ def choose(
     if baseline is not None:
         pool, floor_note = above_floor(pool, baseline, noise.spp, quality)
         budget_note += floor_note
-    best_psnr = max(s[1] for s in pool)
+    # Steadiness first (issue 24: auto's choice is to be as good as per-frame OIDN and steadier):
+    # where some candidate above the floor meets the flicker target, the tolerance is counted
+    # from the best of those, so a sharper model that flickers more does not push them out.
+    steady_pool, steady_note = meeting_flicker_target(pool, noise.spp, baseline)
+    best_psnr = max(s[1] for s in steady_pool or pool)
     tolerance = QUALITY_TOLERANCE_DB[quality]
-    good = [s for s in pool if s[1] >= best_psnr - tolerance - 1e-9]
-    good, steady_note = steady_candidates(good, noise.spp, baseline)
+    good = [s for s in steady_pool or pool if s[1] >= best_psnr - tolerance - 1e-9]
+    if not steady_pool:
+        good, steady_note = steady_candidates(good, noise.spp, baseline)
     budget_note += steady_note
     profile, psnr, ms = min(good, key=lambda s: (s[2], -s[1]))
     best_name = max(pool, key=lambda s: (s[1], -s[2]))[0].name
@@ -464,6 +470,21 @@ def above_floor(pool: list[Scored], baseline: Scored, spp: float,
             left = len(pool) - len(above)
             return above, (f", {left} below {name} less {slack:g} dB left out" if left else "")
     return pool, f", none that fits is above per-frame {profile.name}"
+
+
+def meeting_flicker_target(pool: list[Scored], spp: float,
+                           baseline: Scored | None) -> tuple[list[Scored], str]:
+    """The candidates whose locked-off flicker is at most STEADY_FLICKER_SHARE of the per-frame
+    baseline's, and a note on those left out; none (and no note) where some candidate or the
+    baseline has no flicker figure, or none meets the target."""
+    base = baseline[0].expected_flicker(spp) if baseline is not None else None
+    flicker = {s[0].name: s[0].expected_flicker(spp) for s in pool}
+    if base is None or None in flicker.values():
+        return [], ""
+    steady = [s for s in pool if flicker[s[0].name] <= STEADY_FLICKER_SHARE * base + 1e-12]
+    left = len(pool) - len(steady)
+    return steady, (f", {left} flickering more than {STEADY_FLICKER_SHARE:g}× "
+                    f"{baseline[0].name} on locked-off shots left out" if steady and left else "")
 
 
 def steady_candidates(good: list[Scored], spp: float,

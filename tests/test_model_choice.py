@@ -301,6 +301,26 @@ def test_locked_off_flicker_decides_steadiness_where_every_candidate_has_it():
     assert choose(ALL, NoiseLevel(4, "x"), mixed, "oidn-frame").model == "unmeasured"
 
 
+def test_a_steady_model_above_the_floor_is_not_pushed_out_by_a_sharper_one_that_flickers():
+    """Issue 24's target for auto is both: at least per-frame OIDN's PSNR and at most half its
+    flicker. A sharper model that flickers more (an accumulation on a 1-spp Mitsuba frame:
+    +0.5 dB, 0.62×) must not move the tolerance past the steady ones (+0.08 dB, 0.36×)."""
+    frame = _tier("oidn-frame", 100, [(1, 30.0), (64, 36.0)], flicker=0.010, per_frame=True)
+    sharp = _tier("acc", 60, [(1, 30.5), (64, 35.8)], flicker=0.0062)
+    history = _tier("history", 112, [(1, 30.08), (64, 36.0)], flicker=0.0036)
+    cleanaux = _tier("cleanaux", 460, [(1, 30.25), (64, 36.1)], flicker=0.0037)
+    tiers = [frame, sharp, history, cleanaux]
+    balanced = choose(ALL, NoiseLevel(1, "x"), tiers, "oidn-frame")
+    assert balanced.model == "history", balanced.reason  # cheapest within 0.3 of cleanaux
+    assert "2 flickering more than 0.5× oidn-frame" in balanced.reason
+    assert choose(ALL, NoiseLevel(1, "x"), tiers, "oidn-frame", quality="best").model == "cleanaux"
+    # at 64 spp the sharp one is below the floor anyway; the steady ones decide as before
+    assert choose(ALL, NoiseLevel(64, "x"), tiers, "oidn-frame").model == "history"
+    # where no candidate meets the flicker target, the tolerance counts from the best again
+    unsteady = [frame, sharp, replace(history, name="h", flicker_by_spp=((1.0, 0.0070),))]
+    assert choose(ALL, NoiseLevel(1, "x"), unsteady, "oidn-frame").model == "acc"
+
+
 def test_the_per_frame_baseline_is_recognised_from_the_shipped_cards():
     import onnx
 
