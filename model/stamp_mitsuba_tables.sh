@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # auto's Mitsuba tables at 1-64 spp (issue 24). A frame whose header names no renderer with a
 # table of its own (Mitsuba, Arnold, RenderMan, V-Ray) is chosen for on each model's default
-# table. Those tables were stamped on an earlier Mitsuba validation split at 1-8 spp, and the
-# history tiers (oidn-history*) have none, so auto cannot pick them for such frames and, by
-# the reach rule (service/model_choice.MEASURED_SPP_REACH), falls back to oidn-frame above
-# 11 spp. This re-measures every shipped model on one set of validation frames at 1-64 spp and
-# stamps the tables; the test split then scores auto against per-frame OIDN.
+# table. Until 2026-12-04 those tables were stamped on an earlier Mitsuba validation split at
+# 1-8 spp, and the history tiers (oidn-history*) had none, so auto could not pick them for such
+# frames and, by the reach rule (service/model_choice.MEASURED_SPP_REACH), fell back to
+# oidn-frame above 11 spp. This re-measures every shipped model on one set of validation frames
+# at 1-64 spp and stamps the tables; the test split then scores auto against per-frame OIDN
+# (docs/evaluation/mitsuba-tables/README.md).
 #   render:  the Mitsuba validation split (12 x 8 frames, 256^2, 1024-spp references) and its
 #            2 locked-off shots, with 16- and 64-spp inputs topped up (~4 CPU-hours on 2 cores,
 #            resumable: finished frames are skipped);
@@ -28,7 +29,9 @@ PY=${PYTHON:-python}
 SPP=1,2,4,8,16,64
 OUT=${OUT:-docs/evaluation/mitsuba-tables}
 STAGE=${1:?render, measure-static, measure, measure-history, timing, stamp or test}
+shopt -s nullglob  # no candidates once they are shipped (evaluate_cycles_mix.sh ship)
 CANDIDATES=(models/training/*-mix/*-mix.onnx)
+shopt -u nullglob
 HISTORY=oidn-history,oidn-fast-history,oidn-history-cleanaux  # no Mitsuba table before this
 models() {  # the shipped models' and the candidates' method names (file stems), comma-separated
     local names=() f
