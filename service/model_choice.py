@@ -423,7 +423,7 @@ def choose(
         good, steady_note = steady_candidates(good, noise.spp, baseline)
     budget_note += steady_note
     profile, psnr, ms = min(good, key=lambda s: (s[2], -s[1]))
-    best_name = max(pool, key=lambda s: (s[1], -s[2]))[0].name
+    best_name = max(steady_pool or pool, key=lambda s: (s[1], -s[2]))[0].name
     relation = (
         "the best expected" if profile.name == best_name
         else f"within {tolerance:g} dB of {best_name}"
@@ -493,14 +493,12 @@ def steady_candidates(good: list[Scored], spp: float,
     the per-frame baseline have locked-off flicker: those at most STEADY_FLICKER_SHARE of the
     baseline's (none qualifying: the steadiest within STABILITY_SLACK); otherwise by TRMAE,
     none clearly above the steadiest (STABILITY_SLACK; unmeasured ones are kept)."""
+    steady, note = meeting_flicker_target(good, spp, baseline)
+    if steady:
+        return steady, note
     flicker = {s[0].name: s[0].expected_flicker(spp) for s in good}
     base = baseline[0].expected_flicker(spp) if baseline is not None else None
     if base is not None and None not in flicker.values():
-        steady = [s for s in good if flicker[s[0].name] <= STEADY_FLICKER_SHARE * base + 1e-12]
-        if steady:
-            left = len(good) - len(steady)
-            return steady, (f", {left} flickering more than {STEADY_FLICKER_SHARE:g}× "
-                            f"{baseline[0].name} on locked-off shots left out" if left else "")
         measure, kind = flicker, "locked-off flicker"
     else:
         measure = {s[0].name: s[0].expected_trmae(spp) for s in good}
