@@ -51,6 +51,13 @@ STORED_BLENDER = "blender_denoise"  # a stored output in a Cycles frame's buffer
 HEADER_STATES_SPP = ("cycles",)
 
 
+def give_header_spp(method, renderer: str, spp: float) -> None:
+    """Tell a method that takes the frame's spp (auto, oidn-history*: `header_spp`) the spp the
+    header states, as the service would, where `renderer`'s headers state one."""
+    if hasattr(method, "header_spp") and renderer in HEADER_STATES_SPP:
+        method.header_spp = spp
+
+
 def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
                    single_frame: bool) -> dict[str, Callable[[], object]]:
     """Extra methods of one model: `<name>@k<size>` per requested kernel size the model accepts
@@ -371,8 +378,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"skipping {name}: {exc}", flush=True)
                 del methods[name]
                 continue
-            if hasattr(method, "header_spp") and args.renderer in HEADER_STATES_SPP:
-                method.header_spp = spp  # the spp the header states (auto, oidn-history*)
+            give_header_spp(method, args.renderer, spp)
             for i, frames in enumerate(sequences):
                 keep = crops[name] if spp == crop_spp and i < 3 else None
                 run_sequence(method, frames, scores, keep, locked_off)

@@ -63,9 +63,9 @@ def flicker_ratio(outputs: dict[str, list[np.ndarray]], name: str, first: int) -
 
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import (
-        HEADER_STATES_SPP,
         _inputs,
         build_methods,
+        give_header_spp,
         load_sequence,
         sequence_dirs,
     )
@@ -98,8 +98,7 @@ def main(argv: list[str] | None = None) -> int:
             frames = planar_frames(load_sequence(folder, spp))
             for name in names:
                 method = factories[name]()
-                if hasattr(method, "header_spp") and args.renderer in HEADER_STATES_SPP:
-                    method.header_spp = spp
+                give_header_spp(method, args.renderer, spp)
                 score = score_sequence(method, frames, (), inputs=_inputs)
                 outputs[name].append(np.stack(score.outputs))
         frames_per_shot = outputs[BASE][0].shape[0]

@@ -150,8 +150,8 @@ class HistoryRule:
 
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import (
-        HEADER_STATES_SPP,
         Scores,
+        give_header_spp,
         load_sequence,
         run_sequence,
         sequence_dirs,
@@ -189,8 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         for name, method in methods.items():  # reset() by every sequence's scoring
             scores = Scores()
-            if hasattr(method, "header_spp") and args.renderer in HEADER_STATES_SPP:
-                method.header_spp = spp
+            give_header_spp(method, args.renderer, spp)
             for frames in sequences:
                 run_sequence(method, frames, scores)
             rows.append({"method": name, "spp": spp, **scores.summary()})

@@ -206,10 +206,10 @@ class ShippedStage:
 
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import (
-        HEADER_STATES_SPP,
         Noisy,
         Scores,
         build_methods,
+        give_header_spp,
         load_sequence,
         run_sequence,
         sequence_dirs,
@@ -288,8 +288,7 @@ def main(argv: list[str] | None = None) -> int:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
         for name, factory in methods.items():
             method, scores = factory(), Scores()
-            if hasattr(method, "header_spp") and args.renderer in HEADER_STATES_SPP:
-                method.header_spp = spp
+            give_header_spp(method, args.renderer, spp)
             for frames in sequences:
                 run_sequence(method, frames, scores, None, locked_off)
             rows.append({"method": name, "spp": spp, **scores.summary()})
