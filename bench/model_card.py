@@ -40,22 +40,37 @@ def describe_split(root: Path) -> str:
             f"at {levels} spp, references at {refs} spp")
 
 
-def data_lines(training: dict, previous: list[str] = ()) -> list[str]:
-    """The training data's splits as on disk; a split not on this machine keeps the line an
-    earlier card (`previous`, its lines) wrote where the data was."""
+def data_lines(training: dict, previous: list[str] = (), metrics: dict | None = None
+               ) -> list[str]:
+    """The training data's splits as on disk, one line per split and renderer the run read
+    (`renderers` in its config); a split not on this machine keeps the line an earlier card
+    (`previous`, its lines) wrote where the data was. `metrics`: the run's notes; a run that
+    validated on nothing (`val_sequences` 0) says so instead of naming a split it never saw."""
     if "data" not in training:
         return []
     from quietframe.scenes.layout import split_dir
 
     data = Path(training["data"]).expanduser()
+    renderers = [r.strip() for r in str(training.get("renderers", "mitsuba")).split(",")
+                 if r.strip()]
+    unvalidated = (metrics or {}).get("val_sequences") == 0
     lines = ["## Data", ""]
     for split, label in (("train", "train (as on disk when this card was written; a run started "
                                    "while the split was still rendering saw fewer)"),
                          ("validation", "validation (never trained on; picks `best.pt`)")):
-        root = split_dir(data, split)
-        kept = [line for line in previous if line.startswith(f"- {split}")]
-        present = any(root.glob("*/manifest.json"))
-        lines.append(f"- {label}: {describe_split(root)}" if present or not kept else kept[0])
+        if split == "validation" and unvalidated:
+            lines.append("- validation: none on the machine during the run, so `best.pt` is its "
+                         "last step (nothing was selected)")
+            continue
+        for renderer in renderers:
+            prefix = f"- {split}" + (f", {renderer}" if len(renderers) > 1 else "")
+            root = split_dir(data, split, renderer=renderer)
+            kept = [line for line in previous if line.startswith(prefix + " ")
+                    or line.startswith(prefix + ":")]
+            present = any(root.glob("*/manifest.json"))
+            text = label.replace(split, prefix[2:], 1)
+            lines.append(f"- {text}: {describe_split(root)}" if present or not kept
+                         else kept[0])
     return [*lines, ""]
 
 
@@ -146,12 +161,14 @@ def quality_section(previous: list[str]) -> list[str]:
 
 
 def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: int = 2,
-                     split: str = "", measure: bool = False, renderer: str = "") -> Path:
+                     split: str = "", measure: bool = False, renderer: str = "",
+                     source: str = "") -> Path:
     """Write <model>.md beside `path`; `evaluation` = rows of quietframe-eval for this model,
     measured on `split` (named in the card: test figures are reported, validation ones chose;
     none given: an earlier card's quality table is kept);
     `measure`: time the model now instead of quoting the card's measured 720p time;
-    `renderer`: whose frames the split is (named in the card when given)."""
+    `renderer`: whose frames the split is (named in the card when given);
+    `source`: the evaluation file the rows come from (cited in the card)."""
     runtime = Denoiser(path, threads=threads)
     info = runtime.info
     card = path.with_suffix(".md")
@@ -165,7 +182,7 @@ def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: 
         json.dumps(dict(runtime.card.architecture), indent=1),
         "```", "", *card_lines(runtime.card),
         "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
-        *data_lines(info.training, previous),
+        *data_lines(info.training, previous, info.metrics),
         "## Speed", "", *speed_lines(runtime, threads, measure),
         f"## Quality ({' '.join(filter(None, (renderer, split)))} split)" if split
         else "## Quality", "",
@@ -176,8 +193,8 @@ def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: 
         lines += [f"| {r['spp']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['smape']:.4f} | "
                   f"{r['relmse']:.4f} | {r['trmae']:.4f} |" for r in rows]
         on = " ".join(filter(None, (renderer, split)))
-        lines += ["", f"From `quietframe-eval`{f' on the {on} split' if split else ''} "
-                  "(docs/benchmarks.md)."]
+        lines += ["", f"From `quietframe-eval`{f' on the {on} split' if split else ''}"
+                  f"{f' ({source})' if source else ''}."]
     elif kept := quality_section(previous):  # re-written after a stamp: its table stays
         lines = lines[:-2] + kept
     else:
@@ -218,7 +235,8 @@ def main(argv: list[str] | None = None) -> int:
                 parser.error(problem)
             stamp(path, metrics_from_rows(rows, meta), renderer)
         card = write_model_card(path, rows, args.threads, split, args.measure,
-                                meta.get("renderer", ""))
+                                meta.get("renderer", ""),
+                                str(args.evaluation) if args.evaluation else "")
         print(f"wrote {card}")
     return 0
 

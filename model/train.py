@@ -355,7 +355,9 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
             same_set = metrics.get("val_sequences") == len(val_batches)
             if val_psnr > best_psnr or not same_set or not val_batches:
                 best_psnr = val_psnr
-                metrics = {"val_psnr_1spp_last_frame": round(val_psnr, 3), "step": step,
+                # No validation split: no score (None; -inf is no JSON a card can carry).
+                score = round(val_psnr, 3) if val_batches else None
+                metrics = {"val_psnr_1spp_last_frame": score, "step": step,
                            "val_sequences": len(val_batches)}
                 save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
             save(latest, model, optimizer, step, cfg, best_psnr, metrics)

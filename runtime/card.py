@@ -322,6 +322,19 @@ def finite_figure(value: object) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
 
 
+def json_safe(value: object) -> object:
+    """`value` with every non-finite float as None: JSON has no NaN or infinity, and a reader
+    other than Python's (a farm's scripts, a browser) refuses `-Infinity` (e.g. a training
+    run's validation score when it had no validation split)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Mapping):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
+
+
 MEASUREMENT_KEYS = ("by_spp", "ms_720p", "measured", "absent_db", "absent_db_worst", "by_noise")
 
 
@@ -442,8 +455,8 @@ class ModelCard:
             "buffers.optional": json.dumps(list(self.optional)),
             "state": json.dumps([s.to_dict() for s in self.state]),
             "ops_domain": self.ops_domain,
-            "training": json.dumps(dict(self.training)),
-            "metrics": json.dumps(self.metrics()),
+            "training": json.dumps(json_safe(dict(self.training)), allow_nan=False),
+            "metrics": json.dumps(json_safe(self.metrics()), allow_nan=False),
             "stages": json.dumps([stage_to_dict(s) for s in self.stages]),
         }
         if self.inputs:

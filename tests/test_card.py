@@ -125,3 +125,28 @@ def test_oidn_stage_keeps_a_separate_aux_prefilter_quality():
     assert ModelCard.from_props(card.to_props()).prepass == stage
     with pytest.raises(ValueError, match="quality"):
         OIDNStage(prefilter_aux=True, aux_quality="best")
+
+
+def test_card_metadata_is_strict_json_without_infinities():
+    """A fine-tune without a validation split scores -inf; the card carries it as null, since
+    readers other than Python's refuse `-Infinity`."""
+    card = ModelCard(name="m", notes={"val_psnr_1spp_last_frame": float("-inf"), "step": 4},
+                     training={"lr": float("nan"), "steps": 4})
+    props = card.to_props()
+
+    def strict(text: str):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in card JSON"))
+
+    assert strict(props[PREFIX + "metrics"])["val_psnr_1spp_last_frame"] is None
+    assert strict(props[PREFIX + "training"]) == {"lr": None, "steps": 4}
+    assert ModelCard.from_props(props).notes["step"] == 4
+
+
+@pytest.mark.parametrize("path", installed_models(), ids=lambda p: p.stem)
+def test_shipped_cards_are_strict_json(path):
+    def refuse(constant: str):
+        pytest.fail(f"{path.name}: {constant} in its card's JSON")
+
+    for value in shipped_props(path).values():
+        if value[:1] in "[{":
+            json.loads(value, parse_constant=refuse)

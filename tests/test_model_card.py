@@ -111,3 +111,20 @@ def test_card_of_a_candidate_measured_under_its_own_name(tmp_path):
     with pytest.raises(SystemExit):
         model_card.main(["--evaluation", str(evaluation), "--measured-as", "oidn-frame-mix",
                          str(path), str(path)])
+
+
+def test_card_lists_each_renderers_split_and_an_unvalidated_run(tmp_path):
+    """A fine-tune on both renderers' train splits without a validation split (issue 23's
+    candidates): one train line per renderer, and no validation split claimed to pick best.pt."""
+    data = tmp_path / "data"
+    write_sequence(data / GENERATOR_VERSION / "train", 3, frames=2, levels=(1,))
+    write_sequence(data / f"{GENERATOR_VERSION}-cycles" / "train", 5, frames=2, levels=(1,))
+    write_sequence(data / GENERATOR_VERSION / "validation", 9, frames=2, levels=(1,))
+    path = export_nbg(NBGDenoiser(VARIANTS["nbg-2l-1g"]), tmp_path / "m.onnx",
+                      training={"data": str(data), "renderers": "mitsuba,cycles"},
+                      metrics={"val_sequences": 0, "ms_720p": 5.0})
+    card = write_model_card(path, threads=1).read_text()
+    assert re.search(r"- train, mitsuba \(as on disk.*\): 1 sequences \(seeds 3–3", card)
+    assert re.search(r"- train, cycles \(as on disk.*\): 1 sequences \(seeds 5–5", card)
+    assert "- validation: none on the machine during the run" in card
+    assert "picks `best.pt`" not in card
