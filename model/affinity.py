@@ -36,7 +36,7 @@ from quietframe.model.affinity_kernels import (
     spatial_affinity_filter,
     temporal_affinity_filter,
 )
-from quietframe.model.nbg import demodulation_divisor
+from quietframe.model.nbg import demodulation_divisor, suppress_outliers
 from quietframe.model.resample import upsample_bilinear
 from quietframe.model.temporal import backward_warp, history_valid
 
@@ -89,6 +89,11 @@ class AffinityConfig:
     # first and ends at dilation 1, so that the last (temporal) kernel smooths out the grid
     # pattern a sparse dilated kernel leaves instead of printing it.
     coarse_first: bool = False
+    # NBG's firefly clamp (model/nbg.suppress_outliers) on the demodulated radiance before
+    # anything reads it; 0 = off (every model before version 3). Without it one 1-spp firefly
+    # (66 951 where the reference is 1.3) left 17 523 in the output (docs/training.md).
+    outlier_sigmas: float = 0.0
+    outlier_floor: float = 0.0  # × the frame's mean luminance: the bound's floor (NBGConfig)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "widths", tuple(self.widths))  # JSON round trip gives a list
@@ -325,6 +330,10 @@ class AffinityDenoiser(nn.Module):
         frame_state, embedding_state = state
         safe_albedo = demodulation_divisor(albedo)  # NBG's: remodulation undoes it exactly
         radiance = color / safe_albedo  # (N, 3, H, W) demodulated: the kernels filter this
+        if self.config.outlier_sigmas > 0:  # the embedding then sees the clamped colour too
+            radiance = suppress_outliers(radiance, sigmas=self.config.outlier_sigmas,
+                                         floor=self.config.outlier_floor)
+            color = radiance * safe_albedo
         # block means of the raw buffers (cheaper than mapping all pixels, then pooling)
         inputs = embedding_inputs(*(self._low(b) for b in (color, albedo, normal, depth)))
         embedding = self.embedding(inputs)  # eq. 1, (N, 32, h, w)

@@ -79,9 +79,10 @@ class TrainConfig:
     # The exporter then lists these buffers as optional (a colour-only path when all four are).
     dropout: float = 0.0
     dropout_buffers: str = "albedo,normal,depth,motion"
-    # NBG: firefly clamp of the pre-stage (NBGConfig.outlier_sigmas; 0 = off, -1 = the variant's)
+    # NBG and affinity: the firefly clamp (NBGConfig/AffinityConfig.outlier_sigmas; 0 = off,
+    # -1 = the variant's, or the --init checkpoint's: a fine-tune may switch it, it has no weights)
     outlier_sigmas: float = -1.0
-    outlier_floor: float = -1.0  # NBG: NBGConfig.outlier_floor (-1 = the variant's)
+    outlier_floor: float = -1.0  # NBGConfig/AffinityConfig.outlier_floor (-1 = as above)
     net_scale: int = 0  # oidn-temporal: OIDNTemporalConfig.net_scale (0 = the variant's)
     # Fine-tuning: a checkpoint whose model (architecture and weights) starts a new run, with a
     # fresh optimizer and schedule (e.g. a shipped model on new data); empty: train from scratch
@@ -146,16 +147,17 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
     """The model of a run: the checkpoint's architecture (`saved`) when resuming, else the
     variant's with --width (0 keeps the variant's own) and, for affinity, --kernel-size."""
     if saved is not None:
-        if affinity.is_affinity_config(saved):
-            return affinity.AffinityDenoiser(affinity.AffinityConfig(**saved))
         if cfg.variant in OIDN_VARIANTS or "quality" in saved:
             return OIDNTemporal(OIDNTemporalConfig(**saved))
+        saved = {**saved, **clamp_flags(cfg)}  # a fine-tune may switch the clamp on or off
+        if affinity.is_affinity_config(saved):
+            return affinity.AffinityDenoiser(affinity.AffinityConfig(**saved))
         return NBGDenoiser(NBGConfig(**saved))
     if cfg.variant in affinity.VARIANTS:
         config = affinity.VARIANTS[cfg.variant]
         if cfg.kernel_size:  # also the exported graph's default: the size the model knows best
             config = dataclasses.replace(config, kernel_size=cfg.kernel_size)
-        return affinity.AffinityDenoiser(config)
+        return affinity.AffinityDenoiser(dataclasses.replace(config, **clamp_flags(cfg)))
     if cfg.variant in OIDN_VARIANTS:
         base = OIDN_VARIANTS[cfg.variant]
         return OIDNTemporal(dataclasses.replace(base, width=cfg.width or base.width,
@@ -165,6 +167,12 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
     floor = base.outlier_floor if cfg.outlier_floor < 0 else cfg.outlier_floor
     return NBGDenoiser(dataclasses.replace(base, width=cfg.width or base.width,
                                            outlier_sigmas=sigmas, outlier_floor=floor))
+
+
+def clamp_flags(cfg: TrainConfig) -> dict[str, float]:
+    """The firefly-clamp settings the flags give (-1: none given, the model's own stay)."""
+    return {k: v for k, v in (("outlier_sigmas", cfg.outlier_sigmas),
+                              ("outlier_floor", cfg.outlier_floor)) if v >= 0}
 
 
 def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
@@ -369,6 +377,8 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
 
 ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fixed per run
                        "outlier_sigmas", "outlier_floor", "net_scale")
+# Architecture a fine-tune (--init) may still change: the clamp has no weights to load.
+FINE_TUNE_MAY_CHANGE = ("outlier_sigmas", "outlier_floor")
 
 
 def load_init(init: str) -> dict:
@@ -396,7 +406,9 @@ def resume_config(run: Path, flags: dict) -> TrainConfig:
         return TrainConfig(**flags)
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     base = {k: v for k, v in base.items() if k in known}
-    clashes = [k for k in ARCHITECTURE_FIELDS if k in flags and flags[k] != base.get(k)]
+    fixed = [k for k in ARCHITECTURE_FIELDS
+             if verb == "resumes" or k not in FINE_TUNE_MAY_CHANGE]
+    clashes = [k for k in fixed if k in flags and flags[k] != base.get(k)]
     if clashes:
         fix = "use a new --run" if verb == "resumes" else "drop the flag"
         raise ValueError(

@@ -32,15 +32,21 @@ IDENTITY_BYTES_PER_PIXEL = 16
 OUTPUT_HISTORY_BYTES_PER_PIXEL = 160
 
 
+def firefly_clamp(arch: Mapping) -> tuple[int, tuple[FrameStatistic, ...]]:
+    """The firefly clamp's reach (model/nbg.suppress_outliers, 5x5: 2 px) and, with a floor,
+    its frame-wide statistic; (0, ()) where the architecture has no clamp."""
+    if not float(arch.get("outlier_sigmas", 0) or 0) > 0:
+        return 0, ()
+    return 2, (MEAN_LUMINANCE,) if float(arch.get("outlier_floor", 0) or 0) > 0 else ()
+
+
 def nbg_tiling(arch: Mapping) -> Tiling:
     """2 cells of the coarsest grid (splat then slice reach one cell each way, a cell is sigma
-    pixels) + 2 px per 5x5 GuideNet layer + 2 px of outlier suppression (5x5)."""
+    pixels) + 2 px per 5x5 GuideNet layer + 2 px of outlier suppression (5x5; counted whether
+    or not the clamp is on, as every NBG card so far says)."""
     grids, layers, sigma = int(arch["grids"]), int(arch["layers"]), int(arch["sigma_s"])
     coarsest = sigma * 2 ** max(grids - 1, 0) if grids else 1
-    statistics = (MEAN_DEPTH,) if layers > 0 else ()
-    if float(arch.get("outlier_sigmas", 0) or 0) > 0 and float(arch.get("outlier_floor", 0)
-                                                                  or 0) > 0:
-        statistics += (MEAN_LUMINANCE,)
+    statistics = ((MEAN_DEPTH,) if layers > 0 else ()) + firefly_clamp(arch)[1]
     return Tiling(radius=2 * coarsest * (grids > 0) + 2 * layers + 2, align=max(coarsest, 1),
                   statistics=statistics,
                   bytes_per_pixel=NBG_BYTES_PER_PIXEL_PER_LAYER * (layers + 1))
@@ -70,10 +76,12 @@ def affinity_tiling(arch: Mapping, inputs: Sequence[InputSpec]) -> Tiling:
     temporal = int(arch.get("temporal_kernel_size", 5)) // 2 if arch.get("temporal") else 0
     sizes = next((spec.allowed for spec in inputs if spec.name == "kernel_size"), None)
     sizes = sizes or (int(arch["kernel_size"]),)
-    return Tiling(radius=params + temporal + scale,
+    clamp, statistics = firefly_clamp(arch)
+    return Tiling(radius=params + temporal + scale + clamp,
                   align=scale * 2 ** (levels - 1),
                   reach={"kernel_size": {int(k): (int(k) // 2) * dilation_sum for k in sizes}},
-                  statistics=(MEAN_DEPTH,), bytes_per_pixel=AFFINITY_BYTES_PER_PIXEL,
+                  statistics=(MEAN_DEPTH, *statistics),
+                  bytes_per_pixel=AFFINITY_BYTES_PER_PIXEL,
                   size_ratios=scale > 1 or levels > 1)
 
 

@@ -266,3 +266,50 @@ def test_kernel_count_dilations_and_guide():
     assert guide.shape[1] == affinity.GUIDE_CHANNELS
     extra = model.guide(guide)
     assert (extra[..., 1::2] - extra[..., 0::2]).abs().mean() > 0.1
+
+
+def test_firefly_clamp_bounds_a_firefly_and_exports(data, tmp_path):
+    """With the clamp (outlier_sigmas, floor × the frame's mean), a 1e5 firefly no longer
+    reaches the output: PyTorch and the exported graph agree, the tiling knows the clamp's
+    reach and frame statistic, and a fine-tune of a clamp-less run may switch it on."""
+    color, albedo, normal, depth, motion = frame_inputs(0)
+    fiery = color.clone()
+    fiery[0, :, 10, 12] = 5e4  # below the runtime's 65504 (half max) input bound
+    buffers = (fiery, albedo, normal, depth, motion, torch.ones(1))
+    clamp = dict(outlier_sigmas=3.0, outlier_floor=128.0)
+    outputs = {}
+    for on in (False, True):
+        torch.manual_seed(0)
+        variant = affinity.VARIANTS["affinity-h16-k5gc"]
+        model = affinity.AffinityDenoiser(dataclasses.replace(variant, **(clamp if on else {})))
+        with torch.no_grad():
+            outputs[on] = model.eval()(*buffers, model.initial_state(1, HEIGHT, WIDTH))[0]
+    # clamp-less: the firefly's energy spreads into the output (~280 at init); clamped to the
+    # floor (128 × the frame's mean luminance, which on this 32×40 frame the firefly itself
+    # raises 30-fold) it leaves ~15
+    assert outputs[False][0, :, 10, 12].max() > 10 * outputs[True][0, :, 10, 12].max()
+    path = export_affinity(model, tmp_path / "clamped.onnx")
+    runtime = Denoiser(path, threads=1)
+    planes = {k: b[0].numpy() for k, b in zip(NAMES, buffers[:5], strict=True)}
+    np.testing.assert_allclose(runtime.denoise(planes, None).color, outputs[True][0].numpy(),
+                               rtol=1e-4, atol=1e-4 * float(outputs[True].abs().max()))
+    tiling = runtime.card.tiling
+    plain = affinity_tiling_of(affinity.VARIANTS["affinity-h16-k5gc"])
+    assert tiling.radius == plain.radius + 2
+    assert [s.name for s in tiling.statistics] == ["mean_depth", "mean_luminance"]
+    # fine-tuning a clamp-less checkpoint with the clamp on (it has no weights); a resume may not
+    qt.train(config(data, steps=1), tmp_path / "base")
+    flags = {"init": str(tmp_path / "base" / "checkpoint.pt"), "data": str(data), "crop": 24,
+             "frames": 2, "batch": 2, "steps": 1, "threads": 1, **clamp}
+    cfg = qt.resume_config(tmp_path / "tuned", flags)
+    qt.train(cfg, tmp_path / "tuned")
+    tuned = torch.load(tmp_path / "tuned" / "checkpoint.pt", weights_only=False)
+    assert (tuned["config"]["outlier_sigmas"], tuned["config"]["outlier_floor"]) == (3.0, 128.0)
+    with pytest.raises(ValueError, match="outlier_sigmas"):
+        qt.resume_config(tmp_path / "tuned", {"outlier_sigmas": 0.0})
+
+
+def affinity_tiling_of(config):
+    from quietframe.runtime.receptive import affinity_tiling
+
+    return affinity_tiling(config.to_dict(), ())
