@@ -8,11 +8,9 @@
 #           (1-64 spp) with the shipped and the fine-tuned models, and issue 24's comparison
 #           table per spp (bench/compare_table) under docs/evaluation/cycles-mix/;
 #           test-mitsuba / test-cycles: one split alone (the other may still be rendering).
-#   ship:   install the candidates under the shipped names (next version) with both renderers'
-#           tables, each measured on validation with the candidate under its own name
-#           (bench/model_metrics --measured-as): Mitsuba from model/stamp_mitsuba_tables.sh
-#           measure (run it first), Cycles from a run here on the Cycles validation splits,
-#           each with a quiet 720p timing run on that renderer's frames; then the cards;
+#   ship:   spent: it installed both candidates on 2026-12-04 (nbg-2l-3g v5, affinity-h16-k5gc
+#           v2) and removed their folders; git show c659a22:model/evaluate_cycles_mix.sh has it
+#           as it ran. A new candidate ships with model/ship_candidate.sh;
 #   docs:   after ship, the reports that show the learned tiers, re-run with the new ones
 #           installed: docs/benchmarks.md's Mitsuba test table (the same methods; the file's
 #           later sections, from the auto_choice marker on, are kept) and the Cycles test run
@@ -66,45 +64,6 @@ cycles() {
         --against oidn-frame,blender-denoise > "$OUT/cycles-test/targets.md"
     before_after cycles-test
 }
-ship() {
-    local mitsuba=${MITSUBA_TABLES:-docs/evaluation/mitsuba-tables} name
-    local candidates
-    candidates=$(printf '%s-mix,' "${NAMES[@]}")
-    candidates=${candidates%,}
-    for split in validation validation-static; do
-        "$PY" -m quietframe.bench.evaluate --renderer cycles --split "$split" --threads 2 \
-            --no-timing --methods "blender-denoise,oidn-frame,$candidates" "${models[@]}" \
-            --out "$OUT/cycles-$split"
-    done
-    # quiet 720p timing on each renderer's frames (the tables are per renderer)
-    "$PY" -m quietframe.bench.evaluate --renderer cycles --split validation --sequences 1 \
-        --spp 1 --threads 2 --methods "oidn-frame,$candidates" "${models[@]}" \
-        --out "$OUT/timing-cycles"
-    "$PY" -m quietframe.bench.evaluate --split validation --sequences 1 --spp 1 --threads 2 \
-        --methods "oidn-frame,$candidates" "${models[@]}" --out "$OUT/timing-mitsuba"
-    for name in "${NAMES[@]}"; do
-        # The shipped run's files become the candidate's (tests/test_export checks that
-        # models/<name>.onnx is the export of models/training/<name>/best.pt); the old run
-        # stays in git history. A fine-tune keeps no resumable checkpoint.pt of its own.
-        rm -f "models/training/$name/checkpoint.pt"
-        cp "models/training/$name-mix"/{best.pt,config.json,log.txt} "models/training/$name/"
-        "$PY" -m quietframe.export.cli --checkpoint "models/training/$name/best.pt" \
-            --out "models/$name.onnx" --version "${VERSION[$name]}"
-        "$PY" -m quietframe.bench.model_metrics "models/$name.onnx" --measured-as "$name-mix" \
-            --renderer mitsuba --evaluation "$mitsuba/validation/benchmarks.json" \
-            --static-evaluation "$mitsuba/validation-static/benchmarks.json" \
-            --noise-points "$mitsuba/noise-points/auto_choice.json" \
-            --absent "$mitsuba/absence/auto_choice.json" \
-            --timing "$OUT/timing-mitsuba/benchmarks.json"
-        "$PY" -m quietframe.bench.model_metrics "models/$name.onnx" --measured-as "$name-mix" \
-            --renderer cycles --evaluation "$OUT/cycles-validation/benchmarks.json" \
-            --static-evaluation "$OUT/cycles-validation-static/benchmarks.json" \
-            --timing "$OUT/timing-cycles/benchmarks.json"
-        "$PY" -m quietframe.bench.model_card "models/$name.onnx" --measured-as "$name-mix" \
-            --evaluation "$mitsuba/validation/benchmarks.json"
-        rm -r "models/training/$name-mix"  # shipped now
-    done
-}
 docs() {
     local t=${TMPDIR:-/tmp}/cycles-mix-docs
     "$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --methods \
@@ -120,7 +79,7 @@ pathlib.Path('docs/benchmarks.md').write_text(new)" "$t/test/benchmarks.md"
 }
 case "$STAGE" in
 test) mitsuba; cycles ;;
-ship) ship ;;
+ship) echo "ship is spent (see the header): use model/ship_candidate.sh" >&2; exit 2 ;;
 docs) docs ;;
 test-mitsuba) mitsuba ;;
 test-cycles) cycles ;;
