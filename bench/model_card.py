@@ -55,21 +55,19 @@ def data_lines(training: dict, previous: list[str] = (), metrics: dict | None = 
                  if r.strip()]
     unvalidated = (metrics or {}).get("val_sequences") == 0
     lines = ["## Data", ""]
-    for split, label in (("train", "train (as on disk when this card was written; a run started "
-                                   "while the split was still rendering saw fewer)"),
-                         ("validation", "validation (never trained on; picks `best.pt`)")):
+    for split, note in (("train", " (as on disk when this card was written; a run started "
+                                  "while the split was still rendering saw fewer)"),
+                        ("validation", " (never trained on; picks `best.pt`)")):
         if split == "validation" and unvalidated:
             lines.append("- validation: none on the machine during the run, so `best.pt` is its "
                          "last step (nothing was selected)")
             continue
         for renderer in renderers:
-            prefix = f"- {split}" + (f", {renderer}" if len(renderers) > 1 else "")
+            name = f"- {split}" + (f", {renderer}" if len(renderers) > 1 else "")
             root = split_dir(data, split, renderer=renderer)
-            kept = [line for line in previous if line.startswith(prefix + " ")
-                    or line.startswith(prefix + ":")]
+            kept = [line for line in previous if line.startswith((name + " ", name + ":"))]
             present = any(root.glob("*/manifest.json"))
-            text = label.replace(split, prefix[2:], 1)
-            lines.append(f"- {text}: {describe_split(root)}" if present or not kept
+            lines.append(f"{name}{note}: {describe_split(root)}" if present or not kept
                          else kept[0])
     return [*lines, ""]
 

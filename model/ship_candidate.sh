@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Measure one retrained model beside the shipped one and ship it: the same steps as
-# model/evaluate_cycles_mix.sh ship, for one candidate from any training run.
+# Measure one retrained model beside the shipped one and ship it, for one candidate from any
+# training run: the steps model/evaluate_cycles_mix.sh's ship stage took for its two (in git at
+# c659a22), with every figure from runs of this script.
 #   NAME:    the shipped model it replaces (models/$NAME.onnx, models/training/$NAME/);
 #   RUN:     the run directory (best.pt, config.json, log.txt);
 #   VERSION: the version the shipped file gets (the shipped card's + 1).

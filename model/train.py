@@ -163,10 +163,8 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
         return OIDNTemporal(dataclasses.replace(base, width=cfg.width or base.width,
                                                 net_scale=cfg.net_scale or base.net_scale))
     base = VARIANTS[cfg.variant]
-    sigmas = base.outlier_sigmas if cfg.outlier_sigmas < 0 else cfg.outlier_sigmas
-    floor = base.outlier_floor if cfg.outlier_floor < 0 else cfg.outlier_floor
     return NBGDenoiser(dataclasses.replace(base, width=cfg.width or base.width,
-                                           outlier_sigmas=sigmas, outlier_floor=floor))
+                                           **clamp_flags(cfg)))
 
 
 def clamp_flags(cfg: TrainConfig) -> dict[str, float]:

@@ -269,7 +269,7 @@ def test_kernel_count_dilations_and_guide():
 
 
 def test_firefly_clamp_bounds_a_firefly_and_exports(data, tmp_path):
-    """With the clamp (outlier_sigmas, floor × the frame's mean), a 1e5 firefly no longer
+    """With the clamp (outlier_sigmas, floor × the frame's mean), a 5e4 firefly no longer
     reaches the output: PyTorch and the exported graph agree, the tiling knows the clamp's
     reach and frame statistic, and a fine-tune of a clamp-less run may switch it on."""
     color, albedo, normal, depth, motion = frame_inputs(0)
