@@ -24,6 +24,7 @@ from quietframe.model import metrics
 from quietframe.runtime import Denoiser
 from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
 from quietframe.runtime.card import SAMPLES_INPUT
+from quietframe.runtime.motion_evidence import gate_history, keep_probe
 
 Planes = dict[str, np.ndarray]  # canonical name -> (C, H, W) float32
 Frames = list[tuple[Planes, np.ndarray, bool]]  # (planes, reference (H, W, 3), reset)
@@ -58,6 +59,7 @@ class RuntimeMethod:
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
         self.state: dict | None = None
         self.header_spp: float | None = None
+        self.dropped = 0  # frames whose history was not used: moved without motion vectors
 
     def reset(self) -> None:
         self.state = None
@@ -73,8 +75,12 @@ class RuntimeMethod:
         takes_spp = any(i.name == SAMPLES_INPUT for i in self.denoiser.info.inputs)
         options = ({SAMPLES_INPUT: max(1.0, float(self.header_spp))}
                    if takes_spp and self.header_spp is not None else None)
-        result = self.denoiser.denoise(planes, self.state, options)
-        self.state = result.state
+        gate = None
+        if self.denoiser.info.state_specs:  # the service's rule for history without vectors
+            gate = gate_history(planes, self.state)
+            self.dropped += gate.dropped
+        result = self.denoiser.denoise(planes, gate.state if gate else self.state, options)
+        self.state = keep_probe(result.state, gate.probe) if gate else result.state
         return result.color
 
 

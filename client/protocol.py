@@ -22,6 +22,9 @@ class Reset(str, Enum):
     CUT = "cut"  # ?cut=true or the header attribute
     GAP = "gap"  # a frame index was skipped
     STATE_LOST = "state-lost"  # the session's stored history was damaged and set aside
+    # A temporal model's frame without motion vectors whose aux moved (motion blur on, a
+    # renderer that writes none): its history would ghost, so this frame did not use it.
+    NO_MOTION = "no-usable-motion"
 
 
 class Header:
@@ -33,6 +36,9 @@ class Header:
     SANITIZED = "X-Quietframe-Sanitized"  # input values replaced by the sanitising rule
     SANITIZED_BUFFERS = "X-Quietframe-Sanitized-Buffers"  # "color=3, depth=1"
     MISSING = "X-Quietframe-Missing"  # optional buffers absent, fed as zeros: "motion"
+    # A temporal model's frame without usable motion vectors: what its aux showed and whether
+    # the history was used, e.g. "moving (64% of 120 tiles moved); history not used"
+    MOTION = "X-Quietframe-Motion"
     # model=auto sessions: "<model>; spp=<n>; source=<header attribute|estimate|unknown>;
     # reason=<why>" (the choice made at the shot's first frame, repeated on every frame of it)
     CHOICE = "X-Quietframe-Choice"

@@ -262,7 +262,16 @@ def render_sequence(seed: int, out: Path, cfg: CyclesConfig, log=print) -> dict:
     desc = manifest["scene"]
     scene = cycles_scene.build_scene(desc, manifest["exposure"])
     configure(scene, cfg)
-    resets = {0, *desc["cuts"]}
+    render_missing(scene, seed, out, cfg, manifest, todo, {0, *desc["cuts"]}, log)
+    return manifest
+
+
+def render_missing(scene: bpy.types.Scene, seed: int, out: Path, cfg: CyclesConfig,
+                   manifest: dict, todo: list[tuple[int, str]], resets: set[int],
+                   log=print) -> None:
+    """Render the frames `todo` names (every missing spp level and reference half of each),
+    recording seconds and CPU seconds per level in the manifest after every frame."""
+    mpath = out / MANIFEST
     records = {f["index"]: f for f in manifest["frames"]}
     for t in sorted({t for t, _ in todo}):
         rec = records.setdefault(t, {"index": t, "file": frame_file(t), "reset": t in resets,
@@ -287,7 +296,6 @@ def render_sequence(seed: int, out: Path, cfg: CyclesConfig, log=print) -> dict:
         manifest["frames"] = sorted(records.values(), key=lambda f: f["index"])
         write_json(mpath, manifest)
         log(f"sequence {seed} frame {t}: {json.dumps(rec['seconds'])}")
-    return manifest
 
 
 def reference_noise(seq_dir: Path, t: int, eps: float = 0.01) -> tuple[float, float]:

@@ -20,6 +20,7 @@ import time
 from collections.abc import Iterable, Iterator
 
 from quietframe.runtime import ModelInfo
+from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.runtime.tiling import max_memory_mb_default
 from quietframe.service.errors import FrameOverMemoryBudget, MemoryBusy, TooManyUploads
 from quietframe.service.frames import ExrHeader
@@ -42,7 +43,7 @@ def model_working_set(info: ModelInfo, height: int, width: int) -> int:
     working = height * width * per_pixel
     if tiling is not None:
         working = min(working, int(max_memory_mb_default() * 2**20))
-    return working + info.state_nbytes(height, width)
+    return working + history_nbytes(info.state_specs, height, width)
 
 
 def frame_need(header: ExrHeader, body_bytes: int, models: Iterable[ModelInfo]) -> int:

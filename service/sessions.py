@@ -34,6 +34,13 @@ from quietframe.client.protocol import (
 )
 from quietframe.runtime import Denoiser, ModelInfo
 from quietframe.runtime.buffers import BUFFER_NAMES
+from quietframe.runtime.motion_evidence import (
+    HistoryGate,
+    gate_history,
+    history_nbytes,
+    history_shapes,
+    keep_probe,
+)
 from quietframe.runtime.sanitize import clamp_to_half
 from quietframe.runtime.usable_buffers import unusable_buffers
 from quietframe.service import admission, frames, model_choice
@@ -246,7 +253,7 @@ def reserve_bytes(info: ModelInfo, spec: SessionSpec) -> int:
     the denoised colour planes (the reply is the whole input file: `_reserve_reply` grows the
     reservation to its real size on the first frame)."""
     reply = 3 * spec.width * spec.height * (2 if spec.precision == "half" else 4)
-    return info.state_nbytes(spec.height, spec.width) + reply + REPLY_MARGIN_BYTES
+    return history_nbytes(info.state_specs, spec.height, spec.width) + reply + REPLY_MARGIN_BYTES
 
 
 def choice_header(choice: Choice) -> str:
@@ -259,6 +266,14 @@ def choice_header(choice: Choice) -> str:
 
 # The non-ASCII symbols the choice's reason uses, as the header spells them.
 HEADER_WORDS = {"σ": "sigma", "×": "x", "≤": "<=", "≥": ">=", "–": "-", "—": "-", "·": "*"}
+
+
+def motion_header(gate: HistoryGate) -> str:
+    """X-Quietframe-Motion of a temporal model's frame without motion vectors: what its aux
+    showed and whether the history was used."""
+    assert gate.evidence is not None
+    used = "history not used" if gate.state is None else "history used"
+    return f"{gate.evidence.describe()}; {used}"
 
 
 def frame_samples(header: frames.ExrHeader, spec: SessionSpec,
@@ -289,7 +304,13 @@ def process_frame(
     frame = frames.decode(body, sources)
     decoded = time.perf_counter()
     options = options_for(denoiser.info, spec.model_options, samples)  # auto: this model's
-    result = denoiser.denoise(frame.buffers, state, options)
+    # A temporal model reads its history only where the motion is evidence (motion_evidence):
+    # a frame without vectors whose aux moved starts afresh, as after a cut.
+    gate = gate_history(frame.buffers, state) if denoiser.info.state_specs else None
+    if gate is not None and gate.dropped:
+        reset = Reset.NO_MOTION
+    result = denoiser.denoise(frame.buffers, gate.state if gate else state, options)
+    new_state = keep_probe(result.state, gate.probe) if gate else result.state
     denoised = time.perf_counter()
     info = denoiser.info
     model = f"{info.name} {info.version}"
@@ -331,11 +352,13 @@ def process_frame(
         headers[Header.SANITIZED_BUFFERS] = format_counts(sanitized)
     if result.missing:
         headers[Header.MISSING] = join_list(result.missing)
+    if gate is not None and gate.evidence is not None:
+        headers[Header.MOTION] = motion_header(gate)
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
     return _Processed(
         reply=Reply(index, body_out, headers, len(body), request_digest(body)),
-        state=result.state,
+        state=new_state,
         reset=reset,
         sources={b: list(s.channels) for b, s in sources.items()},
         missing=list(result.missing),
@@ -602,8 +625,11 @@ class SessionRegistry:
         spec = session.spec
         stated = model_choice.samples_from_header(header.attributes, spec.layer)
         noise, unusable = await self._on_pool(self._estimate_noise, body, sources, stated)
+        # Present in the pixels, not just named; except an all-zero Vector, which is no
+        # evidence either way (a locked-off camera, motion blur, a first frame): the chosen
+        # model's history follows the aux's evidence frame by frame (motion_evidence).
         return model_choice.choose(
-            [b for b in sources if b not in unusable],  # present in the pixels, not just named
+            [b for b in sources if b not in unusable or b == "motion"],
             noise,
             self.models.profiles_for(model_choice.renderer_from_header(header.attributes)),
             self.models.default,
@@ -635,7 +661,7 @@ class SessionRegistry:
         creation-time estimate when the farm sends many passes: grow the session's reservation
         to what it will hold (MemoryBudgetExceeded, before anything changed, if that does not
         fit)."""
-        need = info.state_nbytes(session.spec.height, session.spec.width)
+        need = history_nbytes(info.state_specs, session.spec.height, session.spec.width)
         need += reply_bytes + REPLY_MARGIN_BYTES
         if need > session.reserve_bytes:
             self._make_room(need - session.reserve_bytes, keep=session)
@@ -718,7 +744,7 @@ class SessionRegistry:
 
     def _shapes_of(self, meta: dict) -> dict[str, tuple[int, ...]]:
         info, (w, h) = self._info_of(meta), (meta["width"], meta["height"])
-        return {s.name: s.shape(h, w) for s in info.state_specs}
+        return history_shapes(info.state_specs, h, w)
 
     async def _ensure_resident(self, session: Session) -> None:
         if self.store is not None and self.store.shared:
@@ -731,7 +757,7 @@ class SessionRegistry:
             return
         assert self.store is not None  # only durable sessions leave memory
         spec = session.spec
-        shapes = {s.name: s.shape(spec.height, spec.width) for s in session.info.state_specs}
+        shapes = history_shapes(session.info.state_specs, spec.height, spec.width)
         try:
             session.state, session.reply = await self._on_pool(
                 self.store.read, session.id, shapes

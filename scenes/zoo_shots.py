@@ -1,0 +1,104 @@
+"""The validation zoo: Cycles shots whose content the g2 generator (scenes/generator.py) does not
+make, so `auto`'s tables and the history tiers are checked on shots unlike the ones they were
+built from. This module is the shot list only (no bpy): the evaluation reads it beside the
+renders; scenes/zoo_scene.py builds the shots in Blender and scenes/zoo_render.py renders them.
+
+Every shot is written here, independently of the generator: Blender primitives (Suzanne, UV
+spheres, boxes written as vertex lists), Blender's procedural textures at fine scales (brick,
+wave, checker, noise), photographs that scikit-image's wheel ships (brick, grass, gravel, a
+printed page, text, photos hung as posters; scenes/zoo_assets.py fetches them from PyPI),
+Blender's bundled HDR environments (Poly Haven studio lights: courtyard, forest, city, ...)
+and its physical Nishita sky with a sun lamp. The shots cover the camera work and content a
+farm sends that the generator does not: a locked-off camera, a slow dolly, a fast pan, hand-held
+sub-pixel shake, fine textures, a daylight exterior, motion blur (Cycles then writes an all-zero
+`Vector` while the camera moves), depth of field, a first frame without motion and a cut.
+
+The split is by shot: validation shots give `auto` its tables, test shots are reported only.
+Each split has one shot of every camera kind, on different sets, lights and textures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+ZOO_VERSION = "zoo1"  # bump when a shot's content changes: renders land in a new folder
+ZOO_SPLITS = ("validation", "test")
+
+
+@dataclass(frozen=True)
+class Shot:
+    name: str
+    split: str  # validation (auto's tables) or test (reported only)
+    set: str  # a builder in zoo_scene.SETS
+    camera: str  # locked | dolly | pan | shake | orbit
+    tags: tuple[str, ...]  # what the shot covers (the issue's list), for the report
+    seed: int
+    frames: int = 8
+    size: tuple[int, int] = (192, 192)
+    speed: float = 0.0  # dolly m/frame, pan px/frame, orbit degrees/frame, shake px (std)
+    motion_blur: bool = False
+    dof: bool = False
+    zero_first_motion: bool = False  # no motion keyed before frame 1: its Vector is all zero
+    cut_at: int | None = None  # frame index (0-based) where a second camera takes over
+    variant: dict = field(default_factory=dict)  # set options (environment, textures)
+
+    @property
+    def locked_off(self) -> bool:
+        return self.camera == "locked"
+
+    def record(self) -> dict:
+        d = asdict(self)
+        d["tags"], d["size"] = list(self.tags), list(self.size)
+        return d
+
+
+SHOTS: tuple[Shot, ...] = (
+    # --- validation: auto's tables ------------------------------------------------------------
+    Shot("study-locked", "validation", "study", "locked",
+         ("locked-off", "printed text", "fabric"), seed=8_000_001),
+    Shot("street-dolly", "validation", "street", "dolly",
+         ("slow dolly", "daylight exterior", "fine brick", "foliage", "first frame zero motion"),
+         seed=8_000_002, size=(256, 144), speed=0.06, zero_first_motion=True),
+    Shot("gallery-pan", "validation", "gallery", "pan",
+         ("fast pan", "fine brick", "printed text"), seed=8_000_003, size=(256, 144),
+         speed=10.0),
+    Shot("tabletop-shake", "validation", "tabletop", "shake",
+         ("hand-held shake", "depth of field", "printed text", "fabric"), seed=8_000_004,
+         speed=0.35, dof=True),
+    Shot("garden-blur", "validation", "garden", "orbit",
+         ("motion blur", "foliage"), seed=8_000_005, speed=2.0, motion_blur=True),
+    Shot("courtyard-cut", "validation", "courtyard", "dolly",
+         ("camera cut", "daylight exterior", "fine brick"), seed=8_000_006, size=(256, 144),
+         speed=0.08, cut_at=4),
+    # --- test: reported only ------------------------------------------------------------------
+    Shot("tabletop-locked", "test", "tabletop", "locked",
+         ("locked-off", "fabric", "printed text"), seed=8_100_001,
+         variant={"environment": "city"}),
+    Shot("courtyard-dolly", "test", "courtyard", "dolly",
+         ("slow dolly", "daylight exterior", "fine brick", "first frame zero motion"),
+         seed=8_100_002, size=(256, 144), speed=0.05, zero_first_motion=True,
+         variant={"sun_elevation": 55.0}),
+    Shot("street-pan", "test", "street", "pan",
+         ("fast pan", "daylight exterior", "foliage", "fine brick"), seed=8_100_003,
+         size=(256, 144), speed=12.0, variant={"sun_elevation": 20.0}),
+    Shot("study-shake", "test", "study", "shake",
+         ("hand-held shake", "depth of field", "printed text", "fabric"), seed=8_100_004,
+         speed=0.3, dof=True, variant={"environment": "sunset"}),
+    Shot("gallery-blur", "test", "gallery", "pan",
+         ("motion blur", "fine brick"), seed=8_100_005, size=(256, 144), speed=6.0,
+         motion_blur=True),
+    Shot("garden-cut", "test", "garden", "orbit",
+         ("camera cut", "foliage", "depth of field"), seed=8_100_006, speed=1.5, cut_at=5,
+         dof=True, variant={"environment": "sunrise"}),
+)
+
+
+def shots(split: str | None = None) -> list[Shot]:
+    return [s for s in SHOTS if split is None or s.split == split]
+
+
+def shot(name: str) -> Shot:
+    for s in SHOTS:
+        if s.name == name:
+            return s
+    raise KeyError(f"no zoo shot {name!r} (have {', '.join(s.name for s in SHOTS)})")
