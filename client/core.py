@@ -50,6 +50,9 @@ class FrameResult:
     sanitized_buffers: dict[str, int] = field(default_factory=dict)  # per buffer: depth=678
     model: str = ""  # "<name> <version>" of the model that ran
     choice: str = ""  # model=auto: the X-Quietframe-Choice header
+    # a temporal model's frame without usable motion vectors: what its aux showed
+    # (X-Quietframe-Motion, e.g. "moving (64% of 120 tiles moved); history not used")
+    motion: str = ""
 
 
 @dataclass(frozen=True)
@@ -156,6 +159,7 @@ def parse_frame(index: int, response: httpx.Response) -> FrameResult:
         sanitized_buffers=parse_counts(h.get(Header.SANITIZED_BUFFERS, "")),
         model=h.get(Header.MODEL, ""),
         choice=h.get(Header.CHOICE, ""),
+        motion=h.get(Header.MOTION, ""),
     )
 
 

@@ -1,0 +1,196 @@
+"""Motion evidence (runtime/motion_evidence.py): a frame without usable motion vectors is judged
+static or moving from its aux, and a temporal model's history is used only where it is static.
+Real Cycles frames (tests/fixtures/blender_sequences, tools/render_blender_sequences.py): a pan
+with motion blur on (an all-zero Vector over a moving image) and a locked-off shot."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quietframe.bench.harness import RuntimeMethod
+from quietframe.model import metrics
+from quietframe.runtime import motion_evidence as me
+from quietframe.runtime.registry import installed_models
+from quietframe.scenes.cycles_io import _decode
+
+SEQUENCES = Path(__file__).resolve().parent / "fixtures" / "blender_sequences"
+FRAMES = json.loads((SEQUENCES / "manifest.json").read_text())["frames"]
+SPP = json.loads((SEQUENCES / "manifest.json").read_text())["spp"]
+HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")
+
+
+def planes(name: str, frame: int, vectors: bool = True) -> dict[str, np.ndarray]:
+    """A fixture frame as the service decodes it (all-zero Vector left out); `vectors` False
+    also leaves out the Vector the locked-off shot has (Cycles writes ~1e-5 there), so the
+    frame carries none at all, like a locked-off shot whose Vector is exactly zero."""
+    out = {k: np.ascontiguousarray(v.transpose(2, 0, 1))
+           for k, v in _decode(SEQUENCES / f"{name}.{frame:04d}.exr").items()}
+    if not vectors:
+        out.pop("motion", None)
+    return out
+
+
+def reference(name: str, frame: int) -> np.ndarray:
+    return _decode(SEQUENCES / f"{name}_reference.{frame:04d}.exr",
+                   {"color": "ViewLayer.Combined"})["color"]
+
+
+def judged(name: str) -> list[me.MotionEvidence]:
+    probes = [me.probe(planes(name, t)) for t in range(1, FRAMES + 1)]
+    return [me.judge(a, b) for a, b in zip(probes, probes[1:], strict=False)]
+
+
+def test_cycles_motion_blur_pan_is_moving_and_locked_off_is_static():
+    assert "motion" not in planes("motion_blur", 2)  # Cycles wrote an all-zero Vector
+    moving = judged("motion_blur")
+    assert all(e.verdict == "moving" for e in moving), [e.describe() for e in moving]
+    assert min(e.moving_share for e in moving) > 0.4
+    static = judged("locked_off")
+    assert all(e.verdict == "static" for e in static), [e.describe() for e in static]
+    assert max(e.moving_share for e in static) == 0.0
+
+
+def _texture(h: int, w: int, seed: int = 0) -> np.ndarray:
+    """Smooth random texture (periodic), structure at a few pixels' scale."""
+    rng = np.random.default_rng(seed)
+    spectrum = np.fft.rfft2(rng.random((h, w)))
+    fy, fx = np.fft.fftfreq(h)[:, None], np.fft.rfftfreq(w)[None, :]
+    tex = np.fft.irfft2(spectrum * np.exp(-(fx**2 + fy**2) / (2 * 0.08**2)), s=(h, w))
+    return 0.5 + 0.2 * (tex - tex.mean()) / tex.std()  # an albedo around 0.5, std 0.2
+
+
+def _shifted(tex: np.ndarray, dx: float) -> np.ndarray:
+    """`tex` moved right by dx pixels (exact, by the Fourier shift theorem)."""
+    f = np.fft.fft2(tex)
+    return np.real(np.fft.ifft2(f * np.exp(-2j * np.pi * np.fft.fftfreq(tex.shape[1]) * dx)))
+
+
+def _frame(tex: np.ndarray, noise: np.ndarray, edge_noise: float = 0.0) -> dict:
+    """Albedo = texture + noise that is larger at edges (pixel-filter jitter), normal flat."""
+    grad = np.hypot(*np.gradient(tex))
+    albedo = tex + noise * (0.01 + edge_noise * grad / max(grad.max(), 1e-12))
+    h, w = tex.shape
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1
+    return {"color": np.stack([albedo] * 3).astype(np.float32),
+            "albedo": np.stack([albedo] * 3).astype(np.float32), "normal": normal}
+
+
+@pytest.mark.parametrize("dx, verdict", [(0.0, "static"), (0.3, "moving"), (1.0, "moving"),
+                                         (12.0, "moving")])
+def test_subpixel_to_fast_shifts_against_edge_heavy_noise(dx, verdict):
+    """Noise concentrated on edges (where a plain F test would read motion) stays static; a
+    third of a pixel is motion; a 12-px pan (beyond the linearisation) is motion too."""
+    rng = np.random.default_rng(1)
+    tex = _texture(144, 256)
+    a = _frame(tex, rng.normal(size=tex.shape), edge_noise=0.1)
+    b = _frame(_shifted(tex, dx), rng.normal(size=tex.shape), edge_noise=0.1)
+    evidence = me.judge(me.probe(a), me.probe(b))
+    assert evidence.verdict == verdict, evidence.describe()
+
+
+def test_flat_frames_and_first_frames_cannot_tell():
+    """A flat wall under fresh noise shows no motion either way; nor does a first frame."""
+    rng = np.random.default_rng(2)
+    flat = [_frame(np.full((96, 96), 0.5), rng.normal(size=(96, 96)) * 5) for _ in range(2)]
+    assert me.judge(me.probe(flat[0]), me.probe(flat[1])).verdict == "unknown"
+    assert me.judge(None, me.probe(flat[0])).verdict == "unknown"
+    small = {k: v[:, :64, :64] for k, v in flat[1].items()}
+    assert me.judge(me.probe(flat[0]), me.probe(small)).verdict == "unknown"  # another size
+
+
+def test_gate_keeps_history_with_vectors_or_static_aux_and_drops_it_on_moving_aux():
+    state = {"history": np.ones((3, 72, 128), np.float32)}
+    first = me.gate_history(planes("motion_blur", 1), state)
+    assert first.state is not None and first.evidence.verdict == "unknown"  # no probe yet
+    kept = me.keep_probe(state, first.probe)
+    moved = me.gate_history(planes("motion_blur", 2), kept)
+    assert moved.state is None and moved.dropped and moved.evidence.verdict == "moving"
+    still = me.gate_history(planes("locked_off", 2, vectors=False),
+                            me.keep_probe(state, me.probe(planes("locked_off", 1))))
+    assert still.state is not None and not still.dropped and still.evidence.verdict == "static"
+    assert me.PROBE_STATE not in still.state  # the model gets its own state only
+    with_vectors = me.gate_history(planes("locked_off", 2), kept)  # ~1e-5 vectors: usable
+    assert with_vectors.evidence is None and with_vectors.state is not None
+
+
+def _sequence_scores(model: Path, name: str, single_frame: bool, vectors: bool = True):
+    method = RuntimeMethod(model, threads=2, single_frame=single_frame)
+    method.header_spp = SPP
+    outs = [method(planes(name, t, vectors)).transpose(1, 2, 0) for t in range(1, FRAMES + 1)]
+    refs = [reference(name, t if name == "motion_blur" else 1) for t in range(1, FRAMES + 1)]
+    psnr = float(np.mean([metrics.psnr(o, r) for o, r in zip(outs, refs, strict=True)]))
+    return psnr, metrics.flicker(np.stack(outs)), method.dropped
+
+
+@pytest.fixture(scope="module")
+def history_tiers() -> dict[str, Path]:
+    pytest.importorskip("pyoidn")
+    found = {p.stem: p for p in installed_models() if p.stem in HISTORY_TIERS}
+    if not found:
+        pytest.skip("no OIDN history tier installed")
+    return found
+
+
+def test_history_tiers_score_as_their_per_frame_stage_on_a_motion_blur_pan(history_tiers):
+    """Issue 45: with the zero Vector reprojected as no motion, these tiers ghosted (5.6-6.0 dB
+    below their per-frame stage on this pan); the gate makes them their per-frame stage."""
+    for name, path in history_tiers.items():
+        history, _, dropped = _sequence_scores(path, "motion_blur", single_frame=False)
+        per_frame, _, _ = _sequence_scores(path, "motion_blur", single_frame=True)
+        assert history >= per_frame - 0.1, (name, history, per_frame)
+        assert dropped == FRAMES - 1, name
+
+
+def test_history_tiers_keep_their_history_on_a_locked_off_shot(history_tiers):
+    """Zero motion without vectors on a locked-off shot is exact: the history stays, and the
+    tier flickers well under half of its per-frame stage (0.4x measured) and scores higher."""
+    for name, path in history_tiers.items():
+        history, steady, dropped = _sequence_scores(path, "locked_off", False, vectors=False)
+        per_frame, flicker, _ = _sequence_scores(path, "locked_off", True, vectors=False)
+        assert dropped == 0, name
+        assert steady <= 0.5 * flicker, (name, steady, flicker)
+        assert history > per_frame, (name, history, per_frame)
+
+
+def _write_without_vector(data: bytes) -> bytes:
+    """A Cycles frame with its Vector pass removed (what a farm without the pass sends)."""
+    import OpenEXR
+
+    with OpenEXR.File(io.BytesIO(data), separate_channels=True) as f:
+        header = dict(f.header())
+        channels = {k: v for k, v in f.channels().items() if ".Vector." not in k}
+    out = io.BytesIO()
+    OpenEXR.File(header, channels).write(out)
+    return out.getvalue()
+
+
+def test_server_says_when_a_fixed_temporal_model_drops_its_history(live_server, history_tiers):
+    """Over a real socket, a fixed temporal model: the motion-blurred pan's frames after the
+    first come back as their per-frame stage with reset `no-usable-motion` and the evidence in
+    X-Quietframe-Motion; the locked-off shot without a Vector keeps its history."""
+    from quietframe.client import Client
+
+    model = next(iter(history_tiers))
+    with Client(live_server.url) as client:
+        for name, strip, resets, said in (("motion_blur", False, "no-usable-motion", "moving"),
+                                          ("locked_off", True, "none", "static")):
+            session = client.create_session(128, 72, model=model)
+            try:
+                for t in range(1, 4):
+                    data = (SEQUENCES / f"{name}.{t:04d}.exr").read_bytes()
+                    result = client.send_frame(session["id"], t,
+                                               _write_without_vector(data) if strip else data)
+                    motion = result.motion
+                    if t > 1:
+                        assert result.reset == resets, (name, t, result.reset)
+                        assert motion.startswith(said), (name, t, motion)
+                    else:
+                        assert result.reset == "first-frame" and motion.startswith("unknown")
+            finally:
+                client.delete_session(session["id"])
