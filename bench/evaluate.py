@@ -124,6 +124,11 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
         methods[f"oidn-high-cleanaux-{aux_quality}"] = lambda q=aux_quality: ImageMethod(
             baselines.OIDNDenoiser("high", prefilter_aux=True, num_threads=threads,
                                    aux_quality=q))
+    # the SID add-on's temporal mode: its defaults (fake motion blur on), and without the blur
+    from quietframe.bench.sid_temporal import SIDTemporal
+
+    methods["sid-temporal-default"] = lambda: SIDTemporal(num_threads=threads)
+    methods["sid-temporal"] = lambda: SIDTemporal(motion_blur=False, num_threads=threads)
     if models:  # the service's choice among the installed models (bench/auto_method.py)
         from quietframe.bench.auto_method import AutoMethod
 
@@ -203,6 +208,8 @@ def run_sequence(method, frames: Frames, scores: Scores, keep: list | None = Non
     metric); `locked_off` (a static shot) also scores flicker. Only a method that reads a
     stored output (Blender's denoise) is given it."""
     inputs = None if getattr(method, "reads_stored", False) else _inputs
+    if hasattr(method, "look_ahead"):  # non-causal (sid_temporal.py): frame t+1 rides with t
+        frames = method.look_ahead(frames)
     sequence = score_sequence(method, frames, tuple(FRAME_METRICS), locked_off, inputs)
     scores.add(sequence)
     if keep is not None:
