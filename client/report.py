@@ -13,6 +13,9 @@ import time
 from collections import defaultdict
 from typing import TextIO
 
+from quietframe.client.preflight import format_numbers
+from quietframe.client.protocol import Reset
+
 # What each sanitised buffer's count means, said once per run in the summary.
 SANITIZED_WORDS = {
     "depth": "no-hit depths (sky or background written as 0 or 1e10) set to the farthest "
@@ -34,6 +37,7 @@ class Reporter:
         self.err = errors or sys.stderr
         self.sanitized: dict[str, list[int]] = defaultdict(list)  # buffer -> count per frame
         self.warnings: list[str] = []
+        self.no_motion: list[int] = []  # frames whose history was not used (no usable motion)
         self.bar = None
         if mode == "bar":
             from tqdm import tqdm
@@ -78,6 +82,8 @@ class Reporter:
     def frame(self, index: int, name: str, result) -> None:
         for buffer, count in result.sanitized_buffers.items():
             self.sanitized[buffer].append(count)
+        if result.reset == Reset.NO_MOTION.value:
+            self.no_motion.append(index)
         self.done += 1
         ms = result.timings_ms.get("total")
         fields = {"frame": index, "file": name, "reset": result.reset,
@@ -116,6 +122,12 @@ class Reporter:
                  for buffer, counts in sorted(self.sanitized.items()) if any(counts)]
         for line in notes:
             self.event("sanitized", f"quietframe: sanitised {line}", message=line)
+        if self.no_motion:  # the temporal model ran as its per-frame stage there
+            self.warn(f"{len(self.no_motion)} frame(s) moved without usable motion vectors "
+                      f"(an all-zero or missing Vector pass: motion blur on?), so the "
+                      f"temporal history was not used on them (denoised frame by frame, no "
+                      f"ghosting): frames {format_numbers(self.no_motion)} "
+                      f"(docs/service.md, 'Motion evidence')")
         text = f"{written} frame(s) written to {out_dir}"
         if self.warnings:
             text += f"; {len(self.warnings)} warning(s): " + "; ".join(self.warnings)

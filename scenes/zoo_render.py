@@ -38,11 +38,7 @@ from .cycles_render import (
 )
 from .layout import DATA_DIR
 from .manifest import MANIFEST, open_sequence, write_json
-from .zoo_shots import ZOO_SPLITS, ZOO_VERSION, Shot, shots
-
-
-def zoo_dir(data: Path, split: str) -> Path:
-    return Path(data).expanduser() / f"{ZOO_VERSION}-cycles" / split
+from .zoo_shots import ZOO_SPLITS, ZOO_VERSION, Shot, shots, zoo_dir
 
 
 def shot_config(shot: Shot, reference_spp: int, threads: int) -> CyclesConfig:

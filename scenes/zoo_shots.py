@@ -20,6 +20,7 @@ Each split has one shot of every camera kind, on different sets, lights and text
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 ZOO_VERSION = "zoo1"  # bump when a shot's content changes: renders land in a new folder
 ZOO_SPLITS = ("validation", "test")
@@ -91,6 +92,11 @@ SHOTS: tuple[Shot, ...] = (
          ("camera cut", "foliage", "depth of field"), seed=8_100_006, speed=1.5, cut_at=5,
          dof=True, variant={"environment": "sunrise"}),
 )
+
+
+def zoo_dir(data: Path | str, split: str) -> Path:
+    """Where a zoo split's shots are rendered: <data>/<ZOO_VERSION>-cycles/<split>/<shot>/."""
+    return Path(data).expanduser() / f"{ZOO_VERSION}-cycles" / split
 
 
 def shots(split: str | None = None) -> list[Shot]:

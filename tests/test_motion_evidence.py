@@ -194,3 +194,64 @@ def test_server_says_when_a_fixed_temporal_model_drops_its_history(live_server, 
                         assert result.reset == "first-frame" and motion.startswith("unknown")
             finally:
                 client.delete_session(session["id"])
+
+
+def _zero_vector(data: bytes) -> bytes:
+    """A Cycles frame whose Vector pass is all zero (a renderer's first frame, motion blur)."""
+    import OpenEXR
+
+    with OpenEXR.File(io.BytesIO(data), separate_channels=True) as f:
+        header = dict(f.header())
+        channels = {k: (np.zeros_like(v.pixels) if ".Vector." in k else v.pixels)
+                    for k, v in f.channels().items()}
+    out = io.BytesIO()
+    OpenEXR.File(header, channels).write(out)
+    return out.getvalue()
+
+
+def test_auto_after_a_first_frame_without_motion_keeps_its_temporal_choice(live_server):
+    """Issue 39: a renderer that writes zero motion on a sequence's first frame no longer locks
+    auto into a per-frame model. The choice counts the Vector pass as present, and frames 2-3
+    (with vectors) keep the model and its history: no switch, so no pop."""
+    from quietframe.client import Client
+
+    fixtures = SEQUENCES.parent / "blender"
+    frames = [(fixtures / f"passes_float_zip.{t:04d}.exr").read_bytes() for t in (1, 2, 3)]
+    frames[0] = _zero_vector(frames[0])
+    with Client(live_server.url) as client:
+        temporal = {m["name"] for m in client.models()["models"] if m["state"]}
+        session = client.create_session(64, 36)
+        try:
+            results = [client.send_frame(session["id"], t, f) for t, f in enumerate(frames, 1)]
+            choice = client.session(session["id"])["choice"]
+        finally:
+            client.delete_session(session["id"])
+    assert "motion" in choice["buffers"], choice
+    assert len({r.model for r in results}) == 1
+    assert [r.reset for r in results] == ["first-frame", "none", "none"]
+    assert results[0].motion.startswith("unknown") or choice["model"] not in temporal
+    assert results[1].motion == results[2].motion == ""  # vectors: no evidence needed
+    assert choice["model"] in temporal, choice  # 8 spp Cycles frames: a history tier
+
+
+def test_cli_summary_names_the_frames_denoised_without_history(tmp_path, live_server, capsys,
+                                                             history_tiers):
+    """`quietframe denoise` with a fixed temporal model on the motion-blurred pan: every frame
+    is written, and the summary says which frames ran without their history and why."""
+    import shutil
+
+    from quietframe.client.cli import main
+
+    src = tmp_path / "in"
+    src.mkdir()
+    for t in range(1, 4):
+        shutil.copy(SEQUENCES / f"motion_blur.{t:04d}.exr", src / f"pan.{t:04d}.exr")
+    code = main(["denoise", "--server", live_server.url, str(src), "--out", str(tmp_path / "out"),
+                 "--model", next(iter(history_tiers)), "--json"])
+    assert code == 0
+    events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    frames = [e for e in events if e["event"] == "frame"]
+    assert [e["reset"] for e in frames] == ["first-frame", "no-usable-motion", "no-usable-motion"]
+    warnings = [e["message"] for e in events if e["event"] == "warning"]
+    assert any("2 frame(s) moved without usable motion vectors" in w and "frames 2-3" in w
+               for w in warnings), warnings

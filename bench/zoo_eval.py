@@ -1,0 +1,181 @@
+"""Score the methods on the validation zoo (scenes/zoo_shots.py), per shot and spp.
+
+    python -m quietframe.bench.zoo_eval --split validation --out docs/evaluation/zoo-validation
+
+Per shot, per spp, per method: mean PSNR (tone-mapped, as everywhere in quietframe), TRMAE, and
+on a locked-off shot its flicker; for a runtime model also the frames whose history the motion
+evidence dropped, and for `auto` the model it chose. Methods: Blender's denoise (stored beside
+each input), per-frame OIDN-high with plain and with prefiltered aux, every installed OIDN tier
+and learned tier, each history tier's per-frame stage (`<tier>/frame`), `auto`, and the SID
+add-on's temporal mode. Cuts are not flagged to the methods: Blender writes nothing into a frame
+that says "cut", so a farm sends a shot with a camera switch as one sequence (`--flag-cuts`
+tells the methods, as a farm using `quietframe denoise --cut` would).
+
+Writes <out>/zoo.json (every row, per shot) and <out>/README.md (tables per shot type).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.bench.evaluate import (
+    Scores,
+    build_methods,
+    give_header_spp,
+    load_sequence,
+    run_sequence,
+)
+from quietframe.bench.harness import planar_frames
+from quietframe.runtime.oidn_prepass import PrepassUnavailable
+from quietframe.scenes import cycles_io
+from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
+from quietframe.scenes.zoo_shots import ZOO_SPLITS, ZOO_VERSION, zoo_dir
+
+HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")
+LEARNED = ("nbg-2l-3g", "affinity-h16-k5gc")
+METHODS = ("blender-denoise", "oidn-high", "oidn-high-cleanaux", "oidn-frame", *HISTORY_TIERS,
+           *(f"{t}/frame" for t in HISTORY_TIERS), *LEARNED, "auto", "sid-temporal")
+QUALITY_TIER = "oidn-history-cleanaux"  # README.md's quality tier
+
+
+def shot_folders(data: Path, split: str, spp_levels: tuple[int, ...]) -> list[Path]:
+    root = zoo_dir(data, split)
+    return [p.parent for p in sorted(root.glob("*/manifest.json"))
+            if cycles_io.finished(p.parent, spp_levels)]
+
+
+def shot_info(folder: Path) -> dict:
+    manifest = json.loads((folder / "manifest.json").read_text())
+    return manifest["zoo"]
+
+
+def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict, threads: int,
+             flag_cuts: bool, log=print) -> list[dict]:
+    rows = []
+    for folder in folders:
+        info = shot_info(folder)
+        locked = info["camera"] == "locked"
+        for spp in spp_levels:
+            frames = planar_frames(load_sequence(folder, spp))
+            if not flag_cuts:
+                frames = [(p, r, i == 0) for i, (p, r, _) in enumerate(frames)]
+            for name, factory in list(methods.items()):
+                try:
+                    method = factory()
+                except PrepassUnavailable as exc:
+                    log(f"skipping {name}: {exc}")
+                    del methods[name]
+                    continue
+                give_header_spp(method, "cycles", spp)
+                scores = Scores()
+                run_sequence(method, frames, scores, None, locked)
+                summary = scores.summary()
+                row = {"shot": info["name"], "tags": info["tags"], "camera": info["camera"],
+                       "spp": spp, "method": name,
+                       **{k: round(v, 4) for k, v in summary.items() if k != "ms"}}
+                chosen = getattr(method, "choices", None)
+                if chosen:
+                    row["chosen"] = dict(chosen)
+                current = getattr(method, "current", method)
+                if hasattr(current, "dropped"):
+                    row["history_dropped"] = current.dropped
+                rows.append(row)
+                log(json.dumps(row))
+    return rows
+
+
+def _cell(rows: dict, method: str, key: str, against: str | None = None) -> str:
+    row = rows.get(method)
+    if row is None or not np.isfinite(row.get(key, np.nan)):
+        return "–"
+    value = row[key]
+    if against is not None and against in rows:
+        return f"{value - rows[against][key]:+.2f}"
+    return f"{value:.3f}" if key != "psnr" else f"{value:.2f}"
+
+
+def report(rows: list[dict], meta: dict) -> str:
+    """README.md: per shot and spp, PSNR of Blender's denoise and every method against it,
+    the history tiers against their per-frame stage, and the locked-off flicker ratios."""
+    by = {}
+    for r in rows:
+        by.setdefault((r["shot"], r["spp"]), {})[r["method"]] = r
+    methods = [m for m in METHODS if any(m in v for v in by.values())]
+    lines = [f"# Validation zoo ({meta['split']}): per shot and spp", "",
+             f"`{meta['command']}` ({meta['zoo']}, {meta['threads']} threads). "
+             "PSNR (dB, tone-mapped) of Blender's denoise, and every other method's difference "
+             "to it; cuts are " + ("flagged" if meta["flag_cuts"] else "not flagged") + ".", "",
+             "| shot | tags | spp | Blender | " + " | ".join(
+                 m for m in methods if m != "blender-denoise") + " | auto chose |",
+             "|---|---|---|---|" + "---|" * (len(methods) - 1) + "---|"]
+    for (shot, spp), row in sorted(by.items(), key=lambda kv: (kv[0][0], kv[0][1])):
+        tags = ", ".join(next(iter(row.values()))["tags"])
+        cells = [_cell(row, m, "psnr", "blender-denoise") for m in methods
+                 if m != "blender-denoise"]
+        chose = ", ".join(row.get("auto", {}).get("chosen", {}))
+        lines.append(f"| {shot} | {tags} | {spp} | {_cell(row, 'blender-denoise', 'psnr')} | "
+                     + " | ".join(cells) + f" | {chose} |")
+    lines += ["", "## History tiers against their own per-frame stage (dB)", "",
+              "| shot | spp | " + " | ".join(HISTORY_TIERS) + " | frames without history |",
+              "|---|---|" + "---|" * len(HISTORY_TIERS) + "---|"]
+    for (shot, spp), row in sorted(by.items()):
+        cells = [_cell(row, t, "psnr", f"{t}/frame") for t in HISTORY_TIERS]
+        dropped = ", ".join(str(row[t].get("history_dropped", "–")) for t in HISTORY_TIERS
+                            if t in row)
+        lines.append(f"| {shot} | {spp} | " + " | ".join(cells) + f" | {dropped} |")
+    locked = sorted(k for k, row in by.items() if np.isfinite(
+        row.get("blender-denoise", {}).get("flicker", np.nan)))
+    if locked:
+        lines += ["", "## Locked-off flicker ÷ Blender's denoise's", "",
+                  "| shot | spp | " + " | ".join(m for m in methods if m != "blender-denoise")
+                  + " |", "|---|---|" + "---|" * (len(methods) - 1)]
+        for key in locked:
+            row = by[key]
+            base = row["blender-denoise"]["flicker"]
+            cells = [f"{row[m]['flicker'] / base:.2f}" if m in row else "–"
+                     for m in methods if m != "blender-denoise"]
+            lines.append(f"| {key[0]} | {key[1]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--split", choices=ZOO_SPLITS, default="validation")
+    p.add_argument("--data", type=Path, default=DATA_DIR)
+    p.add_argument("--spp", default="1,2,4,8,16,64")
+    p.add_argument("--shots", default="", help="comma list (default: every finished shot)")
+    p.add_argument("--methods", default=",".join(METHODS))
+    p.add_argument("--flag-cuts", action="store_true")
+    p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    p.add_argument("--out", type=Path, required=True)
+    args = p.parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    spp_levels = tuple(int(s) for s in args.spp.split(","))
+    folders = [f for f in shot_folders(args.data, args.split, spp_levels)
+               if not args.shots or f.name in args.shots.split(",")]
+    if not folders:
+        raise SystemExit(f"no finished zoo {args.split} shots under {args.data} "
+                         "(render them: scenes/render_zoo.sh)")
+    wanted = args.methods.split(",")
+    everything = build_methods(args.threads, single_frame=HISTORY_TIERS, renderer="cycles")
+    methods = {m: everything[m] for m in wanted if m in everything}
+    rows = evaluate(folders, spp_levels, methods, args.threads, args.flag_cuts)
+    meta = {"split": args.split, "zoo": ZOO_VERSION, "threads": args.threads,
+            "flag_cuts": args.flag_cuts, "shots": [f.name for f in folders],
+            "command": "python -m quietframe.bench.zoo_eval " + " ".join(
+                sys.argv[1:] if argv is None else argv)}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "zoo.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    (args.out / "README.md").write_text(report(rows, meta))
+    print(f"wrote {args.out / 'README.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
