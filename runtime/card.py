@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -335,7 +335,25 @@ def json_safe(value: object) -> object:
     return value
 
 
-MEASUREMENT_KEYS = ("by_spp", "ms_720p", "measured", "absent_db", "absent_db_worst", "by_noise")
+MEASUREMENT_KEYS = ("by_spp", "ms_720p", "measured", "absent_db", "absent_db_worst", "by_noise",
+                    "zoo")
+
+
+@dataclass(frozen=True)
+class ZooRow:
+    """How a model held on the validation zoo (shots from outside the scene generator,
+    scenes/zoo_shots.py) at one spp, against per-frame OIDN-high in the same run: `gap_db` the
+    mean over shots of (model − OIDN-high) PSNR, `worst_gap_db` the lowest shot's, and
+    `shortfall_db` = min(0, gap_db − the same gap on the generator's validation split): how much
+    less the model's table promises than the zoo shows (≤ 0; `auto` takes it off)."""
+
+    spp: float
+    gap_db: float
+    worst_gap_db: float
+    shortfall_db: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -350,6 +368,8 @@ class Measurements:
     # (log2 σ demodulated, log2 σ of the colour alone, PSNR) per validation (sequence, spp)
     by_noise: tuple[tuple[float, float, float], ...] = ()
     by_noise_measured: Mapping = field(default_factory=dict)
+    zoo: tuple[ZooRow, ...] = ()  # spp ascending; empty where the zoo was not measured
+    zoo_measured: Mapping = field(default_factory=dict)  # the zoo run: command, shots
 
     @property
     def complete(self) -> bool:
@@ -371,11 +391,14 @@ class Measurements:
         if self.by_noise:
             out["by_noise"] = {"points": [list(p) for p in self.by_noise],
                                "measured": dict(self.by_noise_measured)}
+        if self.zoo:
+            out["zoo"] = {"by_spp": [r.to_dict() for r in self.zoo],
+                          "measured": dict(self.zoo_measured)}
         return out
 
     @classmethod
     def from_dict(cls, d: Mapping) -> Measurements:
-        noise = d.get("by_noise") or {}
+        noise, zoo = d.get("by_noise") or {}, d.get("zoo") or {}
         return cls(
             by_spp=tuple(SppRow(r["spp"], r["psnr"], r.get("trmae"), r.get("flicker"),
                                 r.get("renderer_denoise"))
@@ -387,6 +410,9 @@ class Measurements:
             absent_db_worst=dict(d.get("absent_db_worst") or {}),
             by_noise=tuple(tuple(p) for p in noise.get("points") or []),
             by_noise_measured=dict(noise.get("measured") or {}),
+            zoo=tuple(ZooRow(**r) for r in sorted(zoo.get("by_spp") or [],
+                                                  key=lambda r: r["spp"])),
+            zoo_measured=dict(zoo.get("measured") or {}),
         )
 
 

@@ -73,6 +73,7 @@ REFERENCE_PIXELS = 1280 * 720  # `ms_720p` is per 1280×720 frame
 CYCLES_PREFIX, CYCLES_SUFFIX = "cycles.", ".samples"
 
 CALIBRATION_FILE = Path(__file__).with_name("noise_calibration.json")
+ZOO_RENDERER = "cycles"  # the validation zoo's renderer (scenes/zoo_shots.py)
 
 
 # Width (in log2 of the noise statistic) of the Gaussian weights over a model's by_noise points:
@@ -114,6 +115,9 @@ class ModelProfile:
     absent_db_worst: Mapping[str, float] = field(default_factory=dict)
     # (log2 σ demodulated, log2 σ of the colour alone, PSNR) per validation (sequence, spp)
     psnr_by_noise: tuple[tuple[float, float, float], ...] = ()
+    # (spp, dB ≤ 0): how much less the model held on the validation zoo (shots from outside the
+    # scene generator) than its table promises, against per-frame OIDN-high (runtime/card.ZooRow)
+    zoo_shortfall_by_spp: tuple[tuple[float, float], ...] = ()
 
     @classmethod
     def from_card(cls, card: ModelCard, renderer: str | None = None) -> ModelProfile:
@@ -126,6 +130,10 @@ class ModelProfile:
             default = card.measured(None)
             table = replace(table, absent_db=default.absent_db,
                             absent_db_worst=default.absent_db_worst)
+        if not table.zoo:
+            # The zoo (Cycles shots from outside the generator) measures how far a table from
+            # the generator carries to other content; it stands for every renderer's table.
+            table = replace(table, zoo=card.measured(ZOO_RENDERER).zoo)
         profile = cls.from_measurements(card.name, card.required, card.optional, table)
         return replace(profile, per_frame_oidn=is_per_frame_oidn(card),
                        temporal=bool(card.state))
@@ -157,6 +165,8 @@ class ModelProfile:
             absent_db={k: float(v) for k, v in table.absent_db.items()},
             absent_db_worst={k: float(v) for k, v in table.absent_db_worst.items()},
             psnr_by_noise=tuple((float(a), float(b), float(p)) for a, b, p in table.by_noise),
+            zoo_shortfall_by_spp=tuple((float(r.spp), min(0.0, float(r.shortfall_db)))
+                                       for r in table.zoo),
         )
 
     @property
@@ -178,7 +188,9 @@ class ModelProfile:
         compared with validation sequences that looked as noisy. Otherwise the PSNR at `spp`,
         linear in log2(spp) between measured levels and flat beyond them (no extrapolation: a
         model is never credited with more than was measured). Either way plus the measured
-        change for each optional buffer the frame lacks (0 where unmeasured)."""
+        change for each optional buffer the frame lacks (0 where unmeasured), and less the
+        shortfall the validation zoo showed at this spp (0 where unmeasured): a table from one
+        scene generator is trusted only as far as shots from outside it confirm."""
         if noise is not None and noise.log2_sigma is not None and self.psnr_by_noise:
             points = np.array(self.psnr_by_noise)
             x = points[:, 0 if noise.demodulated else 1]
@@ -194,6 +206,7 @@ class ModelProfile:
         # and 2-3 dB on a moving camera (validation), and auto cannot tell which this shot is.
         change = {**self.absent_db, **self.absent_db_worst}
         have = set(present)
+        psnr += _at_spp(self.zoo_shortfall_by_spp, spp) or 0.0
         return psnr + sum(change.get(b, 0.0) for b in self.optional if b not in have)
 
     def expected_trmae(self, spp: float) -> float | None:

@@ -1,0 +1,99 @@
+"""Stamp how each model held on the validation zoo into its card, where `auto` reads it.
+
+    python -m quietframe.bench.zoo_stamp docs/evaluation/zoo-validation/zoo.json models/*.onnx
+
+Per model and spp, from a `bench/zoo_eval.py` run on the zoo's **validation** split (the test
+split is never read for selection): the gap to per-frame OIDN-high in the same run (mean over
+shots and the worst shot), and the shortfall against the model's own table, which was measured
+on the scene generator's validation split: min(0, zoo gap − table gap), where the table gap is
+the model's Cycles PSNR less per-frame OIDN-high's (`oidn-frame`, the same filter as the
+evaluation's `oidn-high`). `auto` takes the shortfall off the model's expected PSNR
+(service/model_choice.ModelProfile.expected_psnr), so a learned tier whose lead came from the
+generator's look, and not from the shots, is not chosen for it. Writes the cards' Cycles table
+(`zoo`) in place; models without zoo rows are left as they are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from quietframe.bench.model_metrics import stamp
+from quietframe.runtime.card import ModelCard, ZooRow
+
+BASELINE_METHOD = "oidn-high"  # per-frame OIDN-high, plain aux: the evaluation's row
+BASELINE_MODEL = "oidn-frame"  # the installed model that is the same filter (its table)
+RENDERER = "cycles"
+
+
+def zoo_gaps(rows: list[dict], method: str) -> dict[float, list[float]]:
+    """spp -> per shot, the method's PSNR less per-frame OIDN-high's in the same run."""
+    base = {(r["shot"], r["spp"]): r["psnr"] for r in rows if r["method"] == BASELINE_METHOD}
+    gaps: dict[float, list[float]] = defaultdict(list)
+    for r in rows:
+        if r["method"] == method and (r["shot"], r["spp"]) in base:
+            gaps[float(r["spp"])].append(r["psnr"] - base[(r["shot"], r["spp"])])
+    return dict(gaps)
+
+
+def table_psnr(card: ModelCard, spp: float) -> float | None:
+    rows = card.measured(RENDERER).by_spp
+    if not rows:
+        return None
+    levels = np.log2([r.spp for r in rows])
+    return float(np.interp(np.log2(spp), levels, [r.psnr for r in rows]))
+
+
+def card_of(path: Path) -> ModelCard:
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    return ModelCard.from_props({p.key: p.value for p in model.metadata_props}, path.stem)
+
+
+def zoo_rows(gaps: dict[float, list[float]], card: ModelCard,
+             baseline: ModelCard) -> list[ZooRow]:
+    out = []
+    for spp, values in sorted(gaps.items()):
+        own, base = table_psnr(card, spp), table_psnr(baseline, spp)
+        table_gap = own - base if own is not None and base is not None else 0.0
+        gap = float(np.mean(values))
+        out.append(ZooRow(spp, round(gap, 3), round(float(min(values)), 3),
+                          round(min(0.0, gap - table_gap), 3)))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="zoo_stamp", description=__doc__.splitlines()[0])
+    p.add_argument("zoo", type=Path, help="zoo.json of bench/zoo_eval.py --split validation")
+    p.add_argument("models", type=Path, nargs="+")
+    args = p.parse_args(argv)
+    run = json.loads(args.zoo.read_text())
+    if run["meta"]["split"] != "validation":
+        p.error(f"{args.zoo}: a {run['meta']['split']} run; auto's tables come from the "
+                "validation zoo only (the test zoo is reported, never used for selection)")
+    baseline_path = next((m for m in args.models if m.stem == BASELINE_MODEL), None)
+    if baseline_path is None:
+        p.error(f"give {BASELINE_MODEL}.onnx too: its table is the baseline of the table gap")
+    baseline = card_of(baseline_path)
+    measured = {"command": run["meta"]["command"], "zoo": run["meta"]["zoo"],
+                "shots": run["meta"]["shots"], "baseline": BASELINE_METHOD}
+    for path in args.models:
+        gaps = zoo_gaps(run["rows"], path.stem)
+        if not gaps:
+            print(f"{path}: no zoo rows for {path.stem!r}; left as it is")
+            continue
+        rows = zoo_rows(gaps, card_of(path), baseline)
+        stamp(path, {"zoo": {"by_spp": [r.to_dict() for r in rows], "measured": measured}},
+              RENDERER)
+        print(f"{path}: " + ", ".join(f"{r.spp:g} spp {r.gap_db:+.2f} (worst {r.worst_gap_db:+.2f},"
+                                      f" shortfall {r.shortfall_db:+.2f})" for r in rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
