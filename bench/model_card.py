@@ -147,7 +147,39 @@ def card_lines(card: ModelCard) -> list[str]:
                              for r in table.by_spp)
             lines += [f"Measured on {renderer} frames (what `auto` reads): {rows}; "
                       f"{table.ms_720p} ms at 720p.", ""]
+        if table.zoo:
+            rows = ", ".join(f"{r.spp:g} spp {r.gap_db:+.2f} dB (worst shot {r.worst_gap_db:+.2f})"
+                             for r in table.zoo)
+            short = ", ".join(f"{r.spp:g} spp {r.shortfall_db:+.2f}" for r in table.zoo
+                              if r.shortfall_db < 0) or "none"
+            lines += [f"On the validation zoo ({renderer} shots from outside the scene "
+                      f"generator, docs/zoo.md) against per-frame OIDN-high in the same run: "
+                      f"{rows}. Taken off the table above by `auto` (shortfall against it): "
+                      f"{short}.", ""]
     return lines
+
+
+def role_lines(path: Path, card: ModelCard) -> list[str]:
+    """What a learned tier (no OIDN stage) is for, in plain words, with its speed against
+    per-frame OIDN-high (`oidn-frame` beside it) and its zoo figures."""
+    if card.prepass is not None:
+        return []
+    table = card.measured("cycles")
+    baseline = path.with_name("oidn-frame.onnx")
+    speed = ""
+    if baseline.is_file() and table.ms_720p:
+        oidn = Denoiser(baseline, threads=1).card.measured("cycles").ms_720p
+        if oidn:
+            speed = f", about {oidn / table.ms_720p:.1f}× faster than OIDN-high at 720p"
+    worst = min((r.worst_gap_db for r in table.zoo), default=None)
+    mean = [r.gap_db for r in table.zoo]
+    fall = (f" It falls short on content unlike the scene generator's: on the validation zoo "
+            f"it is {min(mean):+.1f} to {max(mean):+.1f} dB against per-frame OIDN-high over "
+            f"1-64 spp, {worst:+.1f} dB on its worst shot, so `auto` does not choose it for "
+            f"final frames." if mean else "")
+    return ["## What it is for", "",
+            f"Previews{speed}: a learned tier trained on quietframe's scene generator.{fall} "
+            "For final frames use the OIDN tiers (or `auto`).", ""]
 
 
 def quality_section(previous: list[str]) -> list[str]:
@@ -178,7 +210,7 @@ def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: 
         " (missing motion = static camera).", "",
         "## Architecture", "", "```json",
         json.dumps(dict(runtime.card.architecture), indent=1),
-        "```", "", *card_lines(runtime.card),
+        "```", "", *role_lines(path, runtime.card), *card_lines(runtime.card),
         "## Training", "", "```json", json.dumps(info.training, indent=1), "```", "",
         *data_lines(info.training, previous, info.metrics),
         "## Speed", "", *speed_lines(runtime, threads, measure),
