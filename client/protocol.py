@@ -25,6 +25,9 @@ class Reset(str, Enum):
     # A temporal model's frame without motion vectors whose aux moved (motion blur on, a
     # renderer that writes none): its history would ghost, so this frame did not use it.
     NO_MOTION = "no-usable-motion"
+    # A frame whose aux changed almost everywhere along its motion vectors: a camera cut the
+    # client did not flag (runtime/motion_evidence.judge_cut); the history starts afresh.
+    DETECTED_CUT = "detected-cut"
 
 
 class Header:

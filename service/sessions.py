@@ -308,7 +308,8 @@ def process_frame(
     # a frame without vectors whose aux moved starts afresh, as after a cut.
     gate = gate_history(frame.buffers, state) if denoiser.info.state_specs else None
     if gate is not None and gate.dropped:
-        reset = Reset.NO_MOTION
+        assert gate.evidence is not None
+        reset = Reset.DETECTED_CUT if gate.evidence.verdict == "cut" else Reset.NO_MOTION
     result = denoiser.denoise(frame.buffers, gate.state if gate else state, options)
     new_state = keep_probe(result.state, gate.probe) if gate else result.state
     denoised = time.perf_counter()

@@ -255,3 +255,18 @@ def test_cli_summary_names_the_frames_denoised_without_history(tmp_path, live_se
     warnings = [e["message"] for e in events if e["event"] == "warning"]
     assert any("2 frame(s) moved without usable motion vectors" in w and "frames 2-3" in w
                for w in warnings), warnings
+
+
+def test_a_cut_the_vectors_do_not_show_drops_the_history():
+    """With motion vectors, the history is dropped only where the aux changed almost
+    everywhere along them (a camera switch the renderer wrote the new camera's motion for):
+    consecutive frames keep it, a frame from another view does not."""
+    state = {"history": np.ones((3, 72, 128), np.float32)}
+    first = planes("locked_off", 1)  # Cycles wrote ~1e-5 vectors here: usable motion
+    kept = me.keep_probe(state, me.probe(first))
+    same = me.gate_history(planes("locked_off", 2), kept)
+    assert same.evidence is None and same.state is not None
+    other = {k: np.roll(v, 36, axis=1) for k, v in planes("locked_off", 2).items()}
+    other["motion"] = planes("locked_off", 2)["motion"]  # the new camera's own (tiny) motion
+    cut = me.gate_history(other, kept)
+    assert cut.state is None and cut.dropped and cut.evidence.verdict == "cut", cut.evidence
