@@ -129,6 +129,12 @@ def report(rows: list[dict], meta: dict) -> str:
         dropped = ", ".join(str(row[t].get("history_dropped", "–")) for t in HISTORY_TIERS
                             if t in row)
         lines.append(f"| {shot} | {spp} | " + " | ".join(cells) + f" | {dropped} |")
+    lines += ["", "## TRMAE (temporal error against the reference's own change; lower is steadier)",
+              "", "| shot | spp | " + " | ".join(methods) + " |",
+              "|---|---|" + "---|" * len(methods)]
+    for (shot, spp), row in sorted(by.items()):
+        lines.append(f"| {shot} | {spp} | " + " | ".join(_cell(row, m, "trmae") for m in methods)
+                     + " |")
     locked = sorted(k for k, row in by.items() if np.isfinite(
         row.get("blender-denoise", {}).get("flicker", np.nan)))
     if locked:
@@ -153,8 +159,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--flag-cuts", action="store_true")
     p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    p.add_argument("--merge", type=Path, nargs="+", default=[],
+                   help="instead of evaluating: join these runs' zoo.json (shots evaluated one "
+                        "by one as their renders finished) into one report")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
+    if args.merge:
+        return write(args.out, *merge([json.loads(f.read_text()) for f in args.merge]))
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     spp_levels = tuple(int(s) for s in args.spp.split(","))
     folders = [f for f in shot_folders(args.data, args.split, spp_levels)
@@ -170,10 +181,29 @@ def main(argv: list[str] | None = None) -> int:
             "flag_cuts": args.flag_cuts, "shots": [f.name for f in folders],
             "command": "python -m quietframe.bench.zoo_eval " + " ".join(
                 sys.argv[1:] if argv is None else argv)}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "zoo.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    (args.out / "README.md").write_text(report(rows, meta))
-    print(f"wrote {args.out / 'README.md'}")
+    return write(args.out, meta, rows)
+
+
+def merge(runs: list[dict]) -> tuple[dict, list[dict]]:
+    """One run of several (each shot from one of them: the later run's rows win), refusing
+    runs of different splits, zoo versions or cut handling."""
+    keys = {(r["meta"]["split"], r["meta"]["zoo"], r["meta"]["flag_cuts"]) for r in runs}
+    if len(keys) != 1:
+        raise SystemExit(f"--merge: runs of different splits or settings {sorted(keys)}")
+    rows: dict[tuple, dict] = {}
+    for run in runs:
+        for row in run["rows"]:
+            rows[(row["shot"], row["spp"], row["method"])] = row
+    meta = {**runs[-1]["meta"], "shots": sorted({r["shot"] for r in rows.values()}),
+            "command": " ; ".join(dict.fromkeys(r["meta"]["command"] for r in runs))}
+    return meta, list(rows.values())
+
+
+def write(out: Path, meta: dict, rows: list[dict]) -> int:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "zoo.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    (out / "README.md").write_text(report(rows, meta))
+    print(f"wrote {out / 'README.md'}")
     return 0
 
 
