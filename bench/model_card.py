@@ -174,7 +174,7 @@ def role_lines(path: Path, card: ModelCard) -> list[str]:
     worst = min((r.worst_gap_db for r in table.zoo), default=None)
     mean = [r.gap_db for r in table.zoo]
     fall = (f" It falls short on content unlike the scene generator's: on the validation zoo "
-            f"it is {min(mean):+.1f} to {max(mean):+.1f} dB against per-frame OIDN-high over "
+            f"it is {max(mean):+.1f} to {min(mean):+.1f} dB against per-frame OIDN-high over "
             f"1-64 spp, {worst:+.1f} dB on its worst shot, so `auto` does not choose it for "
             f"final frames." if mean else "")
     return ["## What it is for", "",
