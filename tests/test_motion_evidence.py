@@ -138,8 +138,8 @@ def history_tiers() -> dict[str, Path]:
 
 
 def test_history_tiers_score_as_their_per_frame_stage_on_a_motion_blur_pan(history_tiers):
-    """Issue 45: with the zero Vector reprojected as no motion, these tiers ghosted (5.6-6.0 dB
-    below their per-frame stage on this pan); the gate makes them their per-frame stage."""
+    """Before the gate, with the zero Vector reprojected as no motion, these tiers ghosted
+    (5.6-6.0 dB below their per-frame stage on this pan); the gate makes them that stage."""
     for name, path in history_tiers.items():
         history, _, dropped = _sequence_scores(path, "motion_blur", single_frame=False)
         per_frame, _, _ = _sequence_scores(path, "motion_blur", single_frame=True)
@@ -210,7 +210,7 @@ def _zero_vector(data: bytes) -> bytes:
 
 
 def test_auto_after_a_first_frame_without_motion_keeps_its_temporal_choice(live_server):
-    """Issue 39: a renderer that writes zero motion on a sequence's first frame no longer locks
+    """A renderer that writes zero motion on a sequence's first frame no longer locks
     auto into a per-frame model. The choice counts the Vector pass as present, and frames 2-3
     (with vectors) keep the model and its history: no switch, so no pop."""
     from quietframe.client import Client

@@ -5,9 +5,9 @@ fixtures (a temporal model's history on frames whose `Vector` is all zero).
     nice -n 10 .venv-cycles/bin/python tools/render_blender_sequences.py [--out DIR]
 
 - `motion_blur.000{1..6}.exr`: motion blur on while the camera pans ~3 px a frame, so Blender
-  writes an all-zero `Vector` over a moving image (what issue 45 saw ghost);
-- `locked_off.000{1..6}.exr`: a locked-off camera (Blender writes an all-zero `Vector` too, and
-  zero motion is exactly right).
+  writes an all-zero `Vector` over a moving image (a history reprojected with it ghosts);
+- `locked_off.000{1..6}.exr`: a locked-off camera (Blender writes a `Vector` of float noise,
+  ~1e-5 px; the tests also strip it, for a locked-off shot without vectors).
 
 Both at 4 spp with Cycles' animated seed (the noise changes per frame), half float, ZIP, every
 pass a farm sends, Blender's denoise on (`Combined`; the raw beauty is `Noisy Image`). Beside
