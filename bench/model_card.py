@@ -168,7 +168,9 @@ def role_lines(path: Path, card: ModelCard) -> list[str]:
     baseline = path.with_name("oidn-frame.onnx")
     speed = ""
     if baseline.is_file() and table.ms_720p:
-        oidn = Denoiser(baseline, threads=1).card.measured("cycles").ms_720p
+        from quietframe.bench.model_metrics import card_of
+
+        oidn = card_of(baseline).measured("cycles").ms_720p
         if oidn:
             speed = f", about {oidn / table.ms_720p:.1f}× faster than OIDN-high at 720p"
     worst = min((r.worst_gap_db for r in table.zoo), default=None)

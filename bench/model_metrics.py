@@ -115,11 +115,18 @@ def worst_absent_db(result: dict, model: str) -> dict[str, float]:
     return worst
 
 
+def card_of(path: Path, model: onnx.ModelProto | None = None) -> ModelCard:
+    """The card in a model file's metadata (read without an inference session); `model`: the
+    file already loaded."""
+    model = model or onnx.load(str(path), load_external_data=False)
+    return ModelCard.from_props({p.key: p.value for p in model.metadata_props}, path.stem)
+
+
 def stamp(path: Path, additions: dict, renderer: str = DEFAULT_RENDERER) -> dict:
     """Merge `additions` into the card's table for `renderer` (rewrites the file in place, its
     card in the current version) and return the card's `quietframe.metrics`."""
     model = onnx.load(str(path))
-    card = ModelCard.from_props({p.key: p.value for p in model.metadata_props}, path.stem)
+    card = card_of(path, model)
     table = Measurements.from_dict({**card.measured(renderer).to_dict(), **additions}
                                    if renderer in card.measurements else additions)
     card = card.with_measurements(renderer, table)

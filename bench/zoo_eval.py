@@ -41,7 +41,6 @@ HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")
 LEARNED = ("nbg-2l-3g", "affinity-h16-k5gc")
 METHODS = ("blender-denoise", "oidn-high", "oidn-high-cleanaux", "oidn-frame", *HISTORY_TIERS,
            *(f"{t}/frame" for t in HISTORY_TIERS), *LEARNED, "auto", "sid-temporal")
-QUALITY_TIER = "oidn-history-cleanaux"  # README.md's quality tier
 
 
 def shot_folders(data: Path, split: str, spp_levels: tuple[int, ...]) -> list[Path]:
@@ -55,7 +54,7 @@ def shot_info(folder: Path) -> dict:
     return manifest["zoo"]
 
 
-def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict, threads: int,
+def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
              flag_cuts: bool, log=print) -> list[dict]:
     rows = []
     for folder in folders:
@@ -176,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     wanted = args.methods.split(",")
     everything = build_methods(args.threads, single_frame=HISTORY_TIERS, renderer="cycles")
     methods = {m: everything[m] for m in wanted if m in everything}
-    rows = evaluate(folders, spp_levels, methods, args.threads, args.flag_cuts)
+    rows = evaluate(folders, spp_levels, methods, args.flag_cuts)
     meta = {"split": args.split, "zoo": ZOO_VERSION, "threads": args.threads,
             "flag_cuts": args.flag_cuts, "shots": [f.name for f in folders],
             "command": "python -m quietframe.bench.zoo_eval " + " ".join(

@@ -22,8 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.bench.model_metrics import stamp
+from quietframe.bench.model_metrics import card_of, stamp
 from quietframe.runtime.card import ModelCard, ZooRow
+from quietframe.service.model_choice import at_spp
 
 BASELINE_METHOD = "oidn-high"  # per-frame OIDN-high, plain aux: the evaluation's row
 BASELINE_MODEL = "oidn-frame"  # the installed model that is the same filter (its table)
@@ -41,18 +42,8 @@ def zoo_gaps(rows: list[dict], method: str) -> dict[float, list[float]]:
 
 
 def table_psnr(card: ModelCard, spp: float) -> float | None:
-    rows = card.measured(RENDERER).by_spp
-    if not rows:
-        return None
-    levels = np.log2([r.spp for r in rows])
-    return float(np.interp(np.log2(spp), levels, [r.psnr for r in rows]))
-
-
-def card_of(path: Path) -> ModelCard:
-    import onnx
-
-    model = onnx.load(str(path), load_external_data=False)
-    return ModelCard.from_props({p.key: p.value for p in model.metadata_props}, path.stem)
+    """The card's Cycles PSNR at `spp`, interpolated as `auto` reads it."""
+    return at_spp([(r.spp, r.psnr) for r in card.measured(RENDERER).by_spp], spp)
 
 
 def zoo_rows(gaps: dict[float, list[float]], card: ModelCard,

@@ -206,16 +206,16 @@ class ModelProfile:
         # and 2-3 dB on a moving camera (validation), and auto cannot tell which this shot is.
         change = {**self.absent_db, **self.absent_db_worst}
         have = set(present)
-        psnr += _at_spp(self.zoo_shortfall_by_spp, spp) or 0.0
+        psnr += at_spp(self.zoo_shortfall_by_spp, spp) or 0.0
         return psnr + sum(change.get(b, 0.0) for b in self.optional if b not in have)
 
     def expected_trmae(self, spp: float) -> float | None:
         """Measured TRMAE (all buffers) at `spp`, as expected_psnr interpolates."""
-        return _at_spp(self.trmae_by_spp, spp)
+        return at_spp(self.trmae_by_spp, spp)
 
     def expected_flicker(self, spp: float) -> float | None:
         """Measured flicker on locked-off shots at `spp`, as expected_psnr interpolates."""
-        return _at_spp(self.flicker_by_spp, spp)
+        return at_spp(self.flicker_by_spp, spp)
 
     def expected_ms(self, pixels: int) -> float:
         assert self.ms_720p is not None
@@ -232,7 +232,7 @@ def profile_of(name: str, denoiser, renderer: str | None = None) -> ModelProfile
                    temporal=bool(denoiser.info.state_specs))
 
 
-def _at_spp(table: Sequence[tuple[float, float]], spp: float) -> float | None:
+def at_spp(table: Sequence[tuple[float, float]], spp: float) -> float | None:
     """A per-spp figure, linear in log2(spp) between measured levels and flat beyond them."""
     if not table:
         return None
@@ -473,7 +473,7 @@ def above_floor(pool: list[Scored], baseline: Scored, spp: float,
     slack = PER_FRAME_FLOOR_DB[quality]
     profile, expected = baseline[0], baseline[1]
     floors = []
-    own, at = _at_spp(profile.renderer_denoise_by_spp, spp), _at_spp(profile.psnr_by_spp, spp)
+    own, at = at_spp(profile.renderer_denoise_by_spp, spp), at_spp(profile.psnr_by_spp, spp)
     if own is not None and at is not None and own > at:  # relative to the baseline's table
         floors.append((expected + own - at - slack, "the renderer's own denoise"))
     floors.append((expected - slack, f"per-frame {profile.name}"))
