@@ -196,6 +196,7 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
     """The sequence itself; returns the frames written. _Stop for every failure."""
     from quietframe.client import outcome
     from quietframe.client.api import Client, QuietframeError, RetryPolicy
+    from quietframe.client.output_records import UnsafePath
     from quietframe.client.sequence import OutputConflict, SequenceError, job_settings
 
     settings = job_settings(args.model, args.precision, args.compression, layers, **options)
@@ -229,7 +230,7 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
             run_options = dict(
                 model=args.model, precision=args.precision, warmup=args.warmup,
                 compression=args.compression, on_progress=progress, layers=layers,
-                force=args.force, pre_roll=args.pre_roll, **options,
+                force=args.force, pre_roll=args.pre_roll, on_warning=reporter.warn, **options,
             )
             from quietframe.client.sequence import run_sequence
 
@@ -243,6 +244,9 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
                                              bool(options["channels"] or args.layer),
                                              view_layers)
             raise _Stop(failure.code, f"at {at}: {failure.message}", failure.advice) from exc
+        except UnsafePath as exc:
+            raise _Stop(outcome.INPUT, str(exc), "remove it, then run the same command again "
+                        "to resume") from exc
         except SequenceError as exc:
             raise _Stop(outcome.INPUT, str(exc), "fix that frame, then run the same command "
                         "again to resume") from exc

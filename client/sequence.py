@@ -22,7 +22,8 @@ with every other layer's channels taken from that layer's reply (one file per fr
 from __future__ import annotations
 
 import json
-import os
+import re
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -138,36 +139,88 @@ class Job:
         return len(self.files)
 
     def conflicts(self, settings: dict) -> list[tuple[int, records.Check]]:
-        """Outputs in the way: every written position whose file exists but is not done."""
+        """Outputs in the way: every written position whose file exists but is neither done
+        nor one a stopped run of this job was writing."""
         found = []
         for i in self.written:
             check = records.check(self.output(i), self.files[i], settings)
-            if check.status not in (records.Status.DONE, records.Status.ABSENT):
+            if check.status not in _NOT_IN_THE_WAY:
                 found.append((i, check))
         return found
 
     def is_cut(self, i: int) -> bool:
         return self.indices[i] in self.cuts
 
-    def read_job(self) -> dict:
+    def read_job(self, on_damage: Callable[[str], None] | None = None) -> dict:
+        """The job file's fields; {} when there is none, or when it is damaged (unreadable,
+        not JSON, or a field of another type), which `on_damage` is told: a new session is
+        then started, as without a job file."""
+        path = self.out_dir / self.job_file
         try:
-            return json.loads((self.out_dir / self.job_file).read_text())
-        except (OSError, ValueError):
+            stored = json.loads(records.read_small_file(path))
+        except FileNotFoundError:
             return {}
+        except OSError as exc:
+            problem = exc.strerror or str(exc)
+        except ValueError:
+            problem = "not JSON"
+        else:
+            problem = job_file_problem(stored)
+            if problem is None:
+                return stored
+        (on_damage or _warn)(f"the job file {path} is damaged ({problem}): ignored, a new "
+                             "session is started")
+        return {}
 
     def write_job(self, **fields) -> None:
-        _atomic_write(self.out_dir / self.job_file, json.dumps(fields).encode())
+        records.atomic_write(self.out_dir / self.job_file, json.dumps(fields).encode())
 
     def write_output(self, i: int, data: bytes, settings: dict | None = None,
                      source: dict | None = None, **extra) -> None:
-        """The output, then (with `settings`) its record: the source's stamp (`source`, or
-        read now) and what made it. A signal waits until both are written: an output without
-        its record would count as foreign on resume."""
-        stamp = None if settings is None else source or records.source_stamp(self.files[i])
+        """The output and (with `settings`) its record: the source's stamp (`source`, or read
+        now) and what made it (output_records.write_output). A signal waits until both are
+        written, so that an interrupted run does not need to redo the frame."""
+        if settings is None:
+            records.atomic_write(self.output(i), data)
+            return
+        stamp = source or records.source_stamp(self.files[i])
         with signals_deferred():
-            _atomic_write(self.output(i), data)
-            if stamp is not None:
-                records.write_record(self.output(i), stamp, settings, len(data), **extra)
+            records.write_output(self.output(i), data, stamp, settings, **extra)
+
+
+# A session id as the server makes them (URL-safe): any other text would go into a URL path.
+_SESSION_ID = re.compile(r"[A-Za-z0-9_-]{1,256}")
+
+
+def _is_session_id(value: object) -> bool:
+    return isinstance(value, str) and _SESSION_ID.fullmatch(value) is not None
+
+
+# A job file's fields and their JSON types; any other field is ignored (a newer client's).
+_JOB_FIELDS: dict[str, Callable[[object], bool]] = {
+    "server": lambda v: isinstance(v, str),
+    "session": lambda v: v is None or _is_session_id(v),  # job files of one session
+    "sessions": lambda v: isinstance(v, dict) and all(map(_is_session_id, v.values())),
+    "last_index": lambda v: v is None or records.is_int(v),
+    "settings": lambda v: v is None or isinstance(v, dict),
+}
+
+
+def job_file_problem(stored: object) -> str | None:
+    """What makes a job file's JSON unusable (read as untrusted), None if nothing."""
+    if not isinstance(stored, dict):
+        return "not a JSON object"
+    wrong = [name for name, valid in _JOB_FIELDS.items()
+             if name in stored and not valid(stored[name])]
+    return f"{', '.join(wrong)} of another type" if wrong else None
+
+
+def _warn(text: str) -> None:
+    warnings.warn(text, RuntimeWarning, stacklevel=3)
+
+
+# Outputs that are not in the way: this job's, none, or one this job was writing when it stopped.
+_NOT_IN_THE_WAY = (records.Status.DONE, records.Status.ABSENT, records.Status.PENDING)
 
 
 def job_settings(
@@ -201,11 +254,14 @@ def refuse_conflicts(job: Job, settings: dict) -> None:
             f"{len(found)} output(s) in {job.out_dir} ({names}) were made with other settings "
             f"({found[0][1].detail}); pass --force to redo them with these flags in a new "
             "session, or use another --out", changed=True)
+    damaged_records = sum(c.status is S.FOREIGN and bool(c.detail) for _, c in found)
     why = {
-        S.FOREIGN: "were not written by quietframe for these inputs",
+        S.FOREIGN: "were not written by quietframe for these inputs" + (
+            f" ({damaged_records} with a damaged record in {records.RECORD_DIR}/: "
+            f"{next(c.detail for _, c in found if c.detail)})" if damaged_records else ""),
         S.STALE: "come from source frames that changed since (re-rendered)",
         S.CHANGED: "were made with other settings",
-        S.DAMAGED: "do not have the size they were written with",
+        S.DAMAGED: "are not the files written (another size, or other bytes)",
     }
     reasons = "; ".join(f"{sum(c.status is k for _, c in found)} {why[k]}"
                         for k in S if k in kinds)
@@ -213,12 +269,6 @@ def refuse_conflicts(job: Job, settings: dict) -> None:
         f"{len(found)} file(s) in {job.out_dir} ({names}) would be overwritten: {reasons}. "
         "Pass --force to denoise them again (a new session), or use another --out",
         changed=False)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    temp = path.with_name(f".{path.name}.part")
-    temp.write_bytes(data)
-    os.replace(temp, path)
 
 
 def _check_size(job: Job, i: int) -> bytes:
@@ -339,12 +389,14 @@ async def arun_sequence(
     layers: tuple[str | None, ...] = (None,),
     force: bool = False,
     pre_roll: int | None = None,
+    on_warning: Callable[[str], None] | None = None,
     **options,
 ) -> str | None:
     """`run_sequence` for AsyncClient (one task per sequence). `layers`: view layers to denoise,
     one session each (None: the server's alias table picks the beauty); `force`: redo outputs
     that are not this job's (else OutputConflict); `pre_roll`: frames sent before the job's
-    first written frame (default: all of job's pre-roll files); `options`: further session
+    first written frame (default: all of job's pre-roll files); `on_warning`: told what the run
+    works around (a damaged job file; default: a RuntimeWarning); `options`: further session
     fields (channels, denoised_layer, quality, motion_scale, model_options)."""
     settings = job_settings(model, precision, compression, layers, **options)
     if not force:
@@ -352,7 +404,7 @@ async def arun_sequence(
     pending = job.first_pending(settings)
     if pending == len(job.files):
         return None
-    stored = {} if force else job.read_job()
+    stored = {} if force else job.read_job(on_warning)
     if stored.get("settings") not in (None, settings):
         stored = {}  # a session made with other flags is never continued
     sessions: dict[str | None, str] = {}
