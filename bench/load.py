@@ -6,7 +6,9 @@
 Starts a `quietframe serve` process (env QUIETFRAME_*), streams every session on its own thread
 (frames in order, as a render farm does), and reports: requests and errors (by status),
 latency p50/p99 of a frame request (upload + denoise + download), frames/s over all sessions,
-and the server's peak RSS (VmHWM). Frames are the render-like synthetic Blender EXRs of
+the server's peak RSS (VmHWM), and non-finite values in the replies' pixels. A client honours
+Retry-After on 429/503 as the CLI does (at most RETRIES times a frame; retries are counted,
+not errors). Frames are the render-like synthetic Blender EXRs of
 bench/http_overhead.py. Bounded by the counts given; loopback only.
 """
 
@@ -39,6 +41,10 @@ def frames_for(width: int, height: int, count: int) -> list[bytes]:
     return [blender_exr(synthetic_buffers(width, height, i), "zip", True) for i in range(count)]
 
 
+RETRIES = 20
+RETRY_STATUSES = (429, 503)
+
+
 class Tally:
     """Latencies and statuses from all client threads."""
 
@@ -47,6 +53,13 @@ class Tally:
         self.latency_ms: list[float] = []
         self.statuses: Counter = Counter()
         self.failures: list[str] = []
+        self.retries = 0
+        self.non_finite = 0  # pixel values in replies that are NaN or Inf
+
+    def add_reply(self, body: bytes) -> None:
+        count = non_finite_values(body)
+        with self.lock:
+            self.non_finite += count
 
     def add(self, status: int, ms: float | None, detail: str = "") -> None:
         with self.lock:
@@ -55,6 +68,28 @@ class Tally:
                 self.latency_ms.append(ms)
             if status != 200 and len(self.failures) < 5:
                 self.failures.append(f"{status}: {detail[:200]}")
+
+
+def non_finite_values(exr: bytes) -> int:
+    import io
+
+    import OpenEXR
+
+    with OpenEXR.File(io.BytesIO(exr), separate_channels=True) as f:
+        return sum(int((~np.isfinite(c.pixels)).sum()) for part in f.parts
+                   for c in part.channels.values() if c.pixels.dtype.kind == "f")
+
+
+def post_frame(http, url: str, body: bytes, tally: Tally):
+    """The frame's final response, after honouring Retry-After on 429/503."""
+    for _ in range(RETRIES):
+        r = http.post(url, content=body, headers={"content-type": "image/x-exr"})
+        if r.status_code not in RETRY_STATUSES:
+            break
+        with tally.lock:
+            tally.retries += 1
+        time.sleep(float(r.headers.get("retry-after", "1")))
+    return r
 
 
 def run_session(http, url: str, size, frames: list[bytes], count: int, tally: Tally) -> None:
@@ -66,12 +101,11 @@ def run_session(http, url: str, size, frames: list[bytes], count: int, tally: Ta
     for i in range(count):
         start = time.perf_counter()
         try:
-            r = http.post(
-                f"{url}/v1/sessions/{sid}/frames/{i}",
-                content=frames[i % len(frames)],
-                headers={"content-type": "image/x-exr"},
-            )
+            r = post_frame(http, f"{url}/v1/sessions/{sid}/frames/{i}",
+                           frames[i % len(frames)], tally)
             tally.add(r.status_code, 1e3 * (time.perf_counter() - start), r.text[:200])
+            if r.status_code == 200:
+                tally.add_reply(r.content)
         except Exception as exc:  # transport errors count as errors
             tally.add(0, None, repr(exc))
     http.delete(f"{url}/v1/sessions/{sid}")
@@ -93,6 +127,8 @@ def report(tally: Tally, seconds: float, peak_rss: float, **extra) -> dict:
         "requests": sum(tally.statuses.values()),
         "errors": sum(v for k, v in tally.statuses.items() if k != 200),
         "statuses": dict(tally.statuses),
+        "retries": tally.retries,
+        "non_finite_values": tally.non_finite,
         "p50_ms": round(percentile(tally.latency_ms, 50), 1),
         "p99_ms": round(percentile(tally.latency_ms, 99), 1),
         "frames_per_s": round(done / seconds, 2),
@@ -129,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         frames_per_session=args.frames, exr_mib=round(len(frames[0]) / 2**20, 2),
     )
     print(json.dumps(result, indent=1))
-    return 1 if result["errors"] else 0
+    return 1 if result["errors"] or result["non_finite_values"] else 0
 
 
 if __name__ == "__main__":

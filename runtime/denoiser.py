@@ -34,6 +34,7 @@ from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 from quietframe.runtime.statistics import split_statistics
 from quietframe.runtime.tiling import (
+    UNTILED_BYTES_PER_PIXEL,
     max_memory_mb_default,
     run_tiled,
     tile_bytes_per_pixel,
@@ -194,9 +195,9 @@ class GraphRunner:
         """About the most this graph holds while it runs an H×W frame, beyond the frame's own
         buffers and the state and output it returns: one tile's memory (or the whole frame's),
         from the card (runtime/tiling.py tile_bytes_per_pixel)."""
-        if self.card.tiling is None:
-            return 0  # no estimate for a graph no rule knows
         pixels = height * width
+        if self.card.tiling is None:  # runs whole: budgeted like the largest graphs per pixel
+            return pixels * UNTILED_BYTES_PER_PIXEL
         if self.tile_pixels is not None:
             pixels = min(pixels, self.tile_pixels)
         return pixels * tile_bytes_per_pixel(self.card.tiling, self.card.state)
@@ -252,9 +253,10 @@ class Denoiser:
 
     Memory: each graph runs in overlapping tiles (tiling.py) whose working set fits in
     `max_memory_mb` (default QUIETFRAME_MAX_MEMORY_MB or tiling.DEFAULT_MAX_MEMORY_MB). With an
-    OIDN stage, whose committed filters keep their scratch memory between frames, OIDN gets
-    half as its maxMemoryMB and the graphs' tiles the other half. `tile_pixels` overrides the
-    tile size (padded pixels); None runs every frame whole.
+    OIDN stage, OIDN gets half as its maxMemoryMB (its scratch; its images are whole-frame,
+    like the frame's buffers) and the graphs' tiles the other half. `working_set_bytes` is what
+    the service's admission reserves for the model. `tile_pixels` overrides the tile size
+    (padded pixels); None runs every frame whole.
 
     `options`: values for the model's extra inputs (`info.inputs`), e.g. {"kernel_size": 7};
     the card's default for the others."""
@@ -275,7 +277,7 @@ class Denoiser:
         self.card = ModelCard.from_props(self.session.get_modelmeta().custom_metadata_map,
                                          path.stem)
         prepass = self.card.prepass
-        # OIDN keeps its scratch while the graphs run: the bound is shared (class docstring)
+        # The bound is shared between OIDN's scratch and the graphs' tiles (class docstring)
         self._graph_memory_mb = self.max_memory_mb / 2 if prepass else self.max_memory_mb
         try:
             self.prepass = (OIDNPrepass(prepass, num_threads=threads,
@@ -310,8 +312,8 @@ class Denoiser:
     def working_set_bytes(self, height: int, width: int) -> int:
         """About the most the model holds while it denoises an H×W frame beyond the frame's
         buffers, state and output: its graphs run one after another, so the largest graph's
-        (an OIDN stage keeps its scratch, at most its maxMemoryMB, while they run)."""
-        oidn = int(self.max_memory_mb / 2 * 2**20) if self.prepass is not None else 0
+        and an OIDN stage's filters (runtime/oidn_prepass.py), which live while they run."""
+        oidn = self.prepass.working_set_bytes(height, width) if self.prepass is not None else 0
         return oidn + max(stage.working_set_bytes(height, width) for stage in self.stages
                           if isinstance(stage, GraphRunner))
 

@@ -14,18 +14,21 @@ then sees several frames' samples instead of one. pyoidn is optional: without it
 `OIDNPrepass` raises `PrepassUnavailable`, and the service leaves such models out.
 
 Resources: one OIDN device per worker thread (OIDN devices are not meant to be shared between
-threads that execute concurrently), and per thread the committed filters of the last frame sizes
-seen, so a sequence pays for device and filter creation once. Memory: OIDN tiles large images
-itself (its own alignment and overlap) to fit its `maxMemoryMB`, which the runtime sets from
-its one memory bound. pyoidn binds numpy memory
-zero-copy without keeping it alive: every bound array is held by the filter set that binds it,
-frames are copied into those arrays, and filters are released before their arrays.
+threads that execute concurrently), kept, so a sequence pays for device creation once. Filters
+live for one frame: a committed RT filter holds its scratch memory (up to its `maxMemoryMB`)
+until it is released, so filters kept between frames would hold that memory per thread, per
+model and per frame size beyond anything the service's admission reserves. Building them per
+frame costs ~14% of OIDN's CPU time at 720p (fresh scratch pages); `working_set_bytes` is what
+a frame holds while OIDN runs. Memory: OIDN tiles large images itself (its own alignment and
+overlap) to fit its `maxMemoryMB`, which the runtime sets from its one memory bound. pyoidn
+binds numpy memory zero-copy without keeping it alive: every bound array is held by the filter
+set that binds it, frames are copied into those arrays, and filters are released before their
+arrays.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -36,7 +39,7 @@ QUALITIES = {"fast": "OIDN_QUALITY_FAST", "balanced": "OIDN_QUALITY_BALANCED",
              "high": "OIDN_QUALITY_HIGH"}
 PREPASS_KEY = PREFIX + "prepass"
 PREPASS_BUFFERS = ("color", "albedo", "normal")  # what OIDN reads, as (3, H, W) planes
-SIZES_PER_THREAD = 2  # filter sets kept per thread, by (size, aux set): a session's, plus one
+OIDN_DEFAULT_MAX_MEMORY_MB = 3000  # OIDN 2's CPU default for maxMemoryMB
 
 OIDNSettings = OIDNStage  # the prepass settings are the card's OIDN stage (runtime/card.py)
 
@@ -130,8 +133,8 @@ def _check(device, what: str) -> None:
         raise RuntimeError(f"OIDN prepass: {what} failed: {error}")
 
 
-class _ThreadResources:
-    """One thread's OIDN device and its filter sets by frame size (LRU)."""
+class _ThreadDevice:
+    """One worker thread's OIDN device."""
 
     def __init__(self, pyoidn, num_threads: int) -> None:
         self.device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
@@ -139,12 +142,8 @@ class _ThreadResources:
             self.device.set_int("numThreads", num_threads)
         self.device.commit()
         _check(self.device, "device creation")
-        self.sets: OrderedDict[tuple, _FilterSet] = OrderedDict()  # by (H, W, aux)
 
     def close(self) -> None:
-        for filter_set in self.sets.values():
-            filter_set.close()
-        self.sets.clear()
         self.device.release()
 
 
@@ -158,34 +157,28 @@ class OIDNPrepass:
         self.max_memory_mb = max_memory_mb  # OIDN's maxMemoryMB; None: OIDN's default
         self._local = threading.local()
         self._lock = threading.Lock()
-        self._all: list[_ThreadResources] = []  # every thread's, for close()
+        self._all: list[_ThreadDevice] = []  # every thread's, for close()
         self.devices_created = 0  # counters for tests and logs
         self.filter_sets_built = 0
 
-    def _resources(self) -> _ThreadResources:
-        resources = getattr(self._local, "resources", None)
-        if resources is None:
-            resources = _ThreadResources(self._oidn, self.num_threads)
-            self._local.resources = resources
+    def _device(self) -> _ThreadDevice:
+        device = getattr(self._local, "device", None)
+        if device is None:
+            device = _ThreadDevice(self._oidn, self.num_threads)
+            self._local.device = device
             with self._lock:
-                self._all.append(resources)
+                self._all.append(device)
                 self.devices_created += 1
-        return resources
+        return device
 
-    def _filter_set(self, shape: tuple[int, int], aux: tuple[str, ...]) -> _FilterSet:
-        resources = self._resources()
-        key = (*shape, aux)
-        filter_set = resources.sets.get(key)
-        if filter_set is None:
-            filter_set = _FilterSet(self._oidn, resources.device, self.settings, shape, aux,
-                                    self.max_memory_mb)
-            resources.sets[key] = filter_set
-            with self._lock:
-                self.filter_sets_built += 1
-            while len(resources.sets) > SIZES_PER_THREAD:
-                resources.sets.popitem(last=False)[1].close()
-        resources.sets.move_to_end(key)
-        return filter_set
+    def working_set_bytes(self, height: int, width: int) -> int:
+        """What one frame's filters hold while they run: the bound (H, W, 3) float32 arrays
+        (colour, aux, output, prefiltered aux) and OIDN's scratch, which it keeps within
+        maxMemoryMB by tiling (the filters of one device share it)."""
+        aux = len(self.settings.aux)
+        arrays = 2 + aux + (aux if self.settings.prefilter_aux else 0)
+        scratch = self.max_memory_mb if self.max_memory_mb else OIDN_DEFAULT_MAX_MEMORY_MB
+        return arrays * 12 * height * width + int(scratch * 2**20)
 
     def __call__(self, planes: Mapping[str, np.ndarray]) -> np.ndarray:
         """OIDN's output (1, 3, H, W) float32 for sanitised (3, H, W) planes: the colour, and
@@ -194,13 +187,20 @@ class OIDNPrepass:
         _, height, width = planes["color"].shape
         out = np.empty((1, 3, height, width), np.float32)
         aux = usable_aux(self.settings.aux, planes)
-        self._filter_set((height, width), aux).run(planes, out[0])
+        filter_set = _FilterSet(self._oidn, self._device().device, self.settings,
+                                (height, width), aux, self.max_memory_mb)
+        try:
+            filter_set.run(planes, out[0])
+        finally:
+            filter_set.close()  # its scratch and bound arrays go with it (module docstring)
+        with self._lock:
+            self.filter_sets_built += 1
         return out
 
     def close(self) -> None:
-        """Release every thread's filters and device (no thread may be running a frame)."""
+        """Release every thread's device (no thread may be running a frame)."""
         with self._lock:
-            for resources in self._all:
-                resources.close()
+            for device in self._all:
+                device.close()
             self._all.clear()
         self._local = threading.local()

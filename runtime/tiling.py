@@ -44,6 +44,9 @@ from quietframe.runtime.card import StateSpec, Tiling
 # overlap) and a 4K frame through affinity-h16-k5gc adds 2.5 GiB of peak RSS (the frame's own
 # buffers, state and output come on top of the tile: ~0.15 KiB/px for it).
 DEFAULT_MAX_MEMORY_MB = 1536
+# A graph without tiling in its card runs whole: its working set is budgeted like the largest
+# tiled ones per pixel (the affinity model, ~1 KiB/px untiled; docs/reliability.md).
+UNTILED_BYTES_PER_PIXEL = 1024
 
 
 def max_memory_mb_default() -> float:

@@ -1,11 +1,12 @@
 """Memory admission: a frame reserves the memory it will hold before any of it is allocated.
 
 One budget (QUIETFRAME_MEMORY_BUDGET_MB) counts every frame in flight: the header bytes while
-they arrive, then, once the header has been checked against the session, the whole frame at
-once: its body, the channels the decoder returns, the canonical float32 buffers, the model's
-working set and new state, and the reply being encoded. A frame that does not fit waits a
-little (QUIETFRAME_ADMISSION_WAIT_S) for others to finish, then gets 429 with Retry-After; a
-frame larger than the whole budget gets 413 (no retry can help). The history budget
+they arrive, then the body's bytes as they arrive (a slow upload holds what it sent, not its
+frame's peak), then, once the body is complete, the whole frame: its body, the channels the
+decoder returns, the canonical float32 buffers, the model's working set and new state, and the
+reply being encoded. A frame that does not fit waits a little (QUIETFRAME_ADMISSION_WAIT_S) for
+others to finish, then gets 429 with Retry-After; a frame larger than the whole budget gets 413
+as soon as its header is read (no retry can help). The history budget
 (sessions.py) counts what sessions keep between frames; together they bound the server's
 memory above its base (models, interpreter).
 
@@ -19,34 +20,25 @@ import contextlib
 import time
 from collections.abc import Iterable, Iterator
 
-from quietframe.runtime import ModelInfo
+from quietframe.runtime import Denoiser
 from quietframe.runtime.motion_evidence import history_nbytes
-from quietframe.runtime.tiling import max_memory_mb_default
 from quietframe.service.errors import FrameOverMemoryBudget, MemoryBusy, TooManyUploads
 from quietframe.service.frames import ExrHeader
 
-# A graph without tiling in its card runs whole: budget it like the largest tiled ones per
-# pixel (the affinity model, ~1 KiB/px untiled; docs/reliability.md).
-UNTILED_BYTES_PER_PIXEL = 1024
 CANONICAL_CHANNELS = 12  # color 3, albedo 3, normal 3, depth 1, motion 2: float32 planes
 RETRY_AFTER_S = 2  # frames at test sizes finish in well under this; large ones free it sooner
 _SLACK_BYTES = 1 << 20  # decoder chunk buffers, Python objects, response framing
 
 
-def model_working_set(info: ModelInfo, height: int, width: int) -> int:
+def model_working_set(denoiser: Denoiser, height: int, width: int) -> int:
     """Bytes a model holds while denoising one height x width frame, beside the frame's
-    buffers: its working set, from the model card's tiling (bytes per pixel; tiles and OIDN's
-    maxMemoryMB keep it within the runtime's max_memory_mb), and its new state (the old one
-    is in the history budget)."""
-    tiling = info.card.tiling
-    per_pixel = tiling.bytes_per_pixel if tiling is not None else UNTILED_BYTES_PER_PIXEL
-    working = height * width * per_pixel
-    if tiling is not None:
-        working = min(working, int(max_memory_mb_default() * 2**20))
-    return working + history_nbytes(info.state_specs, height, width)
+    buffers: its working set (the runtime's estimate: graph tiles, OIDN's filters and scratch)
+    and its new state (the old one is in the history budget)."""
+    return (denoiser.working_set_bytes(height, width)
+            + history_nbytes(denoiser.info.state_specs, height, width))
 
 
-def frame_need(header: ExrHeader, body_bytes: int, models: Iterable[ModelInfo]) -> int:
+def frame_need(header: ExrHeader, body_bytes: int, models: Iterable[Denoiser]) -> int:
     """What one frame holds at its peak, in bytes, from its header alone; `models`: those that
     may denoise it (model=auto: any installed one, the largest counts)."""
     pixels = header.width * header.height
@@ -71,9 +63,9 @@ class Reservation:
             self.budget._take(nbytes - self.nbytes)
             self.nbytes = nbytes
 
-    async def admit(self, nbytes: int, what: str) -> None:
-        """Grow to `nbytes`, waiting up to the budget's wait for frames in flight to finish;
-        FrameOverMemoryBudget when it can never fit, MemoryBusy when it does not in time."""
+    def check_fits(self, nbytes: int, what: str) -> None:
+        """FrameOverMemoryBudget (413) when `nbytes` is more than the whole budget: no wait or
+        retry can help, so it is said before any of them is reserved."""
         budget = self.budget
         if nbytes > budget.limit_bytes:
             raise FrameOverMemoryBudget(
@@ -81,6 +73,12 @@ class Reservation:
                 f"is {budget.limit_bytes / 2**20:.0f} MiB (QUIETFRAME_MEMORY_BUDGET_MB): send "
                 "fewer or half-float channels, or raise the budget"
             )
+
+    async def admit(self, nbytes: int, what: str) -> None:
+        """Grow to `nbytes`, waiting up to the budget's wait for frames in flight to finish;
+        FrameOverMemoryBudget when it can never fit, MemoryBusy when it does not in time."""
+        self.check_fits(nbytes, what)
+        budget = self.budget
         deadline = time.monotonic() + budget.wait_s
         while True:
             try:
@@ -91,6 +89,12 @@ class Reservation:
                 if left <= 0:
                     raise
                 await budget._changed(left)
+
+    def shrink_to(self, nbytes: int) -> None:
+        """Give back what is held above `nbytes` (a buffer that no longer grows)."""
+        if nbytes < self.nbytes:
+            self.budget._give(self.nbytes - nbytes)
+            self.nbytes = nbytes
 
     def release(self) -> None:
         if self.nbytes:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import OpenEXR
 
@@ -28,12 +29,16 @@ from quietframe.service.errors import (
 _MAGIC = b"\x76\x2f\x31\x01"
 _TILED, _LONG_NAMES, _NON_IMAGE, _MULTIPART = 0x200, 0x400, 0x800, 0x1000
 _MAX_ATTRIBUTES = 4096  # a header with more is not a render's
+# Nor a file with more channels (layers and AOVs: hundreds at most); the channel names are
+# matched against the renderer aliases on the event loop, ~2 us each.
+_MAX_CHANNELS = 4096
 _MAX_ATTRIBUTE_BYTES = 64 << 20  # a preview image or ICC profile is far smaller
 # Attribute values up to this size are copied into ExrHeader.attributes (what the service reads:
 # windows, strings, the sample count); larger ones (previews, ICC profiles) stay in the body.
 _COPIED_ATTRIBUTE_BYTES = 64 << 10
 _COMPRESSION_METHODS = int(OpenEXR.NUM_COMPRESSION_METHODS)  # compression bytes this build reads
 _LINE_ORDERS = ("increasing", "decreasing", "random")
+_INT32 = struct.Struct("<i")
 
 
 @dataclass(frozen=True)
@@ -44,8 +49,7 @@ class ChannelInfo:
     y_sampling: int
 
 
-@dataclass(frozen=True)
-class _Ref:
+class _Ref(NamedTuple):  # a tuple: one is made per attribute, hundreds of thousands a header
     """Where one attribute's value lies in the body (parsed without copying it)."""
 
     kind: str
@@ -88,33 +92,41 @@ class _Reader:
 
     def skip(self, n: int) -> int:
         """Advance past `n` bytes; returns where they start."""
+        start, end = self.pos, self.pos + n
         if n < 0:
             raise BadExr("EXR header has an attribute of negative size")
-        if self.cap is not None and self.pos + n > self.cap:
+        self._within_cap(end)
+        if end > len(self.data):
+            raise TruncatedExr("EXR header is truncated")
+        self.pos = end
+        return start
+
+    def _within_cap(self, end: int) -> None:
+        if self.cap is not None and end > self.cap:
             raise ExrHeaderTooLarge(
                 f"the EXR header is over {self.cap} bytes (QUIETFRAME_MAX_HEADER_BYTES): leave "
                 "large attributes (previews, ICC profiles, metadata blobs) out of the frames "
                 "sent for denoising, or raise the limit"
             )
-        if self.pos + n > len(self.data):
-            raise TruncatedExr("EXR header is truncated")
-        start, self.pos = self.pos, self.pos + n
-        return start
 
     def take(self, n: int) -> bytes:
         start = self.skip(n)
         return bytes(self.data[start : start + n])
 
+    def int32(self) -> int:
+        return _INT32.unpack_from(self.data, self.skip(4))[0]
+
     def cstring(self, limit: int) -> str:
-        end = self.data.find(b"\0", self.pos, self.pos + limit + 1)
+        data, start = self.data, self.pos
+        end = data.find(b"\0", start, start + limit + 1)
         if end < 0:
-            if len(self.data) <= self.pos + limit:
+            if len(data) <= start + limit:
                 raise TruncatedExr("EXR header is truncated")
             raise BadExr("EXR header has an over-long name")
-        raw = self.take(end - self.pos)
+        self._within_cap(end)
         self.pos = end + 1
         try:
-            return raw.decode("utf-8")
+            return str(data[start:end], "utf-8")
         except UnicodeDecodeError as exc:
             raise BadExr("EXR header has a name that is not UTF-8") from exc
 
@@ -182,6 +194,7 @@ def _parse_chlist(value: bytes, limit: int) -> dict[str, ChannelInfo]:
             raise BadExr("EXR channel list is not terminated")
         if value[reader.pos] == 0:
             return channels
+        _check_channel_count(len(channels) + 1)
         name = reader.cstring(limit)
         pixel_type, _, x_sampling, y_sampling = struct.unpack("<iB3xii", reader.take(16))
         if pixel_type not in (0, 1, 2) or x_sampling < 1 or y_sampling < 1:
@@ -189,22 +202,84 @@ def _parse_chlist(value: bytes, limit: int) -> dict[str, ChannelInfo]:
         channels[name] = ChannelInfo(name, pixel_type, x_sampling, y_sampling)
 
 
-def _parse_part(reader: _Reader, limit: int) -> dict[str, _Ref]:
-    refs: dict[str, _Ref] = {}
-    while True:
-        if reader.pos >= len(reader.data):
+class HeaderScan:
+    """A header parsed as its bytes arrive: each `advance` reads only the attributes completed
+    since the last call (a header is walked once, not again from its start each time more of it
+    arrives), and the whole header is checked once its end is there."""
+
+    def __init__(
+        self, max_width: int, max_height: int, max_header_bytes: int | None = None
+    ) -> None:
+        self.max_width, self.max_height, self.cap = max_width, max_height, max_header_bytes
+        self.version = self.limit = 0
+        self.pos = 0  # where the next attribute starts; 0: the magic number is not read yet
+        self.parts: list[dict[str, _Ref]] = []
+        self.part: dict[str, _Ref] | None = {}  # None: between two parts of a multi-part file
+
+    def advance(self, data) -> ExrHeader | None:
+        """The checked header once `data` (the body so far; it only grows) holds all of it,
+        else None; raises as read_header does."""
+        if self.pos == 0:
+            if len(data) < 8 and _MAGIC.startswith(bytes(data[:4])):
+                return None  # the magic number so far: the version is still to come
+            self.version, self.limit = _version(data)
+            self.pos = 8
+        if not self._walk(_Reader(data, self.pos, self.cap)):
+            return None
+        return _checked_header(
+            data, self.parts, self.pos, self.version, self.limit, self.max_width, self.max_height
+        )
+
+    def _walk(self, reader: _Reader) -> bool:
+        """Read attributes up to the header's end (True) or the end of `reader`'s bytes
+        (False); self.pos follows each whole attribute, part end and the header's end."""
+        data, multipart = reader.data, bool(self.version & _MULTIPART)
+        while True:
+            if self.pos >= len(data):
+                return False
+            if self.part is None:  # a multi-part header ends with an empty part
+                if data[self.pos] == 0:
+                    return True
+                self.part = {}
+            if data[self.pos] == 0:
+                self.pos += 1
+                self.parts.append(self.part)
+                self.part = None
+                if not multipart:
+                    return True
+                continue
+            if len(self.part) >= _MAX_ATTRIBUTES:
+                raise BadExr("EXR header has too many attributes")
+            reader.pos = self.pos
+            try:
+                name, ref = _read_attribute(reader, self.limit)
+            except TruncatedExr:
+                return False
+            self.part[name] = ref
+            self.pos = reader.pos
+
+
+def _version(data) -> tuple[int, int]:
+    """The version field's flags and the longest name they allow, after the magic number."""
+    if len(data) < 8 or data[:4] != _MAGIC:
+        if len(data) < 4 and _MAGIC.startswith(bytes(data)):
             raise TruncatedExr("EXR header is truncated")
-        if reader.data[reader.pos] == 0:
-            reader.pos += 1
-            return refs
-        if len(refs) >= _MAX_ATTRIBUTES:
-            raise BadExr("EXR header has too many attributes")
-        name = reader.cstring(limit)
-        kind = reader.cstring(limit)
-        (size,) = struct.unpack("<i", reader.take(4))
-        if size > _MAX_ATTRIBUTE_BYTES:  # refused now, not after reading that much
-            raise BadExr(f"EXR header attribute {name!r} claims {size} bytes")
-        refs[name] = _Ref(kind, reader.skip(size), size)
+        raise BadExr("body is not an OpenEXR file (bad magic number)")
+    (version,) = struct.unpack("<I", data[4:8])
+    if version & 0xFF != 2:
+        raise BadExr(f"unsupported OpenEXR file version {version & 0xFF}")
+    if version & _NON_IMAGE:
+        raise UnsupportedExr(_DEEP_DETAIL)
+    return version, 255 if version & _LONG_NAMES else 31
+
+
+def _read_attribute(reader: _Reader, limit: int) -> tuple[str, _Ref]:
+    name = reader.cstring(limit)
+    kind = reader.cstring(limit)
+    size = reader.int32()
+    if size > _MAX_ATTRIBUTE_BYTES:  # refused now, not after reading that much
+        raise BadExr(f"EXR header attribute {name!r} claims {size} bytes")
+    return name, _Ref(kind, reader.skip(size), size)
 
 
 def read_header(
@@ -216,27 +291,27 @@ def read_header(
     """Parse and check the header; raises BadExr (400), ResolutionTooLarge / ExrHeaderTooLarge
     (413), UnsupportedExr (422), TruncatedExr (a BadExr) when `data` ends inside the header.
     Attribute values are not copied (only those the service reads, and small ones)."""
-    if len(data) < 8 or data[:4] != _MAGIC:
-        if len(data) < 4 and _MAGIC.startswith(bytes(data)):
-            raise TruncatedExr("EXR header is truncated")
-        raise BadExr("body is not an OpenEXR file (bad magic number)")
-    (version,) = struct.unpack("<I", data[4:8])
-    if version & 0xFF != 2:
-        raise BadExr(f"unsupported OpenEXR file version {version & 0xFF}")
-    if version & _NON_IMAGE:
-        raise UnsupportedExr(_DEEP_DETAIL)
-    limit = 255 if version & _LONG_NAMES else 31
-    reader = _Reader(data, 8, max_header_bytes)
-    parts = [_parse_part(reader, limit)]
-    while version & _MULTIPART:
-        if reader.pos >= len(data):
-            raise TruncatedExr("EXR header is truncated")
-        if data[reader.pos] == 0:
-            break
-        parts.append(_parse_part(reader, limit))
+    if len(data) < 8:
+        _version(data)  # raises: too short for a header
+    header = HeaderScan(max_width, max_height, max_header_bytes).advance(data)
+    if header is None:
+        raise TruncatedExr("EXR header is truncated")
+    return header
+
+
+def _checked_header(
+    data,
+    parts: list[dict[str, _Ref]],
+    end: int,
+    version: int,
+    limit: int,
+    max_width: int,
+    max_height: int,
+) -> ExrHeader:
+    """The header whose attributes `parts` end at `end`, after the checks that need no pixels."""
     channels: dict[str, ChannelInfo] = {}
     window: Box | None = None
-    max_bytes, pixel_bytes = reader.pos + 1, 0
+    max_bytes, pixel_bytes = end + 1, 0
     for number, refs in enumerate(parts):
         part_window, part_channels = _check_part(data, number, refs, limit, version)
         if window is not None and part_window != window:
@@ -248,6 +323,7 @@ def read_header(
         window = part_window
         for name, info in part_channels.items():
             channels.setdefault(name, info)  # a name in several parts: the first part's
+        _check_channel_count(len(channels))
         size = _box_size(part_window)
         pixels = size[0] * size[1] * sum(_PIXEL_BYTES[c.pixel_type] for c in part_channels.values())
         pixel_bytes += pixels
@@ -267,7 +343,7 @@ def read_header(
         height,
         channels,
         len(parts),
-        reader.pos,
+        end,
         max_bytes,
         _cut_flag(data, first),
         {n: (r.kind, _raw(data, r)) for n, r in first.items() if r.size <= _COPIED_ATTRIBUTE_BYTES},
@@ -275,6 +351,14 @@ def read_header(
         attribute(data, first, "displayWindow", "box2i"),
         pixel_bytes,
     )
+
+
+def _check_channel_count(count: int) -> None:
+    if count > _MAX_CHANNELS:
+        raise UnsupportedExr(
+            f"the EXR has over {_MAX_CHANNELS} channels; send the layers the denoiser reads "
+            "(colour, albedo, normal, depth, motion) and leave the rest out"
+        )
 
 
 def check_windows(header: ExrHeader, width: int, height: int) -> None:

@@ -33,6 +33,7 @@ from quietframe.service.exr_codec import (
 from quietframe.service.exr_header import (
     ChannelInfo,
     ExrHeader,
+    HeaderScan,
     TruncatedExr,
     attribute,
     attribute_number,
@@ -49,6 +50,7 @@ __all__ = [
     "ChannelInfo",
     "DecodedFrame",
     "ExrHeader",
+    "HeaderScan",
     "Part",
     "Source",
     "TruncatedExr",

@@ -13,7 +13,9 @@ import asyncio
 import hmac
 import json
 import logging
+import math
 import re
+import resource
 import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
@@ -33,6 +35,7 @@ Send = Callable[[Message], Awaitable[None]]
 
 FRAME_PATH = re.compile(r"^/v1/sessions/[^/]+/frames/[^/]+/?$")
 _AUTH_CHALLENGE = 'Bearer realm="quietframe"'
+_RESERVED_FILES = 64  # open files kept from the connection cap, at least (connection_cap)
 
 
 def token_matches(authorization: str, token: str) -> bool:
@@ -187,3 +190,150 @@ def _replay(body: bytes, receive: Receive) -> Receive:
         return await receive()  # after the body: disconnect listeners
 
     return replay
+
+
+class HeaderDeadline:
+    """Mixed into uvicorn's HTTP protocol (h11 or httptools; `guarded_protocol`). uvicorn closes
+    idle keep-alive connections, but one that has sent part of a request line or of its headers
+    (or nothing) it keeps for ever, each holding a file descriptor. Here a request's line and
+    headers must be complete within `header_timeout_s` of the connection's opening or of the
+    request's first byte, however slowly they drip; and past `max_connections` open connections
+    the one that has waited longest without a request in progress is closed to make room (a
+    probe's /healthz, sent at once, gets through while hundreds of connections stall)."""
+
+    header_timeout_s: float = 10.0
+    max_connections: int = 0  # 0: no cap
+    waiting: dict[HeaderDeadline, None]  # per server, oldest first: no request in progress
+    _header_timer: asyncio.TimerHandle | None = None
+    # uvicorn's protocol sets these (both implementations)
+    transport: asyncio.Transport
+    connections: set
+    cycle: Any
+
+    def connection_made(self, transport: asyncio.Transport) -> None:
+        super().connection_made(transport)
+        self._wait_for_headers()
+        self._keep_under_cap()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self._in_request():
+            self._stop_waiting()
+        else:
+            self._wait_for_headers()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self._in_request() and not self.transport.is_closing():
+            self.waiting.setdefault(self, None)  # idle: uvicorn's keep-alive timeout closes it
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._stop_waiting()
+        super().connection_lost(exc)
+
+    def _in_request(self) -> bool:
+        """A request's headers have arrived and its response is not complete yet."""
+        cycle = self.cycle
+        return cycle is not None and not cycle.response_complete
+
+    def _wait_for_headers(self) -> None:
+        """Arm the deadline unless it is armed (more bytes of the same headers do not move it)."""
+        if self.transport.is_closing():
+            return
+        self.waiting.setdefault(self, None)
+        if self._header_timer is None:
+            loop = asyncio.get_running_loop()
+            self._header_timer = loop.call_later(self.header_timeout_s, self._headers_too_slow)
+
+    def _stop_waiting(self) -> None:
+        self.waiting.pop(self, None)
+        if self._header_timer is not None:
+            self._header_timer.cancel()
+            self._header_timer = None
+
+    def _headers_too_slow(self) -> None:
+        self._header_timer = None
+        log.debug("closed a connection whose request headers did not arrive in time")
+        self._close()
+
+    def _keep_under_cap(self) -> None:
+        """Past the cap, close the connection that has waited longest for a request (this one
+        when every other has a request in progress). One per new connection: closed ones stay
+        in `connections` until the loop reports them lost."""
+        if self.max_connections and len(self.connections) > self.max_connections and self.waiting:
+            _warn_at_cap(self.max_connections)
+            next(iter(self.waiting))._close()
+
+    def _close(self) -> None:
+        self._stop_waiting()
+        if not self.transport.is_closing():
+            self.transport.close()
+
+
+_last_cap_warning = 0.0
+
+
+def _warn_at_cap(cap: int) -> None:
+    """One warning every 10 s at most: a flood of connections is one event, not thousands."""
+    global _last_cap_warning
+    now = time.monotonic()
+    if now - _last_cap_warning >= 10:
+        _last_cap_warning = now
+        log.warning(
+            "open connections reached the cap: closing those that have waited longest without "
+            "a request", extra={"max_connections": cap}
+        )
+
+
+_ACCEPT_FAILED = "socket.accept() out of system resource"
+
+
+def summarise_accept_failures(loop: asyncio.AbstractEventLoop) -> None:
+    """asyncio logs a traceback for every accept() that fails at the open-file limit (up to
+    the listen backlog, 2048, each second while it lasts) and retries a second later: one
+    warning every 10 s says the same."""
+    previous = loop.get_exception_handler()
+    last = -math.inf
+
+    def handler(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        nonlocal last
+        if context.get("message") != _ACCEPT_FAILED:
+            if previous is not None:
+                previous(loop, context)
+            else:
+                loop.default_exception_handler(context)
+            return
+        if time.monotonic() - last >= 10:
+            last = time.monotonic()
+            log.warning(
+                "cannot accept connections: %s (new ones wait in the listen queue; raise the "
+                "open-file limit, or lower QUIETFRAME_MAX_CONNECTIONS)",
+                context.get("exception"),
+            )
+
+    loop.set_exception_handler(handler)
+
+
+def guarded_protocol(header_timeout_s: float, max_connections: int) -> type[asyncio.Protocol]:
+    """uvicorn's HTTP protocol (what its `http="auto"` picks: httptools when installed, else h11)
+    with HeaderDeadline, for uvicorn's `http` parameter; one class per server (its `waiting`)."""
+    from uvicorn.protocols.http.auto import AutoHTTPProtocol
+
+    return type(
+        "GuardedHTTPProtocol",
+        (HeaderDeadline, AutoHTTPProtocol),
+        {"header_timeout_s": header_timeout_s, "max_connections": max_connections, "waiting": {}},
+    )
+
+
+def connection_cap(configured: int) -> int:
+    """`configured`, or (0) the open-file limit less a quarter of it (at least 64): files the
+    server opens itself (models, state, logs, its store), and connections accepted in one burst
+    before the cap closes the oldest (past the limit accept() fails, and asyncio tries again
+    only a second later). 0: no cap (no limit)."""
+    if configured:
+        return configured
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return 0
+    return max(soft - max(_RESERVED_FILES, soft // 4), 16)

@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from fastapi import Depends, FastAPI
 
-from quietframe.service import frames, logs
+from quietframe.service import frames, guard, logs
 from quietframe.service.deps import require_auth
 from quietframe.service.errors import install_handlers
 from quietframe.service.guard import RequestGuard
@@ -45,6 +45,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        guard.summarise_accept_failures(asyncio.get_running_loop())
         frames.configure_io(settings.model_threads)  # decoding runs when the model does not
         registry_models = await asyncio.to_thread(ModelRegistry, settings)
         await asyncio.to_thread(registry_models.warm_up)
@@ -150,6 +151,16 @@ def run(host: str, port: int, settings: Settings | None = None) -> None:
 
     settings = settings or Settings()
     logs.configure(settings.log_level, settings.log_json)
+    # Connections that never finish their headers are closed, and at most the cap are open
+    # (guard.py); `uvicorn --factory` serves without these.
+    cap = guard.connection_cap(settings.max_connections)
+    protocol = guard.guarded_protocol(settings.header_timeout_s, cap)
     uvicorn.run(
-        create_app(settings), host=host, port=port, log_config=None, timeout_graceful_shutdown=30
+        create_app(settings),
+        host=host,
+        port=port,
+        http=protocol,
+        ws="none",  # no WebSocket routes: an upgrade request is a plain HTTP request
+        log_config=None,
+        timeout_graceful_shutdown=30,
     )

@@ -5,9 +5,10 @@ session's first frame and of a cut, and nowhere else, so a shot never switches m
 (a switch changes the look: that would be flicker). Inputs:
 
 - the buffers the frame carries (from the EXR header, before any pixel is decoded);
-- its noise level as an equivalent spp: the renderer's own count where the header has one
-  (`samples_from_header`), else estimated from the decoded colour without a reference
-  (`estimate_spp`, calibrated on rendered frames by `bench/noise_calibration.py`);
+- its noise level as an equivalent spp: the session's `model_options.spp` where set, else the
+  renderer's own count where the header has one (`stated_samples`), else estimated from the
+  decoded colour without a reference (`estimate_spp`, calibrated on rendered frames by
+  `bench/noise_calibration.py`);
 - how noisy the frame looks (`noise_statistic`, always measured when the service can decode
   the colour): the same spp is a clean frame in a sunlit room and a speckled one in a room lit
   through a window, and which model is good enough depends on that, not on the spp;
@@ -40,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.runtime.card import Measurements, ModelCard, finite_figure
+from quietframe.runtime.card import SAMPLES_INPUT, Measurements, ModelCard, finite_figure
 from quietframe.service.exr_header import attribute_number
 
 # dB below the best expected PSNR a quality accepts in exchange for speed. "balanced" matches
@@ -71,6 +72,8 @@ REFERENCE_PIXELS = 1280 * 720  # `ms_720p` is per 1280×720 frame
 # RenderMan and V-Ray write none we are confident of (V-Ray's `vrayInfo/*` carries no sample
 # count): their frames use the estimate.
 CYCLES_PREFIX, CYCLES_SUFFIX = "cycles.", ".samples"
+# A NoiseLevel's source where the session set the spp (model_options)
+SESSION_SAMPLES = f"model_options.{SAMPLES_INPUT}"
 
 CALIBRATION_FILE = Path(__file__).with_name("noise_calibration.json")
 ZOO_RENDERER = "cycles"  # the validation zoo's renderer (scenes/zoo_shots.py)
@@ -289,6 +292,18 @@ def samples_from_header(
         return None
     view = min(found, key=found.__getitem__)
     return NoiseLevel(found[view], f"{CYCLES_PREFIX}{view}{CYCLES_SUFFIX}")
+
+
+def stated_samples(
+    attributes: Mapping[str, tuple[str, bytes]], layer: str | None,
+    model_options: Mapping[str, float | int],
+) -> NoiseLevel | None:
+    """The spp stated for a frame, or None (estimate it): the session's `model_options.spp`
+    where set, else the renderer's header. The session's wins as it does for the model's input
+    (model_registry.options_for), so the choice plans for the spp the chosen model is given."""
+    if SAMPLES_INPUT in model_options:
+        return NoiseLevel(float(model_options[SAMPLES_INPUT]), SESSION_SAMPLES)
+    return samples_from_header(attributes, layer)
 
 
 def renderer_from_header(attributes: Mapping[str, tuple[str, bytes]]) -> str | None:

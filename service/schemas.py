@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 
 from quietframe.service.frames import validate_mapping
 
@@ -19,8 +19,25 @@ Compression = Literal[
 # reads those literals).
 Factor = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 MAX_LAYER_NAME_BYTES = 120  # two of them and ".R" fit in an EXR channel name (255 bytes)
+# The largest magnitude of a model option's value: I-JSON's interoperable integers (RFC 7493),
+# exact as a float64 and within every graph input's type (int64, float32). Python's int has no
+# bound: 10**400 would pass as a JSON integer and overflow where it becomes a float.
+MAX_OPTION_MAGNITUDE = 2**53 - 1
+
+
+def _within_option_range(value: int | float) -> int | float:
+    if abs(value) <= MAX_OPTION_MAGNITUDE:
+        return value
+    digits = len(str(abs(value))) if isinstance(value, int) else None
+    got = f"an integer of {digits} digits" if digits and digits > 20 else f"{value:g}"
+    raise ValueError(f"a model option's value is at most {MAX_OPTION_MAGNITUDE} (2**53 - 1) "
+                     f"in magnitude; got {got}")
+
+
 # A model option's value: an integer stays one (kernel_size 9), else a finite number.
-OptionValue = Annotated[int, Field(strict=True)] | Factor
+OptionValue = Annotated[
+    Annotated[int, Field(strict=True)] | Factor, AfterValidator(_within_option_range)
+]
 
 
 class SessionCreate(BaseModel):

@@ -40,7 +40,21 @@ import numpy as np
 if TYPE_CHECKING:
     from quietframe.service.settings import Settings
 
-SESSION_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")  # secrets.token_urlsafe(16): 128 random bits
+SESSION_ID = re.compile(r"[A-Za-z0-9_-]{22}")  # secrets.token_urlsafe(16): 128 random bits
+
+
+def is_session_id(text: str) -> bool:
+    """Whether `text` has the form of the ids this server issues (the whole of it: `$` would
+    let a trailing newline through)."""
+    return SESSION_ID.fullmatch(text) is not None
+
+
+def checked_session_id(text: str) -> str:
+    """`text`, if it is a session id (ValueError otherwise): a store builds a file name or a
+    key from nothing else. The registry answers 404 for any other id before asking a store."""
+    if not is_session_id(text):
+        raise ValueError(f"not a session id: {text!r}")
+    return text
 
 
 def request_digest(body: bytes | bytearray) -> str:
@@ -150,9 +164,7 @@ class SessionStore:
         self.folder.mkdir(parents=True, exist_ok=True)
 
     def path(self, session_id: str) -> Path:
-        if not SESSION_ID.match(session_id):
-            raise ValueError(f"not a session id: {session_id!r}")
-        return self.folder / f"{session_id}.npz"
+        return self.folder / f"{checked_session_id(session_id)}.npz"
 
     def spec_path(self, session_id: str) -> Path:
         return self.path(session_id).with_suffix(".json")
@@ -173,7 +185,7 @@ class SessionStore:
         return meta if isinstance(meta, dict) and meta.get("id") == session_id else None
 
     def spec_ids(self) -> list[str]:
-        return sorted(p.stem for p in self.folder.glob("*.json") if SESSION_ID.match(p.stem))
+        return sorted(p.stem for p in self.folder.glob("*.json") if is_session_id(p.stem))
 
     def write(
         self,
@@ -231,7 +243,7 @@ class SessionStore:
         """(path, meta) of every stored session file; an unreadable one, or one whose meta names
         another session, has the error as the meta's "error"."""
         for path in sorted(self.folder.glob("*.npz")):
-            if not SESSION_ID.match(path.stem):
+            if not is_session_id(path.stem):
                 continue
             try:
                 with np.load(path) as z:

@@ -13,6 +13,7 @@ session run in order and sessions run in parallel. A frame changes its session o
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import mmap
@@ -66,6 +67,7 @@ from quietframe.service.schemas import (
 from quietframe.service.session_store import (
     Reply,
     StateDamaged,
+    is_session_id,
     open_store,
     request_digest,
 )
@@ -268,6 +270,14 @@ def choice_header(choice: Choice) -> str:
 HEADER_WORDS = {"σ": "sigma", "×": "x", "≤": "<=", "≥": ">=", "–": "-", "—": "-", "·": "*"}
 
 
+def noise_kind(choice: Choice) -> str:
+    """Where the choice's spp came from, as the choices metric counts it: a header attribute
+    is `header`, the session's model_options `session`, else `estimate` or `unknown`."""
+    if choice.noise_source == model_choice.SESSION_SAMPLES:
+        return "session"
+    return choice.noise_source if choice.noise_source in ("estimate", "unknown") else "header"
+
+
 def motion_header(gate: HistoryGate) -> str:
     """X-Quietframe-Motion of a temporal model's frame without motion vectors: what its aux
     showed and whether the history was used."""
@@ -278,9 +288,9 @@ def motion_header(gate: HistoryGate) -> str:
 
 def frame_samples(header: frames.ExrHeader, spec: SessionSpec,
                   choice: Choice | None) -> float | None:
-    """The frame's spp for a model that takes it: the renderer's count in the header, else
-    (model=auto) the shot's estimate, else None (the model's default)."""
-    stated = model_choice.samples_from_header(header.attributes, spec.layer)
+    """The frame's spp for a model that takes it: the session's or the renderer's stated count,
+    else (model=auto) the shot's estimate, else None (the model's default)."""
+    stated = model_choice.stated_samples(header.attributes, spec.layer, spec.model_options)
     if stated is not None:
         return stated.spp
     return choice.spp if choice is not None else None
@@ -388,19 +398,44 @@ class SessionRegistry:
     # ---- lookup, limits, expiry -------------------------------------------------------------
 
     def get(self, session_id: str, touch: bool = True) -> Session:
-        """The session; `touch` counts as use (LRU order, TTL), status reads do not."""
+        """The session; `touch` counts as use (LRU order, TTL), status reads do not. Every
+        route finds its session here: an id of another form is unknown (404) before any store
+        is asked (a store refuses to build a key or a file name from it)."""
+        if not is_session_id(session_id):
+            raise self._not_found(session_id)
         session = self.sessions.get(session_id)
         if session is None and self.store is not None and self.store.shared:
             session = self._adopt(session_id)
         if session is None:
-            raise SessionNotFound(
-                f"no session {session_id!r} (expired after {self.settings.session_ttl_s:g} s idle, "
-                "deleted, or never created)"
-            )
+            raise self._not_found(session_id)
         if touch:
             session.last_used = time.monotonic()
             self.sessions.move_to_end(session_id)
         return session
+
+    def _not_found(self, session_id: str) -> SessionNotFound:
+        return SessionNotFound(
+            f"no session {session_id!r} (expired after {self.settings.session_ttl_s:g} s idle, "
+            "deleted, or never created)"
+        )
+
+    async def status(self, session_id: str) -> SessionPublic:
+        """The session's status (not counted as use). With a shared store, another replica may
+        have advanced the session since this one's copy was loaded: the progress shown is the
+        store's record (its small meta; the state stays where it is)."""
+        shared = self.store is not None and self.store.shared
+        held = session_id in self.sessions  # else `get` adopts it from the record just read
+        session = self.get(session_id, touch=False)
+        ttl = self.settings.session_ttl_s
+        if not (shared and held):
+            return session.public(ttl)
+        found = await self._on_pool(self.store.find, session_id)  # type: ignore[union-attr]
+        if found is None:  # expired in the store, or deleted through another replica
+            raise SessionNotFound(f"session {session_id!r} is gone (expired or deleted)")
+        meta, lost = found
+        if lost:  # only its settings survive: this copy's progress is all there is
+            return session.public(ttl)
+        return dataclasses.replace(session, **self._stored_progress(meta)).public(ttl)
 
     def reserved_bytes(self) -> int:
         return sum(s.reserve_bytes for s in self.sessions.values() if s.resident)
@@ -483,14 +518,30 @@ class SessionRegistry:
         session = self._session(secrets.token_urlsafe(16), spec)
         self._make_room(session.reserve_bytes)
         if self.store is not None:
-            await self._on_pool(self.store.write_spec, session.meta())
-            session.store_version = await self._on_pool(
-                self.store.write, session.meta(), None, None, ""
-            )
+            await self._store_new(session)
         self.sessions[session.id] = session
         self.metrics.sessions_created.inc()
         self._update_gauges()
         return session
+
+    async def _store_new(self, session: Session) -> None:
+        """Store a new session: its settings, then its first record. Where the store refuses
+        the second write (full, say), what the first wrote is deleted before the error goes
+        out: a session the client was refused must not appear later (a restart restores a
+        settings file alone as a session)."""
+        assert self.store is not None
+        try:
+            await self._on_pool(self.store.write_spec, session.meta())
+            session.store_version = await self._on_pool(
+                self.store.write, session.meta(), None, None, ""
+            )
+        except Exception:
+            try:
+                await self._on_pool(self.store.delete, session.id)
+            except Exception as exc:  # the store is gone too: a Redis key expires by itself
+                log.warning("could not delete a session whose creation failed",
+                            extra={"session": session.id, "error": repr(exc)})
+            raise
 
     async def delete(self, session_id: str) -> None:
         session = self.get(session_id)
@@ -518,8 +569,8 @@ class SessionRegistry:
     def frame_need(self, session: Session, header: frames.ExrHeader, body_bytes: int) -> int:
         """A frame's peak memory for the admission budget (model=auto: the largest model's)."""
         names = self.models.names if session.spec.model == AUTO else [session.info.name]
-        infos = [self.models.denoiser(name).info for name in names]
-        return admission.frame_need(header, body_bytes, infos)
+        denoisers = [self.models.denoiser(name) for name in names]
+        return admission.frame_need(header, body_bytes, denoisers)
 
     async def denoise_frame(
         self,
@@ -548,7 +599,8 @@ class SessionRegistry:
             if session.closed:
                 raise SessionNotFound(f"session {session_id!r} was closed while this frame waited")
             await self._ensure_resident(session)  # a retry needs the stored reply
-            plan = session.plan(index, body, cut or header.cut)
+            # On the pool: a retry hashes its whole body (up to ~2 s at 2 GiB), never on the loop
+            plan = await self._on_pool(session.plan, index, body, cut or header.cut)
             if isinstance(plan, Reply):
                 self.metrics.replays.inc()
                 return FrameOutcome(plan, replayed=True)
@@ -574,9 +626,9 @@ class SessionRegistry:
                 await self._persist(session, frame)
             self._commit(session, frame)
             if chose and choice is not None:
-                kind = choice.noise_source
-                kind = "header" if kind not in ("estimate", "unknown") else kind
-                self.metrics.choices.labels(choice.model, spec.quality or "balanced", kind).inc()
+                self.metrics.choices.labels(
+                    choice.model, spec.quality or "balanced", noise_kind(choice)
+                ).inc()
                 log.info(
                     "model chosen",
                     extra={"session": session.id, "index": index, **choice.to_dict()},
@@ -620,11 +672,11 @@ class SessionRegistry:
         body: bytes | bytearray,
         sources: dict[str, frames.Source],
     ) -> Choice:
-        """model=auto for a shot: the renderer's sample count from the header where it wrote
-        one, else estimated from the decoded colour (and albedo) on the worker pool, which
+        """model=auto for a shot: the sample count the session (model_options) or the header
+        states, else estimated from the decoded colour (and albedo) on the worker pool, which
         also measures how noisy the frame looks (model_choice.noise_statistic)."""
         spec = session.spec
-        stated = model_choice.samples_from_header(header.attributes, spec.layer)
+        stated = model_choice.stated_samples(header.attributes, spec.layer, spec.model_options)
         noise, unusable = await self._on_pool(self._estimate_noise, body, sources, stated)
         # Present in the pixels, not just named; except an all-zero Vector, which is no
         # evidence either way (a locked-off camera, motion blur, a first frame): the chosen
@@ -720,12 +772,8 @@ class SessionRegistry:
             self._remove(session, "gone")
             raise SessionNotFound(f"session {session.id!r} is gone (expired or deleted)")
         if loaded.meta is not None:
-            session.last_index = loaded.meta["last_index"]
-            session.frames_done = loaded.meta["frames_done"]
-            session.resets = loaded.meta["resets"]
-            choice = loaded.meta.get("choice")
-            session.choice = Choice.from_dict(choice) if choice else None
-            session.info = self._info_of(loaded.meta)
+            for name, value in self._stored_progress(loaded.meta).items():
+                setattr(session, name, value)
         elif loaded.damage != "no stored state":
             aside = await self._on_pool(store.quarantine, session.id)
             log.error(
@@ -736,6 +784,17 @@ class SessionRegistry:
         session.state_lost = loaded.meta is None
         session.store_version, session.resident = loaded.version, True
         self._update_gauges()
+
+    def _stored_progress(self, meta: dict) -> dict:
+        """The Session fields a stored record sets: progress, the shot's choice, its model."""
+        choice = meta.get("choice")
+        return {
+            "last_index": meta["last_index"],
+            "frames_done": meta["frames_done"],
+            "resets": meta["resets"],
+            "choice": Choice.from_dict(choice) if choice else None,
+            "info": self._info_of(meta),
+        }
 
     def _info_of(self, meta: dict) -> ModelInfo:
         """The model a stored session uses: its shot's choice (auto), else its model."""

@@ -54,6 +54,18 @@ class Settings(BaseSettings):
     max_header_bytes: int = Field(
         16 << 20, ge=4096, description="EXR header (attributes of all parts) limit"
     )
+    header_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="a connection whose request line and headers are not complete this long "
+        "after it opened (or after the request's first byte) is closed",
+    )
+    max_connections: int = Field(
+        0,
+        ge=0,
+        description="open connections; past it the one waiting longest for a request is closed. "
+        "0: the open-file limit (ulimit -n) less a quarter of it (at least 64)",
+    )
     min_body_rate_kib_s: float = Field(
         64.0,
         ge=0,

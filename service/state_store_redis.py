@@ -30,15 +30,32 @@ from dataclasses import dataclass
 
 import numpy as np
 import redis
+from redis.exceptions import ClusterDownError, OutOfMemoryError, ReadOnlyError, TryAgainError
 
 from quietframe.service.errors import ServiceError
-from quietframe.service.session_store import SESSION_ID, Reply, StateDamaged, record, unpack
+from quietframe.service.session_store import (
+    Reply,
+    StateDamaged,
+    checked_session_id,
+    record,
+    unpack,
+)
 
 QUARANTINE_S = 7 * 86400  # a damaged record is kept this long for a look
 
+# Error replies of a Redis that answers but cannot take a write for now, as when it is down:
+# full (maxmemory with noeviction: "OOM command not allowed"), a read-only replica (a failover
+# under way), a master or cluster slot down (MASTERDOWN, CLUSTERDOWN), a slot moving (TRYAGAIN).
+# Every other error reply (WRONGTYPE, a syntax error, NOPERM) is a bug or a misconfiguration
+# that no retry mends: it stays a 500.
+REFUSALS_FOR_NOW = (OutOfMemoryError, ReadOnlyError, ClusterDownError, TryAgainError)
+# Snapshots failing (stop-writes-on-bgsave-error, e.g. a full disk); no exception class of its own.
+MISCONF = "MISCONF"
+
 
 class StoreUnavailable(ServiceError):
-    """Redis did not answer: the frame is not committed (nor lost); retry."""
+    """Redis did not answer, or refused the write for now: nothing is committed (nor lost);
+    retry."""
 
     status, code = 503, "state_store_unavailable"
 
@@ -75,9 +92,7 @@ class RedisStore:
 
     @staticmethod
     def keys(session_id: str) -> tuple[str, str, str]:
-        if not SESSION_ID.match(session_id):
-            raise ValueError(f"not a session id: {session_id!r}")
-        tag = f"qf:{{{session_id}}}"
+        tag = f"qf:{{{checked_session_id(session_id)}}}"
         return f"{tag}:spec", f"{tag}:ver", f"{tag}:data"
 
     @contextlib.contextmanager
@@ -85,11 +100,11 @@ class RedisStore:
         try:
             yield
         except (redis.ConnectionError, redis.TimeoutError) as exc:
-            raise StoreUnavailable(
-                f"the session store did not answer ({type(exc).__name__}); the frame was not "
-                "committed: retry after Retry-After",
-                headers={"Retry-After": "1"},
-            ) from exc
+            raise _unavailable(f"did not answer ({type(exc).__name__})") from exc
+        except redis.ResponseError as exc:
+            if not refuses_for_now(exc):
+                raise
+            raise _unavailable(f"refused the write for now ({type(exc).__name__}: {exc})") from exc
 
     # ---- settings ----------------------------------------------------------------------------
 
@@ -215,6 +230,23 @@ class RedisStore:
     def delete(self, session_id: str) -> None:
         with self._answering():
             self.redis.delete(*self.keys(session_id))
+
+
+def refuses_for_now(exc: redis.ResponseError) -> bool:
+    """Whether an error reply means the store cannot take writes for now (REFUSALS_FOR_NOW,
+    MISCONF), not that the request was wrong."""
+    if isinstance(exc, REFUSALS_FOR_NOW):
+        return True
+    # redis-py keeps the reply's code in `status_code` (5.x: only as the message's first word)
+    code = getattr(exc, "status_code", None) or str(exc).split(" ", 1)[0]
+    return code == MISCONF
+
+
+def _unavailable(what: str) -> StoreUnavailable:
+    return StoreUnavailable(
+        f"the session store {what}; nothing was stored: retry after Retry-After",
+        headers={"Retry-After": "1"},
+    )
 
 
 def _json_record(raw: bytes | None, session_id: str) -> dict | None:

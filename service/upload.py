@@ -1,23 +1,31 @@
 """Receiving a frame body: refused as early as its bytes allow, held in memory it reserved.
 
-1. The magic number and the EXR header are checked as they arrive; the header's bytes count
-   against the memory budget as they grow, and it may be at most QUIETFRAME_MAX_HEADER_BYTES
-   (its attribute values are not copied while it is parsed).
-2. The header's data and display windows must be the session's size, and the body at most the
-   header's largest possible file: 422 / 413 before any body buffer exists.
-3. The frame's whole peak memory (admission.frame_need) is reserved, waiting briefly when
+1. The magic number and the EXR header are checked as they arrive: each chunk's attributes are
+   parsed once (exr_header.HeaderScan), on a worker thread once the header is past 64 KiB (16 MiB
+   of tiny attributes is seconds of Python, and the event loop must keep answering). The
+   header's bytes count against the memory budget as they grow, and it may be at most
+   QUIETFRAME_MAX_HEADER_BYTES (its attribute values are not copied while it is parsed).
+2. The header's data and display windows must be the session's size (422), the body at most
+   the header's largest possible file (413), and the frame's peak memory
+   (admission.frame_need) within the whole budget (413): all before any body buffer exists.
+3. The body is received into one buffer: with Content-Length, an anonymous mapping of that
+   size whose pages become memory only as bytes are written; chunked, a buffer that grows with
+   the bytes received. The budget holds the bytes received, not the frame's peak: a slow upload
+   holds what it sent, and other frames do not wait for memory it does not use yet (a full
+   budget pauses the reading, then 429, as admission does).
+4. Once the body is complete, the rest of the frame's peak is reserved, waiting briefly when
    other frames hold the budget (429 after that).
-4. The body is received into one buffer: with Content-Length, an anonymous mapping of that
-   size whose pages become memory only as bytes are written (a stalled upload holds what it
-   sent, not what it announced); chunked, a buffer that grows with the bytes received.
 The request guard (guard.py) has already held the body to the frame limit, a pause limit and a
 minimum rate.
 """
 
 from __future__ import annotations
 
+import asyncio
 import mmap
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import NoReturn
 
 from starlette.requests import Request
 
@@ -27,7 +35,12 @@ from quietframe.service.errors import BodyTooLarge, InvalidRequest
 from quietframe.service.settings import Settings
 
 Body = bytearray | mmap.mmap
+Need = Callable[[frames.ExrHeader, int], int]
 _FIRST_RESERVE = 1 << 16
+# A header up to this size is parsed on the event loop (a few ms); a larger one on the parser
+# thread. One thread: however many large headers arrive, the event loop shares the GIL with one.
+_INLINE_HEADER_BYTES = 1 << 16
+_header_parser = ThreadPoolExecutor(1, thread_name_prefix="quietframe-header")
 
 
 async def read_frame(
@@ -35,7 +48,7 @@ async def read_frame(
     settings: Settings,
     size: tuple[int, int],
     budget: MemoryBudget,
-    need: Callable[[frames.ExrHeader, int], int],
+    need: Need,
 ) -> tuple[Body, frames.ExrHeader, Reservation]:
     """The body, its parsed header and the reservation it holds (the caller releases it once
     the frame is done). `size`: the session's (width, height); `need(header, body_bytes)`:
@@ -54,11 +67,12 @@ async def _receive(
     settings: Settings,
     size: tuple[int, int],
     reservation: Reservation,
-    need: Callable[[frames.ExrHeader, int], int],
+    need: Need,
 ) -> tuple[Body, frames.ExrHeader]:
     declared = request.headers.get("content-length")
     expected = int(declared) if declared and declared.isdigit() else None
-    head, header, next_parse = bytearray(), None, 8
+    scan = frames.HeaderScan(settings.max_width, settings.max_height, settings.max_header_bytes)
+    head, header = bytearray(), None
     body: Body = head
     received, bound = 0, settings.max_body_bytes
     async for chunk in request.stream():
@@ -68,17 +82,10 @@ async def _receive(
             head += chunk
             received = len(head)
             reservation.grow_to(2 * received)  # the buffer and its copy while it grows
-            if received < next_parse:
+            header = await _header_so_far(scan, head)
+            if header is None:
                 continue
-            header = _header_so_far(head, settings)
-            if header is None:  # more header to come: parse again once the bytes double
-                next_parse = 2 * received
-                continue
-            frames.check_windows(header, *size)  # 422 before any body buffer exists
-            bound = min(bound, header.max_bytes)
-            if expected is not None:
-                _check_size(expected, bound, header)
-            await _admit(reservation, need, header, expected if expected is not None else bound)
+            bound = _check_header(header, size, expected, bound, reservation, need)
             if expected is not None:
                 body = mmap.mmap(-1, expected)  # pages become memory as they are written
                 body[:received] = head
@@ -89,38 +96,73 @@ async def _receive(
         if expected is not None:
             if received + len(chunk) > expected:
                 raise InvalidRequest(f"body is longer than its Content-Length {expected}")
+            await _hold(reservation, received + len(chunk), header)
             body[received : received + len(chunk)] = chunk
         else:
+            await _hold(reservation, 2 * (received + len(chunk)), header)  # and its copy
             head += chunk
         received += len(chunk)
-    if header is None:  # the whole body arrived before the next parse
-        header = frames.read_header(
-            head, settings.max_width, settings.max_height, settings.max_header_bytes
-        )  # raises BadExr
-        frames.check_windows(header, *size)
-        await _admit(reservation, need, header, received)
+    if header is None:
+        _ended_inside_header(head, settings)
     if expected is not None and received != expected:
         raise InvalidRequest(f"body ended after {received} of its {expected} declared bytes")
+    await _admit(reservation, need, header, received)  # the rest of the frame's peak
     return body, header
 
 
-async def _admit(
-    reservation: Reservation,
-    need: Callable[[frames.ExrHeader, int], int],
+async def _header_so_far(scan: frames.HeaderScan, head: bytearray) -> frames.ExrHeader | None:
+    """The header once `head` holds all of it, else None; a large one is parsed on the parser
+    thread (`head` does not change meanwhile: the next chunk is read after this returns)."""
+    if len(head) <= _INLINE_HEADER_BYTES:
+        return scan.advance(head)
+    return await asyncio.get_running_loop().run_in_executor(_header_parser, scan.advance, head)
+
+
+def _ended_inside_header(head: bytearray, settings: Settings) -> NoReturn:
+    """Raise for a body that ended before its header did (parsed already: not again)."""
+    if len(head) < 8:
+        frames.read_header(head, settings.max_width, settings.max_height)  # bad magic number
+    raise frames.TruncatedExr("EXR header is truncated")
+
+
+def _check_header(
     header: frames.ExrHeader,
-    body_bytes: int,
+    size: tuple[int, int],
+    expected: int | None,
+    bound: int,
+    reservation: Reservation,
+    need: Need,
+) -> int:
+    """422 / 413 from the header alone, before any body buffer exists: the session's size, the
+    body's size, the frame's peak against the whole budget. Returns the body's bound."""
+    frames.check_windows(header, *size)
+    bound = min(bound, header.max_bytes)
+    if expected is not None:
+        _check_size(expected, bound, header)
+    peak = need(header, expected if expected is not None else bound)
+    reservation.check_fits(peak, _what(header))
+    return bound
+
+
+async def _hold(reservation: Reservation, nbytes: int, header: frames.ExrHeader) -> None:
+    """Hold `nbytes` of received body; when the budget is full the body waits (unread) for
+    frames in flight to finish, as admission does."""
+    if nbytes > reservation.nbytes:
+        await reservation.admit(nbytes, _what(header))
+
+
+async def _admit(
+    reservation: Reservation, need: Need, header: frames.ExrHeader, body_bytes: int
 ) -> None:
-    what = f"a {header.width}x{header.height} frame with {len(header.channels)} channels"
-    await reservation.admit(need(header, body_bytes), what)
+    """Hold the frame's peak: grow to it (waiting, then 429), or give back what a chunked
+    body's growing buffer held above it."""
+    peak = need(header, body_bytes)
+    await reservation.admit(peak, _what(header))
+    reservation.shrink_to(peak)
 
 
-def _header_so_far(data: bytearray, settings: Settings) -> frames.ExrHeader | None:
-    try:
-        return frames.read_header(
-            data, settings.max_width, settings.max_height, settings.max_header_bytes
-        )
-    except frames.TruncatedExr:
-        return None
+def _what(header: frames.ExrHeader) -> str:
+    return f"a {header.width}x{header.height} frame with {len(header.channels)} channels"
 
 
 def _check_size(size: int, bound: int, header: frames.ExrHeader) -> None:

@@ -75,12 +75,10 @@ async def create_session(
     responses=errors(401, 404),
     summary="Session status",
 )
-async def get_session(
-    session_id: str, sessions: SessionsDep, settings: SettingsDep
-) -> SessionPublic:
+async def get_session(session_id: str, sessions: SessionsDep) -> SessionPublic:
     """Frames done, last index, mean and last timings per stage, memory held, time to expiry.
     Reading the status does not keep the session alive."""
-    return sessions.get(session_id, touch=False).public(settings.session_ttl_s)
+    return await sessions.status(session_id)
 
 
 @router.delete(

@@ -1,0 +1,52 @@
+"""A frame's memory reservation covers what its path really holds: peak RSS of decode, denoise
+and encode (service.sessions.process_frame) against admission.frame_need, each case in a
+process of its own (bench/admission_memory.py measures it). In the suite: the two rules of the
+runtime's working set at 1080p, an OIDN stage (filters and scratch) and a tiled graph. The
+whole matrix, every installed model at 1080p and 4K, is ~40 CPU-minutes:
+QUIETFRAME_MEMORY_MATRIX=1 runs it here (or `python -m quietframe.bench.admission_memory`)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from quietframe.bench.admission_memory import TARGET_RATIO, shipped_models
+
+
+def measured(model: str, size: str) -> dict:
+    child = subprocess.run(
+        [sys.executable, "-m", "quietframe.bench.admission_memory", "--one", model, size,
+         "--frames", "2", "--threads", "2"],
+        capture_output=True, text=True, check=True, timeout=1800)
+    return json.loads(child.stdout.strip().splitlines()[-1])
+
+
+def check_within_reservation(result: dict) -> None:
+    for row in result["frames"]:
+        bound = TARGET_RATIO * (row["reserved_mib"] + row["history_mib"])
+        assert row["peak_growth_mib"] <= bound, (result["model"], result["size"], row)
+
+
+def test_oidn_stage_memory_is_reserved_and_released_after_the_frame():
+    result = measured("oidn-frame", "1080p")
+    check_within_reservation(result)
+    for row in result["frames"]:
+        # OIDN's filters and scratch (~0.7 GiB at 1080p) do not outlive the frame: memory kept
+        # between frames is the session's state, which the history budget counts.
+        assert row["kept_mib"] < 0.25 * row["peak_growth_mib"], row
+
+
+def test_tiled_graph_memory_is_reserved():
+    check_within_reservation(measured("nbg-2l-3g", "1080p"))
+
+
+@pytest.mark.skipif(os.environ.get("QUIETFRAME_MEMORY_MATRIX") != "1",
+                    reason="~40 CPU-minutes: QUIETFRAME_MEMORY_MATRIX=1 runs it")
+@pytest.mark.parametrize("size", ["1080p", "4k"])
+@pytest.mark.parametrize("model", shipped_models())
+def test_every_model_stays_within_its_reservation(model: str, size: str):
+    check_within_reservation(measured(model, size))
