@@ -152,10 +152,14 @@ def card_lines(card: ModelCard) -> list[str]:
                              for r in table.zoo)
             short = ", ".join(f"{r.spp:g} spp {r.shortfall_db:+.2f}" for r in table.zoo
                               if r.shortfall_db < 0) or "none"
+            worst = ", ".join(f"{r.spp:g} spp {r.worst_vs_denoise_db:+.2f}" for r in table.zoo
+                              if r.worst_vs_denoise_db is not None)
             lines += [f"On the validation zoo ({renderer} shots from outside the scene "
                       f"generator, docs/zoo.md) against per-frame OIDN-high in the same run: "
                       f"{rows}. Taken off the table above by `auto` (shortfall against it): "
-                      f"{short}.", ""]
+                      f"{short}."
+                      + (f" Its worst shot against Blender's own denoise (what `auto` weighs "
+                         f"so that no shot loses to it): {worst}." if worst else ""), ""]
     return lines
 
 

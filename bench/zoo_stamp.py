@@ -9,7 +9,9 @@ on the scene generator's validation split: min(0, zoo gap − table gap), where 
 the model's Cycles PSNR less per-frame OIDN-high's (`oidn-frame`, the same filter as the
 evaluation's `oidn-high`). `auto` takes the shortfall off the model's expected PSNR
 (service/model_choice.ModelProfile.expected_psnr), so a learned tier whose lead came from the
-generator's look, and not from the shots, is not chosen for it. Writes the cards' Cycles table
+generator's look, and not from the shots, is not chosen for it. Also the worst shot's gap to
+Blender's own denoise, which `auto` reads to prefer models that held on every shot
+(model_choice.holding_on_every_shot). Writes the cards' Cycles table
 (`zoo`) in place; models without zoo rows are left as they are.
 """
 
@@ -27,13 +29,15 @@ from quietframe.runtime.card import ModelCard, ZooRow
 from quietframe.service.model_choice import at_spp
 
 BASELINE_METHOD = "oidn-high"  # per-frame OIDN-high, plain aux: the evaluation's row
+RENDERER_DENOISE = "blender-denoise"  # Blender's own denoise of the same frames
 BASELINE_MODEL = "oidn-frame"  # the installed model that is the same filter (its table)
 RENDERER = "cycles"
 
 
-def zoo_gaps(rows: list[dict], method: str) -> dict[float, list[float]]:
-    """spp -> per shot, the method's PSNR less per-frame OIDN-high's in the same run."""
-    base = {(r["shot"], r["spp"]): r["psnr"] for r in rows if r["method"] == BASELINE_METHOD}
+def zoo_gaps(rows: list[dict], method: str,
+             baseline: str = BASELINE_METHOD) -> dict[float, list[float]]:
+    """spp -> per shot, the method's PSNR less `baseline`'s in the same run."""
+    base = {(r["shot"], r["spp"]): r["psnr"] for r in rows if r["method"] == baseline}
     gaps: dict[float, list[float]] = defaultdict(list)
     for r in rows:
         if r["method"] == method and (r["shot"], r["spp"]) in base:
@@ -46,15 +50,17 @@ def table_psnr(card: ModelCard, spp: float) -> float | None:
     return at_spp([(r.spp, r.psnr) for r in card.measured(RENDERER).by_spp], spp)
 
 
-def zoo_rows(gaps: dict[float, list[float]], card: ModelCard,
-             baseline: ModelCard) -> list[ZooRow]:
+def zoo_rows(gaps: dict[float, list[float]], card: ModelCard, baseline: ModelCard,
+             vs_denoise: dict[float, list[float]]) -> list[ZooRow]:
     out = []
     for spp, values in sorted(gaps.items()):
         own, base = table_psnr(card, spp), table_psnr(baseline, spp)
         table_gap = own - base if own is not None and base is not None else 0.0
         gap = float(np.mean(values))
+        worst_vs_denoise = (round(float(min(vs_denoise[spp])), 3) if vs_denoise.get(spp)
+                            else None)
         out.append(ZooRow(spp, round(gap, 3), round(float(min(values)), 3),
-                          round(min(0.0, gap - table_gap), 3)))
+                          round(min(0.0, gap - table_gap), 3), worst_vs_denoise))
     return out
 
 
@@ -78,11 +84,14 @@ def main(argv: list[str] | None = None) -> int:
         if not gaps:
             print(f"{path}: no zoo rows for {path.stem!r}; left as it is")
             continue
-        rows = zoo_rows(gaps, card_of(path), baseline)
+        rows = zoo_rows(gaps, card_of(path), baseline,
+                        zoo_gaps(run["rows"], path.stem, RENDERER_DENOISE))
         stamp(path, {"zoo": {"by_spp": [r.to_dict() for r in rows], "measured": measured}},
               RENDERER)
         print(f"{path}: " + ", ".join(f"{r.spp:g} spp {r.gap_db:+.2f} (worst {r.worst_gap_db:+.2f},"
-                                      f" shortfall {r.shortfall_db:+.2f})" for r in rows))
+                                      f" shortfall {r.shortfall_db:+.2f}, worst against "
+                                      f"Blender's denoise {r.worst_vs_denoise_db})"
+                                      for r in rows))
     return 0
 
 

@@ -345,12 +345,16 @@ class ZooRow:
     scenes/zoo_shots.py) at one spp, against per-frame OIDN-high in the same run: `gap_db` the
     mean over shots of (model − OIDN-high) PSNR, `worst_gap_db` the lowest shot's, and
     `shortfall_db` = min(0, gap_db − the same gap on the generator's validation split): how much
-    less the model's table promises than the zoo shows (≤ 0; `auto` takes it off)."""
+    less the model's table promises than the zoo shows (≤ 0; `auto` takes it off).
+    `worst_vs_denoise_db`: the lowest shot's (model − Blender's own denoise of the same frames)
+    PSNR, what a user loses on the model's worst shot by not ticking Denoise (None where not
+    measured)."""
 
     spp: float
     gap_db: float
     worst_gap_db: float
     shortfall_db: float
+    worst_vs_denoise_db: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -68,12 +68,16 @@ def test_stamp_writes_the_shortfall_against_the_table_and_auto_takes_it_off(tmp_
     zoo = tmp_path / "zoo.json"
     meta = {"split": "validation", "command": "test", "zoo": "zoo1", "shots": ["a", "b"]}
     zoo.write_text(json.dumps({"meta": meta, "rows": _rows({"nbg-2l-3g": -5.0,
-                                                            "oidn-frame": 0.0})}))
+                                                            "oidn-frame": 0.0,
+                                                            "blender-denoise": 0.2})}))
     assert zoo_stamp.main([str(zoo), *map(str, models.values())]) == 0
     card = zoo_stamp.card_of(models["nbg-2l-3g"])
     rows = card.measured("cycles").zoo
     assert [r.spp for r in rows] == [1.0, 4.0]
     assert rows[0].gap_db == pytest.approx(-5.5) and rows[0].worst_gap_db == pytest.approx(-6.0)
+    # its worst shot against Blender's denoise of the same frames: -5 - 0.2 on both shots
+    assert rows[0].worst_vs_denoise_db == pytest.approx(-5.2)
+    assert ModelProfile.from_card(card, "cycles").zoo_worst_vs_denoise_by_spp[0] == (1.0, -5.2)
     # the table promised (nbg − oidn-frame on the generator's Cycles validation): the shortfall
     # is what the zoo showed below that, never a credit
     table_gap = zoo_stamp.table_psnr(card, 1) - zoo_stamp.table_psnr(
@@ -102,6 +106,34 @@ def test_a_learned_tier_the_zoo_does_not_confirm_loses_its_lead():
     unproven = ModelProfile(**{**learned.__dict__, "zoo_shortfall_by_spp": ((1, -5.0),
                                                                             (64, -5.0))})
     assert choose(present, noise, [oidn, unproven], "oidn-frame", "fast").model == "oidn-frame"
+
+
+def test_an_average_lead_is_not_traded_for_a_loss_on_one_zoo_shot():
+    """The zoo at 1 spp: the plain-aux history tier leads on average but lost 0.21 dB to
+    Blender's denoise on one shot, where the prefiltered-aux tier held. `balanced` and `best`
+    take the one that held on every shot; `fast` keeps its trade; without the figure, nothing
+    changes."""
+    required, optional = ("color",), ("albedo", "normal", "depth", "motion")
+    table = ((1, 30.0), (64, 40.0))
+    oidn = ModelProfile("oidn-frame", required, optional, 1000.0, table, per_frame_oidn=True,
+                        zoo_worst_vs_denoise_by_spp=((1, -0.21), (64, -1.3)))
+    plain = ModelProfile("plain-history", required, optional, 1100.0, ((1, 31.4), (64, 40.1)),
+                         zoo_worst_vs_denoise_by_spp=((1, -0.21), (64, -1.3)))
+    clean = ModelProfile("clean-history", required, optional, 4000.0, ((1, 31.0), (64, 40.3)),
+                         zoo_worst_vs_denoise_by_spp=((1, 0.11), (64, -0.18)))
+    noise = NoiseLevel(1.0, "header")
+    present = ("color", "albedo", "normal", "depth", "motion")
+    for quality in ("balanced", "best"):
+        chosen = choose(present, noise, [oidn, plain, clean], "oidn-frame", quality)
+        assert chosen.model == "clean-history", chosen.reason
+        assert "lost over 0.05 dB to Blender's denoise on a zoo shot" in chosen.reason
+    assert choose(present, noise, [oidn, plain, clean], "oidn-frame", "fast").model != \
+        "clean-history"
+    # where none held within 0.05 dB, those within 0.05 of the best worst shot
+    at_64 = choose(present, NoiseLevel(64.0, "header"), [oidn, plain, clean], "oidn-frame")
+    assert at_64.model == "clean-history"
+    unmeasured = [replace(m, zoo_worst_vs_denoise_by_spp=()) for m in (oidn, plain, clean)]
+    assert choose(present, noise, unmeasured, "oidn-frame", "balanced").model == "plain-history"
 
 
 def test_stamp_refuses_the_test_split(tmp_path, models):
