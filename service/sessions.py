@@ -566,11 +566,22 @@ class SessionRegistry:
 
     # ---- frames -------------------------------------------------------------------------------
 
-    def frame_need(self, session: Session, header: frames.ExrHeader, body_bytes: int) -> int:
-        """A frame's peak memory for the admission budget (model=auto: the largest model's)."""
-        names = self.models.names if session.spec.model == AUTO else [session.info.name]
-        denoisers = [self.models.denoiser(name) for name in names]
-        return admission.frame_need(header, body_bytes, denoisers)
+    def frame_need(self, session: Session, header: frames.ExrHeader, body_bytes: int,
+                   cut: bool = False) -> int:
+        """A frame's peak memory for the admission budget: for the model it will run. With
+        model=auto that is the shot's choice, except where this frame may choose again (a
+        shot's first frame, a cut: CHOICE_RESETS) and any installed model may run (the
+        largest counts)."""
+        return admission.frame_need(header, body_bytes, [
+            self.models.denoiser(name) for name in self._models_for(session, cut or header.cut)])
+
+    def _models_for(self, session: Session, cut: bool) -> list[str]:
+        """The models a frame of `session` may run (`cut`: flagged by query or header)."""
+        if session.spec.model != AUTO:
+            return [session.info.name]
+        if session.choice is None or cut or session.last_index is None:
+            return list(self.models.names)
+        return [session.choice.model]
 
     async def denoise_frame(
         self,

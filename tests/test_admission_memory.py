@@ -50,3 +50,33 @@ def test_tiled_graph_memory_is_reserved():
 @pytest.mark.parametrize("model", shipped_models())
 def test_every_model_stays_within_its_reservation(model: str, size: str):
     check_within_reservation(measured(model, size))
+
+
+def test_an_auto_session_reserves_for_the_model_it_chose():
+    """Once `auto` has chosen, a 4K frame reserves for that model (oidn-history here), not the
+    largest installed one; a frame that may choose again (a cut) reserves for any."""
+    import numpy as np
+    from conftest import write_exr
+    from test_service_reliability import app_client, new_session
+
+    from quietframe.service import admission, frames
+    from quietframe.service.model_choice import Choice
+
+    width, height = 3840, 2160
+    plane = np.zeros((height, width), np.float16)
+    body = write_exr({f"{p}.{c}": plane for p in ("albedo", "normal") for c in "RGB"}
+                     | {c: plane for c in "RGB"}, dtype=np.float16)
+    with app_client() as c:
+        sid = new_session(c, model="auto", width=width, height=height)
+        registry = c.app.state.sessions
+        session = registry.get(sid)
+        header = frames.read_header(body, width, height, len(body))
+        every = admission.frame_need(header, len(body),
+                                     [registry.models.denoiser(n) for n in registry.models.names])
+        assert registry.frame_need(session, header, len(body)) == every  # first frame
+        session.choice = Choice("oidn-history", "test", 4.0, "header", ("color",))
+        session.last_index = 0
+        chosen = admission.frame_need(header, len(body),
+                                      [registry.models.denoiser("oidn-history")])
+        assert registry.frame_need(session, header, len(body)) == chosen < every
+        assert registry.frame_need(session, header, len(body), cut=True) == every

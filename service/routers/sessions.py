@@ -148,7 +148,7 @@ async def post_frame(
             settings,
             (spec.width, spec.height),
             budget,
-            lambda h, body_bytes: sessions.frame_need(session, h, body_bytes),
+            lambda h, body_bytes: sessions.frame_need(session, h, body_bytes, cut),
         )
     try:
         metrics.bytes_in.inc(len(body))
