@@ -63,9 +63,29 @@ class Metrics:
         self.errors = Counter(
             "quietframe_errors", "Error responses", ["status", "code"], registry=r
         )
+        # Load, read at each scrape (observe_load): what the autoscaler scales on
+        # (deploy/k8s/autoscaler.yaml, through prometheus-adapter).
+        self.frames_in_flight = Gauge(
+            "quietframe_frames_in_flight",
+            "Frames being received or denoised (waiting for a worker included)",
+            registry=r,
+        )
+        self.frame_slots = Gauge(
+            "quietframe_frame_slots", "Frames denoised at once (QUIETFRAME_WORKERS)", registry=r
+        )
+        self.memory_reserved = Gauge(
+            "quietframe_memory_reserved_bytes",
+            "Memory budget reserved by frames in flight (QUIETFRAME_MEMORY_BUDGET_MB)",
+            registry=r,
+        )
 
     def count_error(self, status: int, code: str) -> None:
         self.errors.labels(str(status), code).inc()
+
+    def observe_load(self, frames_in_flight: int, frame_slots: int, reserved_bytes: int) -> None:
+        self.frames_in_flight.set(frames_in_flight)
+        self.frame_slots.set(frame_slots)
+        self.memory_reserved.set(reserved_bytes)
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

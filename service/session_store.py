@@ -104,7 +104,8 @@ class Store(Protocol):
 
 
 def open_store(settings: Settings) -> Store | None:
-    """Redis when `store_url` is set (replicas share it), else the state folder, else none."""
+    """Redis when `store_url` is set (replicas share it; redis+cluster://: a Redis Cluster),
+    else the state folder, else none."""
     if settings.store_url:
         from quietframe.service.state_store_redis import RedisStore
 

@@ -79,7 +79,9 @@ class Settings(BaseSettings):
     # Past one box (docs/deployment.md): replicas behind a load balancer that hashes the session
     # id share the sessions through Redis; a replica loads a session it does not hold from it.
     store_url: str | None = Field(
-        None, description="redis://host:port/db: sessions shared by every replica (not state_dir)"
+        None,
+        description="redis://host:port/db or redis+cluster://seed:port: sessions shared by "
+        "every replica (not state_dir)",
     )
     store_timeout_s: float = Field(
         10.0, gt=0, description="a store call that takes longer is a 503 (the frame is not lost)"

@@ -16,6 +16,11 @@ Reads of the version and the data are one transaction, so a reader never sees a 
 session. Every write renews the keys' expiry (the session TTL): Redis, not a replica, forgets
 abandoned sessions, so a replica that drops its copy of an idle session never deletes it under
 another replica's feet.
+
+`redis+cluster://host:port` (or `rediss+cluster://`) names a seed node of a Redis Cluster: every
+command above touches one session's keys only, so each runs on the primary of that session's
+slot, transactions included; nothing lists or scans keys. The cluster client redirects itself
+while slots move or a replica takes over (MOVED, ASK); what it cannot ride out is a 503.
 """
 
 from __future__ import annotations
@@ -24,13 +29,25 @@ import contextlib
 import json
 import secrets
 import socket
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 import redis
-from redis.exceptions import ClusterDownError, OutOfMemoryError, ReadOnlyError, TryAgainError
+from redis.cluster import RedisCluster
+from redis.connection import parse_url
+from redis.exceptions import (
+    AskError,
+    ClusterDownError,
+    ClusterError,
+    OutOfMemoryError,
+    ReadOnlyError,
+    RedisClusterUnreachableError,
+    SlotNotCoveredError,
+    TryAgainError,
+)
 
 from quietframe.service.errors import ServiceError
 from quietframe.service.session_store import (
@@ -45,12 +62,27 @@ QUARANTINE_S = 7 * 86400  # a damaged record is kept this long for a look
 
 # Error replies of a Redis that answers but cannot take a write for now, as when it is down:
 # full (maxmemory with noeviction: "OOM command not allowed"), a read-only replica (a failover
-# under way), a master or cluster slot down (MASTERDOWN, CLUSTERDOWN), a slot moving (TRYAGAIN).
+# under way), a master or cluster slot down (MASTERDOWN, CLUSTERDOWN), a slot moving (TRYAGAIN),
+# a slot elsewhere (MOVED, ASK: the cluster client follows them; one reaches here only when its
+# redirections ran out, as while a failover settles).
 # Every other error reply (WRONGTYPE, a syntax error, NOPERM) is a bug or a misconfiguration
 # that no retry mends: it stays a 500.
-REFUSALS_FOR_NOW = (OutOfMemoryError, ReadOnlyError, ClusterDownError, TryAgainError)
+REFUSALS_FOR_NOW = (OutOfMemoryError, ReadOnlyError, ClusterDownError, TryAgainError, AskError)
 # Snapshots failing (stop-writes-on-bgsave-error, e.g. a full disk); no exception class of its own.
 MISCONF = "MISCONF"
+# A store that does not answer: a server down or slow, and for a cluster no node reachable, a
+# slot that no known node serves yet, or redirections and retries run out (ClusterError).
+UNANSWERED = (
+    redis.ConnectionError,
+    redis.TimeoutError,
+    ClusterError,
+    RedisClusterUnreachableError,
+    SlotNotCoveredError,
+)
+CLUSTER_SCHEMES = {"redis+cluster": "redis", "rediss+cluster": "rediss"}
+# redis-py runs a cluster pipeline as MULTI/EXEC, WATCH included, from 6.1 on; before, it
+# refused transaction=True in cluster mode: every frame would be a 500.
+CLUSTER_TRANSACTIONS = (6, 1)
 
 
 class StoreUnavailable(ServiceError):
@@ -84,11 +116,27 @@ class RedisStore:
     def __init__(
         self, url: str, ttl_s: float, timeout_s: float, replica: str | None = None
     ) -> None:
-        self.redis = redis.Redis.from_url(
-            url, socket_timeout=timeout_s, socket_connect_timeout=min(timeout_s, 2.0)
-        )
+        options = {"socket_timeout": timeout_s, "socket_connect_timeout": min(timeout_s, 2.0)}
+        seed = cluster_seed(url)
+        self._client: redis.Redis | RedisCluster | None = None
+        self._connect: Callable[[], redis.Redis | RedisCluster]
+        if seed is None:
+            self._client = redis.Redis.from_url(url, **options)  # connects on its first command
+        else:  # asks the seed for the cluster's nodes when built: on first use, not at start-up
+            self._connect = lambda: RedisCluster.from_url(seed, **options)
+        self._connecting = threading.Lock()
         self.ttl_ms = int(ttl_s * 1000)
         self.replica = replica or socket.gethostname()
+
+    @property
+    def redis(self) -> redis.Redis | RedisCluster:
+        """The client; a cluster's is built on first use (inside `_answering`), so a replica
+        starts, and answers 503, while the cluster is not up yet."""
+        if self._client is None:
+            with self._connecting:
+                if self._client is None:
+                    self._client = self._connect()
+        return self._client
 
     @staticmethod
     def keys(session_id: str) -> tuple[str, str, str]:
@@ -99,12 +147,12 @@ class RedisStore:
     def _answering(self) -> Iterator[None]:
         try:
             yield
-        except (redis.ConnectionError, redis.TimeoutError) as exc:
-            raise _unavailable(f"did not answer ({type(exc).__name__})") from exc
-        except redis.ResponseError as exc:
+        except redis.ResponseError as exc:  # first: CLUSTERDOWN is a ClusterError too
             if not refuses_for_now(exc):
                 raise
             raise _unavailable(f"refused the write for now ({type(exc).__name__}: {exc})") from exc
+        except UNANSWERED as exc:
+            raise _unavailable(f"did not answer ({type(exc).__name__})") from exc
 
     # ---- settings ----------------------------------------------------------------------------
 
@@ -125,7 +173,8 @@ class RedisStore:
         spec, ver, data = self.keys(session_id)
         with self._answering():
             version, meta, settings = (
-                self.redis.pipeline().get(ver).hget(data, "meta").get(spec).execute()
+                self.redis.pipeline(transaction=True)
+                .get(ver).hget(data, "meta").get(spec).execute()
             )
         if version is None:
             return None
@@ -159,7 +208,7 @@ class RedisStore:
         for name, array in arrays.items():  # no copy: redis-py sends a memoryview as it is
             fields[name] = memoryview(np.ascontiguousarray(array)).cast("B")
         expect = expect or ""
-        with self._answering(), self.redis.pipeline() as pipe:
+        with self._answering(), self.redis.pipeline(transaction=True) as pipe:
             try:
                 pipe.watch(ver)
                 current = pipe.get(ver)
@@ -174,7 +223,11 @@ class RedisStore:
                 pipe.pexpire(data, self.ttl_ms)
                 pipe.pexpire(spec, self.ttl_ms)
                 pipe.execute()
-            except redis.WatchError:  # another replica wrote between our read and our write
+            except redis.WatchError as exc:
+                lost = exc.__cause__ or exc.__context__
+                if lost is not None:  # the connection dropped or the slot moved while watching
+                    raise _unavailable(f"lost the transaction ({type(lost).__name__})") from exc
+                # another replica wrote between our read and our write
                 raise self._moved(meta["id"], expect, None) from None
         return new
 
@@ -193,7 +246,9 @@ class RedisStore:
         `shapes_of(meta)` (the state's shapes for the model the meta names); None if gone."""
         _, ver, data = self.keys(session_id)
         with self._answering():
-            version, fields = self.redis.pipeline().get(ver).hgetall(data).execute()
+            version, fields = (
+                self.redis.pipeline(transaction=True).get(ver).hgetall(data).execute()
+            )
         if version is None:
             return None
         if not fields:
@@ -218,7 +273,8 @@ class RedisStore:
         """Move the damaged data aside (kept a week); the version stays, so the session goes on
         from a fresh history and fencing still holds."""
         _, _, data = self.keys(session_id)
-        aside = f"qf:quarantine:{session_id}:{time.strftime('%Y%m%dT%H%M%S')}"
+        # the session's hash tag: a cluster renames only within one slot
+        aside = f"qf:{{{session_id}}}:quarantine:{time.strftime('%Y%m%dT%H%M%S')}"
         with self._answering():
             try:
                 self.redis.rename(data, aside)
@@ -230,6 +286,28 @@ class RedisStore:
     def delete(self, session_id: str) -> None:
         with self._answering():
             self.redis.delete(*self.keys(session_id))
+
+
+def cluster_seed(url: str) -> str | None:
+    """The seed node's plain URL when `url` names a Redis Cluster (redis+cluster://host:port),
+    else None. Checked here, at start-up: a cluster has database 0 only."""
+    scheme, sep, rest = url.partition("://")
+    plain = CLUSTER_SCHEMES.get(scheme.lower()) if sep else None
+    if plain is None:
+        return None
+    seed = f"{plain}://{rest}"
+    if parse_url(seed).get("db", 0) != 0:
+        raise ValueError(f"a Redis Cluster has database 0 only: {url!r}")
+    if _version(redis.__version__) < CLUSTER_TRANSACTIONS:
+        raise ValueError(
+            f"{url!r}: a Redis Cluster needs redis-py >= 6.1 (transactions on a cluster); "
+            f"this is {redis.__version__}"
+        )
+    return seed
+
+
+def _version(text: str) -> tuple[int, ...]:
+    return tuple(int("".join(c for c in part if c.isdigit()) or 0) for part in text.split(".")[:2])
 
 
 def refuses_for_now(exc: redis.ResponseError) -> bool:

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from fastapi import APIRouter, Request, Response
 
 from quietframe.service.deps import MetricsDep
 from quietframe.service.errors import NotReady
 from quietframe.service.metrics import CONTENT_TYPE
 from quietframe.service.schemas import Health
+
+if TYPE_CHECKING:
+    from quietframe.service.metrics import Metrics
+    from quietframe.service.sessions import SessionRegistry
 
 router = APIRouter(tags=["health"])
 
@@ -40,5 +46,21 @@ async def readyz(request: Request) -> Health:
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response)
-async def metrics(metrics: MetricsDep) -> Response:
+async def metrics(request: Request, metrics: MetricsDep) -> Response:
+    sessions = getattr(request.app.state, "sessions", None)
+    if sessions is not None:
+        observe_load(metrics, sessions)
     return Response(metrics.render(), media_type=CONTENT_TYPE)
+
+
+def observe_load(metrics: Metrics, sessions: SessionRegistry) -> None:
+    """The load gauges as of this scrape. A frame is in flight while its body is received (an
+    upload slot) and then while it holds its session's lock (waiting for a worker, denoising,
+    storing): the two never overlap."""
+    denoising = sum(session.lock.locked() for session in sessions.sessions.values())
+    admission = sessions.admission
+    metrics.observe_load(
+        frames_in_flight=admission.uploads + denoising,
+        frame_slots=sessions.settings.worker_count,
+        reserved_bytes=admission.used_bytes,
+    )
