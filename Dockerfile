@@ -24,7 +24,9 @@ COPY service service
 COPY client client
 COPY bench bench
 COPY models models
-# scikit-build-core fetches CMake and Ninja from PyPI into the isolated build environment.
+# The op library is built only on request (pyproject.toml); scikit-build-core then fetches
+# CMake and Ninja from PyPI into the isolated build environment.
+ENV QUIETFRAME_BUILD_OPS=1
 RUN python -m pip wheel --no-cache-dir --no-deps --wheel-dir /wheels \
     --config-settings=cmake.define.QUIETFRAME_ARCH=${OPS_ARCH} .
 

@@ -3,8 +3,12 @@ PYTHON ?= python3
 VENV := .venv
 SERVE_VENV := .venv-serve
 PIP := --disable-pip-version-check --no-input -q
-HOST ?= 0.0.0.0
+# Loopback unless asked: HOST=0.0.0.0 serves the farm (the Docker image binds 0.0.0.0 itself).
+HOST ?= 127.0.0.1
 PORT ?= 8000
+# Serving, training and the tests need the C++ op library, which a plain `pip install .` (the
+# client's install) does not build (pyproject.toml, [tool.scikit-build]).
+WITH_OPS := QUIETFRAME_BUILD_OPS=1
 
 CYCLES_VENV := .venv-cycles
 CYCLES_PYTHON ?= python3.11
@@ -22,7 +26,7 @@ $(VENV)/.base:
 
 # Installs the package itself (not editable: tests run what a user installs, C++ ops included).
 install-dev: $(VENV)/.base
-	$(VENV)/bin/python -m pip install $(PIP) ".[train,serve,client,dev]"
+	$(WITH_OPS) $(VENV)/bin/python -m pip install $(PIP) ".[train,serve,client,dev]"
 
 test: install-dev
 	$(VENV)/bin/ruff check .
@@ -32,8 +36,18 @@ $(SERVE_VENV)/.base:
 	$(call new-venv,$(PYTHON),$(SERVE_VENV))
 	touch $@
 
-serve: $(SERVE_VENV)/.base
-	$(SERVE_VENV)/bin/python -m pip install $(PIP) ".[serve,client]"
+# What the wheel is built from (pyproject's wheel.packages, the op sources, the readme): the
+# serve venv is reinstalled only when one of these changed, so an unchanged start takes seconds.
+# A deleted file is not seen: `rm $(SERVE_VENV)/.installed` forces a reinstall.
+PACKAGE_SOURCES := pyproject.toml README.md $(shell find model scenes export runtime service \
+	client bench models -path models/training -prune -o -name __pycache__ -prune \
+	-o -type f ! -name '*.pyc' -print)
+
+$(SERVE_VENV)/.installed: $(SERVE_VENV)/.base $(PACKAGE_SOURCES)
+	$(WITH_OPS) $(SERVE_VENV)/bin/python -m pip install $(PIP) ".[serve,client]"
+	touch $@
+
+serve: $(SERVE_VENV)/.installed
 	$(SERVE_VENV)/bin/quietframe serve --host $(HOST) --port $(PORT)
 
 # Blender Cycles (bpy 4.5, Python 3.11) in a venv of its own: the Cycles renders and the tests

@@ -91,8 +91,10 @@ class Client(_ClientBase):
             if not (missing_ok and exc.status == 404):
                 raise
 
-    def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False) -> FrameResult:
-        response = self._send(core.frame_call(session_id, index, exr, cut))
+    def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False,
+                   shot_model: str | None = None) -> FrameResult:
+        """`shot_model` (model=auto): the model already chosen for the frame's shot."""
+        response = self._send(core.frame_call(session_id, index, exr, cut, shot_model))
         return core.parse_frame(index, response)
 
     def denoise_sequence(self, source, out_dir, **options) -> str | None:
@@ -151,9 +153,10 @@ class AsyncClient(_ClientBase):
                 raise
 
     async def send_frame(
-        self, session_id: str, index: int, exr: bytes, cut: bool = False
+        self, session_id: str, index: int, exr: bytes, cut: bool = False,
+        shot_model: str | None = None,
     ) -> FrameResult:
-        response = await self._send(core.frame_call(session_id, index, exr, cut))
+        response = await self._send(core.frame_call(session_id, index, exr, cut, shot_model))
         return core.parse_frame(index, response)
 
     async def denoise_sequence(self, source, out_dir, **options) -> str | None:

@@ -25,6 +25,8 @@ def noise_words(choice: dict) -> str:
 
 def why_words(reason: str) -> str:
     """The reason's gist: the model selection rule that decided."""
+    if reason.startswith("kept:"):  # the server kept the shot's recorded model (shot_model)
+        return "the shot's model, chosen once for the shot (recorded in --out/.quietframe)"
     if reason.startswith("no installed model accepts"):
         return "no model takes these passes; the server's default"
     if reason.startswith("no measured"):
@@ -42,9 +44,23 @@ def why_words(reason: str) -> str:
     return reason
 
 
-def describe_choice(choice: dict, pixels: int | None = None) -> str:
+def time_words(choice: dict, measured_ms: float | None) -> str:
+    """The time per frame to expect: measured on this server when frames of this model are
+    done (Server-Timing), else the tables' figure said for what it is: a 720p timing from
+    another machine scaled to this frame size, often several times off on a farm node."""
+    if measured_ms is not None:
+        return f"{measured_ms:.0f} ms per frame measured on this server"
+    if choice.get("expected_ms") is None:
+        return ""
+    return (f"{choice['expected_ms']:.0f} ms per frame by the tables (timed on another "
+            "machine, scaled from 720p; not measured here)")
+
+
+def describe_choice(choice: dict, pixels: int | None = None,
+                    measured_ms: float | None = None) -> str:
     """`oidn-frame: the fastest within 0.3 dB of the best (...); 4 samples/pixel (render
-    header), no usable motion vectors; expect about 27.1 dB PSNR, 40 ms per frame`."""
+    header), no usable motion vectors; expect about 27.1 dB PSNR (validation tables), 40 ms
+    per frame by the tables (...)`; `measured_ms`: this server's time for the model so far."""
     lacking = [words for name, words in BUFFER_WORDS.items()
                if name not in (choice.get("buffers") or ())]
     facts = [noise_words(choice)]
@@ -53,9 +69,10 @@ def describe_choice(choice: dict, pixels: int | None = None) -> str:
     text = f"{choice['model']}: {why_words(choice.get('reason') or '')}; {', '.join(facts)}"
     expect = []
     if choice.get("expected_psnr") is not None:
-        expect.append(f"about {choice['expected_psnr']:.1f} dB PSNR")
-    if choice.get("expected_ms") is not None:
-        expect.append(f"{choice['expected_ms']:.0f} ms per frame")
+        expect.append(f"about {choice['expected_psnr']:.1f} dB PSNR (validation tables)")
+    timing = time_words(choice, measured_ms)
+    if timing:
+        expect.append(timing)
     if expect:
-        text += f"; expect {', '.join(expect)} (measured tables)"
+        text += f"; expect {', '.join(expect)}"
     return text

@@ -15,6 +15,8 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 COMMANDS_GROUP = "quietframe.commands"
+RENDERERS = ("cycles", "mitsuba")  # the renderers the model cards hold tables for
+DEFAULT_RENDERER = "cycles"
 EXIT_CODES_HELP = """exit codes: 0 done; 1 unexpected failure; 2 configuration (flags, server URL,
 token, model, channel mapping, changed flags); 3 input (unreadable or truncated frames, size
 changes, missing passes, files in the way); 75 server unavailable or busy (retry later);
@@ -129,12 +131,13 @@ def _reporter(args: argparse.Namespace, total: int, done: int):
     return Reporter(mode, total, done)
 
 
-def _preflight(args, job, reporter) -> None:
-    """Every frame's header before the first upload; _Stop for what would fail later."""
+def _preflight(args, job, reporter):
+    """Every frame's header before the first upload (the preflight.Report); _Stop for what
+    would fail later."""
     from quietframe.client import outcome
     from quietframe.client.preflight import check_frames
 
-    report = check_frames(job.files, job.missing)
+    report = check_frames(job.files, job.missing, pre_roll_missing=job.pre_roll_missing)
     for warning in report.warnings:
         if args.strict:
             raise _Stop(outcome.INPUT, warning, "render the missing frames, or leave out "
@@ -149,6 +152,7 @@ def _preflight(args, job, reporter) -> None:
                    f"{layers}, {report.channels} channels each", frames=report.frames,
                    size=report.size, layers=report.layers, channels=report.channels,
                    warnings=report.warnings)
+    return report
 
 
 def _denoise(args: argparse.Namespace) -> int:
@@ -166,8 +170,9 @@ def _denoise(args: argparse.Namespace) -> int:
     position = {"at": job.first_written}
     with stop_on_signals():
         try:
-            _preflight(args, job, reporter)
+            report = _preflight(args, job, reporter)
             if args.dry_run:
+                _dry_run(args, server, options, job, layers, report, reporter)
                 reporter.summary(0, job.out_dir)
                 return outcome.OK
             written = _run(args, server, options, job, layers, reporter, position)
@@ -192,29 +197,108 @@ def _interrupted(reporter, job, at: int, signal_name: str) -> int:
     return outcome.INTERRUPTED[signal_name]
 
 
-def _run(args, server, options, job, layers, reporter, position) -> int:
-    """The sequence itself; returns the frames written. _Stop for every failure."""
-    from quietframe.client import outcome
-    from quietframe.client.api import Client, QuietframeError, RetryPolicy
-    from quietframe.client.output_records import UnsafePath
-    from quietframe.client.sequence import OutputConflict, SequenceError, job_settings
+def _dry_run(args, server, options, job, layers, report, reporter) -> None:
+    """What the run checks before its first frame is denoised, without sending one: the files
+    in the way, the server (reachable, token), the model and its options, the view layers.
+    _Stop for the first that fails, with the run's exit code and words (the run's failures
+    name the first frame to write, so these do too)."""
+    from quietframe.client.api import QuietframeError
+    from quietframe.client.preflight import check_model, check_view_layers, model_names
+    from quietframe.client.sequence import OutputConflict, job_settings, refuse_conflicts
 
     settings = job_settings(args.model, args.precision, args.compression, layers, **options)
-    done = 0 if args.force else job.first_pending(settings) - job.first_written
-    reporter.done = done
-    if done:
-        reporter.note(f"resuming: {done} of {len(job.written)} frame(s) already in {job.out_dir}")
-    if len(layers) > 1:
-        reporter.note(f"view layers {', '.join(map(str, layers))}: one session each, one file")
-    token = args.token or os.environ.get("QUIETFRAME_TOKEN")
-    retry = RetryPolicy(retries=args.retries)
-    written = {"count": 0}
+    at = job.files[job.first_written].name
+    mapping = bool(options["channels"] or args.layer)
+    if not args.force:
+        try:
+            refuse_conflicts(job, settings)
+        except OutputConflict as exc:
+            raise _conflict_stop(exc, job, settings) from exc
+    with _client(args, server, reporter) as client:
+        try:
+            listing = client.models()
+        except QuietframeError as exc:
+            raise _server_stop(exc, at, server, mapping, report.layers) from exc
+    failure = (check_model(listing, args.model, options["model_options"], server)
+               or check_view_layers(report, args.layer, bool(options["channels"]), server))
+    if failure is not None:
+        raise _Stop(failure.code, f"at {at}: {failure.message}", failure.advice)
+    pending = job.first_pending(settings) - job.first_written
+    todo = len(job.written) - pending
+    redo = f"; --force redoes {_force_redoes(job, settings)}" if args.force and todo else ""
+    reporter.event("dry-run", f"quietframe: dry run: {server} answers ({len(model_names(listing))} "
+                   f"models), --model {args.model} accepted; {todo} of {len(job.written)} "
+                   f"frame(s) to denoise{redo}; nothing was sent", server=server,
+                   model=args.model, to_denoise=todo, total=len(job.written))
+
+
+def _client(args, server, reporter):
+    """The run's client: its token, timeout and retries, each retry said as it happens."""
+    from quietframe.client.api import Client, RetryPolicy
 
     def on_retry(r) -> None:
         reporter.warn_retry(f"server {server}: {r.describe()}")
 
-    with Client(server, token=token, timeout_s=args.timeout, retry=retry,
-                on_retry=on_retry) as client:
+    token = args.token or os.environ.get("QUIETFRAME_TOKEN")
+    return Client(server, token=token, timeout_s=args.timeout,
+                  retry=RetryPolicy(retries=args.retries), on_retry=on_retry)
+
+
+def _server_stop(exc, at: str, server: str, mapping: bool, view_layers) -> _Stop:
+    """A request that failed for good, as the _Stop the run ends with (at frame `at`)."""
+    from quietframe.client import outcome
+
+    failure = outcome.server_failure(exc.status, exc.code, exc.detail, server, mapping,
+                                     tuple(view_layers))
+    return _Stop(failure.code, f"at {at}: {failure.message}", failure.advice)
+
+
+def _redone_positions(job, settings: dict) -> list[int]:
+    """Positions whose existing output --force writes again: every one from the first frame
+    that is not this job's on (each later frame's history runs through it)."""
+    return [i for i in range(job.first_pending(settings), len(job.files))
+            if os.path.lexists(job.output(i))]
+
+
+def _force_redoes(job, settings: dict) -> str:
+    from quietframe.client.preflight import format_numbers
+
+    redone = [job.indices[i] for i in _redone_positions(job, settings)]
+    return f"{len(redone)} output(s), frame(s) {format_numbers(redone)}" if redone else (
+        "no existing output")
+
+
+def _conflict_stop(exc, job, settings: dict) -> _Stop:
+    """A refusal of files in the way, with what --force would redo: not only the refused
+    outputs but every one after the first, whose history runs through it."""
+    from quietframe.client import outcome
+
+    return _Stop(outcome.CONFIG if exc.changed else outcome.INPUT, str(exc),
+                 f"--force redoes {_force_redoes(job, settings)} (from the first frame not "
+                 "done to the end of the range: each frame's history runs through the ones "
+                 "before it)")
+
+
+def _run(args, server, options, job, layers, reporter, position) -> int:
+    """The sequence itself; returns the frames written. _Stop for every failure."""
+    from quietframe.client import outcome
+    from quietframe.client.api import QuietframeError
+    from quietframe.client.output_records import UnsafePath
+    from quietframe.client.sequence import OutputConflict, SequenceError, job_settings
+
+    settings = job_settings(args.model, args.precision, args.compression, layers, **options)
+    done = job.first_pending(settings) - job.first_written  # --force keeps these too
+    reporter.resume(done)
+    if done and args.force:
+        reporter.note(f"--force: redoing {_force_redoes(job, settings)}; the {done} frame(s) "
+                      f"before them in {job.out_dir} are this job's and kept")
+    elif done:
+        reporter.note(f"resuming: {done} of {len(job.written)} frame(s) already in {job.out_dir}")
+    if len(layers) > 1:
+        reporter.note(f"view layers {', '.join(map(str, layers))}: one session each, one file")
+    written = {"count": 0}
+
+    with _client(args, server, reporter) as client:
         watcher = _ShotWatcher(args, client, reporter, job)
 
         def progress(p) -> None:
@@ -236,14 +320,12 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
 
             run_sequence(client, job, server, **run_options)
         except OutputConflict as exc:
-            raise _Stop(outcome.CONFIG if exc.changed else outcome.INPUT, str(exc)) from exc
+            raise _conflict_stop(exc, job, settings) from exc
         except QuietframeError as exc:
             at = job.files[min(position["at"], len(job.files) - 1)].name
             view_layers = tuple(layer for layer in layers if layer) or _file_layers(job)
-            failure = outcome.server_failure(exc.status, exc.code, exc.detail, server,
-                                             bool(options["channels"] or args.layer),
-                                             view_layers)
-            raise _Stop(failure.code, f"at {at}: {failure.message}", failure.advice) from exc
+            raise _server_stop(exc, at, server, bool(options["channels"] or args.layer),
+                               view_layers) from exc
         except UnsafePath as exc:
             raise _Stop(outcome.INPUT, str(exc), "remove it, then run the same command again "
                         "to resume") from exc
@@ -293,7 +375,8 @@ class _ShotWatcher:
                 choice = self.client.session(p.session).get("choice") if p.session else None
             except Exception:  # the choice is said for the reader; never fails a run
                 choice = None
-            text = describe_choice(choice) if choice else result.model
+            measured = self.reporter.measured_ms(choice["model"]) if choice else None
+            text = describe_choice(choice, measured_ms=measured) if choice else result.model
         if text != self.shown or result.reset == "cut":
             self.reporter.event("shot", f"quietframe: shot from frame {index}: {text}",
                                 frame=index, model=result.model, choice=choice, text=text)
@@ -338,7 +421,7 @@ def _models(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(listing, indent=1))
     else:
-        print(model_table(listing["models"], listing["default"]))
+        print(model_table(listing["models"], listing["default"], args.renderer))
     return outcome.OK
 
 
@@ -354,11 +437,13 @@ def build_parser() -> argparse.ArgumentParser:
         description=__doc__.splitlines()[0],
         epilog=EXIT_CODES_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False,
     )
     parser.add_argument("--version", action="version", version=f"quietframe {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    denoise = sub.add_parser("denoise", help="denoise a folder or glob of EXR frames")
+    denoise = sub.add_parser("denoise", help="denoise a folder or glob of EXR frames",
+                             allow_abbrev=False)
     denoise.add_argument(
         "input",
         help="folder of .exr frames, a glob like 'shot/*.exr', or a frame pattern like "
@@ -368,7 +453,8 @@ def build_parser() -> argparse.ArgumentParser:
     denoise.add_argument(
         "--frames",
         metavar="RANGE",
-        help="frames to denoise and write, e.g. 1001-1100 or 1001-1012,1050 (default: all)",
+        help="frames to denoise and write, e.g. 1001-1100 (or Blender's 1001..1100) or "
+        "1001-1012,1050 (default: all)",
     )
     denoise.add_argument(
         "--pre-roll",
@@ -394,8 +480,9 @@ def build_parser() -> argparse.ArgumentParser:
     denoise.add_argument(
         "--dry-run",
         action="store_true",
-        help="check every frame's header (size, view layers, passes, truncation, gaps) and "
-        "stop before the first upload",
+        help="check what the run checks before it sends a frame, and send none: every frame's "
+        "header (size, view layers, passes, truncation, gaps), the files in --out, the server "
+        "(reachable, token), the model and its options, --layer; the same exit codes",
     )
     denoise.add_argument(
         "--strict", action="store_true", help="a missing frame in the range is an error"
@@ -482,13 +569,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     denoise.set_defaults(func=_denoise)
 
-    models = sub.add_parser("models", help="list models (installed here, or on --server)")
+    models = sub.add_parser("models", help="list models (installed here, or on --server)",
+                            allow_abbrev=False)
     models.add_argument("--server", default=os.environ.get("QUIETFRAME_SERVER"))
     models.add_argument("--token")
+    models.add_argument(
+        "--renderer",
+        choices=RENDERERS,
+        default=DEFAULT_RENDERER,
+        help="whose frames the tables were measured on (default cycles: farm frames are "
+        "Blender's, and auto reads the Cycles tables for them; mitsuba: the tables auto reads "
+        "for any other renderer)",
+    )
     models.add_argument("--json", action="store_true", help="the listing as JSON")
     models.set_defaults(func=_models)
     for command in entry_points(group=COMMANDS_GROUP):  # e.g. `serve`, from quietframe.service
         command.load()(sub)
+    for command_parser in sub.choices.values():  # registered ones too: `--pre-rol` is no flag
+        command_parser.allow_abbrev = False
     return parser
 
 

@@ -20,6 +20,7 @@ import httpx
 from quietframe.client.protocol import (
     CUT_QUERY,
     EXR_MEDIA_TYPE,
+    SHOT_MODEL_QUERY,
     Header,
     parse_counts,
     parse_timings,
@@ -228,8 +229,16 @@ def delete_session_call(session_id: str) -> Call:
     return Call("DELETE", f"/v1/sessions/{session_id}")
 
 
-def frame_call(session_id: str, index: int, exr: bytes, cut: bool = False) -> Call:
+def frame_call(session_id: str, index: int, exr: bytes, cut: bool = False,
+               shot_model: str | None = None) -> Call:
+    """`shot_model` (model=auto): the model already chosen for the frame's shot, which the
+    server takes where the shot's history starts instead of choosing (client/shots.py)."""
     options: dict[str, Any] = {"content": exr, "headers": {"Content-Type": EXR_MEDIA_TYPE}}
+    params = {}
     if cut:
-        options["params"] = {CUT_QUERY: "true"}
+        params[CUT_QUERY] = "true"
+    if shot_model:
+        params[SHOT_MODEL_QUERY] = shot_model
+    if params:
+        options["params"] = params
     return Call("POST", f"/v1/sessions/{session_id}/frames/{index}", options=options)

@@ -1,5 +1,6 @@
 """Which files make a sequence: a folder, a glob, or a farm frame pattern (`shot.####.exr`,
-`shot.%04d.exr`), optionally limited to a frame range (`1001-1100`, `1,5,9-12`).
+`shot.%04d.exr`), optionally limited to a frame range (`1001-1100`, Blender's `1001..1100`,
+`1,5,9-12`).
 
 Frames are numbered by the last number in their file name; that number is the index sent to the
 server, so a number missing inside the range is a gap (the server starts a fresh history there).
@@ -27,16 +28,16 @@ def frame_number(path: Path) -> int | None:
 
 
 def parse_frame_range(text: str) -> tuple[int, ...]:
-    """`1001-1100`, `1001` or a comma list of these, ascending and without repeats; ValueError
-    with the accepted forms otherwise. No step: a temporal denoiser needs every frame (a
-    skipped number is a gap, where the history starts afresh)."""
+    """`1001-1100` (or Blender's `1001..1100`), `1001` or a comma list of these, ascending and
+    without repeats; ValueError with the accepted forms otherwise. No step: a temporal denoiser
+    needs every frame (a skipped number is a gap, where the history starts afresh)."""
     numbers: set[int] = set()
     for part in (p.strip() for p in text.split(",")):
-        match = re.fullmatch(r"(\d+)(?:-(\d+))?", part)
+        match = re.fullmatch(r"(\d+)(?:(?:-|\.\.)(\d+))?", part)
         if not match:
             raise ValueError(
-                f"frame range {text!r}: expected FIRST-LAST, FRAME or a comma list of these, "
-                "e.g. 1001-1100"
+                f"frame range {text!r}: expected FIRST-LAST (or FIRST..LAST), FRAME or a comma "
+                "list of these, e.g. 1001-1100"
             )
         first = int(match.group(1))
         last = int(match.group(2)) if match.group(2) is not None else first
@@ -91,25 +92,29 @@ def find_frames(source: str | Path) -> list[Path]:
 @dataclass(frozen=True)
 class Selection:
     """The files to write (ascending numbers), the pre-roll files before them (sent to warm the
-    history, never written) and the frame numbers of the range that have no file."""
+    history, never written), the frame numbers of the range that have no file, those of the
+    pre-roll, and every frame of the source (`found`)."""
 
     files: tuple[Path, ...]
     pre_roll: tuple[Path, ...]
     missing: tuple[int, ...]
+    pre_roll_missing: tuple[int, ...] = ()
+    found: tuple[Path, ...] = ()
 
 
 def select_frames(
     source: str | Path, frames: tuple[int, ...] | None = None, pre_roll: int = 0
 ) -> Selection:
-    """The frames of `source` in `frames` (all when None), the `pre_roll` frames just before the
-    first of them, and the numbers in the range (or between the first and last file) that are
-    absent. Files without a number are taken in sorted order (no range, no pre-roll)."""
+    """The frames of `source` in `frames` (all when None), the `pre_roll` numbers just before
+    the first of them (those with a file, and those without: not rendered yet, or before the
+    shot), and the numbers in the range (or between the first and last file) that are absent.
+    Files without a number are taken in sorted order (no range, no pre-roll)."""
     found = find_frames(source)
     numbered = {frame_number(p): p for p in found}
     if None in numbered:
         if frames is not None or pre_roll:
             raise SequenceError(f"{source}: file names carry no frame number for a range")
-        return Selection(tuple(found), (), ())
+        return Selection(tuple(found), (), (), (), tuple(found))
     _check_clashes(found)
     numbers = sorted(numbered)  # type: ignore[type-var]
     wanted = list(frames) if frames is not None else list(range(numbers[0], numbers[-1] + 1))
@@ -118,9 +123,13 @@ def select_frames(
         raise SequenceError(f"no frame of range {wanted[0]}-{wanted[-1]} in {source}")
     first = frame_number(chosen[0])
     assert first is not None
-    before = [n for n in numbers if n < first][-pre_roll:] if pre_roll else []  # type: ignore
+    # Only the numbers just before: a frame beyond a gap would warm a history the gap resets.
+    # Without a range the run starts at the sequence's first frame: nothing is missing before.
+    before = range(max(first - pre_roll, 0), first)
     missing = tuple(n for n in wanted if n not in numbered)
-    return Selection(tuple(chosen), tuple(numbered[n] for n in before), missing)
+    absent = tuple(n for n in before if n not in numbered) if frames is not None else ()
+    return Selection(tuple(chosen), tuple(numbered[n] for n in before if n in numbered), missing,
+                     absent, tuple(found))
 
 
 def _check_clashes(files: list[Path]) -> None:

@@ -1,43 +1,136 @@
-"""`quietframe models` as a table: one row per model with what it is in one line, its measured
-speed and quality, and what `auto` (every session's default) does with them."""
+"""`quietframe models` as a table: one row per model with what sets it apart in one line, its
+measured speed and quality on the chosen renderer's frames (Cycles unless told otherwise), what
+Blender's own denoise scores on the same frames, and what `auto` (every session's default) does
+with them.
+
+Every figure comes from the model cards (GET /v1/models `metrics`: the default renderer's table
+at the top level, the others under `by_renderer`; runtime/card.py), every description from the
+cards' architecture metadata, so two models that differ only in a setting say which setting.
+"""
 
 from __future__ import annotations
 
 SPP_COLUMNS = (1, 4, 8)  # PSNR shown at these samples per pixel (the validation levels)
+CARD_DEFAULT_RENDERER = "mitsuba"  # the table at the top level of `metrics` (runtime/card.py)
+RENDERER_NAMES = {"cycles": "Cycles", "mitsuba": "Mitsuba"}
 
 
 def describe(model: dict) -> str:
-    """One line on what the model is, from its name and architecture."""
-    name = model["name"]
+    """One line on what the model is and what sets it apart from its neighbours, from its
+    architecture metadata (the model card's JSON)."""
     arch = model.get("architecture") if isinstance(model.get("architecture"), dict) else {}
-    if name == "oidn-frame":
-        return "Open Image Denoise on each frame alone: no history (frames without motion)"
-    if name.startswith("oidn-temporal"):
-        return "OIDN on the temporal accumulation, then a learned temporal stage"
-    if name.startswith("oidn"):
-        return f"OIDN ({arch.get('quality', 'high')}) on quietframe's temporal accumulation"
-    if name.startswith("nbg"):
-        return (f"Neural Bilateral Grid ({arch.get('layers', '?')} layers, "
-                f"{arch.get('grids', '?')} grids), temporal: the fast tier")
-    if name.startswith("affinity"):
-        return "affinity kernels (Isik et al.), temporal: the quality tier"
-    if name == "accumulation":
-        return "temporal accumulation alone (no spatial filter): a baseline"
+    family = str(arch.get("family") or "")
+    if "quality" in arch:
+        return _describe_oidn(arch, family)
+    if family == "affinity":
+        size = arch.get("kernel_size", "?")
+        return (f"learned: affinity kernels (Isik et al.; {arch.get('kernels', '?')} kernels of "
+                f"{size}x{size} px, the size a run-time option), temporal")
+    if arch.get("layers") == 0 or arch.get("grids") == 0:
+        aligned = "motion-aligned" if arch.get("aligned_history") else "not motion-aligned"
+        return (f"temporal accumulation alone ({aligned} history, no spatial filter): a "
+                "baseline, and the history stage of the OIDN models")
+    if "grids" in arch:
+        return (f"learned preview: Neural Bilateral Grid ({arch.get('layers', '?')} layers, "
+                f"{arch.get('grids', '?')} grid{'s' if arch.get('grids') != 1 else ''}), "
+                "temporal; needs only colour")
     return str(arch.get("name", "")) or "-"
 
 
-def _psnr(model: dict) -> str:
-    rows = {float(r["spp"]): r.get("psnr") for r in (model.get("metrics") or {}).get("by_spp")
-            or [] if isinstance(r, dict) and "spp" in r}
-    values = [rows.get(float(spp)) for spp in SPP_COLUMNS]
+def _describe_oidn(arch: dict, family: str) -> str:
+    """OIDN-based models: what feeds OIDN, at which quality, with which aux, and what follows."""
+    quality = ("OIDN high quality" if arch.get("quality") == "high"
+               else f"OIDN {arch.get('quality')} (quicker, softer detail)")
+    source = str(arch.get("color_from") or "")
+    if not source:
+        return (f"{quality} on each frame alone, no history: what Blender's own denoise does "
+                "(for frames without motion vectors)")
+    history = ("the motion-aligned accumulation" if source.startswith("aligned")
+               else "the temporal accumulation (not motion-aligned)")
+    if arch.get("prefilter_aux"):
+        aux = (f"albedo/normal prefiltered by OIDN {arch.get('aux_quality') or 'high'} first "
+               "(cleaner aux at low spp, slower)")
+    else:
+        aux = "albedo/normal as rendered (plain aux)"
+    after = ""
+    if family == "output-history":
+        after = ", blended with its own previous output along the motion"
+    elif "temporal_kernel_size" in arch:
+        after = ", then a learned temporal stage"
+    return f"{quality} on {history}{after}; {aux}"
+
+
+def renderer_table(model: dict, renderer: str) -> tuple[dict, bool]:
+    """The model's measured table for `renderer`, and whether it is that renderer's own: a
+    model without one shows the cards' default renderer's (which is what `auto` reads too)."""
+    metrics = model.get("metrics") or {}
+    if renderer == CARD_DEFAULT_RENDERER:
+        return metrics, True
+    table = (metrics.get("by_renderer") or {}).get(renderer)
+    if isinstance(table, dict) and table.get("by_spp"):
+        return table, True
+    return metrics, False
+
+
+def _rows_by_spp(table: dict) -> dict[float, dict]:
+    return {float(r["spp"]): r for r in table.get("by_spp") or ()
+            if isinstance(r, dict) and "spp" in r}
+
+
+def _figures(values: list) -> str:
+    """`26.0/27.8/28.5`, `-` where a level was not measured; `-` when none was."""
     if not any(isinstance(v, int | float) for v in values):
         return "-"
     return "/".join(f"{v:.1f}" if isinstance(v, int | float) else "-" for v in values)
 
 
-def _ms(model: dict) -> str:
-    ms = (model.get("metrics") or {}).get("ms_720p")
+def _psnr(table: dict) -> str:
+    rows = _rows_by_spp(table)
+    return _figures([rows.get(float(spp), {}).get("psnr") for spp in SPP_COLUMNS])
+
+
+def _versus_denoise(table: dict) -> str:
+    """The model's PSNR less Blender's denoise of the same frames, per spp: `+0.7/-0.1/+0.2`."""
+    rows = _rows_by_spp(table)
+    gaps = []
+    for spp in SPP_COLUMNS:
+        row = rows.get(float(spp), {})
+        own, theirs = row.get("psnr"), row.get("renderer_denoise")
+        numbers = isinstance(own, int | float) and isinstance(theirs, int | float)
+        gaps.append(own - theirs if numbers else None)
+    if not any(g is not None for g in gaps):
+        return "-"
+    return "/".join(f"{g:+.1f}" if g is not None else "-" for g in gaps)
+
+
+def renderer_denoise(models: list[dict], renderer: str) -> list[float | None]:
+    """PSNR of the renderer's own denoise at SPP_COLUMNS, from the first card that measured it
+    (every card measured it on the same validation frames)."""
+    for model in models:
+        table, own = renderer_table(model, renderer)
+        rows = _rows_by_spp(table) if own else {}
+        values = [rows.get(float(spp), {}).get("renderer_denoise") for spp in SPP_COLUMNS]
+        if any(isinstance(v, int | float) for v in values):
+            return values
+    return [None] * len(SPP_COLUMNS)
+
+
+def _ms(table: dict) -> str:
+    ms = table.get("ms_720p")
     return f"{ms:.0f} ms" if isinstance(ms, int | float) else "-"
+
+
+def _timed_on(models: list[dict], renderer: str) -> str:
+    """Where the 720p figures were timed: `a 192x192 run on Intel(R) Xeon(R) ..., 2 threads`."""
+    places = set()
+    for model in models:
+        table, _ = renderer_table(model, renderer)
+        measured = table.get("measured") if isinstance(table.get("measured"), dict) else {}
+        timing = measured.get("timing") if isinstance(measured.get("timing"), dict) else measured
+        if timing.get("machine"):
+            size = str(timing.get("resolution") or "").replace("\u00d7", "x")
+            places.add(f"{size + ' frames on ' if size else ''}{timing['machine']}")
+    return "; ".join(sorted(places)) if places else "the machine that measured them"
 
 
 def _options(model: dict) -> str:
@@ -52,22 +145,44 @@ def _options(model: dict) -> str:
     return "; ".join(parts)
 
 
-def model_table(models: list[dict], default: str) -> str:
-    header = ("MODEL", "NEEDS", "720p", "PSNR dB @1/4/8spp", "WHAT")
-    rows = [("auto  [session default]", "color", "-", "-",
+def model_table(models: list[dict], default: str, renderer: str = "cycles") -> str:
+    name = RENDERER_NAMES.get(renderer, renderer)
+    theirs = renderer_denoise(models, renderer)
+    versus = any(v is not None for v in theirs)
+    header = ["MODEL", "NEEDS", "720p", "PSNR dB @1/4/8spp"]
+    header += [*(["vs BLENDER dB"] if versus else []), "WHAT"]
+    rows = [["auto  [session default]", "color", "-", "-", *(["-"] if versus else []),
              "chooses per shot from the passes, noise and these tables; `quietframe denoise` "
-             "prints each shot's choice")]
+             "prints each shot's choice"]]
+    if versus:
+        rows.append(["Blender's denoise", "-", "-", _figures(theirs), "-",
+                     "Blender's own denoise (OIDN) of the same frames, for comparison: what the "
+                     "farm has without quietframe"])
     for m in models:
+        table, own = renderer_table(m, renderer)
         mark = "  [auto's fallback]" if m["name"] == default else ""
         what = describe(m)
+        if not own:
+            what += f" ({RENDERER_NAMES[CARD_DEFAULT_RENDERER]} table: none measured on {name})"
         if m.get("options"):
             what += f"; options: {_options(m)} (--model-option NAME=VALUE)"
-        rows.append((f"{m['name']} {m['version']}{mark}", ",".join(m["required_buffers"]),
-                     _ms(m), _psnr(m), what))
-    widths = [max(len(r[i]) for r in (header, *rows)) for i in range(4)]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r[:4], widths, strict=True)) + "  " + r[4]
-             for r in (header, *rows)]
+        row = [f"{m['name']} {m['version']}{mark}", ",".join(m["required_buffers"]), _ms(table),
+               _psnr(table)]
+        rows.append([*row, *([_versus_denoise(table)] if versus else []), what])
+    columns = len(header) - 1  # the last, WHAT, runs on unpadded
+    widths = [max(len(r[i]) for r in (header, *rows)) for i in range(columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r[:columns], widths, strict=True)) + "  "
+             + r[columns] for r in (header, *rows)]  # the header first: `| head -1` reads it
     lines.append("")
-    lines.append("PSNR: validation tables with every pass present (docs/benchmarks.md); 720p: "
-                 "ms per 1280x720 frame on the machine that measured it.")
+    lines.append(f"Tables measured on {name} frames (--renderer {renderer}"
+                 + (", the default: farm frames are Blender's, and auto reads these tables for "
+                    "any frame whose header says Cycles" if renderer == "cycles" else "")
+                 + "; --renderer " + " or ".join(r for r in RENDERER_NAMES if r != renderer)
+                 + " for the others).")
+    lines.append("PSNR: validation frames with every pass present (docs/benchmarks.md)"
+                 + ("; vs BLENDER: the model's PSNR less Blender's denoise of the same frames"
+                    if versus else "") + ".")
+    lines.append(f"720p: ms per 1280x720 frame scaled from timings of {_timed_on(models, renderer)}"
+                 ": a table figure, not this server's time (`quietframe denoise` prints that "
+                 "per frame and in its summary).")
     return "\n".join(lines)

@@ -22,8 +22,9 @@ import functools
 import hashlib
 import json
 import os
+import secrets
 import stat
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -37,6 +38,7 @@ MAX_RECORD_BYTES = 1 << 20  # records and job files are a few hundred bytes
 _NEW_FILE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
 _NO_LINK = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC  # NONBLOCK: a FIFO
 _SOURCE_FIELDS = ("size", "mtime_ns", "sha256")
+AUTO = "auto"
 
 
 class Status(str, Enum):
@@ -47,6 +49,8 @@ class Status(str, Enum):
     CHANGED = "changed"  # written with other settings (model, options, channel flags)
     DAMAGED = "damaged"  # not the file written (truncated copy, other bytes of the same size)
     PENDING = "pending"  # a write that a stopped run left half-way, by its record: redone
+    # made without its full pre-roll (frames not rendered then), which exists now: redone
+    INCOMPLETE = "incomplete"
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,11 @@ class Record:
     settings: dict
     output: dict  # size; from version 2 on also mtime_ns and sha256
     pending: bool  # written before the output was in place (see write_output)
+    # The model that made each view layer ("" for none), by name; None where not recorded
+    # (older records): `auto` resolved, so `--model X` and auto's X compare as one model.
+    models: dict | None = None
+    # Pre-roll frame numbers that were missing when it was made (its history started short)
+    pre_roll_missing: tuple[int, ...] = ()
 
 
 class DamagedRecord(ValueError):
@@ -140,10 +149,38 @@ def write_record(output: Path, source: dict, settings: dict, stamp: dict,
         rename(temp, name, folder)
 
 
+def create_in_records(out_dir: Path, name: str, data: bytes) -> bool:
+    """`data` as `<out>/.quietframe/<name>` unless that file exists (then False): written whole
+    under a name of this process's own, then linked into place, which fails where a file is
+    (one another process linked a moment before included): a reader never sees half a file."""
+    temp = f".{name}.{os.getpid()}-{secrets.token_hex(4)}.part"
+    with record_folder(out_dir) as folder:
+        write_new(temp, data, folder)
+        try:
+            os.link(temp, name, src_dir_fd=folder, dst_dir_fd=folder, follow_symlinks=False)
+        except FileExistsError:
+            return False
+        finally:
+            os.unlink(temp, dir_fd=folder)
+    return True
+
+
+def replace_in_records(out_dir: Path, name: str, data: bytes) -> None:
+    """`data` as `<out>/.quietframe/<name>`, whole, whatever was there."""
+    temp = f".{name}.{os.getpid()}-{secrets.token_hex(4)}.part"
+    with record_folder(out_dir) as folder:
+        write_new(temp, data, folder)
+        rename(temp, name, folder)
+
+
+def _record_folder(output: Path) -> contextlib.AbstractContextManager[int]:
+    return record_folder(output.parent)
+
+
 @contextlib.contextmanager
-def _record_folder(output: Path) -> Iterator[int]:
+def record_folder(out_dir: Path) -> Iterator[int]:
     """`<out>/.quietframe` (made if need be), opened without following a link."""
-    folder = output.parent / RECORD_DIR
+    folder = out_dir / RECORD_DIR
     with contextlib.suppress(FileExistsError):
         folder.mkdir()
     try:
@@ -211,7 +248,13 @@ def parse_record(raw: object) -> Record:
         raise DamagedRecord(f"output is not a stamp ({', '.join(fields)})")
     if not isinstance(pending, bool):
         raise DamagedRecord("pending is not true or false")
-    return Record(source, settings, output, pending)
+    models, missing = raw.get("models"), raw.get("pre_roll_missing", [])
+    if models is not None and not (isinstance(models, dict) and all(
+            isinstance(v, str) for v in models.values())):
+        raise DamagedRecord("models is not an object of model names")
+    if not (isinstance(missing, list) and all(map(is_int, missing))):
+        raise DamagedRecord("pre_roll_missing is not a list of frame numbers")
+    return Record(source, settings, output, pending, models, tuple(missing))
 
 
 def is_int(value: object) -> bool:
@@ -229,13 +272,16 @@ def _has_fields(stamp: object, fields: tuple[str, ...]) -> bool:
 # ---- checking -----------------------------------------------------------------------------
 
 
-def check(output: Path, source: Path, settings: dict) -> Check:
-    """Whether `output` is this job's output of `source` made with `settings`."""
+def check(output: Path, source: Path, settings: dict, models: dict | None = None,
+          present: Collection[int] = ()) -> Check:
+    """Whether `output` is this job's output of `source` made with `settings`; `models`: the
+    model this run uses per view layer (auto resolved, None if not known yet); `present`: the
+    frame numbers in the input now (a record's missing pre-roll frame among them: INCOMPLETE)."""
     try:
-        present = os.lstat(output)
+        stat_now = os.lstat(output)
     except FileNotFoundError:
         return Check(Status.ABSENT)
-    if not stat.S_ISREG(present.st_mode):  # quietframe writes regular files, never links
+    if not stat.S_ISREG(stat_now.st_mode):  # quietframe writes regular files, never links
         return Check(Status.FOREIGN)
     try:
         record = read_record(output)
@@ -243,13 +289,40 @@ def check(output: Path, source: Path, settings: dict) -> Check:
         return Check(Status.FOREIGN, str(exc))
     if record is None:
         return Check(Status.FOREIGN)
-    if record.settings != settings:
-        return Check(Status.CHANGED, differences(record.settings, settings))
+    if not same_settings(record, settings, models):
+        return Check(Status.CHANGED, differences(record.settings, settings, record.models, models))
     if not _same_source(record.source, source):
         return Check(Status.STALE)
-    if _same_output(record.output, output, present):
-        return Check(Status.DONE)
-    return Check(Status.PENDING if record.pending else Status.DAMAGED)
+    if not _same_output(record.output, output, stat_now):
+        return Check(Status.PENDING if record.pending else Status.DAMAGED)
+    rendered_since = [n for n in record.pre_roll_missing if n in present]
+    if rendered_since:
+        return Check(Status.INCOMPLETE, f"pre-roll frame(s) {rendered_since} rendered since")
+    return Check(Status.DONE)
+
+
+# Flags that only steer auto's choice: once the model is named, they change nothing.
+AUTO_ONLY = ("quality", "latency_ms")
+
+
+def same_settings(record: Record, settings: dict, models: dict | None) -> bool:
+    """The record's settings are `settings`, where `--model auto` that resolved to X and
+    `--model X` are one model (then auto's own flags do not count), and an output made by
+    another model than this run's for its shot (both known) is not the same."""
+    known = record.models is not None and models is not None
+    if known and record.models != models:
+        return False
+    if record.settings == settings:
+        return True
+    before, now = dict(record.settings), dict(settings)
+    if before.get("model") == now.get("model") or not known:
+        return False
+    if AUTO not in (before.get("model"), now.get("model")):
+        return False  # two named models: the names differ
+    for flags in (before, now):
+        for name in ("model", *AUTO_ONLY):
+            flags.pop(name, None)
+    return before == now
 
 
 def _same_source(stamp: dict, source: Path) -> bool:
@@ -295,13 +368,23 @@ def _file_sha256(path: str, follow: bool, *version: int) -> str | None:
     return digest.hexdigest()
 
 
-def differences(before: dict, now: dict) -> str:
-    """`--model auto -> oidn-frame; --channels none -> {...}` for the settings that differ."""
+def differences(before: dict, now: dict, models_before: dict | None = None,
+                models_now: dict | None = None) -> str:
+    """`--model auto -> oidn-frame; --channels none -> {...}` for the settings that differ;
+    `--model auto (oidn-frame) -> auto (oidn-history)` where auto resolved to another model."""
     keys = sorted(set(before) | set(now))
     changed = [k for k in keys if before.get(k) != now.get(k)]
-    return "; ".join(
-        f"{flag(k)} {_shown(before.get(k))} -> {_shown(now.get(k))}" for k in changed
-    )
+    said = [f"{flag(k)} {_shown(before.get(k))} -> {_shown(now.get(k))}" for k in changed]
+    if "model" not in changed and None not in (models_before, models_now) and (
+            models_before != models_now):
+        said.insert(0, f"--model {_resolved(before, models_before)} -> "
+                       f"{_resolved(now, models_now)}")
+    return "; ".join(said)
+
+
+def _resolved(settings: dict, models: dict | None) -> str:
+    names = ", ".join(sorted(set((models or {}).values())))
+    return f"{settings.get('model')} ({names})"
 
 
 def flag(setting: str) -> str:

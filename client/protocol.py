@@ -12,6 +12,9 @@ ACCEPTED_FRAME_TYPES = frozenset({EXR_MEDIA_TYPE, "application/octet-stream", ""
 
 CUT_QUERY = "cut"  # POST .../frames/{index}?cut=true: camera cut, start a fresh history
 CUT_ATTRIBUTE = "quietframe.cut"  # EXR header attribute: nonzero int or "1"/"true" = cut
+# POST .../frames/{index}?shot_model=NAME (model=auto): the model already chosen for the frame's
+# shot (by another chunk of it); a frame that starts the shot's history takes it
+SHOT_MODEL_QUERY = "shot_model"
 
 
 class Reset(str, Enum):

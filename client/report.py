@@ -8,6 +8,7 @@ same events, so a script sees exactly what a person sees. Errors also go to stde
 from __future__ import annotations
 
 import json
+import statistics
 import sys
 import time
 from collections import defaultdict
@@ -38,12 +39,28 @@ class Reporter:
         self.sanitized: dict[str, list[int]] = defaultdict(list)  # buffer -> count per frame
         self.warnings: list[str] = []
         self.no_motion: list[int] = []  # frames whose history was not used (no usable motion)
+        # Server-Timing totals of this run's frames per model name: the time measured on this
+        # server, which is what a farm plans with (the tables' figures come from elsewhere)
+        self.server_ms: dict[str, list[float]] = defaultdict(list)
         self.bar = None
         if mode == "bar":
             from tqdm import tqdm
 
             self.bar = tqdm(total=total, initial=done, unit="frame", dynamic_ncols=True,
                             file=self.err)
+
+    def resume(self, done: int) -> None:
+        """Count `done` frames as finished before this run (resumed, or kept by --force)."""
+        self.done = done
+        if self.bar is not None:
+            self.bar.n = done
+            self.bar.refresh()
+
+    def measured_ms(self, model: str | None = None) -> float | None:
+        """Median server time per frame so far on this server (of `model`, a name, if given)."""
+        times = self.server_ms.get(model, []) if model else [
+            ms for per_model in self.server_ms.values() for ms in per_model]
+        return statistics.median(times) if times else None
 
     # ---- events --------------------------------------------------------------------------
 
@@ -86,6 +103,8 @@ class Reporter:
             self.no_motion.append(index)
         self.done += 1
         ms = result.timings_ms.get("total")
+        if ms is not None:
+            self.server_ms[result.model.split(" ")[0]].append(ms)
         fields = {"frame": index, "file": name, "reset": result.reset,
                   "missing": list(result.missing), "model": result.model,
                   "server_ms": ms, "replayed": result.replayed,
@@ -129,11 +148,14 @@ class Reporter:
                       f"ghosting): frames {format_numbers(self.no_motion)} "
                       f"(docs/service.md, 'Motion evidence')")
         text = f"{written} frame(s) written to {out_dir}"
+        measured = self.measured_ms()
+        if measured is not None:
+            text += f"; {measured:.0f} ms per frame on this server (median Server-Timing)"
         if self.warnings:
             text += f"; {len(self.warnings)} warning(s): " + "; ".join(self.warnings)
         if self.mode == "json":
             self.event("summary", text, written=written, out=str(out_dir),
-                       warnings=self.warnings)
+                       warnings=self.warnings, server_ms_median=measured)
         elif self.mode != "quiet":
             self.out.write(text + "\n")
             self.out.flush()

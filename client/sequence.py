@@ -12,7 +12,12 @@ the session: a resumed run continues it when the server still has it at the last
 and the settings are the same; otherwise a new session is first sent up to `warmup` finished
 frames (outputs not rewritten) to rebuild the history. A chunk of a longer shot starts the same
 way from the `pre_roll` frames before its range (sent, never written), so it does not begin on an
-empty history (a visible pop at every chunk boundary).
+empty history (a visible pop at every chunk boundary). Pre-roll frames not rendered yet are
+named (Job.pre_roll_missing) and recorded with the outputs whose history they shorten: a rerun
+redoes those once the frames are there (output_records.Status.INCOMPLETE).
+
+With model=auto, each shot keeps one model across chunks and reruns (client/shots.py): decided
+once, recorded in the output folder, sent with every frame.
 
 Several view layers of one file (`layers`): one session per layer, each frame sent to every
 session; each reply is the whole file with its layer denoised, so the output is the first reply
@@ -25,11 +30,12 @@ import json
 import re
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quietframe.client import output_records as records
+from quietframe.client import shots
 from quietframe.client.core import FrameResult, QuietframeError
 from quietframe.client.frame_source import (
     SequenceError,
@@ -90,8 +96,17 @@ class Job:
     height: int
     first_written: int = 0
     missing: tuple[int, ...] = ()  # frame numbers of the range without a file
-    cuts: frozenset[int] = frozenset()  # frame numbers that start a new shot (--cut)
+    # frame numbers that start a new shot: --cut, and frames whose header flags a cut
+    cuts: frozenset[int] = frozenset()
     job_file: str = JOB_FILE  # one per frame range: parallel chunks keep their own
+    pre_roll_missing: tuple[int, ...] = ()  # pre-roll frame numbers without a file
+    # Every frame of the input by number (the whole sequence, not only this run's); empty
+    # when the names carry no numbers
+    sequence: dict[int, Path] = field(default_factory=dict, repr=False)
+    starts: list[int | None] = field(default_factory=list)  # per position: its shot's cut
+    # (shot's cut, view layer or "") -> its model's record (client/shots.py), read lazily
+    shot_records: dict[tuple[int | None, str], shots.ShotRecord] = field(
+        default_factory=dict, repr=False)
 
     @classmethod
     def plan(
@@ -103,19 +118,29 @@ class Job:
         cuts: tuple[int, ...] = (),
     ) -> Job:
         chosen = select_frames(source, frames, pre_roll)
-        files = [*chosen.pre_roll, *chosen.files]
         out = Path(out_dir)
-        if any(f.parent.resolve() == out.resolve() for f in files):
+        if any(f.parent.resolve() == out.resolve() for f in [*chosen.pre_roll, *chosen.files]):
             raise ValueError("--out must differ from the input folder (outputs keep the names)")
-        numbers = [frame_number(f) for f in files]
-        indices = list(range(len(files))) if None in numbers else numbers
+        numbers = [frame_number(f) for f in chosen.files]
+        sequence = {} if None in numbers else {frame_number(p): p for p in chosen.found}
+        indices = list(range(len(chosen.files))) if None in numbers else numbers
+        flagged = set(cuts) | {n for n, f in zip(indices, chosen.files, strict=True)
+                               if shots.is_cut_frame(f)}
+        start = shots.latest_cut(indices[0], flagged, sequence)  # type: ignore[arg-type]
+        # the pre-roll stays in the chunk's shot: a cut inside it starts the history anyway
+        pre_roll_files = [f for f in chosen.pre_roll if start is None or frame_number(f) >= start]
+        pre_missing = tuple(n for n in chosen.pre_roll_missing if start is None or n >= start)
+        files = [*pre_roll_files, *chosen.files]
+        indices = [*(frame_number(f) for f in pre_roll_files), *indices]  # type: ignore[misc]
+        all_cuts = frozenset(flagged | ({start} if start is not None else set()))
         out.mkdir(parents=True, exist_ok=True)
         width, height = frame_size(chosen.files[0])
         job_file = JOB_FILE
         if frames is not None:
             job_file = f".quietframe-job.{frames[0]}-{frames[-1]}.json"
-        return cls(files, indices, out, width, height, len(chosen.pre_roll), chosen.missing,
-                   frozenset(cuts), job_file)  # type: ignore[arg-type]
+        return cls(files, indices, out, width, height, len(pre_roll_files), chosen.missing,
+                   all_cuts, job_file, pre_missing, sequence,  # type: ignore[arg-type]
+                   [_shot_of(n, all_cuts) for n in indices])
 
     @property
     def written(self) -> range:
@@ -125,6 +150,12 @@ class Job:
     def output(self, i: int) -> Path:
         return self.out_dir / self.files[i].name
 
+    def check(self, i: int, settings: dict) -> records.Check:
+        """Position `i`'s output against this run: its settings, its shot's model, the source,
+        and whether a pre-roll frame missing when it was made is there now."""
+        return records.check(self.output(i), self.files[i], settings,
+                             self.models_at(i, settings), self.sequence.keys())
+
     def first_pending(self, settings: dict | None = None) -> int:
         """Position of the first written frame that is not this job's output (len(files) when
         all are done); with `settings` None, the first without an output file at all."""
@@ -132,9 +163,7 @@ class Job:
             if settings is None:
                 if not self.output(i).exists():
                     return i
-            elif records.check(self.output(i), self.files[i], settings).status is not (
-                records.Status.DONE
-            ):
+            elif self.check(i, settings).status is not records.Status.DONE:
                 return i
         return len(self.files)
 
@@ -143,13 +172,66 @@ class Job:
         nor one a stopped run of this job was writing."""
         found = []
         for i in self.written:
-            check = records.check(self.output(i), self.files[i], settings)
+            check = self.check(i, settings)
             if check.status not in _NOT_IN_THE_WAY:
                 found.append((i, check))
         return found
 
     def is_cut(self, i: int) -> bool:
-        return self.indices[i] in self.cuts
+        """A cut at this frame, or at a missing frame just before it (the shot starts here)."""
+        if self.indices[i] in self.cuts:
+            return True
+        return i > 0 and any(self.indices[i - 1] < c < self.indices[i] for c in self.cuts)
+
+    def shot_of(self, i: int) -> int | None:
+        """The cut that starts position `i`'s shot (None: the sequence's first shot)."""
+        return self.starts[i] if self.starts else _shot_of(self.indices[i], self.cuts)
+
+    def shots_sent(self) -> list[int | None]:
+        """The shots this job's frames belong to, in order (by the cut that starts each)."""
+        starts = {self.shot_of(i) for i in range(len(self.files))}
+        return sorted(starts, key=lambda start: -1 if start is None else start)
+
+    def shot_record(self, start: int | None, layer: str) -> shots.ShotRecord | None:
+        """The recorded model of a shot (None: none yet, or a damaged record, which
+        shots.settle_shots replaces)."""
+        if (start, layer) not in self.shot_records:
+            try:
+                record = shots.read_shot(self.out_dir, start, layer)
+            except records.DamagedRecord:
+                return None
+            if record is None:
+                return None
+            self.shot_records[(start, layer)] = record
+        return self.shot_records[(start, layer)]
+
+    def models_at(self, i: int, settings: dict) -> dict[str, str] | None:
+        """The model this run uses at position `i` per view layer ("" for none): the named
+        one, or (auto) its shot's recorded one; None while a layer's shot has no record."""
+        layers = settings.get("layer") or [""]
+        if settings.get("model", shots.AUTO) != shots.AUTO:
+            return dict.fromkeys(layers, settings["model"])
+        found = {layer: self.shot_record(self.shot_of(i), layer) for layer in layers}
+        if any(record is None for record in found.values()):
+            return None
+        return {layer: record.model for layer, record in found.items()}  # type: ignore
+
+    def deciding_frame(self, start: int | None) -> tuple[Path, int]:
+        """The frame auto decides a shot from: its first present, the cut's frame itself
+        where it is there (any chunk finds the same), as (file, index)."""
+        if self.sequence:
+            number = min(n for n in self.sequence if start is None or n >= start)
+            return self.sequence[number], number
+        i = next(i for i, index in enumerate(self.indices) if start is None or index >= start)
+        return self.files[i], self.indices[i]
+
+    def short_history(self, i: int) -> tuple[int, ...]:
+        """The missing pre-roll frames whose absence position `i`'s history inherits: those
+        of the chunk, unless a cut or a gap since the chunk's first frame restarted it."""
+        for j in range(self.first_written + 1, i + 1):
+            if self.is_cut(j) or self.indices[j] != self.indices[j - 1] + 1:
+                return ()
+        return self.pre_roll_missing
 
     def read_job(self, on_damage: Callable[[str], None] | None = None) -> dict:
         """The job file's fields; {} when there is none, or when it is damaged (unreadable,
@@ -219,8 +301,15 @@ def _warn(text: str) -> None:
     warnings.warn(text, RuntimeWarning, stacklevel=3)
 
 
-# Outputs that are not in the way: this job's, none, or one this job was writing when it stopped.
-_NOT_IN_THE_WAY = (records.Status.DONE, records.Status.ABSENT, records.Status.PENDING)
+def _shot_of(index: int, cuts: frozenset[int]) -> int | None:
+    """The cut that starts the shot of frame `index` (None: the sequence's first shot)."""
+    return max((c for c in cuts if c <= index), default=None)
+
+
+# Outputs that are not in the way: this job's, none, one this job was writing when it stopped,
+# or one it made before its pre-roll frames were rendered.
+_NOT_IN_THE_WAY = (records.Status.DONE, records.Status.ABSENT, records.Status.PENDING,
+                   records.Status.INCOMPLETE)
 
 
 def job_settings(
@@ -244,6 +333,7 @@ def refuse_conflicts(job: Job, settings: dict) -> None:
     """OutputConflict naming what is in the way and the fix, unless nothing is."""
     found = job.conflicts(settings)
     if not found:
+        shots.refuse_contradicted(job, settings)  # a shot recorded with another model
         return
     names = ", ".join(job.output(i).name for i, _ in found[:3]) + (
         f" and {len(found) - 3} more" if len(found) > 3 else "")
@@ -401,6 +491,14 @@ async def arun_sequence(
     settings = job_settings(model, precision, compression, layers, **options)
     if not force:
         refuse_conflicts(job, settings)
+    if job.first_pending(settings) == len(job.files):
+        return None
+    # Each shot's model before any frame is sent; then outputs of another model are in the way
+    named = await shots.settle_shots(client, job, settings, layers, force,
+                                     on_warning or _warn, precision=precision,
+                                     compression=compression, **options)
+    if not force:
+        refuse_conflicts(job, settings)
     pending = job.first_pending(settings)
     if pending == len(job.files):
         return None
@@ -410,7 +508,9 @@ async def arun_sequence(
     sessions: dict[str | None, str] = {}
     fresh: set[str] = set()  # sessions created now: they get the warm-up frames
     for layer in layers:
-        session = await _reusable_session(client, job, server, pending, stored, layer)
+        model_now = (job.models_at(pending, settings) or {}).get(layer or "")
+        session = await _reusable_session(client, job, server, pending, stored, layer,
+                                          model_now)
         if session is None:
             created = await client.create_session(
                 job.width, job.height, model, precision=precision, compression=compression,
@@ -419,14 +519,15 @@ async def arun_sequence(
             session = created
             fresh.add(created["id"])
         sessions[layer] = session["id"]
+    shots.write_deferred(job, named)  # the server has taken the named model
     resumed = not fresh
     count = warmup if pending > job.first_written else (
         job.first_written if pre_roll is None else pre_roll)
     for i in _warm_positions(job, pending, count) if fresh else []:
         data = _check_size(job, i)
-        for session_id in sessions.values():
+        for layer, session_id in sessions.items():
             if session_id in fresh:
-                await client.send_frame(session_id, job.indices[i], data, cut=job.is_cut(i))
+                await _send(client, job, session_id, i, data, layer, settings)
         _notify(on_progress, Progress(i, job.files[i], None))
     keys = {layer or "": session_id for layer, session_id in sessions.items()}
     first_session = next(iter(sessions.values()))
@@ -434,18 +535,40 @@ async def arun_sequence(
         data = _check_size(job, i)
         source = records.source_stamp(job.files[i], data)
         results = {
-            layer: await client.send_frame(session_id, job.indices[i], data, cut=job.is_cut(i))
+            layer: await _send(client, job, session_id, i, data, layer, settings)
             for layer, session_id in sessions.items()
         }
         result = _combined(results)
         job.write_output(i, result.exr, settings, source, model=result.model,
-                         session=first_session, index=job.indices[i])
+                         session=first_session, index=job.indices[i],
+                         **_made_with(job, i, results))
         job.write_job(server=server, sessions=keys, last_index=job.indices[i], settings=settings)
         _notify(on_progress, Progress(i, job.files[i], result, first_session,
                                       resumed=resumed and i == pending))
     for session_id in sessions.values():
         await client.delete_session(session_id)
     return first_session
+
+
+async def _send(client: AsyncClient, job: Job, session_id: str, i: int, data: bytes,
+                layer: str | None, settings: dict) -> FrameResult:
+    """Frame `i` to a layer's session, with its shot's recorded model (model=auto): the server
+    takes it where the shot's history starts (a first frame, a cut) instead of choosing."""
+    shot = job.shot_record(job.shot_of(i), layer or "") if settings["model"] == shots.AUTO else None
+    keep = {"shot_model": shot.model} if shot is not None else {}
+    return await client.send_frame(session_id, job.indices[i], data, cut=job.is_cut(i), **keep)
+
+
+def _made_with(job: Job, i: int, results: dict[str | None, FrameResult]) -> dict:
+    """What the output's record says made it besides the flags: the model of each view layer
+    (auto resolved), and the pre-roll frames its history lacked."""
+    made: dict = {}
+    models = {layer or "": r.model.partition(" ")[0] for layer, r in results.items()}
+    if all(models.values()):
+        made["models"] = models
+    if job.short_history(i):
+        made["pre_roll_missing"] = list(job.short_history(i))
+    return made
 
 
 def _combined(results: dict[str | None, FrameResult]) -> FrameResult:
@@ -467,8 +590,11 @@ def _combined(results: dict[str | None, FrameResult]) -> FrameResult:
 
 
 async def _reusable_session(
-    client: AsyncClient, job: Job, server: str, pending: int, stored: dict, layer: str | None
+    client: AsyncClient, job: Job, server: str, pending: int, stored: dict, layer: str | None,
+    model: str | None = None,
 ):
+    """The stored session of `layer`, where it can go on at `pending` (with `model`, this
+    run's model there, where known)."""
     session_id = _stored_sessions(stored).get(layer or "")
     if pending == 0 or not session_id:
         return None
@@ -476,6 +602,9 @@ async def _reusable_session(
         session = await client.session(session_id)
     except QuietframeError:
         return None
+    in_use = (session.get("model") or {}).get("name") if isinstance(session, dict) else None
+    if model is not None and in_use != model:
+        return None  # another model's history: the shot's model is not this session's
     return session if _matches(job, server, pending, stored, session, layer) else None
 
 

@@ -1,4 +1,5 @@
-"""Where the custom-op library (export/ops, built by `pip install .`) is, and its op domain.
+"""Where the custom-op library (export/ops, built by `QUIETFRAME_BUILD_OPS=1 pip install .`)
+is, and its op domain.
 
 Part of the runtime because serving loads it; the exporter only needs the domain name.
 """
@@ -34,8 +35,10 @@ def ops_library_path() -> Path:
         candidate = Path(folder) / name
         if candidate.is_file():
             return candidate
+    # A plain `pip install .` (the client's install) builds no ops: say how to get them.
     raise FileNotFoundError(
-        f"{name} not found next to quietframe.runtime ({list(runtime.__path__)}); "
-        "reinstall quietframe (pip install .) so that its CMake build runs, "
-        "or set QUIETFRAME_OPS_LIBRARY to a built library"
+        f"{name} not found next to quietframe.runtime ({list(runtime.__path__)}): this "
+        "quietframe was installed without its C++ ops, which serving and training need. "
+        "Reinstall with them: QUIETFRAME_BUILD_OPS=1 pip install \".[serve]\" (a C++17 "
+        "compiler; make serve does this), or set QUIETFRAME_OPS_LIBRARY to a built library"
     )

@@ -270,6 +270,26 @@ def choice_header(choice: Choice) -> str:
 HEADER_WORDS = {"σ": "sigma", "×": "x", "≤": "<=", "≥": ">=", "–": "-", "—": "-", "·": "*"}
 
 
+# The reason of a shot's model kept from an earlier choice (`shot_model`, e.g. another farm
+# chunk's): the choice is made once per shot, so chunks of one shot never switch models.
+KEPT_REASON = "kept: the shot's model, chosen before for this shot (shot_model)"
+
+
+def kept_choice(name: str, present: list[str], noise: model_choice.NoiseLevel,
+                profiles: list[model_choice.ModelProfile], pixels: int) -> Choice:
+    """A shot's choice made earlier, as the session reports it: that model, with what this
+    frame carries and how noisy it is, and what the model's table expects there."""
+    have = tuple(sorted(set(present)))
+    profile = next((p for p in profiles if p.name == name), None)
+    psnr = ms = None
+    if profile is not None and profile.measured:
+        by_noise = noise if profile.psnr_by_noise else None
+        psnr = round(profile.expected_psnr(noise.spp, have, by_noise), 2)
+        ms = round(profile.expected_ms(pixels), 3)
+    sigma = None if noise.log2_sigma is None else round(noise.log2_sigma, 3)
+    return Choice(name, KEPT_REASON, noise.spp, noise.source, have, sigma, psnr, ms)
+
+
 def noise_kind(choice: Choice) -> str:
     """Where the choice's spp came from, as the choices metric counts it: a header attribute
     is `header`, the session's model_options `session`, else `estimate` or `unknown`."""
@@ -590,10 +610,13 @@ class SessionRegistry:
         body: bytes | bytearray | mmap.mmap,
         cut: bool,
         header: frames.ExrHeader | None = None,
+        shot_model: str | None = None,
     ) -> FrameOutcome:
         """The frame protocol: everything that can be checked from the header is checked before
         the lock; the session changes only once the reply is encoded (and stored). `header`:
-        the body's, when the caller parsed it already."""
+        the body's, when the caller parsed it already. `shot_model` (model=auto): the model
+        already chosen for the shot this frame belongs to (another chunk of the same shot chose
+        it); a frame that starts the shot's history takes it instead of choosing."""
         session = self.get(session_id)
         spec = session.spec
         settings = self.settings
@@ -603,6 +626,8 @@ class SessionRegistry:
             )
         frames.check_windows(header, spec.width, spec.height)
         auto = spec.model == AUTO
+        # UnknownModel before the lock; a fixed model's session has no choice to keep
+        keep = self.models.resolve(shot_model) if auto and shot_model else None
         # model=auto: every buffer the frame carries (the choice's input, from the header); the
         # chosen model's own check follows once the plan says which model this frame uses.
         sources = self._sources(header, spec, None if auto else session.info)
@@ -616,12 +641,12 @@ class SessionRegistry:
                 self.metrics.replays.inc()
                 return FrameOutcome(plan, replayed=True)
             history = session.state if plan is Reset.NONE else None
-            info, choice, chose = session.info, None, False
+            info, choice, chose, starts_shot = session.info, None, False, False
             if auto:
-                chose = plan in CHOICE_RESETS or session.choice is None
-                choice = await self._choose(session, header, body, sources) if chose else (
-                    session.choice
-                )
+                starts_shot = plan in CHOICE_RESETS or session.choice is None
+                chose = starts_shot and keep is None
+                choice = await self._choose(session, header, body, sources, keep) if (
+                    starts_shot) else session.choice
                 assert choice is not None
                 info = self.models.denoiser(choice.model).info
                 sources = self._sources(header, spec, info)
@@ -644,6 +669,9 @@ class SessionRegistry:
                     "model chosen",
                     extra={"session": session.id, "index": index, **choice.to_dict()},
                 )
+            elif auto and starts_shot:
+                log.info("model kept for the shot",
+                         extra={"session": session.id, "index": index, "model": keep})
         log.info(
             "frame",
             extra={
@@ -682,20 +710,26 @@ class SessionRegistry:
         header: frames.ExrHeader,
         body: bytes | bytearray,
         sources: dict[str, frames.Source],
+        keep: str | None = None,
     ) -> Choice:
         """model=auto for a shot: the sample count the session (model_options) or the header
         states, else estimated from the decoded colour (and albedo) on the worker pool, which
-        also measures how noisy the frame looks (model_choice.noise_statistic)."""
+        also measures how noisy the frame looks (model_choice.noise_statistic). `keep`: the
+        model already chosen for this shot (`shot_model`), described with what the frame shows."""
         spec = session.spec
         stated = model_choice.stated_samples(header.attributes, spec.layer, spec.model_options)
         noise, unusable = await self._on_pool(self._estimate_noise, body, sources, stated)
         # Present in the pixels, not just named; except an all-zero Vector, which is no
         # evidence either way (a locked-off camera, motion blur, a first frame): the chosen
         # model's history follows the aux's evidence frame by frame (motion_evidence).
+        present = [b for b in sources if b not in unusable or b == "motion"]
+        profiles = self.models.profiles_for(model_choice.renderer_from_header(header.attributes))
+        if keep is not None:
+            return kept_choice(keep, present, noise, profiles, spec.width * spec.height)
         return model_choice.choose(
-            [b for b in sources if b not in unusable or b == "motion"],
+            present,
             noise,
-            self.models.profiles_for(model_choice.renderer_from_header(header.attributes)),
+            profiles,
             self.models.default,
             quality=spec.quality,
             latency_ms=spec.latency_ms,

@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -82,10 +83,15 @@ def test_dockerfile_shape():
     assert list(stages) == ["build", "runtime"]
     runtime = stages["runtime"]
     assert runtime.all("EXPOSE") == ["8000"] and runtime.all("HEALTHCHECK")
+    # `docker run -p` reaches the container's interface, not its loopback (make serve's default).
+    cmd = json.loads(runtime.all("CMD")[-1])
+    assert cmd[cmd.index("--host") + 1] == "0.0.0.0", cmd
     user = runtime.all("USER")[-1]
     assert user.split(":")[0].isdigit() and int(user.split(":")[0]) != 0  # non-root
     installs = " ".join(runtime.all("RUN"))
     assert "[serve]" in installs and "torch" not in installs
+    # A plain build of `.` has no C++ ops (the client's install); the image's must ask for them.
+    assert "QUIETFRAME_BUILD_OPS=1" in " ".join(stages["build"].all("ENV"))
     assert all(
         not op.startswith("COPY") or "--from=build" in args
         for op, args in runtime.instructions
@@ -113,7 +119,7 @@ def _run(command: str, cwd: Path, env: dict[str, str]) -> None:
 
 @pytest.mark.slow
 def test_image_recipe_in_a_fresh_virtualenv(tmp_path):
-    """Build stage: COPY + the `pip wheel` RUN. Runtime stage: the venv/`pip install` RUN, ENV,
+    """Build stage: COPY, ENV + the `pip wheel` RUN. Runtime stage: the venv/`pip install` RUN, ENV,
     CMD, HEALTHCHECK. Container paths are mapped into tmp_path; apt-get and user creation (root
     inside the image) are the only lines not run here."""
     args, stages = parse_dockerfile(DOCKERFILE.read_text())
@@ -126,8 +132,17 @@ def test_image_recipe_in_a_fresh_virtualenv(tmp_path):
             command = command.replace(container, here)
         return re.sub(r"^python ", shlex.quote(sys.executable) + " ", command)
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith("QUIETFRAME_")}
+    # The image sees none of this session's settings, nor a PYTHONPATH (a test runner's working
+    # tree would shadow the installed wheel and its op library).
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith("QUIETFRAME_") and k not in ("PYTHONPATH", "PYTHONHOME")
+    }
     build = stages["build"]
+    build_env = dict(env)
+    for entry in build.all("ENV"):
+        build_env.update(re.findall(r"(\w+)=(\S+)", entry))
     src.mkdir()
     for copy in build.all("COPY"):
         *sources, dest = copy.split()
@@ -141,8 +156,10 @@ def test_image_recipe_in_a_fresh_virtualenv(tmp_path):
                 shutil.copy2(ROOT / source, target)
     for run in build.all("RUN"):
         if "pip wheel" in run:
-            _run(native(run), src, env)
+            _run(native(run), src, build_env)
     wheel = next(wheels.glob("quietframe-*.whl"))
+    with zipfile.ZipFile(wheel) as archive:
+        assert any(n.endswith("libquietframe_ops.so") for n in archive.namelist()), wheel.name
 
     runtime = stages["runtime"]
     for entry in runtime.all("ENV"):

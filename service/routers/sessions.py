@@ -134,6 +134,12 @@ async def post_frame(
     settings: SettingsDep,
     metrics: MetricsDep,
     cut: Annotated[bool, Query(description="camera cut: start from a fresh history")] = False,
+    shot_model: Annotated[str | None, Query(
+        max_length=256,
+        description="model 'auto' only: the model already chosen for this frame's shot (e.g. "
+        "by another farm chunk of the shot); a frame that starts the shot's history (the "
+        "session's first, a cut) takes it instead of choosing, so one shot keeps one model")
+    ] = None,
 ) -> Response:
     """Reads the body and answers with the outcome; `SessionRegistry.denoise_frame` owns the
     frame's journey."""
@@ -152,7 +158,8 @@ async def post_frame(
         )
     try:
         metrics.bytes_in.inc(len(body))
-        outcome = await sessions.denoise_frame(session_id, index, body, cut, header)
+        outcome = await sessions.denoise_frame(session_id, index, body, cut, header,
+                                               shot_model)
     finally:
         reservation.release()
     reply = outcome.reply

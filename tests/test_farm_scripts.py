@@ -1,0 +1,214 @@
+"""The render-and-denoise farm submissions in deploy/farm/: the Flamenco job type compiled with
+node against a stand-in for Flamenco's job-author API (written from its public documentation:
+`author.Task`, `author.Command`, `task.addCommand`, `task.addDependency`, `job.addTask`,
+`frameChunker`), its denoise commands run against a real server once their renders are done;
+and the Deadline submission script's job files, written (--write-only) and submitted through a
+stand-in deadlinecommand."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import shot
+
+from quietframe.client.cli import main
+
+FARM = Path(__file__).resolve().parents[1] / "deploy" / "farm"
+FLAMENCO_SCRIPT = FARM / "flamenco" / "quietframe_render_denoise.js"
+DEADLINE_SCRIPT = FARM / "deadline" / "submit_render_denoise.py"
+
+# Flamenco's job-author API as its documentation describes it, recording what a script does.
+# frameChunker follows the Manager's: explode "A-B" / "A..B" lists, chunk, merge runs back
+# ("1001-1004"; a two-frame run as "1005,1006").
+FLAMENCO_STAND_IN = """
+function frameChunker(frames, size) {
+  const numbers = new Set();
+  for (const part of String(frames).split(",").map((p) => p.trim())) {
+    const [a, b] = part.includes("..") ? part.split("..") : part.split("-");
+    for (let n = Number(a); n <= Number(b === undefined ? a : b); n++) numbers.add(n);
+  }
+  const sorted = [...numbers].sort((x, y) => x - y);
+  const chunks = [];
+  for (let i = 0; i < sorted.length; i += size) chunks.push(merge(sorted.slice(i, i + size)));
+  return chunks;
+}
+function merge(frames) {
+  const runs = [];
+  let start = frames[0], previous = frames[0];
+  const close = (from, to) => {
+    if (from === to) runs.push(String(from));
+    else if (from + 1 === to) runs.push(String(from), String(to));
+    else runs.push(`${from}-${to}`);
+  };
+  for (const frame of frames.slice(1)) {
+    if (frame > previous + 1) { close(start, previous); start = frame; }
+    previous = frame;
+  }
+  close(start, previous);
+  return runs.join(",");
+}
+function print() {}
+const author = {
+  Task: (name, type) => ({
+    name, type, commands: [], dependencies: [],
+    addCommand(command) { this.commands.push(command); },
+    addDependency(task) { this.dependencies.push(task.name); },
+  }),
+  Command: (name, parameters) => ({ name, parameters }),
+};
+"""
+
+
+def compile_flamenco_job(settings: dict) -> list[dict]:
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    script = (FLAMENCO_STAND_IN + FLAMENCO_SCRIPT.read_text()
+              + f"\nconst job = {{ settings: {json.dumps(settings)}, tasks: [],"
+              " addTask(t) { this.tasks.push(t); } };\n"
+              "compileJob(job); console.log(JSON.stringify(job.tasks));")
+    compiled = subprocess.run([node, "-e", script], capture_output=True, text=True, timeout=60)
+    assert compiled.returncode == 0, compiled.stderr
+    return json.loads(compiled.stdout)
+
+
+def flamenco_settings(tmp_path: Path, server_url: str, **overrides) -> dict:
+    return {"frames": "1001-1010", "chunk_size": 4, "pre_roll": 2, "model": "nbg-2l-3g",
+            "render_output": str(tmp_path / "render" / "sh010.####.exr"),
+            "denoised_output": str(tmp_path / "denoised"), "server": server_url,
+            "quietframe": "quietframe", "blendfile": "/shots/sh010/sh010.blend", **overrides}
+
+
+def test_flamenco_denoise_tasks_wait_for_their_renders_and_run_strict(tmp_path):
+    tasks = compile_flamenco_job(flamenco_settings(tmp_path, "http://denoise:8000"))
+    by_name = {t["name"]: t for t in tasks}
+    assert [t["name"] for t in tasks] == [
+        "render-1001-1004", "render-1005-1008", "render-1009,1010",
+        "denoise-1001-1004", "denoise-1005-1008", "denoise-1009,1010"]
+    # each denoise task: its own chunk's render, and the render holding its 2 pre-roll frames
+    assert by_name["denoise-1001-1004"]["dependencies"] == ["render-1001-1004"]
+    assert by_name["denoise-1005-1008"]["dependencies"] == ["render-1001-1004",
+                                                            "render-1005-1008"]
+    assert by_name["denoise-1009,1010"]["dependencies"] == ["render-1005-1008",
+                                                            "render-1009,1010"]
+    (render,) = by_name["render-1005-1008"]["commands"]
+    assert render["name"] == "blender-render" and by_name["render-1005-1008"]["type"] == "blender"
+    assert render["parameters"]["args"][-2:] == ["--render-frame", "1005..1008"]
+    assert render["parameters"]["args"][1].endswith("sh010.####")  # Blender adds .exr
+    for task in tasks:
+        if task["name"].startswith("denoise-"):
+            (command,) = task["commands"]
+            assert command["name"] == "exec" and "--strict" in command["parameters"]["args"]
+            chunk = task["name"].removeprefix("denoise-")
+            args = command["parameters"]["args"]
+            assert args[args.index("--frames") + 1] == chunk
+            assert args[args.index("--cut") + 1] == "1001"  # the job's first frame: no pre-roll
+
+
+def test_flamenco_tasks_run_in_dependency_order_against_a_server(tmp_path, live_server):
+    """Render tasks stand in by writing their chunk's frames; each denoise task runs once its
+    dependencies are done, through the real CLI."""
+    tasks = compile_flamenco_job(flamenco_settings(tmp_path, live_server.url, frames="1001..1006",
+                                                   chunk_size=3))
+    frames = shot(6, "blender")
+    (tmp_path / "render").mkdir()
+    done: set[str] = set()
+    for task in tasks:
+        assert set(task["dependencies"]) <= done, task["name"]
+        (command,) = task["commands"]
+        if task["type"] == "blender":
+            first, last = command["parameters"]["args"][-1].split("..")
+            for frame in range(int(first), int(last) + 1):
+                (tmp_path / "render" / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
+        else:
+            assert main([*command["parameters"]["args"], "--quiet"]) == 0, task["name"]
+        done.add(task["name"])
+    assert len(list((tmp_path / "denoised").glob("*.exr"))) == 6
+
+
+def deadline(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(DEADLINE_SCRIPT), *args], capture_output=True,
+                          text=True, timeout=60)
+
+
+def read_info(path: Path) -> dict[str, str]:
+    return dict(line.split("=", 1) for line in path.read_text().splitlines() if "=" in line)
+
+
+SUBMISSION = ["--blend", "/shots/sh010/sh010.blend", "--render-output",
+              "/shots/sh010/render/sh010.####.exr", "--out", "/shots/sh010/denoised",
+              "--frames", "1001..1100", "--chunk-size", "12", "--pre-roll", "4"]
+
+
+def test_deadline_write_only_writes_a_frame_dependent_denoise_job(tmp_path):
+    result = deadline(*SUBMISSION, "--write-only", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    render_job, denoise_job = read_info(tmp_path / "render_job.txt"), read_info(
+        tmp_path / "denoise_job.txt")
+    render_plugin = read_info(tmp_path / "render_plugin.txt")
+    denoise_plugin = read_info(tmp_path / "denoise_plugin.txt")
+    assert render_job["Plugin"] == "Blender" and render_job["Frames"] == "1001-1100"
+    assert render_plugin["OutputFile"] == "/shots/sh010/render/sh010.####"
+    assert denoise_job["Plugin"] == "CommandLine"
+    assert (denoise_job["Frames"], denoise_job["ChunkSize"]) == ("1001-1100", "12")
+    assert denoise_job["JobDependencies"] == "<render job id>"
+    assert denoise_job["IsFrameDependent"] == "true"
+    assert denoise_job["FrameDependencyOffsetStart"] == "-4"  # the pre-roll's frames too
+    arguments = denoise_plugin["Arguments"].split()
+    assert "--strict" in arguments and "<STARTFRAME>-<ENDFRAME>" in arguments
+    assert arguments[arguments.index("--pre-roll") + 1] == "4"
+    assert arguments[arguments.index("--cut") + 1] == "1001"
+    assert result.stdout.count("deadlinecommand ") == 2
+
+
+def test_deadline_denoise_tasks_run_against_a_server(tmp_path, live_server):
+    """The denoise job's Arguments cut into Deadline's chunks, once the render wrote them."""
+    (tmp_path / "render").mkdir()
+    for i, data in enumerate(shot(6, "blender")):
+        (tmp_path / "render" / f"sh010.{1001 + i}.exr").write_bytes(data)
+    result = deadline("--blend", "sh010.blend", "--render-output",
+                      str(tmp_path / "render" / "sh010.####.exr"), "--out",
+                      str(tmp_path / "denoised"), "--frames", "1001-1006", "--chunk-size", "3",
+                      "--pre-roll", "2", "--server", live_server.url, "--model", "nbg-2l-3g",
+                      "--write-only", str(tmp_path / "jobs"))
+    assert result.returncode == 0, result.stderr
+    arguments = read_info(tmp_path / "jobs" / "denoise_plugin.txt")["Arguments"]
+    for start in (1001, 1004):
+        line = arguments.replace("<STARTFRAME>", str(start)).replace("<ENDFRAME>",
+                                                                     str(start + 2))
+        assert main([*shlex.split(line), "--quiet"]) == 0, line
+    assert len(list((tmp_path / "denoised").glob("*.exr"))) == 6
+
+
+def test_deadline_submits_the_render_then_the_denoise_depending_on_its_id(tmp_path):
+    calls = tmp_path / "calls.txt"
+    fake = tmp_path / "deadlinecommand"
+    fake.write_text(f"""#!{sys.executable}
+import sys
+from pathlib import Path
+job = Path(sys.argv[1]).read_text()
+with open({str(calls)!r}, "a") as log:
+    log.write(job + "----\\n")
+print("Result=Success")
+print("JobID=5f2a" + ("0001" if "Plugin=Blender" in job else "0002"))
+""")
+    fake.chmod(0o755)
+    result = deadline(*SUBMISSION, "--deadlinecommand", str(fake))
+    assert result.returncode == 0, result.stderr
+    render_info, denoise_info, _ = calls.read_text().split("----\n")
+    assert "Plugin=Blender" in render_info and "Plugin=CommandLine" in denoise_info
+    assert "JobDependencies=5f2a0001\n" in denoise_info  # the render job's ID, as answered
+    assert "render job 5f2a0001, denoise job 5f2a0002" in result.stdout
+
+
+def test_deadline_refuses_a_pattern_without_a_frame_field(tmp_path):
+    flags = [*SUBMISSION, "--write-only", str(tmp_path)]
+    flags[flags.index("--render-output") + 1] = "/shots/sh010/render/sh010.exr"
+    result = deadline(*flags)
+    assert result.returncode == 2 and "####" in result.stderr
