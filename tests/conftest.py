@@ -223,8 +223,10 @@ class LiveServer:
         self.thread.join(timeout=30)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def live_server():
+    """One default server for the whole run (loading and warming every model costs seconds a
+    start); tests that need other settings start their own."""
     with LiveServer() as server:
         yield server
 
