@@ -26,6 +26,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -169,16 +170,22 @@ class Cluster:
         return path.read_text(errors="replace") if path.exists() else ""
 
     def close(self) -> None:
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                proc.terminate()
-        for proc in self.procs.values():
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+        stop_processes(self.procs.values())
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def stop_processes(procs: Iterable[subprocess.Popen]) -> None:
+    """Terminate every process, then wait for each (killed after 10 s)."""
+    procs = list(procs)
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
 
 
 # ---- throughput -------------------------------------------------------------------------------

@@ -21,6 +21,8 @@ from pathlib import Path
 import pytest
 from conftest import hard_timeout, shot
 
+from quietframe.bench.replicas import stop_processes
+
 HARD_TIMEOUT_S = 90
 NODES = 6  # 3 primaries, each with one replica
 SESSIONS = 12
@@ -124,14 +126,7 @@ class LoopbackCluster:
                     if self.info(p, "info", "replication").get("master_port") == str(primary))
 
     def close(self) -> None:
-        for proc in self.procs.values():
-            proc.terminate()
-        for proc in self.procs.values():
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+        stop_processes(self.procs.values())
 
 
 @pytest.fixture(scope="module")

@@ -8,18 +8,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
-import resource
 import socket
 import struct
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
 
 import pytest
 from conftest import hard_timeout, layout_plain, make_buffers, service_settings, write_exr
+from test_service_reliability_memory import ServerProcess
 
 BUDGET_MB = 64
 HEADER_TIMEOUT_S = 3
@@ -33,63 +30,24 @@ def time_limit():
         yield
 
 
-class Server:
-    """`python -m quietframe.service.cli` with QUIETFRAME_* settings and an open-file limit."""
-
-    def __init__(self, open_files: int, **settings) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        env = {**os.environ, **{f"QUIETFRAME_{k.upper()}": str(v) for k, v in settings.items()}}
-        command = [sys.executable, "-m", "quietframe.service.cli", "--port", str(self.port),
-                   "--threads", "1", "--workers", "2", "--log-level", "error"]
-
-        def limit_files() -> None:
-            resource.setrlimit(resource.RLIMIT_NOFILE, (open_files, open_files))
-
-        self.process = subprocess.Popen(command, env=env, preexec_fn=limit_files,
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        self.url = f"http://127.0.0.1:{self.port}"
-
-    def wait_ready(self, timeout_s: float = 60) -> None:
-        import httpx
-
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError("server exited")
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"{self.url}/v1/models", timeout=2).status_code == 200:
-                    return
-            time.sleep(0.1)
-        raise RuntimeError("server did not start")
+class Server(ServerProcess):
+    """A server process with an open-file limit, and raw connections to it."""
 
     def connect(self) -> socket.socket:
         return socket.create_connection(("127.0.0.1", self.port), timeout=10)
-
-    def stop(self) -> None:
-        self.process.terminate()
-        try:
-            self.process.wait(10)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
 
 
 @pytest.fixture(scope="module")
 def server():
     service_settings()  # skips without an installed model
-    server = Server(
+    with Server(
         OPEN_FILES,
         memory_budget_mb=BUDGET_MB,
         admission_wait_s=1,
         header_timeout_s=HEADER_TIMEOUT_S,
         log_json="false",
-    )
-    try:
-        server.wait_ready()
+    ) as server:
         yield server
-    finally:
-        server.stop()
 
 
 def session(server: Server, width: int, height: int) -> str:

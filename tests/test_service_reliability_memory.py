@@ -35,14 +35,23 @@ def time_limit():
 class ServerProcess:
     """`python -m quietframe.service.cli` with QUIETFRAME_* settings in the environment."""
 
-    def __init__(self, **settings) -> None:
+    def __init__(self, open_files: int | None = None, **settings) -> None:
+        """`open_files`: the server's RLIMIT_NOFILE (None: this process's)."""
+        import resource
+
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
         env = {**os.environ, **{f"QUIETFRAME_{k.upper()}": str(v) for k, v in settings.items()}}
         command = [sys.executable, "-m", "quietframe.service.cli", "--port", str(self.port),
                    "--threads", "1", "--workers", "2", "--log-level", "error"]
-        self.process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL)
+
+        def limit_files() -> None:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (open_files, open_files))
+
+        self.process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL if open_files else None,
+                                        preexec_fn=limit_files if open_files else None)
         self.url = f"http://127.0.0.1:{self.port}"
 
     def wait_ready(self, timeout_s: float = 90) -> None:
@@ -74,6 +83,17 @@ class ServerProcess:
     def peak_mb(self) -> int:
         return self.status_kib("VmHWM") // 1024
 
+    def __enter__(self):
+        try:
+            self.wait_ready()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *_) -> None:
+        self.stop()
+
     def stop(self) -> None:
         self.process.terminate()
         try:
@@ -87,18 +107,14 @@ def server():
     from conftest import service_settings
 
     service_settings()  # skips without an installed model
-    server = ServerProcess(
+    with ServerProcess(
         memory_budget_mb=BUDGET_MB,
         admission_wait_s=10,
         body_read_timeout_s=1,
         min_body_rate_kib_s=64,
         log_json="false",
-    )
-    try:
-        server.wait_ready()
+    ) as server:
         yield server
-    finally:
-        server.stop()
 
 
 def session(server, width=64, height=48) -> str:
