@@ -40,14 +40,17 @@ async def _expire_loop(registry: SessionRegistry, period_s: float) -> None:
         registry.expire()
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None,
+               loaded: ModelRegistry | None = None) -> FastAPI:
+    """The service; `loaded`: an already loaded model registry for these settings (tests that start
+    many apps load the models once), else loaded at start-up."""
     settings = settings or Settings()
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         guard.summarise_accept_failures(asyncio.get_running_loop())
         frames.configure_io(settings.model_threads)  # decoding runs when the model does not
-        registry_models = await asyncio.to_thread(ModelRegistry, settings)
+        registry_models = loaded or await asyncio.to_thread(ModelRegistry, settings)
         await asyncio.to_thread(registry_models.warm_up)
         pool = ThreadPoolExecutor(settings.worker_count, thread_name_prefix="quietframe-frame")
         registry = await asyncio.to_thread(

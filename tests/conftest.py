@@ -166,14 +166,34 @@ def service_settings(**overrides):
     return Settings(**base)
 
 
+_LOADED: dict[tuple, object] = {}  # the installed models, loaded once per (threads, default)
+
+
+def loaded_models(settings):
+    """A model registry for `settings`, shared by the apps of this test run where the settings
+    install nothing of their own (loading every model costs ~1 s an app); None otherwise."""
+    from quietframe.service.model_registry import ModelRegistry
+
+    if settings.models_dir is not None:
+        return None  # a test's own folder may change between its apps
+    key = (settings.model_threads, settings.default_model)
+    if key not in _LOADED:
+        _LOADED[key] = ModelRegistry(settings)
+    return _LOADED[key]
+
+
+def app_for(settings):
+    from quietframe.service.main import create_app
+
+    return create_app(settings, loaded=loaded_models(settings))
+
+
 def serve(kind: str, **overrides):
     """(started client, server or None): TestClient in-process, or a LiveServer + httpx."""
     if kind == "testclient":
         from fastapi.testclient import TestClient
 
-        from quietframe.service.main import create_app
-
-        client = TestClient(create_app(service_settings(**overrides)))
+        client = TestClient(app_for(service_settings(**overrides)))
         client.__enter__()
         return client, None
     import httpx
@@ -198,9 +218,7 @@ class LiveServer:
 
         import uvicorn
 
-        from quietframe.service.main import create_app
-
-        self.app = create_app(service_settings(**overrides))
+        self.app = app_for(service_settings(**overrides))
         config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)

@@ -25,7 +25,7 @@ def test_card_reports_architecture_data_speed_and_metrics(tmp_path):
                       version="7", training={"variant": "nbg-2l-1g", "data": str(data),
                                              "steps_done": 12}, metrics={"val": 1.0})
     rows = [{"spp": 1, "psnr": 21.5, "ssim": 0.5, "smape": 0.2, "relmse": 0.3, "trmae": 1.25}]
-    card = write_model_card(path, rows, threads=1).read_text()
+    card = write_model_card(path, rows, threads=2).read_text()
     assert card.startswith("# nbg-2l-1g (version 7)")
     assert '"grids": 1' in card and '"steps_done": 12' in card
     # from the ModelCard: composition and tiling (radius 2 cells of 4 px + 2 x 2 layers + 2)

@@ -23,12 +23,11 @@ TOKEN = {"Authorization": "Bearer s3cret"}
 
 
 def app_client(**overrides):
-    from conftest import service_settings
+    """An in-process app (the installed models loaded once per run: conftest.app_for)."""
+    from conftest import app_for, service_settings
     from fastapi.testclient import TestClient
 
-    from quietframe.service.main import create_app
-
-    return TestClient(create_app(service_settings(**overrides)))
+    return TestClient(app_for(service_settings(**overrides)))
 
 
 def new_session(c, headers=None, **body) -> str:

@@ -52,7 +52,7 @@ def defaults(card: ModelCard) -> dict[str, float | int]:
 
 def load(path, tiles):
     try:
-        return Denoiser(path, threads=1, tile_pixels=tiles)
+        return Denoiser(path, threads=2, tile_pixels=tiles)
     except PrepassUnavailable:
         pytest.skip("pyoidn not installed")
 
