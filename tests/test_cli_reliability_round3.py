@@ -209,7 +209,7 @@ def field_or_any(valid: dict) -> st.SearchStrategy:
         {}, optional={k: st.just(v) | json_values for k, v in valid.items()})
 
 
-@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                   HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_any_json_in_a_job_file_is_used_or_ignored(tmp_path_factory, data):
@@ -230,7 +230,7 @@ def test_any_json_in_a_job_file_is_used_or_ignored(tmp_path_factory, data):
     assert bool(warned) == (job_file_problem(stored) is not None)  # warned when ignored
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                    HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_any_json_in_a_record_is_checked_without_error(tmp_path_factory, data):
