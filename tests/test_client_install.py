@@ -27,7 +27,8 @@ def client_venv(tmp_path_factory) -> tuple[Path, dict[str, str]]:
     for tool in TOOLS:
         (fake / tool).write_text(f'#!/bin/sh\necho "$0 $*" >> {called}\nexit 1\n')
         (fake / tool).chmod(0o755)
-    subprocess.run([sys.executable, "-m", "venv", root / "venv"], check=True)
+    # A venv without its own pip (ensurepip costs ~3 s); this pip installs into it (--python)
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", root / "venv"], check=True)
     bin_dir = root / "venv" / "bin"
     # Nothing from this session may leak in: the opt-in to the ops, compilers named by CC/CXX,
     # the working tree on PYTHONPATH (the test runner's), scikit-build-core settings.
@@ -39,8 +40,8 @@ def client_venv(tmp_path_factory) -> tuple[Path, dict[str, str]]:
     }
     env["PATH"] = os.pathsep.join([str(fake), str(bin_dir), env.get("PATH", "")])
     result = subprocess.run(
-        [bin_dir / "python", "-m", "pip", "install", "--disable-pip-version-check", "-q",
-         ".[client]"],
+        [sys.executable, "-m", "pip", "--python", bin_dir / "python", "install",
+         "--disable-pip-version-check", "-q", ".[client]"],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]

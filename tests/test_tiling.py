@@ -30,7 +30,7 @@ TOLERANCE = 1e-5  # of the peak: float rounding (measured: <= 3e-7; affinity and
 
 
 def frames(motion: tuple[float, float], height: int = HEIGHT, width: int = WIDTH,
-           count: int = 3):
+           count: int = 2):  # the second reads the first's history
     for f in range(count):
         b = make_buffers(height, width, seed=1, noise=10 + f)
         yy, xx = np.mgrid[0:height, 0:width]
