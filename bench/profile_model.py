@@ -1,5 +1,6 @@
 """Where a shipped model's time goes: onnxruntime's node profile per op type at 1280×720, per
-graph stage (a staged model's other files too), and the OIDN stages' wall time.
+graph stage (a staged model's other files too), the OIDN stages' wall time, and each of the
+OIDN stage's filters alone (aux prefilters, main filter).
 
     python -m quietframe.bench.profile_model models/affinity-h24.onnx [--option kernel_size=5]
 
@@ -17,11 +18,13 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import onnxruntime as ort
 
 from quietframe.bench.synthetic import frame_buffers
 from quietframe.runtime import Denoiser
 from quietframe.runtime.denoiser import GraphRunner
+from quietframe.runtime.oidn_prepass import OIDNPrepass, _FilterSet, usable_aux
 from quietframe.runtime.ops_library import ops_library_path
 
 
@@ -94,7 +97,38 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {op:28s} {ms:8.1f} ms  {100 * ms / total:5.1f}%")
     if len(graphs) < len(denoiser.stages):
         print(f"OIDN and the rest (wall less graph node time): {frame_ms - graph_total:.0f} ms")
+    if denoiser.prepass is not None:
+        for name, ms in oidn_filter_ms(denoiser.prepass, buffers):
+            print(f"  OIDN {name:23s} {ms:8.0f} ms (median of 3)")
     return 0
+
+
+def oidn_filter_ms(prepass: OIDNPrepass, planes: dict) -> list[tuple[str, float]]:
+    """Each of the OIDN stage's filters timed alone on `planes` (its aux prefilters, then the
+    main filter), as the runtime builds them (runtime/oidn_prepass.py), median of 3 runs."""
+    _, height, width = planes["color"].shape
+    aux = usable_aux(prepass.settings.aux, planes)
+    filters = _FilterSet(prepass._oidn, prepass._device().device, prepass.settings,
+                         (height, width), aux, prepass.max_memory_mb)
+    try:
+        for name in filters.inputs:
+            np.copyto(filters.bound[name], planes[name].transpose(1, 2, 0))
+        settings = prepass.settings
+        names = ([f"{a} prefilter ({settings.aux_quality or settings.quality})" for a in aux]
+                 if settings.prefilter_aux else [])
+        names.append(f"main ({settings.quality}{', cleanAux' if settings.prefilter_aux else ''})")
+        out = []
+        for name, flt in zip(names, filters.filters, strict=True):
+            flt.execute()  # first run: scratch pages
+            times = []
+            for _ in range(3):
+                started = time.perf_counter()
+                flt.execute()
+                times.append((time.perf_counter() - started) * 1e3)
+            out.append((name, float(np.median(times))))
+        return out
+    finally:
+        filters.close()
 
 
 if __name__ == "__main__":
