@@ -38,6 +38,7 @@ class AutoMethod:
         self.default = default_model_path().stem
         self.calibration = load_calibration()
         self.quality = quality
+        self.renderer = renderer  # the row order an OIDN stage sees follows it
         self.header_spp: float | None = None  # what the frame header states, where it does
         self.choices: Counter[str] = Counter()  # model -> shots it was chosen for
         self.current: RuntimeMethod | None = None
@@ -54,6 +55,6 @@ class AutoMethod:
             pick = choose(tuple(planes), noise, self.profiles, self.default,
                           quality=self.quality, pixels=h * w)
             self.choices[pick.model] += 1
-            self.current = RuntimeMethod(self.denoisers[pick.model])
+            self.current = RuntimeMethod(self.denoisers[pick.model], renderer=self.renderer)
             self.current.header_spp = pick.spp  # what the service gives a model that takes it
         return self.current(planes)

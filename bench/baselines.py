@@ -451,6 +451,8 @@ class OIDNDenoiser:
     `aux_quality`, default the main filter's) and the main filter is told `cleanAux` (OIDN's
     documented workflow for noisy auxiliary buffers; Blender's Accurate prefilter). `aux`
     chooses what OIDN is given besides the colour (a normal only together with an albedo).
+    `renderer`: the frames' renderer (OIDN sees the rows in its order, as the runtime's stage
+    does: runtime/oidn_prepass.py rows_bottom_up).
     """
 
     def __init__(
@@ -460,6 +462,7 @@ class OIDNDenoiser:
         num_threads: int = 0,
         aux: tuple[str, ...] = ("albedo", "normal"),
         aux_quality: str = "",
+        renderer: str | None = None,
     ) -> None:
         from quietframe.runtime.oidn_prepass import QUALITIES, OIDNPrepass, OIDNSettings
 
@@ -468,6 +471,7 @@ class OIDNDenoiser:
         self.quality, self.prefilter_aux = quality, prefilter_aux
         settings = OIDNSettings(quality, prefilter_aux, aux=aux, aux_quality=aux_quality)
         self._prepass = OIDNPrepass(settings, num_threads)
+        self.renderer = renderer
 
     def reset(self) -> None:
         """Single-frame: nothing to forget (resources are kept for the next frame)."""
@@ -475,7 +479,7 @@ class OIDNDenoiser:
     def __call__(self, buffers: dict[str, np.ndarray]) -> np.ndarray:
         color, albedo, normal, _, _ = _canonical(buffers)
         planes = planes_from_hwc({"color": color, "albedo": albedo, "normal": normal})
-        return self._prepass(planes)[0].transpose(1, 2, 0)
+        return self._prepass(planes, self.renderer)[0].transpose(1, 2, 0)
 
     def close(self) -> None:
         """Release filters, then the device, then the memory they were bound to."""

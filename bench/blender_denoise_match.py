@@ -10,9 +10,11 @@ the main filter's quality, then the RT filter with hdr, srgb off, cleanAux, qual
 inputScale (colour = the sum of the samples: OIDN's auto-exposure makes that scale irrelevant).
 The one difference is the orientation: Cycles' render buffers hold the image bottom-up (row 0 is
 the image's bottom row), EXRs and the service's decoder top-down, and OIDN's network is not
-flip-equivariant. Denoised upside down (`bottom-up`), the stage reproduces Blender's `Combined`
-to the half-float rounding of the stored output (about 92 dB tone-mapped PSNR; ~48-51 dB as
-decoded). `flip-ensemble` is the mean of both orientations (twice OIDN's time).
+flip-equivariant. Denoised upside down (`bottom-up`: the stage told the frames are Cycles', as the
+service tells it from the header; runtime/oidn_prepass.py rows_bottom_up), the stage reproduces
+Blender's `Combined` to the half-float rounding of the stored output (about 92 dB tone-mapped
+PSNR; ~48-51 dB as decoded). `flip-ensemble` is the mean of both orientations (twice OIDN's
+time).
 
 Per shot and spp: mean over frames of the tone-mapped PSNR (model/metrics, as zoo_eval) of each
 method against Blender's `Combined` (the method's output rounded to half, as Blender's is) and
@@ -36,15 +38,10 @@ from quietframe.scenes.zoo_shots import ZOO_SPLITS, zoo_dir
 METHODS = ("top-down", "bottom-up", "flip-ensemble")
 
 
-def _flip_rows(buffers: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    return {k: np.ascontiguousarray(v[::-1]) for k, v in buffers.items()}
-
-
-def denoise(stage, buffers: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The stage's output (H, W, 3) as decoded (top-down), as Cycles orients it (bottom-up),
+def denoise(stages: dict, buffers: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The stage's output (H, W, 3) in the stored row order (top-down), in Cycles' (bottom-up),
     and their mean."""
-    top = stage(buffers)
-    bottom = stage(_flip_rows(buffers))[::-1]
+    top, bottom = stages["top-down"](buffers), stages["bottom-up"](buffers)
     return {"top-down": top, "bottom-up": bottom, "flip-ensemble": 0.5 * (top + bottom)}
 
 
@@ -52,7 +49,7 @@ def _mean_psnr(outputs: list[np.ndarray], targets: list[np.ndarray]) -> float:
     return float(np.mean([metrics.psnr(o, t) for o, t in zip(outputs, targets, strict=True)]))
 
 
-def score_shot(folder: Path, spp: int, stage) -> dict:
+def score_shot(folder: Path, spp: int, stages: dict) -> dict:
     """One shot at one spp: per method PSNR to Blender's denoise and to the reference."""
     outs: dict[str, list] = {m: [] for m in METHODS}
     blender, reference = [], []
@@ -60,7 +57,7 @@ def score_shot(folder: Path, spp: int, stage) -> dict:
     for t in range(n):
         frame = cycles_io.load_frame(folder, t, spp)
         buffers = {k: frame[k] for k in ("color", "albedo", "normal", "depth", "motion")}
-        for name, out in denoise(stage, buffers).items():
+        for name, out in denoise(stages, buffers).items():
             outs[name].append(np.asarray(out, np.float32))
         blender.append(frame["blender_denoise"][..., :3])
         reference.append(frame["reference"][..., :3])
@@ -87,7 +84,9 @@ def main(argv: list[str] | None = None) -> int:
                if not args.shots or f.parent.name in args.shots.split(",")]
     if not folders:
         raise SystemExit(f"no zoo shots under {root}")
-    stage = OIDNDenoiser("high", prefilter_aux=True, num_threads=args.threads)
+    stages = {order: OIDNDenoiser("high", prefilter_aux=True, num_threads=args.threads,
+                                  renderer=renderer)
+              for order, renderer in (("top-down", None), ("bottom-up", "cycles"))}
     rows = []
     print("| shot | spp | Blender→ref | " + " | ".join(
         f"{m} →Blender | {m} →ref (Δ)" for m in METHODS) + " |")
@@ -95,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for folder in folders:
             for spp in (int(s) for s in args.spp.split(",")):
-                row = score_shot(folder, spp, stage)
+                row = score_shot(folder, spp, stages)
                 rows.append(row)
                 b = row["blender_to_ref"]
                 cells = [f"{row[m]['to_blender']:.2f} | {row[m]['to_ref']:.2f} "
@@ -103,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"| {row['shot']} | {spp} | {b:.2f} | " + " | ".join(cells) + " |",
                       flush=True)
     finally:
-        stage.close()
+        for stage in stages.values():
+            stage.close()
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     return 0

@@ -59,7 +59,8 @@ def give_header_spp(method, renderer: str, spp: float) -> None:
 
 
 def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
-                   single_frame: bool) -> dict[str, Callable[[], object]]:
+                   single_frame: bool, renderer: str | None = None,
+                   ) -> dict[str, Callable[[], object]]:
     """Extra methods of one model: `<name>@k<size>` per requested kernel size the model accepts
     other than its default (models without a kernel_size input get none), and `<name>/frame`
     (history cleared every frame) when `single_frame` and the model keeps state."""
@@ -70,9 +71,10 @@ def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
         for k in kernel_sizes:
             if k != spec.default and (spec.allowed is None or k in spec.allowed):
                 methods[f"{path.stem}@k{k}"] = lambda k=k: RuntimeMethod(
-                    path, threads, {"kernel_size": k})
+                    path, threads, {"kernel_size": k}, renderer=renderer)
     if single_frame and info.state_specs:
-        methods[f"{path.stem}/frame"] = lambda: RuntimeMethod(path, threads, single_frame=True)
+        methods[f"{path.stem}/frame"] = lambda: RuntimeMethod(path, threads, single_frame=True,
+                                                              renderer=renderer)
     return methods
 
 
@@ -105,7 +107,8 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
                   ) -> dict[str, Callable[[], object]]:
     """Method name -> factory (each sequence gets fresh state through reset()). `extra`: more
     .onnx files (e.g. fresh training runs), named by file stem. `kernel_sizes` and
-    `single_frame` (model names) add model_variants. Cycles data adds Blender's denoise."""
+    `single_frame` (model names) add model_variants. Cycles data adds Blender's denoise. Every
+    OIDN call sees the rows in `renderer`'s order, as the service's does for its frames."""
     from quietframe.bench import baselines
 
     models = {p.stem: p for p in (*installed_models(), *extra)}
@@ -113,22 +116,25 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
     if renderer == "cycles":
         methods["blender-denoise"] = BlenderDenoise
     if "accumulation" in models:
-        methods["accumulation"] = lambda: RuntimeMethod(models["accumulation"], threads)
+        methods["accumulation"] = lambda: RuntimeMethod(models["accumulation"], threads,
+                                                        renderer=renderer)
     methods["svgf"] = lambda: ImageMethod(baselines.SVGFStyleFilter(num_threads=threads))
     for quality in ("fast", "balanced", "high"):
         methods[f"oidn-{quality}"] = (
-            lambda q=quality: ImageMethod(baselines.OIDNDenoiser(q, num_threads=threads)))
+            lambda q=quality: ImageMethod(baselines.OIDNDenoiser(q, num_threads=threads,
+                                                                 renderer=renderer)))
     methods["oidn-high-cleanaux"] = lambda: ImageMethod(baselines.OIDNDenoiser(
-        "high", prefilter_aux=True, num_threads=threads))
+        "high", prefilter_aux=True, num_threads=threads, renderer=renderer))
     for aux_quality in ("fast", "balanced"):  # a cheaper prefilter of the aux alone
         methods[f"oidn-high-cleanaux-{aux_quality}"] = lambda q=aux_quality: ImageMethod(
             baselines.OIDNDenoiser("high", prefilter_aux=True, num_threads=threads,
-                                   aux_quality=q))
+                                   aux_quality=q, renderer=renderer))
     # the SID add-on's temporal mode: its defaults (fake motion blur on), and without the blur
     from quietframe.bench.sid_temporal import SIDTemporal
 
-    methods["sid-temporal-default"] = lambda: SIDTemporal(num_threads=threads)
-    methods["sid-temporal"] = lambda: SIDTemporal(motion_blur=False, num_threads=threads)
+    methods["sid-temporal-default"] = lambda: SIDTemporal(num_threads=threads, renderer=renderer)
+    methods["sid-temporal"] = lambda: SIDTemporal(motion_blur=False, num_threads=threads,
+                                                  renderer=renderer)
     if models:  # the service's choice among the installed models (bench/auto_method.py)
         from quietframe.bench.auto_method import AutoMethod
 
@@ -136,9 +142,10 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
         methods["auto"] = lambda: AutoMethod(installed, threads, renderer)
     for name, path in models.items():
         if name != "accumulation":
-            methods[name] = lambda p=path: RuntimeMethod(p, threads)
+            methods[name] = lambda p=path: RuntimeMethod(p, threads, renderer=renderer)
         if kernel_sizes or name in single_frame:
-            methods |= model_variants(path, threads, kernel_sizes, name in single_frame)
+            methods |= model_variants(path, threads, kernel_sizes, name in single_frame,
+                                      renderer)
     return methods
 
 

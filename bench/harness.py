@@ -50,13 +50,17 @@ class RuntimeMethod:
     model's run-time inputs (kernel_size); `zeros_for_required`: absent required buffers are
     fed as zeros (what the model would see without them: the absence table). `header_spp`:
     the spp the frame header states (set by the evaluation where the renderer writes one),
-    given as the service gives it to a model that takes the frame's spp (SAMPLES_INPUT)."""
+    given as the service gives it to a model that takes the frame's spp (SAMPLES_INPUT).
+    `renderer`: the frames' renderer, given to the runtime as the service gives it the one its
+    header names (an OIDN stage's row order follows it)."""
 
     def __init__(self, path: Path | Denoiser, threads: int = 2, options: dict | None = None,
-                 single_frame: bool = False, zeros_for_required: bool = False) -> None:
+                 single_frame: bool = False, zeros_for_required: bool = False,
+                 renderer: str | None = None) -> None:
         self.denoiser = path if isinstance(path, Denoiser) else Denoiser(
             path, threads=threads, options=options)
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
+        self.renderer = renderer
         self.state: dict | None = None
         self.header_spp: float | None = None
         self.dropped = 0  # frames whose history was not used: moved without motion vectors
@@ -79,7 +83,8 @@ class RuntimeMethod:
         if self.denoiser.info.state_specs:  # the service's rule for history without vectors
             gate = gate_history(planes, self.state)
             self.dropped += gate.dropped
-        result = self.denoiser.denoise(planes, gate.state if gate else self.state, options)
+        result = self.denoiser.denoise(planes, gate.state if gate else self.state, options,
+                                       self.renderer)
         self.state = keep_probe(result.state, gate.probe) if gate else result.state
         return result.color
 

@@ -239,13 +239,13 @@ class _Frame:
     opens_shot: bool = False  # the first frame after a reset
 
 
-def oidn_per_frame(num_threads: int = 0) -> ImageMethod:
-    """OIDN as Blender's Denoise node runs it (high, albedo + normal, prefiltered aux); raises
-    PrepassUnavailable without pyoidn."""
+def oidn_per_frame(num_threads: int = 0, renderer: str | None = None) -> ImageMethod:
+    """OIDN as Blender's Denoise node runs it (high, albedo + normal, prefiltered aux, rows in
+    the renderer's order); raises PrepassUnavailable without pyoidn."""
     from quietframe.bench import baselines
 
     return ImageMethod(baselines.OIDNDenoiser("high", prefilter_aux=True,
-                                              num_threads=num_threads))
+                                              num_threads=num_threads, renderer=renderer))
 
 
 class SIDTemporal:
@@ -263,7 +263,8 @@ class SIDTemporal:
                  samples: int = MB_SAMPLES, shutter: float = MB_SHUTTER,
                  previous_vectors: Literal["previous", "current"] = "previous",
                  num_threads: int = 0,
-                 per_frame: Callable[[Planes], np.ndarray] | None = None) -> None:
+                 per_frame: Callable[[Planes], np.ndarray] | None = None,
+                 renderer: str | None = None) -> None:
         if filter_source not in ("image", "albedo", "depth"):
             raise ValueError(f"SIDTemporal: filter_source must be image, albedo or depth: "
                              f"{filter_source!r}")
@@ -273,7 +274,8 @@ class SIDTemporal:
         self.motion_blur, self.threshold, self.radius = motion_blur, threshold, radius
         self.filter_source, self.samples, self.shutter = filter_source, samples, shutter
         self.previous_vectors = previous_vectors
-        self.per_frame = per_frame if per_frame is not None else oidn_per_frame(num_threads)
+        self.per_frame = (per_frame if per_frame is not None
+                          else oidn_per_frame(num_threads, renderer))
         self._prev: _Frame | None = None
         self._ahead: tuple[np.ndarray, _Frame] | None = None  # (frame t+1's colour, its stage)
         self._warned = False

@@ -387,11 +387,13 @@ class Denoiser:
 
     def denoise(
         self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
-        options: Mapping[str, float | int] | None = None,
+        options: Mapping[str, float | int] | None = None, renderer: str | None = None,
     ) -> DenoiseResult:
         """Denoise one frame of (C, H, W) float32 planes. `state` is the previous frame's
         `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut).
-        `options` overrides the Denoiser's options for this call."""
+        `options` overrides the Denoiser's options for this call. `renderer`: the frame's,
+        where known (an OIDN stage gives OIDN the rows in that renderer's order:
+        runtime/oidn_prepass.py)."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
         feeds |= self._options(self._option_feeds, options) if options else self._option_feeds
         new_state: dict[str, np.ndarray] = {}
@@ -402,7 +404,7 @@ class Denoiser:
                 # aux buffer is left out (OIDN then runs without it), not given as zeros.
                 oidn_planes = {name: feeds[name][0] for name in PREPASS_BUFFERS[1:]
                                if name not in missing}
-                feeds[stage.input] = self.prepass({"color": color[0], **oidn_planes})
+                feeds[stage.input] = self.prepass({"color": color[0], **oidn_planes}, renderer)
                 continue
             output, stage_state = stage.run(feeds, state, height, width)
             clean, bad = sanitize_output(output[0])

@@ -24,6 +24,14 @@ overlap) to fit its `maxMemoryMB`, which the runtime sets from its one memory bo
 binds numpy memory zero-copy without keeping it alive: every bound array is held by the filter
 set that binds it, frames are copied into those arrays, and filters are released before their
 arrays.
+
+Row order: OIDN's network is not flip-equivariant, so the same frame denoised top-down and
+bottom-up differs (up to ~0.3 dB a shot). Cycles hands OIDN its buffers bottom-up (Blender's
+images start at the bottom row); EXRs and the service's planes are top-down. For a frame whose
+renderer denoises bottom-up (`BOTTOM_UP_RENDERERS`), the stage gives OIDN the rows in that
+order, so its per-frame output is the renderer's own denoise (Blender's `Combined` to the
+half-float rounding of the stored file: bench/blender_denoise_match.py), the baseline a farm
+compares with; every other frame keeps the stored order.
 """
 
 from __future__ import annotations
@@ -40,6 +48,7 @@ QUALITIES = {"fast": "OIDN_QUALITY_FAST", "balanced": "OIDN_QUALITY_BALANCED",
 PREPASS_KEY = PREFIX + "prepass"
 PREPASS_BUFFERS = ("color", "albedo", "normal")  # what OIDN reads, as (3, H, W) planes
 OIDN_DEFAULT_MAX_MEMORY_MB = 3000  # OIDN 2's CPU default for maxMemoryMB
+BOTTOM_UP_RENDERERS = frozenset({"cycles"})  # renderers whose own OIDN call sees rows bottom-up
 
 OIDNSettings = OIDNStage  # the prepass settings are the card's OIDN stage (runtime/card.py)
 
@@ -64,6 +73,12 @@ def import_pyoidn():
             "this model runs Open Image Denoise first and needs the pyoidn package "
             "(pip install 'quietframe[oidn]')") from exc
     return pyoidn
+
+
+def rows_bottom_up(renderer: str | None) -> bool:
+    """Whether OIDN is given a frame of `renderer` bottom-up, as that renderer's own denoise
+    gives it (module docstring); None (unknown) keeps the stored top-down order."""
+    return renderer in BOTTOM_UP_RENDERERS
 
 
 def usable_aux(wanted: tuple[str, ...], present: Iterable[str]) -> tuple[str, ...]:
@@ -113,13 +128,15 @@ class _FilterSet:
         flt.commit()
         _check(self._device, "filter commit")
 
-    def run(self, planes: Mapping[str, np.ndarray], out: np.ndarray) -> None:
-        for name in self.inputs:
-            np.copyto(self.bound[name], planes[name].transpose(1, 2, 0))  # (3,H,W) -> (H,W,3)
+    def run(self, planes: Mapping[str, np.ndarray], out: np.ndarray,
+            bottom_up: bool = False) -> None:
+        rows = slice(None, None, -1) if bottom_up else slice(None)  # the copies reorder rows
+        for name in self.inputs:  # (3, H, W) -> (H, W, 3)
+            np.copyto(self.bound[name], planes[name][:, rows].transpose(1, 2, 0))
         for flt in self.filters:
             flt.execute()
             _check(self._device, "execute")
-        np.copyto(out, self.bound["output"].transpose(2, 0, 1))
+        np.copyto(out, self.bound["output"][rows].transpose(2, 0, 1))
 
     def close(self) -> None:
         for flt in self.filters:  # filters first, then (by dropping them) the bound arrays
@@ -180,17 +197,19 @@ class OIDNPrepass:
         scratch = self.max_memory_mb if self.max_memory_mb else OIDN_DEFAULT_MAX_MEMORY_MB
         return arrays * 12 * height * width + int(scratch * 2**20)
 
-    def __call__(self, planes: Mapping[str, np.ndarray]) -> np.ndarray:
+    def __call__(self, planes: Mapping[str, np.ndarray],
+                 renderer: str | None = None) -> np.ndarray:
         """OIDN's output (1, 3, H, W) float32 for sanitised (3, H, W) planes: the colour, and
         the settings' aux images the frame has (absent ones are not given to OIDN: it filters
-        the colour alone, or with the albedo alone, rather than read zeros as a black albedo)."""
+        the colour alone, or with the albedo alone, rather than read zeros as a black albedo).
+        `renderer` (the frame's, where known) sets the row order OIDN sees (rows_bottom_up)."""
         _, height, width = planes["color"].shape
         out = np.empty((1, 3, height, width), np.float32)
         aux = usable_aux(self.settings.aux, planes)
         filter_set = _FilterSet(self._oidn, self._device().device, self.settings,
                                 (height, width), aux, self.max_memory_mb)
         try:
-            filter_set.run(planes, out[0])
+            filter_set.run(planes, out[0], rows_bottom_up(renderer))
         finally:
             filter_set.close()  # its scratch and bound arrays go with it (module docstring)
         with self._lock:

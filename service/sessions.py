@@ -326,10 +326,12 @@ def process_frame(
     state: dict[str, np.ndarray] | None,
     choice: Choice | None = None,
     samples: float | None = None,
+    renderer: str | None = None,
 ) -> _Processed:
     """Decode, denoise, encode one frame (worker thread; touches no session field). `state`
     is None when the history starts afresh; `choice` (model=auto) is said in a header;
-    `samples`: the frame's spp where known (a model that takes it is given it)."""
+    `samples`: the frame's spp where known (a model that takes it is given it); `renderer`:
+    which renderer wrote it, where the header says (the row order OIDN sees follows it)."""
     start = time.perf_counter()
     frame = frames.decode(body, sources)
     decoded = time.perf_counter()
@@ -340,7 +342,7 @@ def process_frame(
     if gate is not None and gate.dropped:
         assert gate.evidence is not None
         reset = Reset.DETECTED_CUT if gate.evidence.verdict == "cut" else Reset.NO_MOTION
-    result = denoiser.denoise(frame.buffers, gate.state if gate else state, options)
+    result = denoiser.denoise(frame.buffers, gate.state if gate else state, options, renderer)
     new_state = keep_probe(result.state, gate.probe) if gate else result.state
     denoised = time.perf_counter()
     info = denoiser.info
@@ -656,6 +658,7 @@ class SessionRegistry:
             frame = await self._on_pool(
                 process_frame, denoiser, spec, index, body, sources, plan, history, choice,
                 frame_samples(header, spec, choice),
+                model_choice.renderer_from_header(header.attributes),
             )
             self._reserve_reply(session, len(frame.reply.body), info)
             if self.store is not None:

@@ -154,9 +154,9 @@ def test_runtime_runs_oidn_first_with_a_device_per_thread_and_filters_per_frame(
     class Spy:
         settings = prepass.settings
 
-        def __call__(self, planes):
+        def __call__(self, planes, renderer=None):
             seen.append(sorted(planes))
-            out = original(planes)
+            out = original(planes, renderer)
             seen.append(out)
             return out
 
@@ -406,9 +406,9 @@ def test_color_from_runs_that_model_first_and_carries_its_state(accumulated_tier
     class Spy:
         settings = runtime.prepass.settings
 
-        def __call__(self, planes):
+        def __call__(self, planes, renderer=None):
             seen.append(planes["color"].copy())
-            return original(planes)
+            return original(planes, renderer)
 
     runtime.prepass = Spy()
     def noisy(index: int) -> dict[str, np.ndarray]:  # noise of its own in every frame
