@@ -23,6 +23,7 @@ COPY runtime runtime
 COPY service service
 COPY client client
 COPY bench bench
+COPY experiments experiments
 COPY models models
 # The op library is built only on request (pyproject.toml); scikit-build-core then fetches
 # CMake and Ninja from PyPI into the isolated build environment.

@@ -1,6 +1,7 @@
 """The one evaluation harness: every method takes a frame's planes and returns its denoised
-planes, and one loop scores a sequence. quietframe-eval (evaluate.py), auto_choice.py,
-oidn_accumulated.py and trmae_floor.py all run their methods through `score_sequence`.
+planes, and one loop scores a sequence. quietframe-eval (evaluate.py), auto_choice.py and
+the experiments that score methods (experiments/oidn_accumulated.py, trmae_floor.py) all run
+their methods through `score_sequence`.
 
 A method is the runtime's layout end to end: `reset()` (a new sequence or a camera cut) and
 `__call__(planes) -> (3, H, W)`, planes as the runtime takes them ((C, H, W) float32 by
@@ -23,7 +24,7 @@ import numpy as np
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser
 from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
-from quietframe.runtime.card import SAMPLES_INPUT
+from quietframe.runtime.model_options import options_for
 from quietframe.runtime.motion_evidence import gate_history, keep_probe
 
 Planes = dict[str, np.ndarray]  # canonical name -> (C, H, W) float32
@@ -76,9 +77,7 @@ class RuntimeMethod:
             planes = {**planes, **{name: np.zeros((BUFFER_CHANNELS[name], h, w), np.float32)
                                    for name in self.denoiser.info.required_buffers
                                    if name not in planes}}
-        takes_spp = any(i.name == SAMPLES_INPUT for i in self.denoiser.info.inputs)
-        options = ({SAMPLES_INPUT: max(1.0, float(self.header_spp))}
-                   if takes_spp and self.header_spp is not None else None)
+        options = options_for(self.denoiser.info, {}, self.header_spp)  # the service's rule
         gate = None
         if self.denoiser.info.state_specs:  # the service's rule for history without vectors
             gate = gate_history(planes, self.state)

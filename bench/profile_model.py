@@ -2,7 +2,7 @@
 graph stage (a staged model's other files too), the OIDN stages' wall time, and each of the
 OIDN stage's filters alone (aux prefilters, main filter).
 
-    python -m quietframe.bench.profile_model models/affinity-h24.onnx [--option kernel_size=5]
+    python -m quietframe.bench.profile_model models/affinity-h16-k5gc.onnx [--option kernel_size=5]
 
 Runs the model through quietframe.runtime with its history carried, on a session built like the
 runtime's (same threads, optimisation level, custom ops) but with profiling on, and prints per

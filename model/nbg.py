@@ -45,7 +45,7 @@ class NBGConfig:
     # The clamp's bound never goes below this multiple of the frame's mean luminance (0: no
     # floor). With a floor only pixels that are outliers of their neighbours AND far above the
     # frame's level are pulled back: a 1-spp frame's sparse lit pixels (~10× the mean) pass,
-    # LED fireflies (100–1000×) do not. bench/clamp_energy.py on 22 validation frames: the 3σ
+    # LED fireflies (100–1000×) do not. experiments/clamp_energy.py on 22 validation frames: the 3σ
     # clamp kept 61% of the 1-spp energy, with a floor of 128 means 87%, none 100%.
     outlier_floor: float = 0.0
     # Keep the accumulated history only where the motion is pixel-aligned

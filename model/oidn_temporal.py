@@ -36,7 +36,7 @@ STATE_SLICES = {"output": (0, 3), "history": (3, 6), "features": (6, 6 + FEATURE
 STATE_CHANNELS = 10 + FEATURES
 # Net input: tonemap(D) 3, albedo 3, normal 3, tonemap(W L̄)·g 3, g 1. Lean on purpose: at 720p
 # every full-frame plane of elementwise work costs ~1 ms and the stage's budget is 15% of OIDN's
-# time (bench/oidn_temporal.py); depth enters through the surface test g, not the net.
+# time (experiments/oidn_temporal_speed.py); depth enters through the surface test g, not the net.
 NET_INPUT_CHANNELS = 13
 # Net output: f (8), bandwidth a, centre c, temporal bandwidth b, λ.
 NET_OUTPUT_CHANNELS = FEATURES + 4
@@ -128,8 +128,8 @@ VARIANTS: dict[str, OIDNTemporalConfig] = {
                                              width=12, layers=2),
     "oidn-temporal-acc": OIDNTemporalConfig(name="oidn-temporal-acc",
                                             color_from="accumulation.onnx"),
-    # OIDN-fast on the accumulation: within ~0.1 dB of OIDN-high on it (validation,
-    # bench/oidn_accumulated.py --quality fast) at about half of OIDN-high's time. Shipped as v1
+    # OIDN-fast on the accumulation: within ~0.1 dB of OIDN-high on it (validation, experiments/
+    # oidn_accumulated.py --quality fast) at about half of OIDN-high's time. Shipped as v1
     # until oidn-fast-acc (no learned stage) measured better and faster on the full validation
     # split (docs/oidn-temporal.md); kept for that comparison. Full-
     # resolution CNN: with net_scale 2 the stage trained (800 steps) to 0.45-0.65 dB below

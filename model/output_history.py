@@ -61,7 +61,7 @@ class OutputHistoryConfig:
     # default_spp). Chosen on the Cycles validation split (8 moving sequences), per spp the
     # floor with the largest gain over OIDN on the frame: 1-4 spp 0.35, 8 spp 0.5, 16 spp 0.6,
     # 64 spp 0.7-0.85 (a constant 0.5 lost 0.04 dB at 64 spp; the schedule's worst gain over
-    # 1-64 spp is +0.07 dB; bench/output_history.py --resampled-weights,
+    # 1-64 spp is +0.07 dB; experiments/output_history.py --resampled-weights,
     # docs/evaluation/cycles-history/README.md).
     resampled_weight: float = 0.35
     resampled_weight_per_doubling: float = 0.075

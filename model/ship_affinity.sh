@@ -33,7 +33,7 @@ if [ "$STAGE" = evaluate ]; then
 r = json.loads(pathlib.Path('docs/auto_choice.json').read_text()); \
 a.update_section(pathlib.Path('docs/benchmarks.md'), a.section(r, list(r['rows'][0]['fixed'])))"
     if [ "${SWEEP:-1}" != 0 ]; then
-        "$PY" -m quietframe.bench.affinity_sweep --kernel-sizes 5 9 13 --repeats 3 \
+        "$PY" -m quietframe.experiments.affinity_sweep --kernel-sizes 5 9 13 --repeats 3 \
             --runs "$R/sweep" --out docs/affinity-sweep.md
     fi
 fi

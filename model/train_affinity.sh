@@ -4,7 +4,7 @@
 #   queue 1: affinity-h24, the shipped run: 128² crops, 4 frames, batch 4, the kernel size
 #            drawn per step from 5, 9, 13 (one model for the run-time knob), 5 the default
 #   queue 2: the width sweep: affinity-h8/h16/h24/h32 with equal short schedules at kernel
-#            size 5, for validation PSNR per width at equal steps (bench/affinity_sweep.py --runs)
+#            size 5, for validation PSNR per width at equal steps (experiments/affinity_sweep.py --runs)
 # The affinity filters run natively (model/affinity_native.py; 3.5-11x faster steps than the
 # PyTorch reference loop, docs/affinity-training-kernels.md).
 #   nohup nice -n 10 model/train_affinity.sh > ~/.cache/quietframe/logs/train_affinity.log 2>&1 &

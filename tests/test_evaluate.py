@@ -102,7 +102,7 @@ def test_auto_is_the_services_choice_made_once_per_shot(data, tmp_path):
 
 
 def test_normal_absence_scores_a_model_with_and_without_normals(data, capsys):
-    from quietframe.bench import normal_absence
+    from quietframe.experiments import normal_absence
 
     normal_absence.main(["--data", str(data), "--renderer", "mitsuba", "--split", "validation",
                          "--sequences", "1", "--spp", "1", "nbg-2l-3g"])

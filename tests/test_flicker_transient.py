@@ -1,4 +1,4 @@
-"""bench/flicker_transient: the one-history floor and the settled flicker ratio."""
+"""experiments/flicker_transient: the one-history floor and the settled flicker ratio."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("torch")
-from quietframe.bench.flicker_transient import BASE, flicker_ratio, one_history_ratio  # noqa: E402
+from quietframe.experiments.flicker_transient import BASE, flicker_ratio, one_history_ratio  # noqa: E402
 from quietframe.model.temporal import MIN_CURRENT_WEIGHT  # noqa: E402
 
 

@@ -1,4 +1,4 @@
-"""bench/history_keep: the surface test's verdict on a locked-off shot, synthetic frames."""
+"""experiments/history_keep: the surface test's verdict on a locked-off shot, synthetic frames."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("torch")
-from quietframe.bench.history_keep import measure_sequence  # noqa: E402
+from quietframe.experiments.history_keep import measure_sequence  # noqa: E402
 
 
 def locked_off(frames: int, normal_jitter: float, seed: int = 0) -> list[dict[str, np.ndarray]]:

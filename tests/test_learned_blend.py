@@ -1,5 +1,5 @@
 """model/learned_blend.py: the learned per-pixel blend of the output history (issue 24's
-ablation), and bench/learned_blend.py's training step."""
+ablation), and experiments/learned_blend.py's training step."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import random
 import pytest
 
 torch = pytest.importorskip("torch")
-from quietframe.bench import learned_blend as bench  # noqa: E402
+from quietframe.experiments import learned_blend as bench  # noqa: E402
 from quietframe.model.learned_blend import LearnedBlendHistory  # noqa: E402
 from quietframe.model.output_history import OutputHistory  # noqa: E402
 

@@ -96,9 +96,9 @@ def test_accumulation_model_has_no_clamp_and_nbg_variants_keep_theirs():
 
 
 def test_clamp_energy_bench_measures_the_pre_stage_clamp():
-    """bench/clamp_energy.py: no clamp keeps the frame; the floored clamp keeps more of a
+    """experiments/clamp_energy.py: no clamp keeps the frame; the floored clamp keeps more of a
     sparse frame's energy than the plain 3σ one; a frame scored against itself is exact."""
-    from quietframe.bench.clamp_energy import clamped, figures
+    from quietframe.experiments.clamp_energy import clamped, figures
 
     color = _sparse_frame(2)
     albedo = torch.full_like(color, 0.5)

@@ -1,6 +1,7 @@
 """The oidn-history tiers (model/output_history.py): the stage's behaviour in PyTorch, the
 composition (aligned accumulation -> OIDN -> output history) through the runtime against the
-same steps in PyTorch, and the stage against the ablation row it ships (bench/output_history)."""
+same steps in PyTorch, and the stage against the ablation row it ships
+(experiments/output_history)."""
 
 from __future__ import annotations
 
@@ -148,8 +149,8 @@ class _Given:
 
 
 def test_the_stage_is_the_ablation_row_it_ships():
-    """The shipped stage computes what bench/output_history's `+hybrid` history measured."""
-    from quietframe.bench.output_history import OutputHistory as AblationRow
+    """The shipped stage computes what experiments/output_history's `+hybrid` history measured."""
+    from quietframe.experiments.output_history import OutputHistory as AblationRow
 
     frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:] + surface(
         2, (-2.0, 1.0), seed=2)[1:]
@@ -237,8 +238,9 @@ def test_runtime_composition_matches_pytorch_with_state_carried(composed):
 
 
 def test_the_weight_ablations_spp_row_is_the_shipped_stage():
-    """bench/history_weight's `w(spp)` row computes what the shipped stage does at that spp."""
-    from quietframe.bench.history_weight import HistoryRule
+    """experiments/history_weight's `w(spp)` row computes what the shipped stage does at that
+    spp."""
+    from quietframe.experiments.history_weight import HistoryRule
 
     frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:]
     for spp in (1.0, 64.0):

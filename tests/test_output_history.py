@@ -1,4 +1,4 @@
-"""bench/output_history.OutputHistory: history in output space over a per-frame method."""
+"""experiments/output_history.OutputHistory: history in output space over a per-frame method."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("torch")
-from quietframe.bench.output_history import OutputHistory  # noqa: E402
+from quietframe.experiments.output_history import OutputHistory  # noqa: E402
 from quietframe.model import metrics  # noqa: E402
 
 
@@ -65,7 +65,7 @@ def test_clamp_keeps_the_output_within_the_frame_neighbourhood():
 def test_accumulated_oidn_is_the_shipped_oidn_acc_and_aligned_drops_sub_pixel_history():
     pytest.importorskip("pyoidn")
     from quietframe.bench.harness import RuntimeMethod
-    from quietframe.bench.output_history import accumulated_oidn
+    from quietframe.experiments.output_history import accumulated_oidn
     from quietframe.runtime import find_model
 
     rng = np.random.default_rng(3)
@@ -99,7 +99,7 @@ def test_the_bench_scores_every_row_on_a_split(tmp_path, capsys):
 
     from dataset_support import write_sequence
 
-    from quietframe.bench.output_history import CANDIDATES, main
+    from quietframe.experiments.output_history import CANDIDATES, main
     from quietframe.scenes.generator import GENERATOR_VERSION
 
     write_sequence(tmp_path / GENERATOR_VERSION / "test", 41, frames=3, levels=(1,), noise=0.5)

@@ -301,8 +301,8 @@ def test_attribute_that_cannot_be_written_back_is_dropped_not_fatal():
 
 
 def test_output_passes_benchmark_runs(capsys):
-    """bench/output_passes.py at a tiny size: complete outputs hold more than the beauty."""
-    from quietframe.bench import output_passes
+    """experiments/output_passes.py at a tiny size: complete outputs hold more than the beauty."""
+    from quietframe.experiments import output_passes
 
     assert output_passes.main(["--width", "32", "--height", "18", "--repeats", "1",
                                "--warmup", "0", "--compression", "zip"]) == 0

@@ -1,5 +1,5 @@
-"""bench/trmae_floor.py's pure parts: the floor from arrays, the cache, a method's TRMAE at given
-frames. No rendering."""
+"""experiments/trmae_floor.py's pure parts: the floor from arrays, the cache, a method's TRMAE
+at given frames. No rendering."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.bench import trmae_floor
+from quietframe.experiments import trmae_floor
 from quietframe.model import metrics
 
 RNG = np.random.default_rng(11)

@@ -4,7 +4,9 @@ import site
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDERS = ["model", "scenes", "export", "runtime", "service", "client", "bench", "models"]
+FOLDERS = [
+    "model", "scenes", "export", "runtime", "service", "client", "bench", "experiments", "models",
+]
 
 target = Path(site.getsitepackages()[0]) / "quietframe"
 target.mkdir(exist_ok=True)

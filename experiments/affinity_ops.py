@@ -1,6 +1,6 @@
 """Micro-benchmark: the affinity-kernel ops at 1280×720, ms per frame.
 
-python -m quietframe.bench.affinity_ops [--threads 1 2] [--repeats 5] [--dilation 4]
+python -m quietframe.experiments.affinity_ops [--threads 1 2] [--repeats 5] [--dilation 4]
                                         [--torch-kernel 13] [--no-torch]
 
 - ai.quietframe::AffinityFilter with kernel sizes 5, 7, 9, 11, 13 (the paper's §5.5.3 knob),

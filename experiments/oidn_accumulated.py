@@ -1,7 +1,7 @@
 """OIDN on the frame vs OIDN on the reprojected accumulation of the noisy colour (the input
 oidn-temporal-acc's prepass gets), per spp: PSNR / TRMAE against the references.
 
-    python -m quietframe.bench.oidn_accumulated [--split validation] [--spp 1,2,4,8]
+    python -m quietframe.experiments.oidn_accumulated [--split validation] [--spp 1,2,4,8]
         [--accumulation models/accumulation.onnx] [--quality high] [--threads 2]
 
 Both through the shipped code: the accumulation model through the runtime (`Denoiser`, state

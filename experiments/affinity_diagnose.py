@@ -1,6 +1,6 @@
 """Why an affinity checkpoint scores what it scores on the validation split (docs/affinity.md).
 
-    python -m quietframe.bench.affinity_diagnose RUN/best.pt [--sequences 12] [--spp 1 8] \
+    python -m quietframe.experiments.affinity_diagnose RUN/best.pt [--sequences 12] [--spp 1 8] \
         [--against models/nbg-2l-3g.onnx]
 
 Through the PyTorch model (quietframe-train's unroll, whole sequences, training's validation

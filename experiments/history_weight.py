@@ -2,7 +2,7 @@
 it to keep. The shipped rule is a weight floor from the frame's spp (model/output_history.py,
 w(spp)); this bench scores it against the alternatives that need no spp, in one run:
 
-    python -m quietframe.bench.history_weight [--split validation] [--spp 1,2,4,8,16,64]
+    python -m quietframe.experiments.history_weight [--split validation] [--spp 1,2,4,8,16,64]
         [--json rows.json]
 
 Rows (each over the same cached per-frame base: the pixel-aligned accumulation then OIDN-high,
@@ -52,7 +52,7 @@ def base_outputs(sequences, oidn) -> tuple[dict, dict, dict]:
     """Per frame of the sequences (by frame_key): OIDN on the pixel-aligned accumulation (the
     history tiers' base, what `oidn-history` composes), OIDN on the frame alone (oidn-frame),
     and the sanitised noisy colour. One OIDN pass per frame, shared by every row."""
-    from quietframe.bench.output_history import RUNTIME_BUFFERS, PreStage
+    from quietframe.experiments.output_history import RUNTIME_BUFFERS, PreStage
     from quietframe.runtime.sanitize import sanitize_buffer
 
     base, frame, noisy = {}, {}, {}

@@ -1,6 +1,6 @@
 """Width sweep of the affinity denoiser for a 2-core CPU (docs/affinity.md).
 
-python -m quietframe.bench.affinity_sweep [--threads 2] [--variants affinity-h8 …]
+python -m quietframe.experiments.affinity_sweep [--threads 2] [--variants affinity-h8 …]
        [--kernel-sizes 5 9 13] [--runs DIR] [--out FILE]
 
 For each variant (model/affinity.py VARIANTS): parameters, network GFLOP per 1280×720 frame

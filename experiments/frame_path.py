@@ -1,7 +1,7 @@
 """What a frame costs outside the model on the service's path: EXR decode, the runtime's work
 around session.run (sanitise, layout, output guard) and EXR encode, per frame size.
 
-    python -m quietframe.bench.frame_path [--sizes 1280x720,3840x2160] [--repeats 5]
+    python -m quietframe.experiments.frame_path [--sizes 1280x720,3840x2160] [--repeats 5]
 
 Times are this thread's CPU time (time.thread_time), median of `repeats` after one warm-up:
 everything measured runs on one thread (the model too, with 1 onnxruntime thread), so other

@@ -1,6 +1,6 @@
 """Render throughput of the data pipeline next to the machine's limit on the same scene.
 
-    python -m quietframe.bench.render_throughput [--size 256x256] [--frames 3] \\
+    python -m quietframe.experiments.render_throughput [--size 256x256] [--frames 3] \\
         [--reference-spp 128] [--limit-spp 256] [--seed 3000500]
 
 Pipeline: `render_sequence` end to end on a fresh directory (scene generation and load, kernel

@@ -1,6 +1,6 @@
 """The floor that noisy references put under TRMAE, next to what the methods score.
 
-    python -m quietframe.bench.trmae_floor [--split test] [--sequences 3000000,3000001,...]
+    python -m quietframe.experiments.trmae_floor [--split test] [--sequences 3000000,3000001,...]
         [--frames 1,2] [--spp 1,4] [--methods oidn-high,oidn-temporal-acc,nbg-2l-3g]
         [--threads 2] [--json floor.json]
 
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{perfect:.4f}, 1024-spp render {second_mean:.4f}")
     if args.json:
         out = {
-            "command": "python -m quietframe.bench.trmae_floor "
+            "command": "python -m quietframe.experiments.trmae_floor "
             + " ".join(sys.argv[1:] if argv is None else argv),
             "split": args.split, "frames": frames, "salt": SECOND_REF_SALT,
             "cut_in_frames": sorted(cut),

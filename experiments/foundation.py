@@ -1,13 +1,13 @@
 """Foundation benchmark: GuideNet and whole-model speed at 1280×720 on this machine.
 
-python -m quietframe.bench.foundation [--threads 2] [--out docs/bench-foundation.md]
+python -m quietframe.experiments.foundation [--threads 2] [--out docs/bench-foundation.md]
 
 Prints ms per frame (median, bench/timing.py) for
 - GuideNet forward alone (PyTorch and onnxruntime) with achieved conv GFLOP/s vs the machine's
   AVX2-FMA peak (cores × clock × 2 FMA pipes × 8 float lanes × 2 FLOP),
 - the whole exported model per frame through the shipped runtime (quietframe.runtime.Denoiser),
   for 1 and 3 grids, GuideNet widths 8, 16 and 20, and the 7-layer net,
-- splat+slice through the custom ops and PyTorch (quietframe.bench.grid_ops).
+- splat+slice through the custom ops and PyTorch (quietframe.experiments.grid_ops).
 Untrained weights: speed does not depend on the weights' values.
 """
 
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             print(rows[-1], flush=True)
     lines += rows
     try:
-        from quietframe.bench import grid_ops
+        from quietframe.experiments import grid_ops
 
         lines += ["", "## Splat + slice", "", grid_ops.report(threads=args.threads)]
     except (ImportError, AttributeError) as error:

@@ -1,6 +1,6 @@
 """How much energy the NBG pre-stage's firefly clamp takes from rendered frames, per floor.
 
-    python -m quietframe.bench.clamp_energy [--split validation] [--frames 24] [--spp 1,4]
+    python -m quietframe.experiments.clamp_energy [--split validation] [--frames 24] [--spp 1,4]
         [--floors 0,16,32,64,128,256]
 
 For the first `--frames` frames of the split (sorted by sequence and frame), the noisy colour

@@ -1,6 +1,6 @@
 """What a complete output costs: encoding every pass of the input versus the beauty alone.
 
-    python -m quietframe.bench.output_passes [--width 1280 --height 720] [--repeats 5]
+    python -m quietframe.experiments.output_passes [--width 1280 --height 720] [--repeats 5]
 
 The frame is Blender's multilayer layout (bench/http_overhead.py's render-like buffers): the
 passes the model reads (Combined RGBA, Denoising Albedo half; Denoising Normal, Denoising Depth

@@ -2,9 +2,10 @@
 λ) against the shipped hand rule of `oidn-history`, trained on both renderers' train splits and
 scored on their test splits beside per-frame OIDN, in one run:
 
-    python -m quietframe.bench.learned_blend [--steps 1500] [--out docs/evaluation/learned-blend]
+    python -m quietframe.experiments.learned_blend [--steps 1500]
+        [--out docs/evaluation/learned-blend]
 
-Every row shares one cached base per frame, as bench/history_weight.py's: the pixel-aligned
+Every row shares one cached base per frame, as experiments/history_weight.py's: the pixel-aligned
 accumulation then OIDN-high (what `oidn-history` composes), so only the blend differs:
 - `oidn-frame`: OIDN-high on the frame alone (the issue's floor);
 - `rule`: the shipped stage (model/output_history.OutputHistory; the untrained blend, whose
@@ -30,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from quietframe.bench.history_weight import Cached, base_outputs, frame_key
+from quietframe.experiments.history_weight import Cached, base_outputs, frame_key
 from quietframe.model.learned_blend import LearnedBlendHistory
 from quietframe.model.losses import tonemap_tau
 
@@ -144,7 +145,7 @@ def score(models: dict[str, LearnedBlendHistory], folders: list[Path], levels, h
     """Rows (method, spp, PSNR, SSIM, TRMAE, ...) of oidn-frame and each blend on a split."""
     from quietframe.bench.evaluate import Scores, load_sequence, run_sequence
     from quietframe.bench.harness import planar_frames
-    from quietframe.bench.output_history import ShippedStage
+    from quietframe.experiments.output_history import ShippedStage
 
     rows = []
     for spp in levels:
@@ -230,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
                       renderer in HEADER_STATES_SPP, oidn, renderer)
         print(f"\n{renderer} test ({len(folders)} sequences), PSNR (Δ to oidn-frame):\n")
         print(table(rows, renderer), flush=True)
-    meta = {"command": "python -m quietframe.bench.learned_blend "
+    meta = {"command": "python -m quietframe.experiments.learned_blend "
                        + " ".join(sys.argv[1:] if argv is None else argv),
             "train_items": len(items), "args": {k: str(v) for k, v in vars(args).items()}}
     (args.out / "rows.json").write_text(json.dumps({"meta": meta, "log": log, "rows": rows},

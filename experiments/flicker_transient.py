@@ -1,6 +1,7 @@
 """How much of a locked-off shot's flicker is the history's start-up (issue 24's flicker target).
 
-    python -m quietframe.bench.flicker_transient [--renderer mitsuba] [--split validation-static]
+    python -m quietframe.experiments.flicker_transient [--renderer mitsuba]
+        [--split validation-static]
         [--spp 4,16,64] [--methods oidn-history,oidn-acc] [--settle 3] [--json out.json]
 
 A history starts empty at a shot's first frame, so there every temporal tier returns what

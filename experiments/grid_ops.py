@@ -1,7 +1,7 @@
 """Micro-benchmark: bilateral splat + slice at 1280×720, custom ops vs PyTorch; and the temporal
 reprojection (BackwardWarp custom op vs onnxruntime's GridSample).
 
-python -m quietframe.bench.grid_ops [--threads 2] [--guide smooth|random|both] [--repeats 15]
+python -m quietframe.experiments.grid_ops [--threads 2] [--guide smooth|random|both] [--repeats 15]
                                    [--no-torch] [--warp]
 
 Times splat followed by slice (same guide) for each grid scale (σs, σr) of the NBG denoiser and

@@ -1,7 +1,7 @@
 """Ablation for issue 24: history kept in output space on top of per-frame OIDN, next to
 per-frame OIDN and the shipped accumulation tier, scored in one run.
 
-    python -m quietframe.bench.output_history [--renderer cycles] [--split test-static]
+    python -m quietframe.experiments.output_history [--renderer cycles] [--split test-static]
         [--spp 1,2,4,8,16,64] [--sequences N] [--json rows.json]
 
 The shipped `*-acc` tiers reproject the noisy accumulation and run OIDN on it; the issue asks

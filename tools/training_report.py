@@ -1,6 +1,6 @@
 """Training curves and a summary table from quietframe-train run directories (log.txt).
 
-    python -m quietframe.bench.training_report RUN_DIR [RUN_DIR ...] --out docs
+    python tools/training_report.py RUN_DIR [RUN_DIR ...] --out docs
 
 Writes <out>/training_curves.png (training loss and validation PSNR against the step, one
 line per run) and prints a markdown table: run, variant, width, loss, steps, best val PSNR.

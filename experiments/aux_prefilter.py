@@ -1,7 +1,7 @@
 """The cost of OIDN's prefiltered aux (Blender's Accurate mode) per 1280x720 frame, by the aux
 prefilters' quality, next to plain OIDN-high in one run (issue 24's per-frame floor):
 
-    python -m quietframe.bench.aux_prefilter [--threads 2] [--repeats 3]
+    python -m quietframe.experiments.aux_prefilter [--threads 2] [--repeats 3]
 
 Quality of the same settings on Cycles frames: quietframe-eval --renderer cycles --methods
 blender-denoise,oidn-high,oidn-high-cleanaux,oidn-high-cleanaux-fast,oidn-high-cleanaux-balanced.

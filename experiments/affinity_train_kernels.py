@@ -1,6 +1,7 @@
 """Training step time of the affinity denoiser with the reference and the native kernels.
 
-    python -m quietframe.bench.affinity_train_kernels [--sizes 5,13] [--threads 1] [--repeats 3]
+    python -m quietframe.experiments.affinity_train_kernels [--sizes 5,13] [--threads 1]
+        [--repeats 3]
 
 One forward + backward of the model (unrolled over the frames, the training loss, eq. 13's
 penalty) per step, as quietframe-train runs it, on a synthetic batch; first with the PyTorch

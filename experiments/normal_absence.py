@@ -4,8 +4,8 @@ normal and albedo, per spp. A diagnostic of the normal space (Blender's camera-s
 for models trained on Mitsuba's world-space ones, docs/data.md), not a reported quality figure:
 any split may be read, including train.
 
-    python -m quietframe.bench.normal_absence --renderer cycles --split train --sequences 12 \\
-        --spp 4,64 nbg-2l-3g oidn-frame
+    python -m quietframe.experiments.normal_absence --renderer cycles --split train
+        --sequences 12 --spp 4,64 nbg-2l-3g oidn-frame
 """
 
 from __future__ import annotations
