@@ -406,8 +406,7 @@ def _models(args: argparse.Namespace) -> int:
             return failure.code
     else:
         try:
-            from quietframe.service.model_registry import ModelRegistry
-            from quietframe.service.settings import Settings
+            listing = _local_listing()
         except ImportError as exc:
             print(
                 f"quietframe: error: listing local models needs the serve extra ({exc}); "
@@ -415,14 +414,23 @@ def _models(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return outcome.CONFIG
-        registry = ModelRegistry(Settings(threads=1))
-        listing = {"models": [m.model_dump() for m in registry.public()],
-                   "default": registry.default}
     if args.json:
         print(json.dumps(listing, indent=1))
     else:
         print(model_table(listing["models"], listing["default"], args.renderer))
     return outcome.OK
+
+
+def _local_listing() -> dict:
+    """The models this machine would serve, as GET /v1/models lists them; the server's
+    settings QUIETFRAME_MODELS_DIR and QUIETFRAME_DEFAULT_MODEL apply here too."""
+    # onnxruntime and the ops library: the serve extra, which a client install lacks
+    from quietframe.runtime.loaded_models import LoadedModels
+
+    folder = os.environ.get("QUIETFRAME_MODELS_DIR")
+    models = LoadedModels.load(Path(folder) if folder else None, threads=1)
+    wanted = os.environ.get("QUIETFRAME_DEFAULT_MODEL")
+    return models.listing(models.find(wanted) if wanted else None)
 
 
 def _quick_retry():

@@ -62,11 +62,6 @@ def _pattern_parts(source: str) -> tuple[str, int, str]:
     return source[: match.start()], int(match.group(1) or 0), source[match.end() :]
 
 
-def pattern_path(source: str, number: int) -> Path:
-    prefix, digits, suffix = _pattern_parts(source)
-    return Path(f"{prefix}{number:0{digits}d}{suffix}")
-
-
 def _pattern_files(source: str) -> list[Path]:
     prefix, digits, suffix = _pattern_parts(source)
     field = r"\d{" + str(max(digits, 1)) + ",}"

@@ -1,74 +1,30 @@
-"""The loaded models: one shared onnxruntime session (Denoiser) per installed model."""
+"""The served models: what the runtime loaded (runtime/loaded_models.py), by the names a session
+asks for, with the service's refusals, `auto`'s profiles and the /v1/models listing."""
 
 from __future__ import annotations
 
-import logging
-import math
 from collections.abc import Mapping
-from pathlib import Path
 
 import numpy as np
 
-from quietframe.runtime import (
-    BUFFER_CHANNELS,
-    Denoiser,
-    ModelInfo,
-    default_model_path,
-    installed_models,
-)
-from quietframe.runtime.card import SAMPLES_INPUT
+from quietframe.runtime import BUFFER_CHANNELS, Denoiser
 from quietframe.runtime.denoiser import check_options
-from quietframe.runtime.oidn_prepass import PrepassUnavailable
+from quietframe.runtime.loaded_models import LoadedModels
+from quietframe.runtime.model_options import options_for
 from quietframe.service.errors import InvalidModelOptions, ModelUnavailable, UnknownModel
 from quietframe.service.model_choice import ModelProfile, load_calibration, profile_of
-from quietframe.service.schemas import BufferSpec, ModelOption, ModelPublic
+from quietframe.service.schemas import ModelPublic
 from quietframe.service.settings import Settings
-
-log = logging.getLogger("quietframe.service")
 
 AUTO = "auto"
 
 
-def options_for(info: ModelInfo, options: Mapping[str, float | int],
-                samples: float | None = None) -> dict[str, float | int]:
-    """The session options a model takes: those it declares (model=auto switches between
-    models, and one without an option ignores it). A model that takes the frame's spp
-    (SAMPLES_INPUT) gets `samples` (the header's count or auto's estimate, at least 1) unless
-    the session set it."""
-    names = {spec.name for spec in info.inputs}
-    chosen = {name: value for name, value in options.items() if name in names}
-    if SAMPLES_INPUT in names and SAMPLES_INPUT not in chosen and samples is not None \
-            and math.isfinite(samples):
-        chosen[SAMPLES_INPUT] = max(1.0, float(samples))
-    return chosen
-
-
 class ModelRegistry:
     def __init__(self, settings: Settings) -> None:
-        paths = list(installed_models())
-        if settings.models_dir is not None:
-            paths += sorted(Path(settings.models_dir).glob("*.onnx"))
-        if not paths:
-            raise LookupError("no models installed (quietframe.models) and none in models_dir")
-        self._denoisers: dict[str, Denoiser] = {}
-        self._aliases: dict[str, str] = {}  # file stem -> model name
-        # Installed models this server cannot run (a prepass without its package): name and
-        # file stem -> why, so that asking for one says what to install.
-        self._unavailable: dict[str, str] = {}
-        for path in paths:
-            try:
-                denoiser = Denoiser(path, threads=settings.model_threads)
-            except PrepassUnavailable as exc:
-                log.warning("model %s at %s not offered: %s", exc.model or path.stem, path, exc)
-                self._unavailable.update({path.stem: str(exc), (exc.model or path.stem): str(exc)})
-                continue
-            name = denoiser.info.name
-            if name in self._denoisers:
-                log.warning("model %s at %s shadows an earlier one with that name", name, path)
-            self._denoisers[name] = denoiser
-            self._aliases[path.stem] = name
+        self.loaded = LoadedModels.load(settings.models_dir, settings.model_threads)
+        self._denoisers = self.loaded.denoisers
         wanted = settings.default_model
-        self.default = self.resolve(wanted) if wanted else self._runtime_default(paths)
+        self.default = self.resolve(wanted) if wanted else self.loaded.runtime_default
         self.profiles = self.profiles_for(None)
         self.calibration = load_calibration()  # spp from a frame's noise (model_choice.py)
         self.ready = False
@@ -76,18 +32,13 @@ class ModelRegistry:
     def profiles_for(self, renderer: str | None) -> list[ModelProfile]:
         """What `auto` knows of each model for frames of `renderer` (None: the default
         renderer's tables); a composition is chosen on its own card's table."""
-        return [profile_of(name, d, renderer) for name, d in self._denoisers.items()]
-
-    def _runtime_default(self, paths: list[Path]) -> str:
-        try:
-            default = default_model_path()
-        except LookupError:
-            default = paths[0]
-        return self._aliases.get(default.stem, next(iter(self._denoisers)))
+        return [profile_of(name, self._denoisers[name], renderer) for name in self.loaded.offered]
 
     @property
     def names(self) -> list[str]:
-        return sorted(self._denoisers)
+        """The models offered (listed, and `auto`'s candidates): not the internal stages, which
+        a session gets only where it names one."""
+        return sorted(self.loaded.offered)
 
     def requested(self, name: str) -> str:
         """A session's model as created: 'auto' (chosen per shot) or an installed name."""
@@ -97,13 +48,12 @@ class ModelRegistry:
         """Model name for a request's `model` ('auto' = the default, a name or a file stem)."""
         if name == AUTO:
             return self.default
-        if name in self._denoisers:
-            return name
-        if name in self._aliases:
-            return self._aliases[name]
-        if name in self._unavailable:
+        found = self.loaded.find(name)
+        if found is not None:
+            return found
+        if name in self.loaded.unavailable:
             raise ModelUnavailable(f"model {name!r} is installed but not offered by this server: "
-                                   f"{self._unavailable[name]}")
+                                   f"{self.loaded.unavailable[name]}")
         raise UnknownModel(f"unknown model {name!r}; installed: {self.names} or 'auto'")
 
     def check_options(self, model: str, options: Mapping[str, float | int]) -> None:
@@ -112,7 +62,7 @@ class ModelRegistry:
         value that every model declaring it takes (any of them may be chosen for a shot)."""
         if not options:
             return
-        infos = [d.info for d in self._denoisers.values()]
+        infos = [self._denoisers[name].info for name in self.loaded.offered]  # auto's choices
         declared: dict[str, list[str]] = {}  # option -> the models that have it
         for info in infos:
             for spec in info.inputs:
@@ -151,10 +101,9 @@ class ModelRegistry:
 
     def buffers(self) -> dict[str, tuple[tuple[str, ...], tuple[str, ...]]]:
         """Model name -> (required, optional) buffers, for errors that name a model to use."""
-        return {
-            name: (tuple(d.info.required_buffers), tuple(d.info.optional_buffers))
-            for name, d in self._denoisers.items()
-        }
+        infos = {name: self._denoisers[name].info for name in self.loaded.offered}
+        return {name: (tuple(i.required_buffers), tuple(i.optional_buffers))
+                for name, i in infos.items()}
 
     def warm_up(self) -> None:
         """Run one tiny frame through every model: loads the custom ops, allocates kernels."""
@@ -168,23 +117,5 @@ class ModelRegistry:
         self.ready = True
 
     def public(self) -> list[ModelPublic]:
-        return [
-            ModelPublic(
-                name=name,
-                version=d.info.version,
-                file=d.info.path.name,
-                default=name == self.default,
-                architecture=dict(d.card.architecture) or None,
-                required_buffers=list(d.info.required_buffers),
-                optional_buffers=list(d.info.optional_buffers),
-                state=[BufferSpec(name=s.name, channels=s.channels) for s in d.info.state_specs],
-                options=[
-                    ModelOption(name=i.name, default=i.default, doc=i.doc, minimum=i.minimum,
-                                allowed=list(i.allowed) if i.allowed is not None else None)
-                    for i in d.info.inputs
-                ],
-                metrics=d.info.metrics,
-                training=d.info.training,
-            )
-            for name, d in self._denoisers.items()
-        ]
+        listing = self.loaded.listing(self.default)
+        return [ModelPublic(**entry) for entry in listing["models"]]

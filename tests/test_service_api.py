@@ -128,12 +128,20 @@ def test_get_and_delete_session(client):
 
 
 def test_models(client):
-    """Every installed model is listed as its own file's metadata describes it."""
+    """Every installed model but the internal stages (files other models compose, never offered
+    alone) is listed as its own file's metadata describes it."""
+    import onnx
+
     from quietframe.runtime import Denoiser, default_model_path, installed_models
+    from quietframe.runtime.card import GraphStage, ModelCard
 
     body = client.get("/v1/models").json()
     files = {p.name: p for p in installed_models()}
-    assert sorted(m["file"] for m in body["models"]) == sorted(files)
+    cards = [ModelCard.from_props({m.key: m.value for m in onnx.load(
+        str(p), load_external_data=False).metadata_props}, p.stem) for p in files.values()]
+    stages = {s.file for card in cards for s in card.stages if isinstance(s, GraphStage) and s.file}
+    assert stages >= {"accumulation.onnx", "aligned-accumulation.onnx"}
+    assert sorted(m["file"] for m in body["models"]) == sorted(set(files) - stages)
     for model in body["models"]:
         info = Denoiser(files[model["file"]], threads=1).info
         assert (model["name"], model["version"]) == (info.name, info.version)
