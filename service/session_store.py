@@ -1,8 +1,11 @@
 """Durable sessions on disk: one .npz per session, written atomically after each frame.
 
-A file holds the session's settings and progress (`meta`, JSON), its state tensors and the last
-reply (for an idempotent retry after a restart). The registry decides when to write and read;
-this module only knows the file format. All calls do disk I/O: run them off the event loop.
+A file holds the session's settings and progress (`meta`, JSON), its state and the last reply
+(for an idempotent retry after a restart), in state_codec's compact form: what the next frame
+reads, in the narrowest type that leaves results unchanged, and the reply as a recipe where its
+colour is a state plane. Files of the earlier form (float32 tensors, the reply's bytes) still
+load. The registry decides when to write and read; this module only knows the file format. All
+calls do disk I/O: run them off the event loop.
 
 Reading verifies the file: every member is read whole, so the zip format's CRC-32 of each one is
 checked; the meta lists every member with its shape (`manifest`), its id must be the file's
@@ -30,12 +33,15 @@ import re
 import time
 import zipfile
 import zlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+from quietframe.service import state_codec
+from quietframe.service.state_codec import ReplyRecipe
 
 if TYPE_CHECKING:
     from quietframe.service.settings import Settings
@@ -69,7 +75,12 @@ class StateDamaged(Exception):
 
 @dataclass
 class Reply:
-    """A frame's response, kept for an idempotent retry of the same index."""
+    """A frame's response, kept for an idempotent retry of the same index.
+
+    `recipe`: how the body is written from the request (state_codec.ReplyRecipe), where its
+    colour is a plane of the session's state; a store then keeps the recipe, not the body. A
+    reply loaded so has no body yet (`color`: its colour planes): `matches` writes it from the
+    resent request once the digest shows that request is the same."""
 
     index: int
     body: bytes
@@ -77,26 +88,37 @@ class Reply:
     request_len: int
     request_digest: str | None  # None: a file written before digests (has request_crc)
     request_crc: int | None = None
+    recipe: ReplyRecipe | None = None
+    color: np.ndarray | None = None  # (3, H, W) float32 until the body is written again
 
     def matches(self, body: bytes | bytearray) -> bool:
+        """Whether `body` is the request this reply answered (a retry); if so, the reply has
+        its body from then on (runs on the worker pool: hashing, and a stored reply's
+        rewrite, take up to seconds on a large frame)."""
         if len(body) != self.request_len:
             return False
         if self.request_digest is not None:
-            return hmac.compare_digest(self.request_digest, request_digest(body))
-        return self.request_crc == zlib.crc32(body)  # the one reply of an older file
+            same = hmac.compare_digest(self.request_digest, request_digest(body))
+        else:
+            same = self.request_crc == zlib.crc32(body)  # the one reply of an older file
+        if same and self.color is not None and self.recipe is not None:
+            self.body = state_codec.rebuild_reply(self.recipe, self.color, body)
+            self.color = None
+        return same
 
 
 class Store(Protocol):
     """What the registry asks of a durable store. `write` returns the session's new version
     (None where the store has no versions: one server owns a local folder); a shared store
-    refuses a write whose `expect` is not the stored version (another replica advanced it)."""
+    refuses a write whose `expect` is not the stored version (another replica advanced it).
+    `write` replaces `state`'s tensors by their values as stored (`record`)."""
 
     shared: bool
 
     def write_spec(self, meta: Mapping) -> None: ...
     def read_spec(self, session_id: str) -> dict | None: ...
-    def write(self, meta: Mapping, state: Mapping[str, np.ndarray] | None, reply: Reply | None,
-              expect: str | None = None) -> str | None: ...
+    def write(self, meta: Mapping, state: MutableMapping[str, np.ndarray] | None,
+              reply: Reply | None, expect: str | None = None) -> str | None: ...
     def read(self, session_id: str, shapes: Mapping[str, tuple[int, ...]]
              ) -> tuple[dict[str, np.ndarray] | None, Reply | None]: ...
     def quarantine(self, session_id: str) -> object: ...
@@ -119,13 +141,23 @@ def open_store(settings: Settings) -> Store | None:
 
 
 def record(
-    meta: Mapping, state: Mapping[str, np.ndarray] | None, reply: Reply | None
+    meta: Mapping, state: MutableMapping[str, np.ndarray] | None, reply: Reply | None
 ) -> tuple[dict, dict[str, np.ndarray]]:
-    """The stored form of a session, either backend: the meta (with the reply's identity and a
-    manifest of every member's shape) and the arrays (state tensors, the reply's bytes)."""
+    """The stored form of a session, either backend: the meta (with the reply's identity, the
+    state's layout (state_codec) and a manifest of every member's length) and the members
+    (uint8: the state's planes, and the reply's bytes unless its recipe is kept instead).
+    `state`'s tensors are replaced by their values as stored (state_codec.encode), so the
+    writer continues from what any reader of the record gets."""
     meta = dict(meta)
     meta["reply"] = None
-    arrays = {f"state.{name}": tensor for name, tensor in (state or {}).items()}
+    recipe = reply.recipe if reply is not None else None
+    encoded = state_codec.encode(state or {}, recipe)
+    if state is not None:
+        state.update(encoded.state)
+    meta["codec"] = encoded.layout
+    # "state." names: a replica that predates this form finds no tensor of its model's shapes
+    # under them and refuses the record as damaged (a fresh history), never reads it as empty
+    arrays = {f"state.plane{i}": plane for i, plane in enumerate(encoded.planes)}
     if reply is not None:
         meta["reply"] = {
             "index": reply.index,
@@ -133,8 +165,10 @@ def record(
             "digest": reply.request_digest,
             "crc": reply.request_crc,
             "len": reply.request_len,
+            "recipe": recipe.to_dict() if encoded.reply and recipe is not None else None,
         }
-        arrays["reply"] = np.frombuffer(reply.body, np.uint8)
+        if meta["reply"]["recipe"] is None:
+            arrays["reply"] = np.frombuffer(reply.body, np.uint8)
     meta["manifest"] = {name: list(array.shape) for name, array in arrays.items()}
     return meta, arrays
 
@@ -143,11 +177,26 @@ def unpack(
     meta: dict, arrays: dict[str, np.ndarray], session_id: str,
     shapes: Mapping[str, tuple[int, ...]],
 ) -> tuple[dict[str, np.ndarray] | None, Reply | None]:
-    """State and reply from a stored record, verified (ValueError and friends otherwise)."""
+    """State and reply from a stored record, verified (ValueError and friends otherwise). A
+    record without a layout is the earlier float32 form (a state tensor per member, the
+    reply's bytes): it loads as it always did."""
     _verify(meta, arrays, session_id, shapes)
-    state = {k[6:]: v for k, v in arrays.items() if k.startswith("state.")} or None
+    layout = meta.get("codec")
+    if layout is None:
+        state = {k[6:]: v for k, v in arrays.items() if k.startswith("state.")} or None
+    else:
+        planes = [arrays[f"state.plane{i}"] for i in range(len(layout["planes"]))]
+        state = state_codec.decode(layout, planes, shapes) or None
     r, reply = meta["reply"], None
-    if r is not None and "reply" in arrays:
+    recipe = r.get("recipe") if r is not None else None
+    if recipe is not None:
+        recipe = ReplyRecipe.from_dict(recipe)
+        tensor = (state or {}).get(recipe.tensor)
+        if tensor is None or tensor.ndim != 4 or tensor.shape[1] < recipe.first + 3:
+            raise ValueError(f"the reply's colour is in state {recipe.tensor!r}, not stored")
+        reply = Reply(r["index"], b"", r["headers"], r["len"], r.get("digest"), r.get("crc"),
+                      recipe, tensor[0, recipe.first:recipe.first + 3])
+    elif r is not None and "reply" in arrays:
         reply = Reply(
             r["index"], arrays["reply"].tobytes(), r["headers"], r["len"], r.get("digest"),
             r.get("crc"),
@@ -191,7 +240,7 @@ class SessionStore:
     def write(
         self,
         meta: Mapping,
-        state: Mapping[str, np.ndarray] | None,
+        state: MutableMapping[str, np.ndarray] | None,
         reply: Reply | None,
         expect: str | None = None,
     ) -> None:
@@ -270,6 +319,11 @@ def _verify(
         listed = {name: tuple(shape) for name, shape in manifest.items() if name != "meta"}
         if listed != {name: array.shape for name, array in arrays.items()}:
             raise ValueError("the file's members do not match its manifest")
+    if meta.get("codec") is not None:  # every member is bytes; decode checks the state
+        for name, array in arrays.items():
+            if array.dtype != np.uint8 or array.ndim != 1:
+                raise ValueError(f"{name} is {array.dtype} {array.shape}, not stored bytes")
+        return
     for name, array in arrays.items():
         if name.startswith("state.") and array.shape != shapes.get(name[6:]):
             raise ValueError(f"{name} has shape {array.shape}; the session's model expects "

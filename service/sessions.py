@@ -44,7 +44,7 @@ from quietframe.runtime.motion_evidence import (
 )
 from quietframe.runtime.sanitize import clamp_to_half
 from quietframe.runtime.usable_buffers import unusable_buffers
-from quietframe.service import admission, frames, model_choice
+from quietframe.service import admission, frames, model_choice, state_codec
 from quietframe.service.admission import MemoryBudget
 from quietframe.service.errors import (
     FrameConflict,
@@ -349,7 +349,8 @@ def process_frame(
     model = f"{info.name} {info.version}"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     color, clamped = result.color, 0
-    half = [i for i, d in enumerate(frames.output_dtypes(frame, spec.precision)) if d == np.float16]
+    dtypes = frames.output_dtypes(frame, spec.precision)
+    half = [i for i, d in enumerate(dtypes) if d == np.float16]
     if half:  # a plain cast would turn values beyond ±65504 into ±Inf
         rows, clamped = clamp_to_half(color[half])
         if clamped:
@@ -389,8 +390,11 @@ def process_frame(
         headers[Header.MOTION] = motion_header(gate)
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
+    # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
+    recipe = state_codec.reply_recipe(result.color, new_state, dtypes, sources["color"].channels,
+                                      spec.precision, spec.compression, spec.denoised_layer, extra)
     return _Processed(
-        reply=Reply(index, body_out, headers, len(body), request_digest(body)),
+        reply=Reply(index, body_out, headers, len(body), request_digest(body), recipe=recipe),
         state=new_state,
         reset=reset,
         sources={b: list(s.channels) for b, s in sources.items()},

@@ -6,8 +6,10 @@ transaction may span them:
 - `qf:{id}:ver`  — the version, the fencing token: `<n>-<random>`, n = 1 at creation, +1 per
   committed frame; the random part makes every write's token unique, so a Redis that lost its
   last writes (restarted from an older file) never hands out a token a replica already holds;
-- `qf:{id}:data` — a hash: `meta` (JSON: progress, reply identity, manifest of shapes), one
-  field per state tensor (`state.<name>`, raw float32, C order) and `reply` (the reply's bytes).
+- `qf:{id}:data` — a hash: `meta` (JSON: progress, reply identity, the state's layout, manifest
+  of lengths), one field per stored plane of the state (`state.plane<i>`: state_codec's compact
+  form, as on disk) and, unless the meta holds the reply's recipe, `reply` (the reply's bytes).
+  A record of the earlier form (`state.<name>` raw float32 tensors) still loads.
 
 A write is a compare-and-set on the version (WATCH / MULTI / EXEC): it succeeds only when the
 stored version is the one the writing replica loaded, so after a failover the replica that lost
@@ -31,7 +33,7 @@ import secrets
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, MutableMapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -195,7 +197,7 @@ class RedisStore:
     def write(
         self,
         meta: Mapping,
-        state: Mapping[str, np.ndarray] | None,
+        state: MutableMapping[str, np.ndarray] | None,
         reply: Reply | None,
         expect: str | None = None,
     ) -> str:
@@ -336,12 +338,14 @@ def _json_record(raw: bytes | None, session_id: str) -> dict | None:
 
 
 def _arrays(meta: dict, fields: dict[bytes, bytes]) -> dict[str, np.ndarray]:
-    """The stored members as arrays of the manifest's shapes (state float32, reply bytes); a
-    member of the wrong length is a ValueError (reshape), as a truncated file is on disk."""
+    """The stored members as arrays of the manifest's shapes (bytes; in the earlier form, state
+    float32); a member of the wrong length is a ValueError (reshape), as a truncated file is on
+    disk."""
+    legacy = meta.get("codec") is None
     arrays = {}
     for raw_name, raw in fields.items():
         name = raw_name.decode()
-        dtype = np.float32 if name.startswith("state.") else np.uint8
+        dtype = np.float32 if legacy and name.startswith("state.") else np.uint8
         shape = meta["manifest"][name]
         arrays[name] = np.frombuffer(raw, dtype).reshape(shape)
     return arrays
