@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.large_frames import SIZES, buffers
 
 TARGET_RATIO = 1.1
@@ -132,8 +133,8 @@ def main() -> None:
     parser.add_argument("--models", nargs="*", help="default: every shipped model")
     parser.add_argument("--sizes", nargs="*", default=["1080p", "4k"], choices=SIZES)
     parser.add_argument("--frames", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--json", type=Path, help="also write the rows here")
+    cli_args.add_threads(parser)
+    cli_args.add_json(parser)
     parser.add_argument("--one", nargs=2, metavar=("MODEL", "SIZE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:

@@ -1,6 +1,6 @@
 """`model=auto` against every fixed model, on test sequences mixed in spp and in buffers.
 
-    python -m quietframe.bench.auto_choice [--data ~/.cache/quietframe/data] [--split test]
+    python -m quietframe.bench.auto_choice [--data ~/.cache/quietframe/data] [--split validation]
         [--threads 2] [--max-frames 8] [--sequences N] [--spp 1,4,16] [--out docs]
         [--model extra.onnx ...] [--buffer-sets all,no-albedo] [--no-absence] [--synthetic]
 
@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.evaluate import AUX
 from quietframe.bench.harness import (
     Frames,
@@ -50,7 +51,6 @@ from quietframe.bench.harness import (
     score_sequence,
 )
 from quietframe.runtime import Denoiser, default_model_path, installed_models
-from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 from quietframe.scenes.render import TOPUP_KEY
 from quietframe.service.model_choice import (
     NoiseLevel,
@@ -146,9 +146,9 @@ def oidn_call(present: tuple[str, ...], threads: int) -> ImageMethod:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="auto_choice", description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR)
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    cli_args.add_data(parser)
+    cli_args.add_split(parser)
+    cli_args.add_threads(parser)
     parser.add_argument("--max-frames", type=int, default=8)
     parser.add_argument("--sequences", type=int, default=0,
                         help="the split's first N sequences only (0: all)")

@@ -541,10 +541,12 @@ def main(argv: list[str] | None = None) -> None:
     import argparse
     import os
 
+    from quietframe.bench import cli_args
+
     parser = argparse.ArgumentParser(description="ms/frame of the non-network baselines")
     parser.add_argument("--height", type=int, default=720)
     parser.add_argument("--width", type=int, default=1280)
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--repeats", type=int, default=10)
     args = parser.parse_args(argv)
     print(f"{args.width}×{args.height}, {args.threads} threads, {os.cpu_count()} cores, "

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.model import metrics
 from quietframe.scenes import cycles_io
-from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 from quietframe.scenes.zoo_shots import ZOO_SPLITS, zoo_dir
 
 METHODS = ("top-down", "bottom-up", "flip-ensemble")
@@ -70,12 +70,12 @@ def score_shot(folder: Path, spp: int, stages: dict) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--split", choices=ZOO_SPLITS, default="validation")
-    p.add_argument("--data", type=Path, default=DATA_DIR)
+    cli_args.add_split(p, choices=ZOO_SPLITS)
+    cli_args.add_data(p)
     p.add_argument("--shots", default="", help="comma list (default: every shot of the split)")
     p.add_argument("--spp", default="1,4,16")
-    p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
-    p.add_argument("--json", type=Path, default=None)
+    cli_args.add_threads(p)
+    cli_args.add_json(p)
     args = p.parse_args(argv)
     from quietframe.bench.baselines import OIDNDenoiser
 

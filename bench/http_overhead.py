@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
+
 
 def synthetic_buffers(width: int, height: int, seed: int) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
@@ -191,8 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=int, default=720)
     parser.add_argument("--frames", type=int, default=8, help="timed frames per measurement")
     parser.add_argument("--model", type=Path, help=".onnx file (default: the installed default)")
-    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
-    parser.add_argument("--workers", type=int, default=0, help="server worker pool (0: CPUs)")
+    cli_args.add_threads(parser, help="onnxruntime threads, runtime and server alike")
+    cli_args.add_workers(parser)
     parser.add_argument("--compression", default="zip", help="input EXR compression")
     parser.add_argument("--float", action="store_true", help="float32 input (default half)")
     parser.add_argument(
@@ -202,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--precision", default="input", choices=("input", "half", "float"))
     parser.add_argument("--sessions", default="1,2,4", help="concurrency levels")
-    parser.add_argument("--json", type=Path, help="also write the results here")
+    cli_args.add_json(parser)
     args = parser.parse_args(argv)
 
     from quietframe.runtime import default_model_path

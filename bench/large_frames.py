@@ -21,6 +21,8 @@ import time
 
 import numpy as np
 
+from quietframe.bench import cli_args
+
 BY_MEMORY = -1  # --tile-pixels: tiles sized by the runtime's max_memory_mb
 
 SIZES = {"720p": (1280, 720), "1080p": (1920, 1080), "4k": (3840, 2160),
@@ -92,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["1080p", "4k", "8k"], choices=list(SIZES))
     parser.add_argument("--frames", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument(
         "--tile-pixels", type=int, default=BY_MEMORY,
         help="padded pixels per tile; 0: untiled (comparison); default: from the memory bound")

@@ -24,6 +24,7 @@ from collections import Counter
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.http_overhead import (
     blender_exr,
     loopback_server,
@@ -146,8 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=8, help="frames per session")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=360)
-    parser.add_argument("--threads", type=int, default=1, help="server onnxruntime threads")
-    parser.add_argument("--workers", type=int, default=2, help="server frames in flight")
+    cli_args.add_threads(parser, help="server onnxruntime threads per frame")
+    cli_args.add_workers(parser)
     args = parser.parse_args(argv)
     size = (args.width, args.height)
     frames = frames_for(*size, 4)

@@ -11,6 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
+from quietframe.bench import cli_args
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.runtime import Denoiser
@@ -245,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--evaluation", type=Path, help="quietframe-eval JSON: quality rows")
     parser.add_argument("--measure", action="store_true",
                         help="time each model now instead of quoting its card's 720p time")
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--stamp", action="store_true",
                         help="first stamp --evaluation's rows into each model's measured table "
                              "(what `model=auto` reads; bench/model_metrics.py)")

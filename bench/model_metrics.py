@@ -30,6 +30,7 @@ from pathlib import Path
 
 import onnx
 
+from quietframe.bench import cli_args
 from quietframe.runtime.card import DEFAULT_RENDERER, Measurements, ModelCard, finite_figure
 
 RUN_KEYS = ("command", "machine", "threads", "split", "resolution", "sequences")
@@ -149,9 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timing", type=Path,
                         help="benchmarks.json whose ms_720p is stamped instead of the "
                              "evaluation's (a quiet timing run)")
-    parser.add_argument("--renderer", default=DEFAULT_RENDERER,
-                        help="the renderer of the evaluated frames: the card keeps one table "
-                             f"per renderer (default {DEFAULT_RENDERER})")
+    cli_args.add_renderer(parser, help="the renderer of the evaluated frames: the card keeps "
+                          "one table per renderer")
     parser.add_argument("--measured-as", metavar="METHOD",
                         help="the method name the runs measured the (one) model under, where "
                              "it is not the file stem: a candidate installed under the shipped "

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.scenes.layout import DATA_DIR
+from quietframe.bench import cli_args
 from quietframe.service.model_choice import CALIBRATION_FILE, noise_statistic
 
 SPLITS = ("validation",)  # model selection data; the test split only reports
@@ -68,7 +68,7 @@ def fit(points: list[tuple[float, float]]) -> tuple[float, float, float]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="noise_calibration", description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR)
+    cli_args.add_data(parser)
     parser.add_argument("--synthetic", action="store_true", help="ignore rendered frames")
     parser.add_argument("--max-frames", type=int, default=64)
     parser.add_argument("--out", type=Path, default=CALIBRATION_FILE)

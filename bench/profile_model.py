@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from quietframe.bench import cli_args
 from quietframe.bench.synthetic import frame_buffers
 from quietframe.runtime import Denoiser
 from quietframe.runtime.denoiser import GraphRunner
@@ -64,7 +65,7 @@ def parse_option(text: str) -> tuple[str, int | float]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-profile", description=__doc__.split("\n")[0])
     parser.add_argument("model", type=Path)
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--frames", type=int, default=3, help="profiled frames (after a warm-up)")
     parser.add_argument("--option", type=parse_option, action="append", default=[],
                         help="a run-time input, e.g. kernel_size=5; repeatable")

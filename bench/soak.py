@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.http_overhead import loopback_server, rss_mib
 from quietframe.bench.load import Tally, frames_for, report, server_env
 
@@ -66,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=4, help="frames per session")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=180)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--workers", type=int, default=2)
+    cli_args.add_threads(parser, help="server onnxruntime threads per frame")
+    cli_args.add_workers(parser)
     parser.add_argument("--ttl", type=float, default=20.0, help="server session TTL (s)")
     args = parser.parse_args(argv)
     size = (args.width, args.height)

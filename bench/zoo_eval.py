@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.evaluate import (
     Scores,
     build_methods,
@@ -34,7 +35,6 @@ from quietframe.bench.evaluate import (
 from quietframe.bench.harness import planar_frames
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes import cycles_io
-from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 from quietframe.scenes.zoo_shots import ZOO_SPLITS, ZOO_VERSION, zoo_dir
 
 HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")
@@ -151,13 +151,13 @@ def report(rows: list[dict], meta: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--split", choices=ZOO_SPLITS, default="validation")
-    p.add_argument("--data", type=Path, default=DATA_DIR)
+    cli_args.add_split(p, choices=ZOO_SPLITS)
+    cli_args.add_data(p)
     p.add_argument("--spp", default="1,2,4,8,16,64")
     p.add_argument("--shots", default="", help="comma list (default: every finished shot)")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--flag-cuts", action="store_true")
-    p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    cli_args.add_threads(p)
     p.add_argument("--merge", type=Path, nargs="+", default=[],
                    help="instead of evaluating: join these runs' zoo.json (shots evaluated one "
                         "by one as their renders finished) into one report")

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from quietframe.bench import cli_args
 from quietframe.model import affinity, metrics
 from quietframe.model import train as qt
 from quietframe.model.nbg import demodulation_divisor, luminance
@@ -83,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, nargs="+", default=[1, 8])
     parser.add_argument("--kernel-sizes", type=int, nargs="+", default=[5, 9, 13])
     parser.add_argument("--blocks", type=int, nargs="+", default=[16, 32])
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--against", type=Path, nargs="*", default=[],
                         help="exported .onnx models to measure on the same batches")
     args = parser.parse_args(argv)

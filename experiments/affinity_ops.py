@@ -23,6 +23,7 @@ import os
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.timing import Timing, time_ms
 from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
 
@@ -112,7 +113,7 @@ def torch_runner(data: dict[str, np.ndarray], kernel_size: int, threads: int, di
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    cli_args.add_threads(parser, sweep=True)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--dilation", type=int, default=4)
     parser.add_argument("--torch-kernel", type=int, default=13)

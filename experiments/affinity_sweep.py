@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from quietframe.bench import cli_args
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import Timing, time_ms
 from quietframe.export.affinity_export import export_affinity
@@ -71,7 +72,7 @@ def validation_psnr(runs: Path | None, name: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--variants", nargs="+", default=list(DEFAULT_VARIANTS))
     parser.add_argument("--kernel-sizes", nargs="+", type=int, default=[5, 9, 13])
     parser.add_argument("--repeats", type=int, default=3)

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from quietframe.bench import cli_args
 from quietframe.bench.synthetic import frame_buffers
 from quietframe.model import affinity_native
 from quietframe.model import train as qt
@@ -107,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--crop", type=int, default=128)
     parser.add_argument("--frames", type=int, default=4)
     parser.add_argument("--sizes", default="5,13", help="spatial kernel sizes, comma-separated")
-    parser.add_argument("--threads", type=int, default=1)
+    cli_args.add_threads(parser)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
     reason = affinity_native.unavailable_reason()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 
+from quietframe.bench import cli_args
 from quietframe.bench.baselines import OIDNDenoiser
 from quietframe.bench.synthetic import frame_buffers
 from quietframe.bench.timing import time_ms
@@ -25,7 +26,7 @@ CONFIGS = {
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
     images = {k: v.transpose(1, 2, 0) for k, v in frame_buffers().items()}  # (H, W, C)

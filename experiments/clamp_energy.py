@@ -17,15 +17,15 @@ The row `none` is the unclamped frame. This is the probe behind `NBGConfig.outli
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from quietframe.bench import cli_args
 from quietframe.model.nbg import OUTLIER_SIGMAS, demodulation_divisor, suppress_outliers
 from quietframe.scenes.exr_io import color_layer, load_frame
-from quietframe.scenes.layout import DATA_DIR, split_dir
+from quietframe.scenes.layout import split_dir
 
 BOX = 9
 
@@ -51,8 +51,8 @@ def figures(out: torch.Tensor, reference: torch.Tensor) -> tuple[float, float]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="clamp_energy", description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR)
-    parser.add_argument("--split", default="validation")
+    cli_args.add_data(parser)
+    cli_args.add_split(parser)
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--spp", default="1,4")
     parser.add_argument("--floors", default="0,16,32,64,128,256")

@@ -26,15 +26,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from quietframe.bench import cli_args
 from quietframe.bench.harness import planar_frames, score_sequence
 from quietframe.model import metrics
 from quietframe.model.temporal import history_weights
-from quietframe.scenes.layout import DATA_DIR
 
 BASE = "oidn-frame"
 
@@ -72,14 +71,14 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DATA_DIR)
-    p.add_argument("--renderer", default="mitsuba", choices=("cycles", "mitsuba"))
-    p.add_argument("--split", default="validation-static")
+    cli_args.add_data(p)
+    cli_args.add_renderer(p)
+    cli_args.add_split(p)
     p.add_argument("--spp", default="4,16,64")
     p.add_argument("--methods", default="oidn-history,oidn-fast-history,oidn-acc")
     p.add_argument("--settle", type=int, default=3, help="first frame of the settled figure")
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--json", type=Path)
+    cli_args.add_threads(p)
+    cli_args.add_json(p)
     args = p.parse_args(argv)
     levels = tuple(int(s) for s in args.spp.split(","))
     names = [BASE, *args.methods.split(",")]

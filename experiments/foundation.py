@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from quietframe.bench import cli_args
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.export.onnx_export import export_nbg
@@ -67,7 +68,7 @@ def bench_model(config, threads: int, workdir: Path) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--out", type=Path, help="also write the report (markdown) here")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -25,6 +25,7 @@ import argparse
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.timing import Timing, time_ms, timing_table
 from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
 
@@ -267,7 +268,7 @@ def warp_report(threads: int = 2, repeats: int = 15) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--guide", choices=["smooth", "random", "both"], default="both")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--no-torch", action="store_true", help="time the custom ops only")

@@ -28,14 +28,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from quietframe.bench import cli_args
 from quietframe.model import temporal
 from quietframe.runtime.sanitize import sanitize_buffer
-from quietframe.scenes.layout import DATA_DIR
 
 GEOMETRY_MIN_NORMAL = 0.1  # shorter normals: no surface (sky, empty pixels)
 DEFAULT_SPP = "1,2,4,8,16,64"
@@ -101,11 +100,11 @@ def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import load_sequence, sequence_dirs
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DATA_DIR)
-    p.add_argument("--renderer", default="cycles", choices=("cycles", "mitsuba"))
-    p.add_argument("--split", default="test-static")
+    cli_args.add_data(p)
+    cli_args.add_renderer(p)
+    cli_args.add_split(p)
     p.add_argument("--spp", default=DEFAULT_SPP)
-    p.add_argument("--json", type=Path)
+    cli_args.add_json(p)
     args = p.parse_args(argv)
     levels = tuple(int(s) for s in args.spp.split(","))
     folders = sequence_dirs(args.data, args.split, args.renderer, levels)

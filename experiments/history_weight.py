@@ -23,12 +23,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from quietframe.bench import cli_args
 from quietframe.model.output_history import OutputHistoryConfig, clamp_to_neighbourhood
 from quietframe.model.temporal import (
     MIN_CURRENT_WEIGHT,
@@ -158,15 +158,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     from quietframe.bench.harness import planar_frames
     from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-    from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DATA_DIR)
-    p.add_argument("--renderer", default="cycles", choices=("cycles", "mitsuba"))
-    p.add_argument("--split", default="validation")
+    cli_args.add_data(p)
+    cli_args.add_renderer(p)
+    cli_args.add_split(p)
     p.add_argument("--spp", default="1,2,4,8,16,64")
-    p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
-    p.add_argument("--json", type=Path)
+    cli_args.add_threads(p)
+    cli_args.add_json(p)
     args = p.parse_args(argv)
     levels = tuple(int(s) for s in args.spp.split(","))
     folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, levels)

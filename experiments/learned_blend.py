@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from quietframe.bench import cli_args
 from quietframe.experiments.history_weight import Cached, base_outputs, frame_key
 from quietframe.model.learned_blend import LearnedBlendHistory
 from quietframe.model.losses import tonemap_tau
@@ -185,17 +186,16 @@ def table(rows: list[dict], renderer: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import HEADER_STATES_SPP, sequence_dirs
     from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-    from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DATA_DIR)
+    cli_args.add_data(p)
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--crop", type=int, default=80)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--width", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    cli_args.add_threads(p)
     p.add_argument("--train-sequences", type=int, default=0,
                    help="per renderer, the first N train sequences only (0: all)")
     p.add_argument("--test-sequences", type=int, default=0,

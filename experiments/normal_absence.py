@@ -11,14 +11,13 @@ any split may be read, including train.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.evaluate import load_sequence, sequence_dirs
 from quietframe.bench.harness import Planes, RuntimeMethod, planar_frames, score_sequence
 from quietframe.runtime import find_model
-from quietframe.scenes.layout import DATA_DIR
 
 WITHOUT = {"as written": (), "no normal": ("normal",), "no normal, albedo": ("normal", "albedo")}
 
@@ -32,12 +31,12 @@ def without(names: tuple[str, ...]):
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("models", nargs="+", help="installed model names (optional normal buffer)")
-    p.add_argument("--data", type=Path, default=DATA_DIR)
-    p.add_argument("--renderer", choices=("mitsuba", "cycles"), default="cycles")
-    p.add_argument("--split", default="train")
+    cli_args.add_data(p)
+    cli_args.add_renderer(p)
+    cli_args.add_split(p)
     p.add_argument("--sequences", type=int, default=12)
     p.add_argument("--spp", default="4,64")
-    p.add_argument("--threads", type=int, default=1)
+    cli_args.add_threads(p)
     args = p.parse_args(argv)
     levels = [int(s) for s in args.spp.split(",")]
     folders = sequence_dirs(args.data, args.split, args.renderer, tuple(levels))[: args.sequences]

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.baselines import OIDNDenoiser
 from quietframe.bench.evaluate import load_sequence, sequence_dirs
 from quietframe.bench.harness import ImageMethod, RuntimeMethod, planar_frames, score_sequence
 from quietframe.models import MODELS_DIR
-from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
 
 class OIDNOnAccumulation:
@@ -60,12 +60,12 @@ def compare(folders: list[Path], spp: int, accumulation: Path, oidn: OIDNDenoise
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR)
-    parser.add_argument("--split", default="validation")
+    cli_args.add_data(parser)
+    cli_args.add_split(parser)
     parser.add_argument("--spp", default="1,2,4,8")
     parser.add_argument("--accumulation", type=Path, default=MODELS_DIR / "accumulation.onnx")
     parser.add_argument("--quality", default="high")
-    parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    cli_args.add_threads(parser)
     args = parser.parse_args(argv)
     folders = sequence_dirs(args.data.expanduser(), args.split)
     if not folders:

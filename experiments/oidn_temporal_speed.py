@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.oidn_temporal import measure
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import Timing, time_ms
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--widths", default="", help="CNN widths, comma list (default: variant)")
     parser.add_argument("--model", type=Path, action="append", default=[],
                         help="time these exported models instead")
-    parser.add_argument("--threads", type=int, default=2)
+    cli_args.add_threads(parser)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--prefilter", type=Path,
                         help="compare OIDN without/with prefiltered aux on frames under this")

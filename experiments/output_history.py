@@ -40,11 +40,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from quietframe.bench import cli_args
 from quietframe.bench.harness import Method, Planes, RuntimeMethod
 from quietframe.model.output_history import clamp_to_neighbourhood
 from quietframe.model.temporal import (
@@ -217,16 +217,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     from quietframe.bench.harness import planar_frames
     from quietframe.runtime import find_model
-    from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DATA_DIR)
-    p.add_argument("--renderer", default="cycles", choices=("cycles", "mitsuba"))
-    p.add_argument("--split", default="test-static")
+    cli_args.add_data(p)
+    cli_args.add_renderer(p)
+    cli_args.add_split(p)
     p.add_argument("--spp", default="1,2,4,8,16,64")
     p.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
-    p.add_argument("--threads", type=int, default=DEFAULT_THREADS)
-    p.add_argument("--json", type=Path)
+    cli_args.add_threads(p)
+    cli_args.add_json(p)
     p.add_argument("--resampled-weights", default="",
                    help="comma list: also rows aligned-acc+stage@w<W>, the shipped stage with "
                         "that current-frame weight floor where the history is resampled")

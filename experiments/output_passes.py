@@ -21,6 +21,7 @@ import io
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.http_overhead import synthetic_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.service import frames
@@ -127,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=720)
     parser.add_argument("--compression", nargs="+", default=["zip", "piz", "none"])
-    parser.add_argument("--threads", type=int, default=1, help="OpenEXR threads")
+    cli_args.add_threads(parser, help="OpenEXR threads")
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)

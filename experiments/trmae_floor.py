@@ -47,9 +47,10 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.model import metrics
 from quietframe.model.oidn_cache import save_array
-from quietframe.scenes.layout import CACHE_DIR, DATA_DIR, DEFAULT_THREADS, split_dir
+from quietframe.scenes.layout import CACHE_DIR, split_dir
 
 # Salt of the second references here: the stored reference uses 1_000_003 and
 # `reference_noise` REFERENCE_NOISE_SALT (2_000_003), so these are independent of both.
@@ -124,15 +125,15 @@ def format_table(rows: dict[str, dict[int, float]], seeds: list[int], cut: set[i
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="trmae_floor", description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR)
-    parser.add_argument("--split", default="test")
+    cli_args.add_data(parser)
+    cli_args.add_split(parser)
     parser.add_argument("--sequences", default="", help="comma list of seeds (default: first 3)")
     parser.add_argument("--frames", default="1,2", help="consecutive frame indices")
     parser.add_argument("--spp", default="1,4")
     parser.add_argument("--methods", default=DEFAULT_METHODS)
-    parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    cli_args.add_threads(parser)
     parser.add_argument("--cache", type=Path, default=SECOND_REFS_DIR)
-    parser.add_argument("--json", type=Path, default=None)
+    cli_args.add_json(parser)
     args = parser.parse_args(argv)
     frames = _ints(args.frames)
     if len(frames) < 2 or frames != list(range(frames[0], frames[0] + len(frames))):
