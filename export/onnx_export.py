@@ -30,7 +30,6 @@ from quietframe.runtime.card import (
     SAMPLES_INPUT,
     STATE_IN,
     STATE_OUT,
-    InputSpec,
     ModelCard,
     StateSpec,
     prepass_stage,
@@ -40,6 +39,7 @@ from quietframe.runtime.card import (
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS
 from quietframe.runtime.ops_library import OPS_DOMAIN
 from quietframe.runtime.receptive import tiling_for
+from quietframe.runtime.scalar_inputs import InputSpec
 
 OPSET = 18
 REQUIRED_BUFFERS = ("color", "albedo", "normal", "depth")

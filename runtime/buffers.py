@@ -3,7 +3,7 @@ one becomes, and which sanitising rule each gets (the rules themselves: `sanitiz
 
 Torch-free and serving-free: the service, the runtime, the exporter, training, evaluation and the
 benchmarks all read the buffer vocabulary from here. Buffers travel as planar float32 arrays
-(C, H, W), the layout of both EXR channels and the NCHW graph inputs (DESIGN.md).
+(C, H, W), the layout of both EXR channels and the NCHW graph inputs.
 """
 
 from __future__ import annotations

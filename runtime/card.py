@@ -1,5 +1,5 @@
 """The model card: everything the runtime, tiling, model choice and the registry know about an
-exported model, typed and versioned (DESIGN.md, "The model card"; docs/model-interface.md).
+exported model, typed and versioned (docs/model-interface.md).
 
 Exporters build a `ModelCard` and write it with `to_props` into the ONNX metadata_props; every
 reader gets it back with `ModelCard.from_props`. Nothing else parses metadata strings. No torch.
@@ -19,9 +19,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-import numpy as np
-
 from quietframe.runtime.ops_library import OPS_DOMAIN
+from quietframe.runtime.receptive import Tiling, tiling_for
+from quietframe.runtime.scalar_inputs import InputSpec
 
 CARD_VERSION = 1
 PREFIX = "quietframe."
@@ -50,54 +50,6 @@ class StateSpec:
 
     def to_dict(self) -> dict:
         return {"name": self.name, "channels": self.channels, "scale": self.scale}
-
-
-@dataclass(frozen=True)
-class InputSpec:
-    """An extra scalar graph input (`quietframe.inputs`), fed from its default or a session /
-    call option: e.g. the affinity model's `kernel_size`."""
-
-    name: str
-    dtype: str  # numpy dtype name, e.g. "int64"
-    shape: tuple[int, ...]
-    default: float | int
-    allowed: tuple[float | int, ...] | None = None  # None: any value
-    doc: str = ""
-    minimum: float | None = None  # the smallest value it takes (None: no bound)
-
-    def check(self, value: float | int) -> None:
-        """ValueError for a value this input does not take."""
-        if self.allowed is not None and value not in self.allowed:
-            raise ValueError(f"{self.name} must be one of {list(self.allowed)}, got {value!r}")
-        if not math.isfinite(float(value)):
-            raise ValueError(f"{self.name} must be a finite number, got {value!r}")
-        if self.minimum is not None and value < self.minimum:
-            raise ValueError(f"{self.name} must be at least {self.minimum:g}, got {value!r}")
-        if np.dtype(self.dtype).kind in "iu" and not float(value).is_integer():
-            raise ValueError(f"{self.name} is an integer, got {value!r}")  # not truncated
-
-    def array(self, value: float | int) -> np.ndarray:
-        self.check(value)
-        return np.full(self.shape, value, dtype=self.dtype)
-
-    def describe(self) -> str:
-        """E.g. 'kernel_size (one of [5, 7, 9], default 5)', for messages and listings."""
-        values = f"one of {list(self.allowed)}, " if self.allowed is not None else ""
-        if self.minimum is not None:
-            values += f"at least {self.minimum:g}, "
-        return f"{self.name} ({values}default {self.default})"
-
-    def to_dict(self) -> dict:
-        allowed = list(self.allowed) if self.allowed is not None else None
-        return {"name": self.name, "dtype": self.dtype, "shape": list(self.shape),
-                "default": self.default, "allowed": allowed, "doc": self.doc,
-                **({} if self.minimum is None else {"minimum": self.minimum})}
-
-    @classmethod
-    def from_dict(cls, d: Mapping) -> InputSpec:
-        allowed = tuple(d["allowed"]) if d.get("allowed") is not None else None
-        return cls(d["name"], d["dtype"], tuple(d["shape"]), d["default"], allowed,
-                   d.get("doc", ""), d.get("minimum"))
 
 
 # The run-time input of a model whose behaviour depends on the frame's samples per pixel
@@ -234,66 +186,6 @@ def check_stages(stages: Sequence[Stage]) -> None:
         raise ValueError(f"graph stages need distinct state namespaces, got {spaces}")
 
 
-# ---- tiling ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class FrameStatistic:
-    """A frame-wide quantity a graph computes (not local to a pixel), and how a tile gets it:
-    "frame" = the graph's own reduction runs on the whole frame and its value is fed to every
-    tile (runtime/statistics.py); "tile" = the tile's own (parity then holds only where the
-    statistic does not decide)."""
-
-    name: str  # e.g. "mean_depth"
-    buffer: str  # the buffer it is computed from
-    how: str  # "frame" | "tile"
-
-
-@dataclass(frozen=True)
-class Tiling:
-    """What cutting a frame into tiles needs to know about one graph (runtime/tiling.py)."""
-
-    radius: int  # receptive radius in pixels, without motion and without `reach`
-    align: int  # tile origins are multiples of this
-    # Extra radius per value of a run-time input (e.g. the affinity kernels' reach by
-    # kernel_size); a value not listed counts as the largest listed.
-    reach: Mapping[str, Mapping[int, int]] = field(default_factory=dict)
-    motion: bool = True  # the graph warps its history: overlap grows with max |motion| + 1
-    statistics: tuple[FrameStatistic, ...] = ()
-    bytes_per_pixel: int = 1024  # the graph's working set per padded-tile pixel
-    # The graph resamples by the ratio of its levels' sizes (bilinear upsampling to a skip's
-    # size): a side that is not a multiple of `align` is not cut (runtime/tiling.py).
-    size_ratios: bool = False
-
-    def radius_for(self, values: Mapping[str, float | int]) -> int:
-        """The radius when the run-time inputs have `values` (name -> value)."""
-        extra = 0
-        for name, table in self.reach.items():
-            value = values.get(name)
-            extra += table.get(int(value), max(table.values())) if value is not None \
-                else max(table.values())
-        return self.radius + extra
-
-    def statistic(self, name: str) -> FrameStatistic | None:
-        return next((s for s in self.statistics if s.name == name), None)
-
-    def to_dict(self) -> dict:
-        return {"radius": self.radius, "align": self.align,
-                "reach": {k: {str(v): r for v, r in t.items()} for k, t in self.reach.items()},
-                "motion": self.motion,
-                "statistics": [[s.name, s.buffer, s.how] for s in self.statistics],
-                "bytes_per_pixel": self.bytes_per_pixel, "size_ratios": self.size_ratios}
-
-    @classmethod
-    def from_dict(cls, d: Mapping) -> Tiling:
-        return cls(int(d["radius"]), int(d["align"]),
-                   {k: {int(v): int(r) for v, r in t.items()} for k, t in d.get("reach",
-                                                                               {}).items()},
-                   bool(d.get("motion", True)),
-                   tuple(FrameStatistic(*s) for s in d.get("statistics", [])),
-                   int(d.get("bytes_per_pixel", 1024)), bool(d.get("size_ratios", False)))
-
-
 # ---- measurements ---------------------------------------------------------------------------
 
 
@@ -302,8 +194,8 @@ class SppRow:
     spp: float  # samples per pixel of the inputs
     psnr: float  # dB on the τ-mapped image, mean over frames
     trmae: float | None = None  # mean over sequences
-    # Mean over locked-off validation shots of the temporal std of τ(output) (issue 24's
-    # flicker: no reference needed); None where no locked-off shot was measured.
+    # Mean over locked-off validation shots of the temporal std of τ(output) (flicker: no
+    # reference needed); None where no locked-off shot was measured.
     flicker: float | None = None
     # PSNR of the renderer's own denoise of the same validation frames (Blender's, on Cycles),
     # measured in the same run: auto's floor where the renderer has one (service/model_choice).
@@ -518,8 +410,6 @@ class ModelCard:
         if tiling_text:
             tiling = Tiling.from_dict(json.loads(tiling_text))
         else:
-            from quietframe.runtime.receptive import tiling_for  # the rules import these types
-
             tiling = tiling_for(architecture if isinstance(architecture, dict) else {}, inputs,
                                 any(isinstance(s, OIDNStage) for s in stages))
         return cls(

@@ -24,7 +24,6 @@ from quietframe.runtime.card import (
     STATE_IN,
     STATE_OUT,
     GraphStage,
-    InputSpec,
     ModelCard,
     OIDNStage,
     StateSpec,
@@ -32,6 +31,7 @@ from quietframe.runtime.card import (
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass, PrepassUnavailable
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
+from quietframe.runtime.scalar_inputs import InputSpec
 from quietframe.runtime.statistics import split_statistics
 from quietframe.runtime.tiling import (
     UNTILED_BYTES_PER_PIXEL,

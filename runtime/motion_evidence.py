@@ -175,10 +175,6 @@ def probe_shape(height: int, width: int) -> tuple[int, int, int]:
     return (PROBE_CHANNELS, -(-height // PROBE_SCALE), -(-width // PROBE_SCALE))
 
 
-def probe_nbytes(height: int, width: int) -> int:
-    return 4 * int(np.prod(probe_shape(height, width)))
-
-
 def has_motion(planes: Mapping[str, np.ndarray]) -> bool:
     """Whether the frame carries motion vectors a reprojection can use: a motion buffer with
     one finite nonzero vector (an all-zero Vector is what Cycles writes with motion blur on)."""

@@ -29,15 +29,15 @@ def ops_library_path() -> Path:
     name = _LIBRARY_NAMES.get(sys.platform, "quietframe_ops.dll")
     # Installed wheels put the library next to this package's files; editable installs keep
     # package sources and built files in different folders, so look at every package path.
-    from quietframe import runtime
-
-    for folder in runtime.__path__:
+    # The package is always imported before its modules: its path is read, not imported back.
+    folders = list(sys.modules[__package__].__path__)
+    for folder in folders:
         candidate = Path(folder) / name
         if candidate.is_file():
             return candidate
     # A plain `pip install .` (the client's install) builds no ops: say how to get them.
     raise FileNotFoundError(
-        f"{name} not found next to quietframe.runtime ({list(runtime.__path__)}): this "
+        f"{name} not found next to quietframe.runtime ({folders}): this "
         "quietframe was installed without its C++ ops, which serving and training need. "
         "Reinstall with them: QUIETFRAME_BUILD_OPS=1 pip install \".[serve]\" (a C++17 "
         "compiler; make serve does this), or set QUIETFRAME_OPS_LIBRARY to a built library"

@@ -15,8 +15,67 @@ runtime/tiling.py adds the tile's own inputs, state and outputs, which the card'
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
-from quietframe.runtime.card import FrameStatistic, InputSpec, Tiling
+from quietframe.runtime.scalar_inputs import InputSpec
+
+
+@dataclass(frozen=True)
+class FrameStatistic:
+    """A frame-wide quantity a graph computes (not local to a pixel), and how a tile gets it:
+    "frame" = the graph's own reduction runs on the whole frame and its value is fed to every
+    tile (runtime/statistics.py); "tile" = the tile's own (parity then holds only where the
+    statistic does not decide)."""
+
+    name: str  # e.g. "mean_depth"
+    buffer: str  # the buffer it is computed from
+    how: str  # "frame" | "tile"
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """What cutting a frame into tiles needs to know about one graph (runtime/tiling.py)."""
+
+    radius: int  # receptive radius in pixels, without motion and without `reach`
+    align: int  # tile origins are multiples of this
+    # Extra radius per value of a run-time input (e.g. the affinity kernels' reach by
+    # kernel_size); a value not listed counts as the largest listed.
+    reach: Mapping[str, Mapping[int, int]] = field(default_factory=dict)
+    motion: bool = True  # the graph warps its history: overlap grows with max |motion| + 1
+    statistics: tuple[FrameStatistic, ...] = ()
+    bytes_per_pixel: int = 1024  # the graph's working set per padded-tile pixel
+    # The graph resamples by the ratio of its levels' sizes (bilinear upsampling to a skip's
+    # size): a side that is not a multiple of `align` is not cut (runtime/tiling.py).
+    size_ratios: bool = False
+
+    def radius_for(self, values: Mapping[str, float | int]) -> int:
+        """The radius when the run-time inputs have `values` (name -> value)."""
+        extra = 0
+        for name, table in self.reach.items():
+            value = values.get(name)
+            extra += table.get(int(value), max(table.values())) if value is not None \
+                else max(table.values())
+        return self.radius + extra
+
+    def statistic(self, name: str) -> FrameStatistic | None:
+        return next((s for s in self.statistics if s.name == name), None)
+
+    def to_dict(self) -> dict:
+        return {"radius": self.radius, "align": self.align,
+                "reach": {k: {str(v): r for v, r in t.items()} for k, t in self.reach.items()},
+                "motion": self.motion,
+                "statistics": [[s.name, s.buffer, s.how] for s in self.statistics],
+                "bytes_per_pixel": self.bytes_per_pixel, "size_ratios": self.size_ratios}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Tiling:
+        return cls(int(d["radius"]), int(d["align"]),
+                   {k: {int(v): int(r) for v, r in t.items()} for k, t in d.get("reach",
+                                                                               {}).items()},
+                   bool(d.get("motion", True)),
+                   tuple(FrameStatistic(*s) for s in d.get("statistics", [])),
+                   int(d.get("bytes_per_pixel", 1024)), bool(d.get("size_ratios", False)))
+
 
 # GuideNet's relative depth is depth / mean(depth) over the frame (model/nbg.py guide_features;
 # model/affinity.py guide_inputs, at full and at U-Net resolution), and NBG's firefly floor is

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from quietframe.models import MODELS_DIR
 
-# The best general-purpose model; the training issue decides which one this is.
+# The best general-purpose model shipped: what a caller that names none gets.
 DEFAULT_MODEL = "nbg-2l-3g"
 
 

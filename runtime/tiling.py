@@ -37,7 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from quietframe.runtime.card import StateSpec, Tiling
+from quietframe.runtime.card import StateSpec
+from quietframe.runtime.receptive import Tiling
 
 # The working set one tile may hold, in MiB (OIDN's maxMemoryMB); QUIETFRAME_MAX_MEMORY_MB
 # overrides. At 1536 MiB 1080p still runs whole through NBG's 2-layer models (tiles cost their

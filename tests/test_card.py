@@ -21,9 +21,9 @@ from quietframe.runtime.card import (
     OIDNStage,
     SppRow,
     StateSpec,
-    Tiling,
     prepass_stage,
 )
+from quietframe.runtime.receptive import Tiling
 from quietframe.service.model_choice import ModelProfile
 
 
