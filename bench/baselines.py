@@ -1,9 +1,10 @@
 """Non-network denoisers the evaluation compares against.
 
 Each is a stateful per-sequence object: `reset()` at a first frame or camera cut, then
-`__call__(buffers) -> (H, W, 3)` once per frame with the canonical buffers (DESIGN.md): `color`,
-`albedo`, `normal` (H, W, 3), `depth` (H, W, 1) or (H, W), `motion` (H, W, 2) backward in pixels
-(pixel p of frame t was at p + motion in frame t-1; a missing motion is a static camera).
+`__call__(buffers) -> (H, W, 3)` once per frame with the canonical buffers
+(docs/architecture.md): `color`, `albedo`, `normal` (H, W, 3), `depth` (H, W, 1) or (H, W),
+`motion` (H, W, 2) backward in pixels (pixel p of frame t was at p + motion in frame t-1; a
+missing motion is a static camera).
 
 The temporal rule (`nearest_warp`, `history_valid`, the accumulation weights, demodulation) is
 a numpy twin of the NBG pre-stage in `model/temporal.py` and `model/nbg.py`: same names, same

@@ -1,5 +1,6 @@
-"""Issue 24's table from `quietframe-eval` JSON: each method against the per-frame baselines of
-the same run, at every spp, and whether it meets the targets (with the amount where it misses).
+"""The temporal tiers' targets table from `quietframe-eval` JSON: each method against the
+per-frame baselines of the same run, at every spp, and whether it meets the targets (with the
+amount where it misses).
 
     python -m quietframe.bench.compare_table RUN.json [--static STATIC.json]
         [--methods a,b] [--against oidn-frame,blender-denoise] [--trmae 0.7] [--flicker 0.5]
@@ -7,9 +8,9 @@ the same run, at every spp, and whether it meets the targets (with the amount wh
 
 RUN: an evaluation of moving shots (PSNR, TRMAE, ms at 720p); STATIC: one of locked-off shots
 (`*-static` splits), whose flicker (model/metrics.flicker) is scored against the first
-baseline's. Targets (issue 24): PSNR at least every baseline's; TRMAE at most `--trmae` × the
-first baseline's; flicker on locked-off shots at most `--flicker` × its. Ratios and
-differences are of figures measured in one run, so machine load cancels out of them.
+baseline's. Targets (docs/architecture.md, "Tiers"): PSNR at least every baseline's; TRMAE at
+most `--trmae` × the first baseline's; flicker on locked-off shots at most `--flicker` × its.
+Ratios and differences are of figures measured in one run, so machine load cancels out of them.
 """
 
 from __future__ import annotations

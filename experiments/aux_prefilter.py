@@ -1,5 +1,5 @@
 """The cost of OIDN's prefiltered aux (Blender's Accurate mode) per 1280x720 frame, by the aux
-prefilters' quality, next to plain OIDN-high in one run (issue 24's per-frame floor):
+prefilters' quality, next to plain OIDN-high (the temporal tiers' per-frame floor) in one run:
 
     python -m quietframe.experiments.aux_prefilter [--threads 2] [--repeats 3]
 

@@ -1,8 +1,9 @@
-"""How much of a locked-off shot's flicker is the history's start-up (issue 24's flicker target).
+"""How much of a locked-off shot's flicker is the history's start-up (the flicker target: at
+most 0.5× per-frame OIDN's).
 
-    python -m quietframe.experiments.flicker_transient [--renderer mitsuba]
-        [--split validation-static]
-        [--spp 4,16,64] [--methods oidn-history,oidn-acc] [--settle 3] [--json out.json]
+    python -m quietframe.experiments.flicker_transient --split validation-static
+        [--renderer mitsuba] [--spp 4,16,64] [--methods oidn-history,oidn-acc] [--settle 3]
+        [--json out.json]
 
 A history starts empty at a shot's first frame, so there every temporal tier returns what
 per-frame OIDN does, and its output then moves towards the converged image over the frames the

@@ -1,7 +1,7 @@
-"""How much history the accumulation keeps on locked-off shots (issue 24's question: is the
+"""How much history the accumulation keeps on locked-off shots (the question: is the
 history rejected on static pixels, for example because the aux buffers are noisy at low spp?).
 
-    python -m quietframe.experiments.history_keep [--renderer cycles] [--split test-static]
+    python -m quietframe.experiments.history_keep --renderer cycles --split test-static
         [--spp 1,2,4,8,16,64] [--json keep.json]
 
 On a locked-off shot (static camera and scene, animated seed) the surface behind every pixel is

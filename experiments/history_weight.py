@@ -1,8 +1,8 @@
-"""Ablation for issue 24 (oidn-history v2): where the output history is resampled, how much of
+"""Ablation for oidn-history v2: where the output history is resampled, how much of
 it to keep. The shipped rule is a weight floor from the frame's spp (model/output_history.py,
 w(spp)); this bench scores it against the alternatives that need no spp, in one run:
 
-    python -m quietframe.experiments.history_weight [--split validation] [--spp 1,2,4,8,16,64]
+    python -m quietframe.experiments.history_weight --renderer cycles [--spp 1,2,4,8,16,64]
         [--json rows.json]
 
 Rows (each over the same cached per-frame base: the pixel-aligned accumulation then OIDN-high,

@@ -1,4 +1,4 @@
-"""Ablation for issue 24: a learned per-pixel blend (model/learned_blend.py, Işık et al. eq. 5's
+"""Ablation: a learned per-pixel blend (model/learned_blend.py, Işık et al. eq. 5's
 λ) against the shipped hand rule of `oidn-history`, trained on both renderers' train splits and
 scored on their test splits beside per-frame OIDN, in one run:
 
@@ -7,7 +7,7 @@ scored on their test splits beside per-frame OIDN, in one run:
 
 Every row shares one cached base per frame, as experiments/history_weight.py's: the pixel-aligned
 accumulation then OIDN-high (what `oidn-history` composes), so only the blend differs:
-- `oidn-frame`: OIDN-high on the frame alone (the issue's floor);
+- `oidn-frame`: OIDN-high on the frame alone (the temporal tiers' floor);
 - `rule`: the shipped stage (model/output_history.OutputHistory; the untrained blend, whose
   correction is zero, computes exactly it);
 - `learned`: the trained blend.

@@ -1,11 +1,11 @@
-"""Ablation for issue 24: history kept in output space on top of per-frame OIDN, next to
+"""Ablation: history kept in output space on top of per-frame OIDN, next to
 per-frame OIDN and the shipped accumulation tier, scored in one run.
 
-    python -m quietframe.experiments.output_history [--renderer cycles] [--split test-static]
+    python -m quietframe.experiments.output_history --renderer cycles --split test-static
         [--spp 1,2,4,8,16,64] [--sequences N] [--json rows.json]
 
-The shipped `*-acc` tiers reproject the noisy accumulation and run OIDN on it; the issue asks
-whether reprojecting OIDN's per-frame output instead, and only where that stays sharp, can
+The shipped `*-acc` tiers reproject the noisy accumulation and run OIDN on it; the question
+is whether reprojecting OIDN's per-frame output instead, and only where that stays sharp, can
 keep per-frame OIDN's detail and still be steadier. Each candidate is `OutputHistory` over
 `oidn-frame` (the shipped per-frame model, run by the runtime), or with `acc+` over the
 shipped `oidn-acc` (OIDN on the accumulation), so both kinds of history stack:
@@ -14,7 +14,7 @@ shipped `oidn-acc` (OIDN on the accumulation), so both kinds of history stack:
   frame's OIDN output where the surface test passes (`model/temporal.history_valid`), with the
   accumulation's weights (1/n, floored at MIN_CURRENT_WEIGHT);
 - `+clamp`: the reprojected output clipped to the 3×3 min/max of this frame's OIDN output
-  first (the issue's "obvious fix");
+  first (the obvious fix);
 - `+sharp`: history only where the motion vector is a whole number of pixels (a locked-off or
   pixel-aligned pixel), where nearest reprojection is exact, so resampling never blurs.
 
@@ -23,14 +23,14 @@ And the accumulation itself restricted the same way (`accumulated_oidn`): `acc-t
 keeps history only under pixel-aligned motion, `aligned-acc+out-history` adds the sharp output
 history on top. `acc-nearest` is the same accumulation through `OutputHistory` over the noisy
 colour (demodulated) then OIDN, which should equal `acc-torch`; `acc-bicubic` fetches that
-history bicubically instead (the issue's "resampling that does not blur"), and
+history bicubically instead (resampling that does not blur), and
 `out-history+bicubic` (`+clamp`) does the same to OIDN's output. `out-history+hybrid` takes
 the exact pixel where the motion is pixel-aligned and the clamped bicubic fetch elsewhere, and
 `aligned-acc+hybrid` puts that over the pixel-aligned accumulation.
 
 Rows per spp: PSNR, TRMAE (meaningless on locked-off splits: their reference is one frame's,
 so ∂t r = 0 and TRMAE is |∂t p| / ε), and on locked-off splits (`*-static`) flicker
-(`metrics.flicker`), each also as a ratio to `oidn-frame`'s (the issue's targets: PSNR at
+(`metrics.flicker`), each also as a ratio to `oidn-frame`'s (the temporal tiers' targets: PSNR at
 least oidn-frame's and Blender's denoise; flicker ≤ 0.5×; TRMAE ≤ 0.7×). The candidates'
 extra cost is a few elementwise passes over the frame (no second OIDN pass).
 """

@@ -9,7 +9,7 @@ Mist float; DiffCol, GlossCol, Emit, AO half; CryptoObject00 float). For each ou
 compression it times, through the service's own `frames.decode` / `frames.encode`:
 - decode: the whole file (OpenEXR decodes every channel in either case);
 - encode, beauty only: the denoised R, G, B with the input's header (what quietframe returned
-  before issue 12), i.e. `encode` of the frame with no channel to carry through;
+  before outputs carried every pass), i.e. `encode` of the frame with no channel to carry through;
 - encode, complete: the same denoised colour with every other channel carried through.
 Times are medians (bench/timing.py) on `--threads` OpenEXR threads.
 """

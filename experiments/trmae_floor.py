@@ -1,6 +1,6 @@
 """The floor that noisy references put under TRMAE, next to what the methods score.
 
-    python -m quietframe.experiments.trmae_floor [--split test] [--sequences 3000000,3000001,...]
+    python -m quietframe.experiments.trmae_floor --split test [--sequences 3000000,3000001,...]
         [--frames 1,2] [--spp 1,4] [--methods oidn-high,oidn-temporal-acc,nbg-2l-3g]
         [--threads 2] [--json floor.json]
 
@@ -32,8 +32,8 @@ renders), and prints one table, rows × (sequences, mean):
   carried, reset at cuts), TRMAE of its outputs at the same frames against the stored ones.
 
 A sequence marked * has a cut inside the frames (∂t r is then the cut itself); `mean` is over
-all listed sequences. The last lines compare the issue's target (0.5 × oidn-high's TRMAE) with
-the floor per spp. `--json PATH` writes every figure.
+all listed sequences. The last lines compare the target the oidn-temporal tiers had
+(0.5 × oidn-high's TRMAE) with the floor per spp. `--json PATH` writes every figure.
 """
 
 from __future__ import annotations

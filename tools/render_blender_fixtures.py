@@ -9,9 +9,10 @@ The scene is built in code (no downloaded assets): a floor, a cube, a sphere and
 different materials, a sun, a coloured sky in the top part of the frame, and a camera that pans
 right and tilts up over frames 1-3, so every surface moves by a known amount in the image (Cycles
 writes no motion for the sky: tests/fixtures/blender/README.md).
-Each variant is one point of the issue-12 matrix (passes, view layers, motion blur, Blender's
-denoiser, half/float, ZIP/PIZ/DWAA). Seeds are fixed and Cycles runs on one CPU thread so the
-pixels are reproducible; `manifest.json` records the Blender version and every setting.
+Each variant is one point of the matrix of what Blender writes for a farm (passes, view layers,
+motion blur, Blender's denoiser, half/float, ZIP/PIZ/DWAA). Seeds are fixed and Cycles runs on
+one CPU thread so the pixels are reproducible; `manifest.json` records the Blender version and
+every setting.
 """
 
 from __future__ import annotations
