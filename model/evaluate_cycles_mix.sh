@@ -1,31 +1,30 @@
 #!/usr/bin/env bash
-# Before and after for the learned tiers retrained with Cycles in the mix (issue 23,
-# deliverable 5), on both test splits in one run each, next to per-frame OIDN (and Blender's own
-# denoise on Cycles):
-#   export: the fine-tuned runs of model/finetune_cycles.sh as <name>-mix.onnx beside their
-#           checkpoints in models/training/<name>-mix/ (kept in git: the candidates);
-#   test:   quietframe-eval on the Mitsuba test split (1-16 spp) and the Cycles test split
-#           (1-64 spp) with the shipped and the fine-tuned models, and issue 24's comparison
-#           table per spp (bench/compare_table) under docs/evaluation/cycles-mix/;
-#           test-mitsuba / test-cycles: one split alone (the other may still be rendering).
-#   ship:   spent: it installed both candidates on 2026-12-04 (nbg-2l-3g v5, affinity-h16-k5gc
-#           v2) and removed their folders; git show c659a22:model/evaluate_cycles_mix.sh has it
-#           as it ran. A new candidate ships with model/ship_candidate.sh;
-#   docs:   after ship, the reports that show the learned tiers, re-run with the new ones
-#           installed: docs/benchmarks.md's Mitsuba test table (the same methods; the file's
-#           later sections, from the auto_choice marker on, are kept) and the Cycles test run
-#           (docs/evaluation/cycles-test; its table in docs/benchmarks.md is pasted by hand,
-#           python -m quietframe.bench.compare_table ... --against blender-denoise --wide).
-# A candidate is shipped only if it loses at most 0.2 dB on the Mitsuba test split at every spp
-# (the issue's rule; both pass it: docs/training.md, "Cycles in the mix").
-#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test|test-mitsuba|test-cycles|ship|docs
+# Before and after for learned tiers fine-tuned with Cycles in the mix (model/finetune_cycles.sh):
+# each fine-tuned run scored beside the shipped model it would replace and per-frame OIDN (and
+# Blender's own denoise on Cycles), on both renderers' test splits, one run per split.
+#   PYTHON=.venv/bin/python model/evaluate_cycles_mix.sh export|test|test-mitsuba|test-cycles|docs
+# Stages:
+#   export:  each run in $RUNS (default ~/.cache/quietframe/runs/cycles-mix) exported as
+#            models/training/<name>-mix/<name>-mix.onnx beside its checkpoint: the candidates,
+#            stamped with version NBG_VERSION / AFFINITY_VERSION (the shipped card's + 1);
+#   test:    quietframe-eval on the Mitsuba test split (1-16 spp) and the Cycles test split
+#            (1-64 spp) with the shipped and the fine-tuned models, the targets table and a
+#            before/after table per spp (bench/compare_table) under $OUT (default
+#            docs/evaluation/cycles-mix); test-mitsuba / test-cycles: one split alone;
+#   docs:    once a candidate is shipped (model/ship_candidate.sh), the reports that show the
+#            learned tiers, re-run: docs/benchmarks.md's Mitsuba test table (its sections from
+#            the auto_choice marker on are kept) and docs/evaluation/cycles-test (its table in
+#            docs/benchmarks.md is pasted by hand from
+#            python -m quietframe.bench.compare_table ... --against blender-denoise --wide).
+# A candidate ships only if it loses at most 0.2 dB on the Mitsuba test split at every spp
+# (docs/training.md, "Cycles in the mix").
 set -eu
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}
 OUT=${OUT:-docs/evaluation/cycles-mix}
 NAMES=(nbg-2l-3g affinity-h16-k5gc)
-declare -A VERSION=([nbg-2l-3g]=5 [affinity-h16-k5gc]=2)  # the shipped cards' versions + 1
-STAGE=${1:?export, test, test-mitsuba, test-cycles, ship or docs}
+declare -A VERSION=([nbg-2l-3g]=${NBG_VERSION:-5} [affinity-h16-k5gc]=${AFFINITY_VERSION:-2})
+STAGE=${1:?export, test, test-mitsuba, test-cycles or docs}
 
 if [ "$STAGE" = export ]; then
     for name in "${NAMES[@]}"; do
@@ -79,7 +78,6 @@ pathlib.Path('docs/benchmarks.md').write_text(new)" "$t/test/benchmarks.md"
 }
 case "$STAGE" in
 test) mitsuba; cycles ;;
-ship) echo "ship is spent (see the header): use model/ship_candidate.sh" >&2; exit 2 ;;
 docs) docs ;;
 test-mitsuba) mitsuba ;;
 test-cycles) cycles ;;

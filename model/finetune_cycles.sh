@@ -1,16 +1,16 @@
 #!/usr/bin/env bash
-# The learned tiers retrained with Cycles in the mix (issue 23, deliverable 5): the shipped
-# nbg-2l-3g and affinity-h16-k5gc fine-tuned from their shipped checkpoints
-# (models/training/<name>/best.pt) on the union of the Mitsuba and Cycles train splits,
-# two runs side by side (one thread each), each resumable from its run directory.
+# Fine-tune the shipped learned tiers (nbg-2l-3g, affinity-h16-k5gc) from their checkpoints in
+# models/training/<name>/best.pt on the Mitsuba and Cycles train splits together: two runs side
+# by side (one thread each), each resumable from its run directory. Score them with
+# model/evaluate_cycles_mix.sh, ship one with model/ship_candidate.sh.
 #   nohup nice -n 5 model/finetune_cycles.sh > ~/.cache/quietframe/logs/finetune.log 2>&1 &
-# Fine-tuning, not training from scratch: the shipped weights already hold what Mitsuba taught
-# them, and the issue ships a retrained model only if it loses at most 0.2 dB on the Mitsuba
-# test split; a short schedule at a third of the original learning rate moves them towards
-# Cycles frames (camera-space normals, Blackman-Harris pixels, 16-64 spp) without starting
-# over. Each run keeps its own data, loss, dropout and crop settings from the original run.
-# PYTHON: the interpreter (default python); RUNS: where runs go; NBG_STEPS / AFFINITY_STEPS:
-# schedule lengths (400 and 600).
+# PYTHON: the interpreter (default python); RUNS: where runs go (default
+# ~/.cache/quietframe/runs/cycles-mix); NBG_STEPS / AFFINITY_STEPS: schedule lengths (400, 600).
+# Why fine-tuning: the shipped weights already hold what Mitsuba taught them, and a candidate
+# ships only if it loses at most 0.2 dB on the Mitsuba test split; a short schedule at a third
+# of the original learning rate moves them towards Cycles frames (camera-space normals,
+# Blackman-Harris pixels, 16-64 spp) without starting over. Each run keeps its original data,
+# loss, dropout and crop settings.
 set -u
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}

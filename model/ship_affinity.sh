@@ -1,19 +1,23 @@
 #!/usr/bin/env bash
-# The affinity tier from a training run (model/train_affinity.sh), issue 15:
-#   evaluate: keep the run's files in models/training/affinity-h24/, export it outside models/,
-#             the test-split evaluation next to OIDN and NBG (docs/benchmarks.*, the scatter,
-#             the crops) and the width table (docs/affinity-sweep.md);
-#   ship:     install it in models/ with its measured validation tables (model=auto, the card)
-#             — for a run that earns its place next to NBG and OIDN (docs/affinity.md).
+# Install a new affinity model from a training run (model/train_affinity.sh). A retrained model
+# that replaces a shipped one goes through model/ship_candidate.sh instead.
 #   RUN=~/.cache/quietframe/runs/g2/s6/affinity-h16-k5gc-tau NAME=affinity-h16-k5gc \
 #       PYTHON=.venv/bin/python model/ship_affinity.sh evaluate|ship
-# NAME is the model's name in models/ and the reports (the run's variant); SWEEP=0 skips
-# re-timing the width table in evaluate.
+# Stages:
+#   evaluate: keep the run's files in models/training/$NAME/, export it outside models/, and
+#             evaluate it on the test split next to OIDN and NBG (docs/benchmarks.*, the
+#             scatter, the crops); re-time the width table (docs/affinity-sweep.md; SWEEP=0
+#             skips it);
+#   ship:     install it in models/ with its measured validation tables (model=auto, the card)
+#             — for a run that earns its place next to NBG and OIDN (docs/affinity.md).
+# RUN: the run directory; NAME: the model's name in models/ and the reports (the run's
+# variant); VERSION: the card's version (default 1); RUNS: the width sweep's runs (default
+# ~/.cache/quietframe/runs/g2, <RUNS>/sweep).
 set -eu
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
-RUN=${RUN:-$R/affinity-h24}
-NAME=${NAME:-affinity-h24}
+RUN=${RUN:?the training run directory}
+NAME=${NAME:?the model name in models/}
 VERSION=${VERSION:-1}
 STAGE=${1:?evaluate or ship}
 T=${TMPDIR:-/tmp}/ship-$NAME

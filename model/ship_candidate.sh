@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# Measure one retrained model beside the shipped one and ship it, for one candidate from any
-# training run: the steps model/evaluate_cycles_mix.sh's ship stage took for its two (in git at
-# c659a22), with every figure from runs of this script.
+# Measure one retrained model beside the shipped one it replaces, and ship it: for a candidate
+# from any training run (model/finetune_cycles.sh, a new run of model/train_g2.sh), with every
+# figure from runs of this script.
+#   NAME=affinity-h16-k5gc RUN=~/.cache/quietframe/runs/affinity-h16-k5gc-clamp VERSION=3 \
+#     PYTHON=.venv/bin/python model/ship_candidate.sh export|measure|timing|test|ship
 #   NAME:    the shipped model it replaces (models/$NAME.onnx, models/training/$NAME/);
 #   RUN:     the run directory (best.pt, config.json, log.txt);
 #   VERSION: the version the shipped file gets (the shipped card's + 1).
-# Stages (each run's figures under $OUT, default docs/evaluation/$NAME-v$VERSION):
+# Stages, in order (each run's figures under $OUT, default docs/evaluation/$NAME-v$VERSION):
 #   export:  RUN/best.pt -> $OUT/candidate/$NAME-candidate.onnx (named so that every run below
 #            scores it as its own method beside the shipped model);
 #   measure: validation, both renderers, 1-64 spp, and their locked-off shots (the tables `auto`
@@ -16,8 +18,6 @@
 #            denoise) in one run each, and a before/after table (bench/compare_table);
 #   ship:    install the candidate under NAME with both renderers' tables stamped from the
 #            measure and timing runs (bench/model_metrics --measured-as), then its card.
-#   NAME=affinity-h16-k5gc RUN=~/.cache/quietframe/runs/affinity-h16-k5gc-clamp VERSION=3 \
-#     PYTHON=.venv/bin/python model/ship_candidate.sh export|measure|timing|test|ship
 set -eu
 PY=${PYTHON:-python}
 NAME=${NAME:?the shipped model to replace}

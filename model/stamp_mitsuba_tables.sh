@@ -1,38 +1,35 @@
 #!/usr/bin/env bash
-# auto's Mitsuba tables at 1-64 spp (issue 24). A frame whose header names no renderer with a
-# table of its own (Mitsuba, Arnold, RenderMan, V-Ray) is chosen for on each model's default
-# table. Until 2026-12-04 those tables were stamped on an earlier Mitsuba validation split at
-# 1-8 spp, and the history tiers (oidn-history*) had none, so auto could not pick them for such
-# frames and, by the reach rule (service/model_choice.MEASURED_SPP_REACH), fell back to
-# oidn-frame above 11 spp. This re-measures every shipped model on one set of validation frames
-# at 1-64 spp and stamps the tables; the test split then scores auto against per-frame OIDN
-# (docs/evaluation/mitsuba-tables/README.md).
+# auto's Mitsuba tables at 1-64 spp: every shipped model measured on one set of Mitsuba
+# validation frames and the tables stamped into its card. auto reads them for any frame whose
+# header names no renderer with a table of its own (Mitsuba, Arnold, RenderMan, V-Ray); the test
+# split then scores auto against per-frame OIDN (docs/evaluation/mitsuba-tables/README.md).
+#   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure-static|measure|measure-history|timing|stamp|test
+# Stages, in order (figures under $OUT, default docs/evaluation/mitsuba-tables):
 #   render:  the Mitsuba validation split (12 x 8 frames, 256^2, 1024-spp references) and its
 #            2 locked-off shots, with 16- and 64-spp inputs topped up (~4 CPU-hours on 2 cores,
 #            resumable: finished frames are skipped);
 #   measure: quietframe-eval on both (measure-static: the locked-off shots alone, which render
-#            first), every shipped model (validation only: model selection),
-#            and beside them the retrained candidates of model/evaluate_cycles_mix.sh under
-#            their own names (<name>-mix), with the noise points and buffer-absence figures
-#            of bench/auto_choice.py, so shipping one stamps it from these same runs
+#            first), every shipped model (validation only: model selection), and beside them
+#            any candidates of model/evaluate_cycles_mix.sh export under their own names
+#            (models/training/<name>-mix/), with their noise points and buffer-absence figures
+#            (bench/auto_choice), so shipping one stamps it from these same runs
 #            (bench/model_metrics --measured-as);
-#   measure-history: the noise points and buffer-absence figures of the history tiers, which
-#            had no Mitsuba table (bench/auto_choice; the other models have theirs);
+#   measure-history: the noise points and buffer-absence figures of the history tiers
+#            (oidn-history*), which `measure` does not take;
 #   timing:  a quiet 720p timing run of every model on Mitsuba frames (pause the renders);
 #   stamp:   bench/model_metrics --renderer mitsuba into models/*.onnx (then regenerate the
 #            cards: python -m quietframe.bench.model_card models/*.onnx);
 #   test:    auto and the temporal tiers against oidn-frame on the Mitsuba test split and its
 #            locked-off shots (needs test topped up to 64 spp), and the targets table.
-#   PYTHON=.venv/bin/python model/stamp_mitsuba_tables.sh render|measure-static|measure|measure-history|timing|stamp|test
 set -eu
 PY=${PYTHON:-python}
 SPP=1,2,4,8,16,64
 OUT=${OUT:-docs/evaluation/mitsuba-tables}
 STAGE=${1:?render, measure-static, measure, measure-history, timing, stamp or test}
-shopt -s nullglob  # no candidates once they are shipped (evaluate_cycles_mix.sh ship)
+shopt -s nullglob  # none unless evaluate_cycles_mix.sh export made some
 CANDIDATES=(models/training/*-mix/*-mix.onnx)
 shopt -u nullglob
-HISTORY=oidn-history,oidn-fast-history,oidn-history-cleanaux  # no Mitsuba table before this
+HISTORY=oidn-history,oidn-fast-history,oidn-history-cleanaux  # measure-history's models
 models() {  # the shipped models' and the candidates' method names (file stems), comma-separated
     local names=() f
     for f in models/*.onnx "${CANDIDATES[@]}"; do names+=("$(basename "$f" .onnx)"); done
@@ -82,7 +79,8 @@ timing)  # quiet: pause the renders (kill -STOP) for the few minutes this takes
     ;;
 stamp)
     # auto considers a model only with a 720p time on the table it reads; the history tiers
-    # also get their noise points and absence figures, which the others have from session 4
+    # also get their noise points and absence figures (measure-history), which the others
+    # keep from the runs that shipped them
     stamp() {  # more model_metrics args, then the models
         "$PY" -m quietframe.bench.model_metrics --renderer mitsuba \
             --evaluation "$OUT/validation/benchmarks.json" \

@@ -1,21 +1,23 @@
 #!/usr/bin/env bash
-# The affinity quality tier's g2 runs (issue 15), two queues side by side (one thread each,
-# one per core), each resumable from its run directory (re-running continues where it stopped):
-#   queue 1: affinity-h24, the shipped run: 128² crops, 4 frames, batch 4, the kernel size
-#            drawn per step from 5, 9, 13 (one model for the run-time knob), 5 the default
-#   queue 2: the width sweep: affinity-h8/h16/h24/h32 with equal short schedules at kernel
-#            size 5, for validation PSNR per width at equal steps (experiments/affinity_sweep.py --runs)
-# The affinity filters run natively (model/affinity_native.py; 3.5-11x faster steps than the
-# PyTorch reference loop, docs/affinity-training-kernels.md).
-#   nohup nice -n 10 model/train_affinity.sh > ~/.cache/quietframe/logs/train_affinity.log 2>&1 &
-# PYTHON selects the interpreter (default: python); STEPS (default 3000) the shipped schedule,
-# SWEEP_STEPS (default 600) the sweep's.
-#
-# `model/train_affinity.sh k5` runs the second round instead (docs/affinity.md, "K = 5 kernels,
-# the guide and the τ loss"), runs in $RUNS/s6, one thread each, two queues:
-#   queue 1: affinity-h16-k5g with τ loss (1200 steps), then affinity-h16-k5gc (coarse-first)
-#            with τ loss, 1200 steps, resumed to 3200 (the candidate to ship);
-#   queue 2: affinity-h16-k6gc with τ loss, 3500 steps (K = 6: the support doubled).
+# Train the affinity tier: two queues side by side (one thread each, one per core), each run
+# resumable from its run directory (re-running continues where it stopped).
+#   nohup nice -n 10 model/train_affinity.sh k5 > ~/.cache/quietframe/logs/train_affinity.log 2>&1 &
+# `k5`: the round the shipped affinity-h16-k5gc comes from (runs in $RUNS/s6; docs/affinity.md,
+# "K = 5 kernels, the guide and the τ loss"), kernel size 5, τ loss:
+#   queue 1: affinity-h16-k5g (1200 steps), then affinity-h16-k5gc (coarse-first), 1200 steps
+#            resumed to 3200: the shipped run (its best.pt, then fine-tuned on the mix by
+#            model/finetune_cycles.sh);
+#   queue 2: affinity-h16-k6gc, 3500 steps (K = 6: the support doubled; behind K = 5).
+# No argument: the first round, superseded by k5 (its runs are in docs/affinity.md's history):
+#   queue 1: affinity-h24, 128² crops, 4 frames, batch 4, the kernel size drawn per step from
+#            5, 9, 13 (one model for the run-time knob); not installed;
+#   queue 2: the width sweep, affinity-h8/h16/h24/h32 with equal short schedules at kernel
+#            size 5: the runs docs/affinity-sweep.md reads (experiments/affinity_sweep.py --runs).
+# The affinity filters run natively (model/affinity_native.py: 3.5-11x faster steps than the
+# PyTorch reference, docs/affinity-training-kernels.md).
+# PYTHON: the interpreter (default python); RUNS: where runs go (default
+# ~/.cache/quietframe/runs/g2); STEPS (default 3000): affinity-h24's schedule; SWEEP_STEPS
+# (default 600): the sweep's.
 set -u
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}

@@ -1,18 +1,20 @@
 #!/usr/bin/env bash
-# The g2 training runs, two queues side by side (one thread each, one per core), each run
-# resumable from its run directory (re-running this script continues where it stopped):
-#   queue 1: nbg-2l-3g (SMAPE + temporal), the same with the noise-unbiased loss
-#            (relmse+temporal), nbg-2l-1g and nbg-7l-3g without the clamp, nbg-7l-3g with
-#            the floored clamp (--outlier-floor 128; not finished yet)
-#   queue 2: oidn-temporal-acc, nbg-2l-3g without the pre-stage's firefly clamp
-#            (--outlier-sigmas 0: shipped as nbg-2l-3g v3), oidn-temporal-fast-acc with the
-#            half-resolution parameter CNN (--net-scale 2, ablation), then the same at full
-#            resolution (500 steps), and nbg-2l-3g / nbg-2l-1g with the floored clamp
-#            (--outlier-floor 128)
-# (the two nbg-2l-3g ablations of docs/training.md: loss, clamp)
-# NBG runs train with buffer dropout 0.3 (issue 14: missing buffers, the colour-only path).
+# Train the NBG and oidn-temporal tiers on the g2 data: two queues side by side (one thread
+# each, one per core), each run resumable from its run directory (re-running this script
+# continues where it stopped).
 #   nohup nice -n 10 model/train_g2.sh > ~/.cache/quietframe/logs/train_g2.log 2>&1 &
-# PYTHON selects the interpreter (default: python); STEPS (default 800) the schedule length.
+# Runs (in $RUNS, default ~/.cache/quietframe/runs/g2; their results: docs/training.md):
+#   queue 1: nbg-2l-3g (SMAPE + temporal) and the same with the noise-unbiased loss
+#            (relmse+temporal: the loss ablation); nbg-2l-1g and nbg-7l-3g without the firefly
+#            clamp; nbg-7l-3g with the floored clamp (--outlier-floor 128: the shipped run);
+#   queue 2: oidn-temporal-acc (the shipped run); nbg-2l-3g without the clamp (the clamp
+#            ablation); oidn-temporal-fast-acc with the half-resolution parameter CNN
+#            (--net-scale 2) and at full resolution (500 steps; no longer shipped); nbg-2l-3g
+#            and nbg-2l-1g with the floored clamp (the shipped nbg-2l-1g; nbg-2l-3g's is the
+#            start of its fine-tune on the mix, model/finetune_cycles.sh).
+# NBG runs train with buffer dropout 0.3, so they also denoise frames that lack some buffers
+# (down to the colour alone).
+# PYTHON: the interpreter (default python); STEPS (default 800): the schedule length.
 set -u
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
