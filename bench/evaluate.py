@@ -44,11 +44,10 @@ from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
+from quietframe.service.model_choice import RENDERERS_STATING_SPP as HEADER_STATES_SPP
 
 AUX = ("albedo", "normal", "depth", "motion")
 STORED_BLENDER = "blender_denoise"  # a stored output in a Cycles frame's buffers, not an input
-# Renderers whose EXR header states the spp (service/model_choice.samples_from_header)
-HEADER_STATES_SPP = ("cycles",)
 
 
 def give_header_spp(method, renderer: str, spp: float) -> None:

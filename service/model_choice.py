@@ -80,6 +80,8 @@ REFERENCE_PIXELS = 1280 * 720  # `ms_720p` is per 1280×720 frame
 # RenderMan and V-Ray write none we are confident of (V-Ray's `vrayInfo/*` carries no sample
 # count): their frames use the estimate.
 CYCLES_PREFIX, CYCLES_SUFFIX = "cycles.", ".samples"
+# The renderers whose headers state the spp (`renderer_from_header` names them)
+RENDERERS_STATING_SPP = ("cycles",)
 # A NoiseLevel's source where the session set the spp (model_options)
 SESSION_SAMPLES = f"model_options.{SAMPLES_INPUT}"
 
