@@ -7,7 +7,7 @@ frame path against the admission's reservation, per model and frame size.
 Each (model, size) runs in its own process, so its peak RSS (VmHWM) is that frame path's alone:
 a Cycles-style multi-layer EXR (half-float Combined, Noisy Image and albedo; float normal,
 depth and Vector; ZIP) read from disk into the body, `admission.frame_need` from its header
-(what the service reserves before the body buffer exists), then `sessions.process_frame`
+(what the service reserves before the body buffer exists), then `frame_path.process_frame`
 (decode, denoise, encode) `frames` times with the history carried. Memory the session keeps
 between frames is the history budget's, not the frame's: the comparison is
 
@@ -76,7 +76,9 @@ def measure(model: str, width: int, height: int, frames: int, threads: int) -> d
     from quietframe.runtime.motion_evidence import history_nbytes
     from quietframe.service import admission
     from quietframe.service import frames as frame_io
-    from quietframe.service.sessions import SessionSpec, process_frame
+    from quietframe.service.frame_context import frame_context
+    from quietframe.service.frame_path import process_frame
+    from quietframe.service.session_spec import SessionSpec
     from quietframe.service.settings import Settings
 
     settings = Settings()
@@ -99,10 +101,9 @@ def measure(model: str, width: int, height: int, frames: int, threads: int) -> d
             header = frame_io.read_header(body, settings.max_width, settings.max_height,
                                           settings.max_header_bytes)
             need = admission.frame_need(header, len(body), [denoiser])
-            sources = frame_io.resolve(header.channels, info.required_buffers,
-                                       info.optional_buffers, model=info.name)
+            context = frame_context(header, spec, info, None)
             start = time.perf_counter()
-            done = process_frame(denoiser, spec, i, body, sources,
+            done = process_frame(denoiser, spec, i, body, context,
                                  Reset.FIRST_FRAME if state is None else Reset.NONE, state)
             seconds = time.perf_counter() - start
             peak = _status_bytes("VmHWM") - base

@@ -79,7 +79,7 @@ class Client(_ClientBase):
         """Start a sequence; options are core.SessionRequest's (channels, precision,
         motion_scale, compression, layer, denoised_layer, quality, latency_ms, model_options
         such as {"kernel_size": 9}), the API's SessionCreate fields."""
-        return self._send(core.SessionRequest(width, height, model, **options).call()).json()
+        return self._send(core.SessionRequest.of(width, height, model, **options).call()).json()
 
     def session(self, session_id: str) -> dict:
         return self._send(core.session_call(session_id)).json()
@@ -139,7 +139,7 @@ class AsyncClient(_ClientBase):
         self, width: int, height: int, model: str = "auto", **options
     ) -> dict:
         """Start a sequence; options as for Client.create_session."""
-        call = core.SessionRequest(width, height, model, **options).call()
+        call = core.SessionRequest.of(width, height, model, **options).call()
         return (await self._send(call)).json()
 
     async def session(self, session_id: str) -> dict:

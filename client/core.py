@@ -11,7 +11,7 @@ or the connection was never made).
 from __future__ import annotations
 
 import random
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +26,7 @@ from quietframe.client.protocol import (
     parse_timings,
     split_list,
 )
+from quietframe.client.session_fields import SessionFields
 
 _RETRY_STATUS = frozenset({429, 500, 502, 503, 504})
 _RETRY_STATUS_CREATE = frozenset({429, 502, 503, 504})
@@ -183,42 +184,45 @@ def models_call() -> Call:
     return Call("GET", "/v1/models")
 
 
-@dataclass(frozen=True)
-class SessionRequest:
-    """The fields of POST /v1/sessions (the API's SessionCreate)."""
+# Sent whatever their value; every other field only where it differs from the server's default
+ALWAYS_SENT = frozenset({"width", "height", "model", "precision"})
 
-    width: int
-    height: int
-    model: str = "auto"
-    channels: Mapping[str, str | Sequence[str]] | None = None
-    precision: str = "input"
-    motion_scale: tuple[float, float] | None = None
-    compression: str = "input"
-    layer: str | None = None  # view layer to denoise
-    denoised_layer: str | None = None  # write the denoised colour as this new layer
-    quality: str | None = None
-    latency_ms: float | None = None  # model=auto's budget
-    model_options: Mapping[str, int | float] | None = None  # e.g. {"kernel_size": 9}
+
+class SessionRequest(SessionFields):
+    """The body of POST /v1/sessions (the API's SessionCreate). Built unchecked (`of`): the server
+    judges the values, and a farm's server may be newer than its clients (a codec or a quality
+    this client's copy of the fields would refuse)."""
+
+    @classmethod
+    def of(cls, width: int, height: int, model: str = "auto", **fields: Any) -> SessionRequest:
+        """TypeError for a name that is no session field; a None value leaves a field out."""
+        unknown = sorted(set(fields) - set(cls.model_fields))
+        if unknown:
+            raise TypeError(f"no session field {', '.join(unknown)}; the fields: "
+                            f"{', '.join(cls.model_fields)}")
+        given = {name: value for name, value in fields.items() if value is not None}
+        return cls.model_construct(width=width, height=height, model=model, **given)
+
+    def body(self) -> dict[str, Any]:
+        body: dict[str, Any] = {}
+        for name, info in type(self).model_fields.items():
+            value = getattr(self, name)
+            unset = value in (None, {}) or value == info.get_default(call_default_factory=True)
+            if name in ALWAYS_SENT or not unset:
+                body[name] = _json_value(value)
+        return body
 
     def call(self) -> Call:
-        body: dict = {
-            "width": self.width,
-            "height": self.height,
-            "model": self.model,
-            "precision": self.precision,
-        }
-        if self.compression != "input":
-            body["compression"] = self.compression
-        if self.channels:
-            body["channels"] = dict(self.channels)
-        if self.model_options:
-            body["model_options"] = dict(self.model_options)
-        if self.motion_scale is not None:
-            body["motion_scale"] = list(self.motion_scale)
-        for name in ("layer", "denoised_layer", "quality", "latency_ms"):  # sent only when set
-            if getattr(self, name) is not None:
-                body[name] = getattr(self, name)
-        return Call("POST", "/v1/sessions", create=True, options={"json": body})
+        return Call("POST", "/v1/sessions", create=True, options={"json": self.body()})
+
+
+def _json_value(value: Any) -> Any:
+    """A field's value as JSON takes it (a mapping of channel lists given as tuples, say)."""
+    if isinstance(value, Mapping):
+        return {k: _json_value(v) for k, v in value.items()}
+    if isinstance(value, tuple | list):
+        return [_json_value(v) for v in value]
+    return value
 
 
 def session_call(session_id: str) -> Call:

@@ -210,11 +210,25 @@ def resolve(
             source = _find_alias(buffer, candidates, layers)
         if source is not None:
             sources[buffer] = source
+    return for_model(sources, names, required, optional, model, installed)
+
+
+def for_model(
+    sources: Mapping[str, Source],
+    channel_names: Iterable[str],
+    required: Sequence[str],
+    optional: Sequence[str],
+    model: str = "",
+    installed: Mapping[str, tuple[Sequence[str], Sequence[str]]] | None = None,
+) -> dict[str, Source]:
+    """Of the buffers `resolve` found (each is found alone, whatever else is asked for), a
+    model's; MissingChannels, as from `resolve`, where a required one is absent."""
+    chosen = {buffer: sources[buffer] for buffer in (*required, *optional) if buffer in sources}
     try:
-        check_buffers(model, required, optional, sources)
+        check_buffers(model, required, optional, chosen)
     except MissingBuffers as exc:
-        raise MissingChannels(_missing_detail(exc, names, installed)) from exc
-    return sources
+        raise MissingChannels(_missing_detail(exc, sorted(channel_names), installed)) from exc
+    return chosen
 
 
 def _missing_detail(

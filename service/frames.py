@@ -16,6 +16,7 @@ from quietframe.service.channels import (
     COMPONENTS,
     Alias,
     Source,
+    for_model,
     resolve,
     validate_mapping,
 )
@@ -61,6 +62,7 @@ __all__ = [
     "configure_io",
     "decode",
     "encode",
+    "for_model",
     "output_channels",
     "output_compression",
     "output_dtypes",

@@ -7,6 +7,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from quietframe.client.session_fields import AUTO
 from quietframe.runtime import BUFFER_CHANNELS, Denoiser
 from quietframe.runtime.denoiser import check_options
 from quietframe.runtime.loaded_models import LoadedModels
@@ -15,8 +16,6 @@ from quietframe.service.errors import InvalidModelOptions, ModelUnavailable, Unk
 from quietframe.service.model_choice import ModelProfile, load_calibration, profile_of
 from quietframe.service.schemas import ModelPublic
 from quietframe.service.settings import Settings
-
-AUTO = "auto"
 
 
 class ModelRegistry:
