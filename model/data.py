@@ -32,7 +32,7 @@ from quietframe.runtime.sanitize import sanitize_buffer
 from quietframe.scenes import cycles_io
 from quietframe.scenes.exr_io import color_layer, load_frame, pass_layer
 
-# Buffers returned by default: the model inputs (DESIGN.md names), the target, the motion mask.
+# Buffers returned by default: the model inputs (canonical names), the target, the motion mask.
 DEFAULT_BUFFERS = ("color", "albedo", "normal", "depth", "motion", "motion_valid", "reference")
 
 

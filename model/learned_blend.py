@@ -1,5 +1,5 @@
-"""A learned per-pixel blend for the output history (issue 24's ablation row "a learned
-per-pixel blend between OIDN on the frame and the temporal estimate", Işık et al. eq. 5's λ).
+"""A learned per-pixel blend for the output history (an ablation row: a learned per-pixel
+blend between OIDN on the frame and the temporal estimate, Işık et al. eq. 5's λ).
 
 The `oidn-history` stage (model/output_history.py) blends OIDN's output D_t with the fetched
 history P_t by a hand rule: O_t = α D_t + (1 - α) P_t, α from the history's length and, where

@@ -11,7 +11,7 @@ mechanisms on top of OIDN's output D_t instead of on noisy radiance:
   -> O_t = one spatial affinity kernel on L̄_t jointly normalised with the temporal kernel
      over W O_{t-1} (eq. 7 + 8), through temporal_affinity_filter (AffinityTemporalFilter).
 
-State-in / state-out like every quietframe model (DESIGN.md): one state tensor, zeros and
+State-in / state-out like every quietframe model (docs/architecture.md): one state tensor, zeros and
 reset = 1 on a first frame or a cut.
 """
 

@@ -1,5 +1,5 @@
 """The temporal stage of the `oidn-history` tiers: a history of OIDN's output, kept where it
-stays sharp (issue 24; the ablation behind it: docs/evaluation/cycles-locked-off).
+stays sharp (the ablation behind it: docs/evaluation/cycles-locked-off).
 
 The runtime first runs `aligned-accumulation.onnx` (the accumulation of the noisy colour, kept
 only where the motion is a whole number of pixels, model/temporal.accumulate aligned_only),
@@ -15,7 +15,7 @@ Why each piece (measured on Cycles test shots, 1–64 spp): OIDN on a history fe
 nearest pixel under sub-pixel motion lost up to 1 dB to OIDN on the frame alone, and a bicubic
 fetch of the noisy history rang (−4.6 dB at 1 spp); a bicubic fetch of OIDN's clean output,
 clipped to this frame's neighbourhood, kept its detail. State-in / state-out like every
-quietframe model (DESIGN.md): zeros and reset = 1 on a first frame or a cut.
+quietframe model (docs/architecture.md): zeros and reset = 1 on a first frame or a cut.
 """
 
 from __future__ import annotations

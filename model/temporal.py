@@ -1,7 +1,8 @@
 """Temporal pre-stage of the NBG denoiser (Meng et al. 2020 §4.6): reprojection + accumulation.
 
-State-in / state-out (DESIGN.md): the caller passes the previous state tensor and gets the new
-one back, so the same code runs in training (unrolled sub-sequences) and in the exported graph.
+State-in / state-out (docs/architecture.md): the caller passes the previous state tensor and
+gets the new one back, so the same code runs in training (unrolled sub-sequences) and in the
+exported graph.
 """
 
 from __future__ import annotations

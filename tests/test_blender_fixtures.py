@@ -2,10 +2,10 @@
 
 The fixtures in tests/fixtures/blender/ are rendered by tools/render_blender_fixtures.py and
 committed, so these tests need no bpy; the tests that ask Blender to read quietframe's output
-run Blender in its own venv (tests/cycles_support.py) and are skipped without one. The issue-12
-expectations (complete outputs, Noisy Image written back as Combined, the sky's depth, an
-all-zero Vector reported missing, colour-only frames told what would work, the CLI's view
-layers) are plain tests since phase 2.
+run Blender in its own venv (tests/cycles_support.py) and are skipped without one. What a
+Blender farm needs (complete outputs, Noisy Image written back as Combined, the sky's depth,
+an all-zero Vector reported missing, colour-only frames told what would work, the CLI's view
+layers) is plain tests.
 """
 
 from __future__ import annotations

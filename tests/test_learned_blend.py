@@ -1,5 +1,5 @@
-"""model/learned_blend.py: the learned per-pixel blend of the output history (issue 24's
-ablation), and experiments/learned_blend.py's training step."""
+"""model/learned_blend.py: the learned per-pixel blend of the output history (an
+ablation row), and experiments/learned_blend.py's training step."""
 
 from __future__ import annotations
 

@@ -114,8 +114,9 @@ def test_card_of_a_candidate_measured_under_its_own_name(tmp_path):
 
 
 def test_card_lists_each_renderers_split_and_an_unvalidated_run(tmp_path):
-    """A fine-tune on both renderers' train splits without a validation split (issue 23's
-    candidates): one train line per renderer, and no validation split claimed to pick best.pt."""
+    """A fine-tune on both renderers' train splits without a validation split (the Cycles
+    fine-tune's candidates): one train line per renderer, and no validation split claimed to
+    pick best.pt."""
     data = tmp_path / "data"
     write_sequence(data / GENERATOR_VERSION / "train", 3, frames=2, levels=(1,))
     write_sequence(data / f"{GENERATOR_VERSION}-cycles" / "train", 5, frames=2, levels=(1,))

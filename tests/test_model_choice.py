@@ -302,7 +302,7 @@ def test_locked_off_flicker_decides_steadiness_where_every_candidate_has_it():
 
 
 def test_a_steady_model_above_the_floor_is_not_pushed_out_by_a_sharper_one_that_flickers():
-    """Issue 24's target for auto is both: at least per-frame OIDN's PSNR and at most half its
+    """The target for auto is both: at least per-frame OIDN's PSNR and at most half its
     flicker. A sharper model that flickers more (an accumulation on a 1-spp Mitsuba frame:
     +0.5 dB, 0.62×) must not move the tolerance past the steady ones (+0.08 dB, 0.36×)."""
     frame = _tier("oidn-frame", 100, [(1, 30.0), (64, 36.0)], flicker=0.010, per_frame=True)

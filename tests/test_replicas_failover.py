@@ -1,4 +1,4 @@
-"""Past one box, for real (issue 27): two `quietframe serve` replicas, HAProxy with the shipped
+"""Past one box, for real: two `quietframe serve` replicas, HAProxy with the shipped
 deploy/haproxy.cfg and a redis-server, all on loopback. Two sequences stream through the load
 balancer; the replica holding one is killed with SIGKILL mid-sequence; the sequence goes on
 without a reset, a retry of its last frame gets the stored reply, every output is bit-identical

@@ -1,4 +1,4 @@
-"""Issue 26: memory bounded by configuration under hostile uploads. A real `quietframe serve`
+"""Memory bounded by configuration under hostile uploads. A real `quietframe serve`
 in its own process (so its RSS is the server's alone), on 127.0.0.1, with a small memory budget;
 peak RSS is the kernel's high-water mark (VmHWM), reset before each case. When the defences
 work nothing here allocates more than a few tens of MiB; every socket has a timeout."""

@@ -1,4 +1,4 @@
-"""The validation zoo: its shot list covers what the issue asks, and its figures reach `auto`
+"""The validation zoo: its shot list covers the shot types farms send, and its figures reach `auto`
 (bench/zoo_stamp.py -> the card's `zoo` rows -> ModelProfile's shortfall)."""
 
 from __future__ import annotations
