@@ -1,4 +1,4 @@
-"""Random material descriptions (plain JSON-able dicts) and their Mitsuba plugin dicts.
+"""Material descriptions by role (plain JSON-able dicts) and their Mitsuba plugin dicts.
 
 A description is all that is stored; textures are rebuilt from their seeds, so a scene seed
 reproduces every bitmap. The albedo buffer follows the OIDN convention for surfaces whose
@@ -12,19 +12,6 @@ import numpy as np
 
 from . import textures
 
-KINDS = (
-    "diffuse",
-    "roughplastic",
-    "plastic",
-    "roughconductor",
-    "conductor",
-    "dielectric",
-    "thindielectric",
-    "roughdielectric",
-)
-# Object material mix: mostly glossy and textured, because real interiors are.
-OBJECT_WEIGHTS = (0.22, 0.22, 0.1, 0.14, 0.08, 0.1, 0.04, 0.1)
-
 # Named Mitsuba conductors with approximate normal-incidence reflectance (linear sRGB); the
 # latter only feeds the albedo buffer, Mitsuba renders the spectral eta/k itself.
 METALS = {
@@ -35,55 +22,6 @@ METALS = {
     "Cr": (0.55, 0.56, 0.55),
     "Ni_palik": (0.66, 0.61, 0.53),
 }
-SPECULAR_KINDS = {"roughconductor", "conductor", "dielectric", "thindielectric", "roughdielectric"}
-
-
-def _texture_spec(rng: np.random.Generator, patterns: tuple[str, ...] | None = None) -> dict:
-    kinds = patterns or tuple(textures.PATTERNS)
-    return {
-        "pattern": str(rng.choice(kinds)),
-        "seed": int(rng.integers(2**31)),
-        "color_seed": int(rng.integers(2**31)),
-        "tiling": float(np.exp(rng.uniform(np.log(0.5), np.log(12.0)))),
-    }
-
-
-def random_material(
-    rng: np.random.Generator,
-    kind: str | None = None,
-    patterns: tuple[str, ...] | None = None,
-    texture_prob: float = 0.6,
-) -> dict:
-    """Draw a material description; `kind` forces the BSDF type (walls, floors)."""
-    if kind is None:
-        kind = str(rng.choice(KINDS, p=np.asarray(OBJECT_WEIGHTS) / sum(OBJECT_WEIGHTS)))
-    mat: dict = {"kind": kind}
-    # Rough lobes from nearly mirror (alpha 0.02) to very rough, log-uniform.
-    alpha = float(np.exp(rng.uniform(np.log(0.02), np.log(0.6))))
-    if kind in ("diffuse", "roughplastic", "plastic"):
-        mat["color"] = textures.random_color(rng).tolist()
-        if rng.random() < texture_prob:
-            mat["texture"] = _texture_spec(rng, patterns)
-        if kind == "roughplastic":
-            mat["alpha"] = alpha  # Mitsuba's roughplastic takes a scalar alpha only
-    elif kind in ("roughconductor", "conductor"):
-        mat["metal"] = str(rng.choice(list(METALS)))
-        if kind == "roughconductor":
-            mat["alpha"] = alpha
-            if rng.random() < 0.3:  # spatially varying gloss
-                mat["alpha_texture"] = _texture_spec(rng, ("noise", "stripes", "text"))
-    else:
-        mat["ior"] = float(rng.uniform(1.33, 1.8))
-        tint = 1.0 - 0.5 * rng.random(3) if rng.random() < 0.4 else np.ones(3)
-        mat["tint"] = tint.tolist()
-        if kind == "roughdielectric":
-            mat["alpha"] = float(np.exp(rng.uniform(np.log(0.02), np.log(0.3))))
-    if kind not in ("dielectric", "thindielectric", "roughdielectric") and rng.random() < 0.25:
-        mat["bump"] = {
-            **_texture_spec(rng, ("noise", "bricks", "stripes", "text")),
-            "scale": float(rng.uniform(0.1, 1.0)),
-        }
-    return mat
 
 
 def texture_pixels(spec: dict, colored: bool) -> np.ndarray:

@@ -225,17 +225,6 @@ def slats(count: int, length: float, width: float, thickness: float, gap: float)
     return merge(parts)
 
 
-def rods(count: int, length: float, radius: float, gap: float) -> MeshData:
-    """Parallel thin cylinders along Y spread in X: bars, cables, plant stems."""
-    span = (count - 1) * gap
-    parts = []
-    for i in range(count):
-        t = np.eye(4)
-        t[0, 3] = -span / 2 + i * gap
-        parts.append(cylinder(radius, length, cols=12).transformed(t))
-    return merge(parts)
-
-
 def _box_at(size: tuple[float, float, float], center: tuple[float, float, float]) -> MeshData:
     t = np.eye(4)
     t[:3, 3] = center
@@ -250,16 +239,6 @@ def table(width: float, depth: float, height: float, top: float, leg: float) -> 
         for sz in (-1, 1):
             c = (sx * (width / 2 - leg), y0 + (height - top) / 2, sz * (depth / 2 - leg))
             parts.append(_box_at((leg, height - top, leg), c))
-    return merge(parts)
-
-
-def shelf(width: float, height: float, depth: float, boards: int, board: float) -> MeshData:
-    """Open bookcase: two sides and `boards` shelves; lots of contact shadows."""
-    y0 = -height / 2
-    parts = [_box_at((board, height, depth), (sx * (width - board) / 2, 0, 0)) for sx in (-1, 1)]
-    for i in range(boards):
-        y = y0 + board / 2 + i * (height - board) / max(boards - 1, 1)
-        parts.append(_box_at((width - 2 * board, board, depth), (0, y, 0)))
     return merge(parts)
 
 
