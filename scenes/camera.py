@@ -3,8 +3,8 @@
 Conventions (same as Mitsuba's `perspective` sensor with `fov_axis="x"` built by `look_at`):
 camera-to-world columns are (left, up, forward, origin); the film's x grows to the right
 (against `left`), y grows downwards, and pixel (i, j) covers [j, j+1] x [i, i+1], so its centre
-is at (j + 0.5, i + 0.5). Motion follows DESIGN.md: backward, in pixels, "pixel p of frame t was
-at p + motion in frame t-1".
+is at (j + 0.5, i + 0.5). Motion is backward, in pixels, as every quietframe buffer's: "pixel p
+of frame t was at p + motion in frame t-1".
 """
 
 from __future__ import annotations

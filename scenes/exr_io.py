@@ -1,6 +1,6 @@
 """On-disk frame format: one multi-layer OpenEXR per frame. The channel table lives here only.
 
-Layers (DESIGN.md canonical names; `layer.channel` EXR naming):
+Layers (the canonical buffer names of runtime/buffers.py; `layer.channel` EXR naming):
 - `pass<k>.R/G/B`      float  radiance of one-sample pass k (k = 0..S-1), independent seeds
 - `color_<n>spp.R/G/B` float  mean of passes 0..n-1 (n in the stored spp levels)
 - `reference.R/G/B`    float  clean target from an independent seed

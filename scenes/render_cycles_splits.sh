@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Render the Cycles splits of the g2 scenes (issue 23), staged and resumable like
+# Render the Cycles splits of the g2 scenes, staged and resumable like
 # render_splits.sh: test, the locked-off test shots, validation (and its locked-off shots),
 # then train.
 # Finished files are skipped, so re-running continues where a stopped render left off.
@@ -23,7 +23,7 @@ render() {  # split sequences size reference_spp [more args]; FRAMES: frames a s
         || echo "split $split: some sequences failed (re-run to retry)"
 }
 render test "${TEST_SEQUENCES:-8}" 192x192 512
-render test-static "${STATIC_SEQUENCES:-2}" 192x192 512  # flicker on locked-off shots (issue 24)
+render test-static "${STATIC_SEQUENCES:-2}" 192x192 512  # flicker on locked-off shots
 render validation "${VALIDATION_SEQUENCES:-8}" 192x192 512
 render validation-static "${STATIC_SEQUENCES:-2}" 192x192 512
 # Train: 4 frames a sequence (one 4-frame training window; scenes, not frames, are what the

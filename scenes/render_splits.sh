@@ -33,7 +33,7 @@ render() {  # split sequences reference_spp
     done
 }
 render test 12 1024
-# Locked-off shots (issue 24's flicker): static camera and scene, noise animated per frame; one
+# Locked-off shots (for flicker): static camera and scene, noise animated per frame; one
 # reference per sequence, for frame 0, at 4x the given spp (here 4096), shared by every frame.
 render test-static 2 1024
 render validation-static 2 1024

@@ -32,7 +32,7 @@ class Shot:
     split: str  # validation (auto's tables) or test (reported only)
     set: str  # a builder in zoo_scene.SETS
     camera: str  # locked | dolly | pan | shake | orbit
-    tags: tuple[str, ...]  # what the shot covers (the list), for the report
+    tags: tuple[str, ...]  # what the shot covers (camera work, content), for the report
     seed: int
     frames: int = 8
     size: tuple[int, int] = (192, 192)
