@@ -51,7 +51,7 @@ from quietframe.bench.harness import (
     score_sequence,
 )
 from quietframe.runtime import Denoiser, default_model_path, installed_models
-from quietframe.scenes.render import TOPUP_KEY
+from quietframe.scenes.stored_sequence import TOPUP_KEY
 from quietframe.service.model_choice import (
     NoiseLevel,
     choose,

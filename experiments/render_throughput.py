@@ -43,15 +43,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from quietframe.scenes.camera import Camera
     from quietframe.scenes.generator import GENERATOR_VERSION, generate
-    from quietframe.scenes.render import (
-        RenderConfig,
-        _trace_passes,
-        load_scene,
-        render_reference,
-        render_sequence,
-        set_frame,
-        set_variant,
-    )
+    from quietframe.scenes.mitsuba_scene import set_frame, set_variant
+    from quietframe.scenes.mitsuba_trace import _trace_passes, render_reference
+    from quietframe.scenes.render import RenderConfig, load_scene, render_sequence
 
     variant = set_variant(args.variant)
     w, h = (int(v) for v in args.size.lower().split("x"))

@@ -74,7 +74,7 @@ def cache_path(root: Path, split: str, seed: int, frame: int) -> Path:
 
 
 def _render(seq_dir: Path, frame: int) -> np.ndarray:
-    from quietframe.scenes.render import render_second_reference
+    from quietframe.scenes.stored_sequence import render_second_reference
 
     image, seconds = render_second_reference(seq_dir, frame, SECOND_REF_SALT)
     print(f"  rendered {seq_dir.name} frame {frame} in {seconds:.0f} s", flush=True)
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     from quietframe.scenes.exr_io import load_frame
 
     if any(not cache_path(args.cache, args.split, s, t).is_file() for s in seeds for t in frames):
-        from quietframe.scenes.render import set_variant
+        from quietframe.scenes.mitsuba_scene import set_variant
 
         variant = set_variant("auto")
         if variant != "scalar_rgb":

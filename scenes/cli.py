@@ -26,7 +26,21 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.scenes.camera import Camera
+from quietframe.scenes.generator import generate, summary
 from quietframe.scenes.layout import DATA_DIR, SPLIT_BASE, is_locked_off, split_dir, split_seeds
+from quietframe.scenes.manifest import write_json
+from quietframe.scenes.mitsuba_scene import set_frame, set_variant
+from quietframe.scenes.mitsuba_trace import render_passes
+from quietframe.scenes.render import (
+    RenderConfig,
+    choose_scene,
+    frame_count,
+    load_scene,
+    render_sequence,
+)
+from quietframe.scenes.sheet import contact_sheet
+from quietframe.scenes.stored_sequence import reference_noise, topup_sequence
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -39,9 +53,7 @@ def _frames(text: str) -> tuple[int, int]:
     return int(lo), int(hi or lo)
 
 
-def _config(args: argparse.Namespace):
-    from .render import RenderConfig
-
+def _config(args: argparse.Namespace) -> RenderConfig:
     w, h = _size(args.size)
     return RenderConfig(
         width=w,
@@ -65,8 +77,6 @@ _queue = None
 def _init_worker(variant: str, threads: int, queue) -> None:
     global _queue
     _queue = queue
-    from .render import set_variant
-
     set_variant(variant)
     if threads > 0:
         import drjit as dr
@@ -75,8 +85,6 @@ def _init_worker(variant: str, threads: int, queue) -> None:
 
 
 def _render_one(job: tuple[int, str, object]) -> tuple[int, str]:
-    from .render import render_sequence
-
     seed, out, cfg = job
     try:
         t0 = time.perf_counter()
@@ -97,18 +105,16 @@ def _done_frames(seq_dir: Path) -> int:
 def cmd_render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .render import _frame_count
-
     t_start = time.perf_counter()
     cfg = _config(args)
     root = split_dir(args.out, args.split)
     seeds = split_seeds(args.split, args.sequences, args.start)
-    total = sum(_frame_count(s, cfg) for s in seeds)
+    total = sum(frame_count(s, cfg) for s in seeds)
     done = sum(_done_frames(root / str(s)) for s in seeds)
     jobs = [
         (s, str(root / str(s)), cfg)
         for s in seeds
-        if _done_frames(root / str(s)) < _frame_count(s, cfg)
+        if _done_frames(root / str(s)) < frame_count(s, cfg)
     ]
     print(
         f"{args.split}: {len(seeds)} sequences, {total} frames ({done} done) -> {root}", flush=True
@@ -152,8 +158,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def _noise_job(job: tuple[str, int]) -> dict:
-    from .render import reference_noise
-
     return reference_noise(*job)
 
 
@@ -223,8 +227,6 @@ def write_split_manifest(root: Path, args: argparse.Namespace, cfg, seeds: list[
             else None,
         },
     }
-    from .manifest import write_json
-
     write_json(path, manifest)
 
 
@@ -241,10 +243,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
     """Throughput per scene: seconds for the S one-sample passes and for the reference of a
     frame (after the scene's kernels are compiled), and samples per second."""
     import mitsuba as mi
-
-    from .camera import Camera
-    from .generator import generate, summary
-    from .render import load_scene, render_passes, set_frame, set_variant
 
     variant = set_variant(args.variant)
     cfg = _config(args)
@@ -298,14 +296,11 @@ def cmd_survey(args: argparse.Namespace) -> int:
     """How each scene of a split is lit, without rendering it: the same scene choice, exposure
     and 8-spp previews as `render` (at a small size), then the direct-light share and the black
     fraction of a 1-spp pass per sequence."""
-    from .generator import summary
-    from .render import _frame_count, choose_scene, set_variant
-
     set_variant(args.variant)
     cfg = _config(args)
     rows = []
     for seed in split_seeds(args.split, args.sequences, args.start):
-        desc, *_, attempt, _, stats = choose_scene(seed, _frame_count(seed, cfg), cfg)
+        desc, *_, attempt, _, stats = choose_scene(seed, frame_count(seed, cfg), cfg)
         s = summary(desc)
         rows.append(stats["direct_fraction"])
         print(
@@ -328,8 +323,6 @@ def cmd_survey(args: argparse.Namespace) -> int:
 
 
 def cmd_sheet(args: argparse.Namespace) -> int:
-    from .sheet import contact_sheet
-
     root = split_dir(args.out, args.split)
     path = contact_sheet(root, Path(args.output), rows=args.rows)
     print(f"wrote {path}")
@@ -338,10 +331,8 @@ def cmd_sheet(args: argparse.Namespace) -> int:
 
 def cmd_topup(args: argparse.Namespace) -> int:
     """Add a colour level above the stored passes (e.g. 16 spp) to every finished sequence of a
-    split, for evaluation at higher spp (render.topup_sequence); resumable, frames that have it
-    are skipped."""
-    from .render import set_variant, topup_sequence
-
+    split, for evaluation at higher spp (stored_sequence.topup_sequence); resumable, frames that
+    have it are skipped."""
     set_variant(args.variant)
     root = split_dir(args.out, args.split)
     folders = sorted(p for p in root.iterdir() if (p / "manifest.json").exists())

@@ -33,6 +33,8 @@ from pathlib import Path
 import bpy  # only in the Cycles venv
 import numpy as np
 
+from quietframe.model.metrics import psnr
+
 from . import cycles_scene, preview
 from .generator import (
     GENERATOR_VERSION,
@@ -306,8 +308,6 @@ def reference_noise(seq_dir: Path, t: int, eps: float = 0.01) -> tuple[float, fl
     halves' figure over sqrt(2), since each half has half the samples. Ceiling: the PSNR a
     perfect denoiser would score against this reference, whose error is half of each half's:
     MSE(a, b) = 4 MSE(reference, truth) for independent halves, so PSNR(a, b) + 6.02 dB."""
-    from quietframe.model.metrics import psnr
-
     a, b = (read_layer(seq_dir / h / frame_file(t), "Combined")[..., :3]
             for h in REFERENCE_HALVES)
     la, lb = a @ LUMA, b @ LUMA

@@ -1,5 +1,5 @@
 """The Cycles back end of the g2 scene description: the same triangles, materials, lamps, sky,
-sun, moving objects and cameras as the Mitsuba scene (`generator.scene_parts`), built as a
+sun, moving objects and cameras as the Mitsuba scene (`scene_parts.scene_parts`), built as a
 Blender scene through `bpy` (Blender 4.5 LTS as a Python module, the `cycles` extra).
 
 World coordinates are the description's (y up); Blender does not care which way is up except
@@ -16,9 +16,11 @@ import bpy  # only in the Cycles venv (extra `cycles`); never imported by servin
 import numpy as np
 from mathutils import Matrix
 
-from . import generator, materials
+from . import materials
 from .camera import Camera
+from .environment import sky_bitmap
 from .meshes import MeshData
+from .scene_parts import BULB_REFLECTANCE, scene_parts
 
 # Mitsuba's `plastic`/`roughplastic` default interior IOR (polypropylene).
 PLASTIC_IOR = 1.49
@@ -46,7 +48,7 @@ def sky_pixels(env: dict, width: int = SKY_WIDTH) -> np.ndarray:
     """The description's sky in Cycles' equirectangular mapping (z up: u = 0.5 - atan2(y, x) /
     2pi, v = 0.5 + asin(z) / pi, image row 0 at v = 0), resampled bilinearly from the Mitsuba
     bitmap (y up: u = atan2(x, -z) / 2pi, v = acos(y) / pi, row 0 at v = 0)."""
-    src = generator.sky_bitmap(env, width)
+    src = sky_bitmap(env, width)
     h = width // 2
     u, v = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(h) + 0.5) / h)
     phi, el = (0.5 - u) * 2 * np.pi, (v - 0.5) * np.pi
@@ -178,7 +180,7 @@ def emitter_material(rgb: list[float], name: str) -> bpy.types.Material:
     emit = n.new("ShaderNodeEmission", Strength=peak)
     emit.inputs["Color"].default_value = _rgba(np.asarray(rgb) / peak)
     grey = n.new("ShaderNodeBsdfDiffuse", Roughness=0.0)
-    grey.inputs["Color"].default_value = _rgba([generator.BULB_REFLECTANCE] * 3)
+    grey.inputs["Color"].default_value = _rgba([BULB_REFLECTANCE] * 3)
     add = n.new("ShaderNodeAddShader")
     n.link(emit.outputs[0], add.inputs[0])
     n.link(grey.outputs[0], add.inputs[1])
@@ -302,7 +304,7 @@ def build_scene(desc: dict, exposure: float = 1.0) -> bpy.types.Scene:
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     mats = desc["materials"]
-    parts = generator.scene_parts(desc)
+    parts = scene_parts(desc)
     made: dict[int, bpy.types.Material] = {}
 
     def mat_of(idx: int) -> bpy.types.Material:

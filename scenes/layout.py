@@ -10,14 +10,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from quietframe.scenes.generator import GENERATOR_VERSION
+
 CACHE_DIR = Path("~/.cache/quietframe")  # large data, out of git (expanded where used)
 DATA_DIR = CACHE_DIR / "data"
 RUNS_DIR = CACHE_DIR / "runs"
 OIDN_CACHE_DIR = CACHE_DIR / "oidn"
 DEFAULT_THREADS = 2  # this project's machines have 2 cores
 
-# The locked-off (static camera and scene, animated noise) shots of issue 24 are splits of their
-# own, `*-static`, on both renderers; a split of that name renders and scores them locked off.
+# The locked-off shots (static camera and scene, animated noise; they measure flicker) are splits
+# of their own, `*-static`, on both renderers; a split of that name renders and scores them
+# locked off.
 SPLIT_BASE = {
     "train": 1_000_000,
     "validation": 2_000_000,
@@ -50,7 +53,5 @@ def split_seeds(split: str, count: int, start: int = 0, renderer: str = "mitsuba
 
 def split_dir(data: Path | str, split: str, renderer: str = "mitsuba") -> Path:
     """The folder of a split rendered by today's generator (Cycles: `<version>-cycles`)."""
-    from quietframe.scenes.generator import GENERATOR_VERSION
-
     version = GENERATOR_VERSION + ("-cycles" if renderer == "cycles" else "")
     return Path(data).expanduser() / version / split

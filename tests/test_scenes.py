@@ -11,13 +11,9 @@ import pytest
 
 from quietframe.scenes import architecture, exr_io, furniture, materials, meshes, textures
 from quietframe.scenes.camera import Camera, project
-from quietframe.scenes.generator import (
-    GENERATOR_VERSION,
-    camera_clear,
-    generate,
-    summary,
-    sun_enters,
-)
+from quietframe.scenes.environment import sun_enters
+from quietframe.scenes.furnishing import camera_clear
+from quietframe.scenes.generator import GENERATOR_VERSION, generate, summary
 
 mi = pytest.importorskip("mitsuba")
 
@@ -160,7 +156,8 @@ def _pinned_pan(seed: int, n_frames: int, attempt: int) -> dict:
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    from quietframe.scenes.render import RenderConfig, render_sequence, set_variant
+    from quietframe.scenes.mitsuba_scene import set_variant
+    from quietframe.scenes.render import RenderConfig, render_sequence
 
     set_variant("scalar_rgb")
     cfg = RenderConfig(
@@ -278,7 +275,8 @@ def _moving_ball(seed: int, n_frames: int, attempt: int) -> dict:
 def test_object_motion_vectors_warp_a_moving_ball(tmp_path):
     """With a static camera only the ball moves: its pixels get motion, the background none,
     and warping frame t-1 by the motion reproduces frame t better than not warping."""
-    from quietframe.scenes.render import RenderConfig, render_sequence, set_variant
+    from quietframe.scenes.mitsuba_scene import set_variant
+    from quietframe.scenes.render import RenderConfig, render_sequence
 
     set_variant("scalar_rgb")
     w, h = 40, 30
@@ -327,7 +325,8 @@ def test_topup_adds_a_higher_spp_level_from_independent_passes(tiny, tmp_path):
     import json
     import shutil
 
-    from quietframe.scenes.render import TOPUP_KEY, set_variant, topup_sequence
+    from quietframe.scenes.mitsuba_scene import set_variant
+    from quietframe.scenes.stored_sequence import TOPUP_KEY, topup_sequence
 
     out, cfg, _ = tiny
     seq = tmp_path / out.name
@@ -367,7 +366,8 @@ def test_reader_reads_rendered_sequence(tiny):
 @pytest.fixture(scope="module")
 def locked(tmp_path_factory):
     """A tiny locked-off sequence of the fast pan: the camera must stay at frame 0's."""
-    from quietframe.scenes.render import RenderConfig, render_sequence, set_variant
+    from quietframe.scenes.mitsuba_scene import set_variant
+    from quietframe.scenes.render import RenderConfig, render_sequence
 
     set_variant("scalar_rgb")
     cfg = RenderConfig(width=32, height=32, frames=(3, 3), spp_levels=(1, 2), reference_spp=16,

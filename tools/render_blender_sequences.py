@@ -12,9 +12,10 @@ fixtures (a temporal model's history on frames whose `Vector` is all zero).
 Both at 4 spp with Cycles' animated seed (the noise changes per frame), half float, ZIP, every
 pass a farm sends, Blender's denoise on (`Combined`; the raw beauty is `Noisy Image`). Beside
 them `*_reference.000N.exr` (Combined only, float): 512 spp adaptive, no denoise; the locked-off
-shot has one reference (frame 1) for all its frames. The set is the zoo's (scenes/zoo_scene.py,
-procedural textures only: no downloaded asset), 128×72, one CPU thread, fixed seeds, so the pixels
-are reproducible. `manifest.json` records the Blender version and settings.
+shot has one reference (frame 1) for all its frames. The set is built from the zoo's parts
+(scenes/zoo_parts.py, procedural textures only: no downloaded asset), 128×72, one CPU thread,
+fixed seeds, so the pixels are reproducible. `manifest.json` records the Blender version and
+settings.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from pathlib import Path
 import bpy  # only in the bpy venv: never imported by the package or its tests
 import numpy as np
 
-from quietframe.scenes import zoo_scene
+from quietframe.scenes import zoo_parts, zoo_scene
 from quietframe.scenes.zoo_shots import Shot
 
 WIDTH, HEIGHT, FRAMES, SPP, REFERENCE_SPP = 128, 72, 6, 4, 512
@@ -39,19 +40,19 @@ def build(shot: Shot) -> bpy.types.Scene:
     a uniform sky: structure in every buffer at this size, and no outside asset."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
-    floor = zoo_scene.Material("floor")
+    floor = zoo_parts.Material("floor")
     floor.set(**{"Base Color": floor.procedural("checker", 2.0, Color1=(0.7, 0.7, 0.65, 1),
                                                 Color2=(0.2, 0.2, 0.22, 1), Scale=1.0),
                  "Roughness": 0.4})
-    zoo_scene.quad("floor", (-10, -10, 0), (20, 0, 0), (0, 20, 0), floor.mat)
-    zoo_scene.box("wall", (-4, 3, 0), (4, 3.3, 2.5),
-                  zoo_scene.brick_wall("bricks", (0.65, 0.32, 0.2), brick_m=0.3))
-    zoo_scene.box("crate", (-1.6, 1.0, 0), (-0.8, 1.8, 0.8),
-                  zoo_scene.fabric("cloth", (0.2, 0.35, 0.6), 0.05))
-    zoo_scene.sphere("ball", (0.6, 1.2, 0.4), 0.4, zoo_scene.metal("chrome", (0.9,) * 3, 0.1))
-    zoo_scene.suzanne("monkey", (1.8, 1.6, 0.5), 0.8, 200.0,
-                      zoo_scene.plain("clay", (0.75, 0.5, 0.35), 0.5))
-    zoo_scene.sun(40.0, 30.0, 3.0)
+    zoo_parts.quad("floor", (-10, -10, 0), (20, 0, 0), (0, 20, 0), floor.mat)
+    zoo_parts.box("wall", (-4, 3, 0), (4, 3.3, 2.5),
+                  zoo_parts.brick_wall("bricks", (0.65, 0.32, 0.2), brick_m=0.3))
+    zoo_parts.box("crate", (-1.6, 1.0, 0), (-0.8, 1.8, 0.8),
+                  zoo_parts.fabric("cloth", (0.2, 0.35, 0.6), 0.05))
+    zoo_parts.sphere("ball", (0.6, 1.2, 0.4), 0.4, zoo_parts.metal("chrome", (0.9,) * 3, 0.1))
+    zoo_parts.suzanne("monkey", (1.8, 1.6, 0.5), 0.8, 200.0,
+                      zoo_parts.plain("clay", (0.75, 0.5, 0.35), 0.5))
+    zoo_parts.sun(40.0, 30.0, 3.0)
     world = bpy.data.worlds.new("sky")
     world.use_nodes = True
     world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.4, 0.55, 0.8, 1.0)
