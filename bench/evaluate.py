@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.harness import (
     FRAME_METRICS,
     Frames,
@@ -43,7 +44,6 @@ from quietframe.bench.timing import time_ms
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
-from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS
 from quietframe.service.model_choice import RENDERERS_STATING_SPP as HEADER_STATES_SPP
 
 AUX = ("albedo", "normal", "depth", "motion")
@@ -338,14 +338,13 @@ def write_report(rows: list[dict], meta: dict, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="quietframe-eval", description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=DATA_DIR)
-    parser.add_argument("--split", default="validation",
-                        help="train, validation or test; Cycles also validation-static and "
-                             "test-static (locked-off shots: flicker is scored)")
-    parser.add_argument("--renderer", choices=("mitsuba", "cycles"), default="mitsuba")
+    cli_args.add_data(parser)
+    cli_args.add_split(parser, help="train, validation or test, or the locked-off "
+                                    "validation-static and test-static (flicker is scored)")
+    cli_args.add_renderer(parser)
     parser.add_argument("--spp", default="", help="comma list (default: Mitsuba 1,2,4,8; "
                                                   "Cycles 1,2,4,8,16,64)")
-    parser.add_argument("--threads", type=int, default=DEFAULT_THREADS)
+    cli_args.add_threads(parser)
     parser.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
     parser.add_argument("--methods", default="", help="comma list (default: all)")
     parser.add_argument("--model", type=Path, action="append", default=[],
