@@ -6,7 +6,15 @@ on bench)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
+
+import torch
+
+from quietframe.export.affinity_export import export_affinity
+from quietframe.export.onnx_export import export_nbg, export_oidn_only
+from quietframe.model import affinity, oidn_temporal, output_history
+from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -25,18 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="output .onnx path")
     args = parser.parse_args(argv)
 
-    import dataclasses
-
-    import torch
-
-    from quietframe.export.affinity_export import export_affinity
-    from quietframe.export.onnx_export import export_nbg
-    from quietframe.model import affinity, oidn_temporal, output_history
-    from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
-
     if args.variant in oidn_temporal.OIDN_ONLY_VARIANTS and not args.checkpoint:
-        from quietframe.export.onnx_export import export_oidn_only
-
         path = export_oidn_only(oidn_temporal.OIDN_ONLY_VARIANTS[args.variant], args.out,
                                 version=args.version)
         print(f"wrote {path}")

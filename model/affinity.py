@@ -36,6 +36,7 @@ from quietframe.model.affinity_kernels import (
     spatial_affinity_filter,
     temporal_affinity_filter,
 )
+from quietframe.model.losses import bandwidth_regulariser
 from quietframe.model.nbg import demodulation_divisor, suppress_outliers
 from quietframe.model.resample import upsample_bilinear
 from quietframe.model.temporal import backward_warp, history_valid
@@ -382,8 +383,6 @@ class AffinityDenoiser(nn.Module):
 
 
 def bandwidth_penalty_of(params: KernelParams) -> Tensor:
-    from quietframe.model.losses import bandwidth_regulariser
-
     return bandwidth_regulariser(params.bandwidth, params.temporal_bandwidth)  # eq. 13
 
 

@@ -24,6 +24,8 @@ import os
 import torch
 from torch import Tensor
 
+from quietframe.runtime.ops_library import ops_library_path
+
 KERNELS_ENV = "QUIETFRAME_TRAIN_KERNELS"
 # The switch: the kernels used when QUIETFRAME_TRAIN_KERNELS is unset. "auto": native where the
 # library has them (3.5-11x faster steps, docs/affinity-training-kernels.md), else the reference;
@@ -75,8 +77,6 @@ def _load(path: str) -> ctypes.CDLL | str:
 
 
 def _library() -> ctypes.CDLL | str:
-    from quietframe.runtime.ops_library import ops_library_path
-
     try:
         path = ops_library_path()
     except FileNotFoundError as e:

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from quietframe.model.oidn_cache import cached_oidn_output, cached_sequence_oidn_output
 from quietframe.runtime.buffers import BUFFERS
 from quietframe.runtime.oidn_prepass import OIDNSettings
 from quietframe.runtime.sanitize import sanitize_buffer
@@ -208,8 +209,6 @@ def load_window(
     for b in out.keys() & BUFFERS.keys():  # what serving feeds: the one sanitising rule, per
         out[b] = np.stack([sanitize_buffer(b, frame)[0] for frame in out[b]])  # whole frame
     if oidn is not None:
-        from quietframe.model.oidn_cache import cached_oidn_output, cached_sequence_oidn_output
-
         if oidn.color_from:  # frame t's OIDN input depends on frames 0..t
             out["oidn"] = np.stack([cached_sequence_oidn_output(
                 seq.path, seq.files, seq.resets, i, spp, oidn) for i in idx])

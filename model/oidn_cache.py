@@ -23,8 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.models import MODELS_DIR
+from quietframe.runtime.buffers import planes_from_hwc
+from quietframe.runtime.denoiser import Denoiser
 from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
 from quietframe.runtime.sanitize import sanitize_buffer
+from quietframe.scenes.exr_io import color_layer, load_frame
 from quietframe.scenes.layout import OIDN_CACHE_DIR
 
 _prepasses: dict[OIDNSettings, OIDNPrepass] = {}
@@ -95,11 +99,6 @@ def cached_sequence_oidn_output(sequence_dir: Path, files: list[str], resets: li
     """OIDN's output of frame `index` for a prepass with `color_from`: on a miss, the whole
     sequence (`files` in order, `resets` per frame) runs through the color_from model and OIDN,
     and every frame is cached."""
-    from quietframe.models import MODELS_DIR
-    from quietframe.runtime.buffers import planes_from_hwc
-    from quietframe.runtime.denoiser import Denoiser
-    from quietframe.scenes.exr_io import color_layer, load_frame
-
     path = cache_path(sequence_dir, files[index], spp, settings)
     if path.exists():
         return np.load(path)

@@ -25,8 +25,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.utils.data import default_collate
 
 from quietframe.model import affinity
+from quietframe.model.data import CropDataset, SequenceDataset
 from quietframe.model.losses import (
     l1_tonemapped_loss,
     relmse_unbiased_loss,
@@ -265,8 +267,6 @@ class TrainingBatches:
     are seeded from them, so a resumed run sees exactly the batches an uninterrupted one would."""
 
     def __init__(self, cfg: TrainConfig) -> None:
-        from quietframe.model.data import CropDataset
-
         self.dataset = CropDataset(split_roots(cfg, "train"), crop=cfg.crop,
                                    history=cfg.frames - 1, oidn=oidn_settings(cfg))
         # Mitsuba frames are 256², Cycles train frames 128²: crops larger than the smallest
@@ -282,8 +282,6 @@ class TrainingBatches:
         self._epoch, self._order = -1, torch.empty(0, dtype=torch.long)
 
     def __call__(self, step: int) -> dict[str, Tensor]:
-        from torch.utils.data import default_collate
-
         epoch, k = divmod(step, self.per_epoch)
         if epoch != self._epoch:
             generator = torch.Generator().manual_seed(self.seed * 1_000_003 + epoch)
@@ -298,8 +296,6 @@ class TrainingBatches:
 def validation_batches(cfg: TrainConfig, spp: int = 1) -> list[dict[str, Tensor]]:
     """Whole validation sequences of the run's renderers (batch of one each); a renderer whose
     split is not rendered yet adds none."""
-    from quietframe.model.data import SequenceDataset
-
     roots = [root for root in split_roots(cfg, "validation") if root.exists()]
     if not roots:
         return []
