@@ -204,11 +204,63 @@ class ShippedStage:
         return out[0].numpy()
 
 
+def candidate_methods(threads: int, renderer: str, resampled_weights: str) -> dict:
+    """Every row's method factory, baselines first, in the tables' order."""
+    from quietframe.bench.evaluate import Noisy, build_methods
+    from quietframe.model.output_history import OutputHistoryConfig
+    from quietframe.runtime import find_model
+
+    known = build_methods(threads, renderer=renderer)
+    methods = {name: known[name] for name in BASELINES if name in known}
+    for name, (model, clamp, sharp) in CANDIDATES.items():
+        path = find_model(model)
+        methods[name] = lambda m=path, c=clamp, s=sharp: OutputHistory(
+            RuntimeMethod(m, threads), clamp=c, sharp_only=s)
+    methods["acc-torch"] = lambda: accumulated_oidn(False, threads)  # = oidn-acc
+    for resample in ("nearest", "bicubic"):  # acc-nearest: oidn-acc by OutputHistory's code
+        methods[f"acc-{resample}"] = lambda r=resample: ThenOIDN(OutputHistory(
+            Noisy(), resample=r, demodulate=True), threads)
+    methods["out-history+bicubic"] = lambda: OutputHistory(
+        RuntimeMethod(find_model("oidn-frame"), threads), resample="bicubic")
+    methods["out-history+bicubic+clamp"] = lambda: OutputHistory(
+        RuntimeMethod(find_model("oidn-frame"), threads), clamp=True, resample="bicubic")
+    methods["out-history+hybrid"] = lambda: OutputHistory(
+        RuntimeMethod(find_model("oidn-frame"), threads), resample="hybrid")
+    methods["aligned-acc+hybrid"] = lambda: OutputHistory(
+        accumulated_oidn(True, threads), resample="hybrid")
+    methods["aligned-acc"] = lambda: accumulated_oidn(True, threads)
+    methods["aligned-acc+out-history"] = lambda: OutputHistory(
+        accumulated_oidn(True, threads), sharp_only=True)
+    for weight in filter(None, resampled_weights.split(",")):  # constant floors
+        config = OutputHistoryConfig(resampled_weight=float(weight),
+                                     resampled_weight_per_doubling=0.0)
+        methods[f"aligned-acc+stage@w{weight}"] = lambda c=config: ShippedStage(
+            accumulated_oidn(True, threads), c)
+    # the shipped floor, w(spp) from the frame's spp (given where the renderer states it)
+    methods["aligned-acc+stage@w(spp)"] = lambda: ShippedStage(
+        accumulated_oidn(True, threads), OutputHistoryConfig())
+    return methods
+
+
+def print_rows(rows: list[dict], title: str, locked_off: bool) -> None:
+    """One markdown table, each figure with its ratio (or difference) to oidn-frame's."""
+    base = {r["spp"]: r for r in rows if r["method"] == "oidn-frame"}
+    print(f"{title}; ratios to oidn-frame in brackets\n")
+    flick = " flicker (×) |" if locked_off else ""
+    print(f"| method | spp | PSNR (Δ dB) | TRMAE (×) |{flick}")
+    print("|---|---|---|---|" + ("---|" if locked_off else ""))
+    for r in rows:
+        b = base[r["spp"]]
+        line = (f"| {r['method']} | {r['spp']} | {r['psnr']:.2f} ({r['psnr'] - b['psnr']:+.2f}) "
+                f"| {r['trmae']:.3f} ({r['trmae'] / b['trmae']:.2f}) |")
+        if locked_off:
+            line += f" {r['flicker']:.4f} ({r['flicker'] / b['flicker']:.2f}) |"
+        print(line)
+
+
 def main(argv: list[str] | None = None) -> int:
     from quietframe.bench.evaluate import (
-        Noisy,
         Scores,
-        build_methods,
         give_header_spp,
         load_sequence,
         run_sequence,
@@ -216,7 +268,6 @@ def main(argv: list[str] | None = None) -> int:
         time_720p,
     )
     from quietframe.bench.harness import planar_frames
-    from quietframe.runtime import find_model
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     cli_args.add_data(p)
@@ -242,37 +293,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 1
     locked_off = args.split.endswith("-static")
-    known = build_methods(args.threads, renderer=args.renderer)
-    methods = {name: known[name] for name in BASELINES if name in known}
-    for name, (model, clamp, sharp) in CANDIDATES.items():
-        path = find_model(model)
-        methods[name] = lambda m=path, c=clamp, s=sharp: OutputHistory(
-            RuntimeMethod(m, args.threads), clamp=c, sharp_only=s)
-    methods["acc-torch"] = lambda: accumulated_oidn(False, args.threads)  # = oidn-acc
-    for resample in ("nearest", "bicubic"):  # acc-nearest: oidn-acc by OutputHistory's code
-        methods[f"acc-{resample}"] = lambda r=resample: ThenOIDN(OutputHistory(
-            Noisy(), resample=r, demodulate=True), args.threads)
-    methods["out-history+bicubic"] = lambda: OutputHistory(
-        RuntimeMethod(find_model("oidn-frame"), args.threads), resample="bicubic")
-    methods["out-history+bicubic+clamp"] = lambda: OutputHistory(
-        RuntimeMethod(find_model("oidn-frame"), args.threads), clamp=True, resample="bicubic")
-    methods["out-history+hybrid"] = lambda: OutputHistory(
-        RuntimeMethod(find_model("oidn-frame"), args.threads), resample="hybrid")
-    methods["aligned-acc+hybrid"] = lambda: OutputHistory(
-        accumulated_oidn(True, args.threads), resample="hybrid")
-    methods["aligned-acc"] = lambda: accumulated_oidn(True, args.threads)
-    methods["aligned-acc+out-history"] = lambda: OutputHistory(
-        accumulated_oidn(True, args.threads), sharp_only=True)
-    from quietframe.model.output_history import OutputHistoryConfig
-
-    for weight in filter(None, args.resampled_weights.split(",")):  # constant floors
-        config = OutputHistoryConfig(resampled_weight=float(weight),
-                                     resampled_weight_per_doubling=0.0)
-        methods[f"aligned-acc+stage@w{weight}"] = lambda c=config: ShippedStage(
-            accumulated_oidn(True, args.threads), c)
-    # the shipped floor, w(spp) from the frame's spp (given where the renderer states it)
-    methods["aligned-acc+stage@w(spp)"] = lambda: ShippedStage(
-        accumulated_oidn(True, args.threads), OutputHistoryConfig())
+    methods = candidate_methods(args.threads, args.renderer, args.resampled_weights)
     if args.only:
         keep = {*BASELINES, *args.only.split(",")}
         methods = {k: v for k, v in methods.items() if k in keep}
@@ -291,23 +312,11 @@ def main(argv: list[str] | None = None) -> int:
             for frames in sequences:
                 run_sequence(method, frames, scores, None, locked_off)
             rows.append({"method": name, "spp": spp, **scores.summary()})
-    base = {r["spp"]: r for r in rows if r["method"] == "oidn-frame"}
-    print(f"{args.renderer} {args.split}: {len(folders)} sequence(s) "
-          f"({', '.join(f.name for f in folders)}); ratios to oidn-frame in brackets\n")
-    flick = " flicker (×) |" if locked_off else ""
-    print(f"| method | spp | PSNR (Δ dB) | TRMAE (×) |{flick}")
-    print("|---|---|---|---|" + ("---|" if locked_off else ""))
-    for r in rows:
-        b = base[r["spp"]]
-        line = (f"| {r['method']} | {r['spp']} | {r['psnr']:.2f} ({r['psnr'] - b['psnr']:+.2f}) "
-                f"| {r['trmae']:.3f} ({r['trmae'] / b['trmae']:.2f}) |")
-        if locked_off:
-            line += f" {r['flicker']:.4f} ({r['flicker'] / b['flicker']:.2f}) |"
-        print(line)
+    print_rows(rows, f"{args.renderer} {args.split}: {len(folders)} sequence(s) "
+                     f"({', '.join(f.name for f in folders)})", locked_off)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())
