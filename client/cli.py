@@ -1,7 +1,8 @@
 """`quietframe` command: denoise | models, and the commands other parts of quietframe register
 under the `quietframe.commands` entry point (`serve`, from quietframe.service.cli).
 
-`denoise` and `models --server` import only the client extra.
+`denoise` and `models --server` need only the client extra; listing the models installed here
+(`models` without --server) needs the serve extra, and imports the runtime only then.
 """
 
 from __future__ import annotations
@@ -11,10 +12,39 @@ import json
 import math
 import os
 import sys
-from importlib.metadata import entry_points
+from importlib.metadata import PackageNotFoundError, entry_points, version
 from pathlib import Path
 
+from quietframe.client import outcome
+from quietframe.client.api import Client, QuietframeError, RetryPolicy
+from quietframe.client.choice_text import describe_choice
+from quietframe.client.core import base_url
+from quietframe.client.frame_source import parse_frame_range
+from quietframe.client.interrupt import Interrupted, stop_on_signals
+from quietframe.client.model_table import model_table
+from quietframe.client.output_records import OutputConflict, UnsafePath
+from quietframe.client.preflight import (
+    check_frames,
+    check_model,
+    check_view_layers,
+    format_numbers,
+    model_names,
+)
+from quietframe.client.report import Reporter
+from quietframe.client.sequence import (
+    Job,
+    SequenceError,
+    file_view_layers,
+    job_settings,
+    refuse_conflicts,
+    run_sequence,
+)
+from quietframe.client.session_fields import SessionFields
+
 COMMANDS_GROUP = "quietframe.commands"
+# Session fields a run sets itself: the frames' size, one session per view layer, and the
+# settings it passes apart (sequence.job_settings, run_sequence)
+RUN_FIELDS = frozenset({"width", "height", "model", "precision", "compression", "layer"})
 RENDERERS = ("cycles", "mitsuba")  # the renderers the model cards hold tables for
 DEFAULT_RENDERER = "cycles"
 EXIT_CODES_HELP = """exit codes: 0 done; 1 unexpected failure; 2 configuration (flags, server URL,
@@ -39,8 +69,9 @@ def model_option(text: str) -> tuple[str, int | float]:
 
 
 def session_options(args: argparse.Namespace) -> dict:
-    """Session fields from the command line (besides model, precision, compression); ValueError
-    for a --channels that is not a JSON object (or @file holding one)."""
+    """Session fields from the command line, each from the flag of its name (--latency-ms:
+    latency_ms), besides those the run sets itself (RUN_FIELDS); ValueError for a --channels
+    that is not a JSON object (or @file holding one)."""
     text = args.channels
     if text is not None and text.startswith("@"):
         try:
@@ -53,20 +84,17 @@ def session_options(args: argparse.Namespace) -> dict:
         raise ValueError(f"--channels is not JSON ({exc}): {text!r}") from exc
     if mapping is not None and not isinstance(mapping, dict):
         raise ValueError('--channels must be a JSON object, e.g. \'{"albedo": "alb"}\'')
-    return {
+    given = {name: getattr(args, name) for name in SessionFields.model_fields
+             if name not in RUN_FIELDS and hasattr(args, name)}
+    return given | {
         "channels": mapping or None,
         "motion_scale": tuple(args.motion_scale) if args.motion_scale else None,
-        "quality": args.quality,
-        "latency_ms": args.latency_ms,
-        "denoised_layer": args.denoised_layer,
         "model_options": dict(args.model_option or ()),  # a repeated name: the last one
     }
 
 
 def _layers(job, layer: str | None, options: dict) -> tuple[str | None, ...]:
     """The view layers to denoise, one session each: `all` reads them from the first frame."""
-    from quietframe.client.sequence import file_view_layers
-
     if layer != "all":
         return (layer,)
     if options["channels"]:
@@ -87,11 +115,6 @@ class _Stop(Exception):
 
 def _plan(args: argparse.Namespace):
     """(server URL, session options, job, layers) from the command line; _Stop otherwise."""
-    from quietframe.client import outcome
-    from quietframe.client.core import base_url
-    from quietframe.client.frame_source import parse_frame_range
-    from quietframe.client.sequence import Job, SequenceError
-
     if not args.server:
         raise _Stop(outcome.CONFIG, "no server", "pass --server URL (or set QUIETFRAME_SERVER)")
     try:
@@ -118,8 +141,6 @@ def _plan(args: argparse.Namespace):
 
 
 def _reporter(args: argparse.Namespace, total: int, done: int):
-    from quietframe.client.report import Reporter
-
     if args.json:
         mode = "json"
     elif args.quiet:
@@ -134,9 +155,6 @@ def _reporter(args: argparse.Namespace, total: int, done: int):
 def _preflight(args, job, reporter):
     """Every frame's header before the first upload (the preflight.Report); _Stop for what
     would fail later."""
-    from quietframe.client import outcome
-    from quietframe.client.preflight import check_frames
-
     report = check_frames(job.files, job.missing, pre_roll_missing=job.pre_roll_missing)
     for warning in report.warnings:
         if args.strict:
@@ -156,10 +174,6 @@ def _preflight(args, job, reporter):
 
 
 def _denoise(args: argparse.Namespace) -> int:
-    from quietframe.client import outcome
-    from quietframe.client.interrupt import Interrupted, stop_on_signals
-    from quietframe.client.report import Reporter
-
     try:
         server, options, job, layers = _plan(args)
     except _Stop as stop:
@@ -188,8 +202,6 @@ def _denoise(args: argparse.Namespace) -> int:
 
 
 def _interrupted(reporter, job, at: int, signal_name: str) -> int:
-    from quietframe.client import outcome
-
     name = job.files[min(at, len(job.files) - 1)].name
     reporter.error(f"interrupted ({signal_name}) at {name}",
                    "finished frames are kept: run the same command again to resume",
@@ -202,10 +214,6 @@ def _dry_run(args, server, options, job, layers, report, reporter) -> None:
     in the way, the server (reachable, token), the model and its options, the view layers.
     _Stop for the first that fails, with the run's exit code and words (the run's failures
     name the first frame to write, so these do too)."""
-    from quietframe.client.api import QuietframeError
-    from quietframe.client.preflight import check_model, check_view_layers, model_names
-    from quietframe.client.sequence import OutputConflict, job_settings, refuse_conflicts
-
     settings = job_settings(args.model, args.precision, args.compression, layers, **options)
     at = job.files[job.first_written].name
     mapping = bool(options["channels"] or args.layer)
@@ -234,8 +242,6 @@ def _dry_run(args, server, options, job, layers, report, reporter) -> None:
 
 def _client(args, server, reporter):
     """The run's client: its token, timeout and retries, each retry said as it happens."""
-    from quietframe.client.api import Client, RetryPolicy
-
     def on_retry(r) -> None:
         reporter.warn_retry(f"server {server}: {r.describe()}")
 
@@ -246,8 +252,6 @@ def _client(args, server, reporter):
 
 def _server_stop(exc, at: str, server: str, mapping: bool, view_layers) -> _Stop:
     """A request that failed for good, as the _Stop the run ends with (at frame `at`)."""
-    from quietframe.client import outcome
-
     failure = outcome.server_failure(exc.status, exc.code, exc.detail, server, mapping,
                                      tuple(view_layers))
     return _Stop(failure.code, f"at {at}: {failure.message}", failure.advice)
@@ -261,8 +265,6 @@ def _redone_positions(job, settings: dict) -> list[int]:
 
 
 def _force_redoes(job, settings: dict) -> str:
-    from quietframe.client.preflight import format_numbers
-
     redone = [job.indices[i] for i in _redone_positions(job, settings)]
     return f"{len(redone)} output(s), frame(s) {format_numbers(redone)}" if redone else (
         "no existing output")
@@ -271,8 +273,6 @@ def _force_redoes(job, settings: dict) -> str:
 def _conflict_stop(exc, job, settings: dict) -> _Stop:
     """A refusal of files in the way, with what --force would redo: not only the refused
     outputs but every one after the first, whose history runs through it."""
-    from quietframe.client import outcome
-
     return _Stop(outcome.CONFIG if exc.changed else outcome.INPUT, str(exc),
                  f"--force redoes {_force_redoes(job, settings)} (from the first frame not "
                  "done to the end of the range: each frame's history runs through the ones "
@@ -281,11 +281,6 @@ def _conflict_stop(exc, job, settings: dict) -> _Stop:
 
 def _run(args, server, options, job, layers, reporter, position) -> int:
     """The sequence itself; returns the frames written. _Stop for every failure."""
-    from quietframe.client import outcome
-    from quietframe.client.api import QuietframeError
-    from quietframe.client.output_records import UnsafePath
-    from quietframe.client.sequence import OutputConflict, SequenceError, job_settings
-
     settings = job_settings(args.model, args.precision, args.compression, layers, **options)
     done = job.first_pending(settings) - job.first_written  # --force keeps these too
     reporter.resume(done)
@@ -316,8 +311,6 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
                 compression=args.compression, on_progress=progress, layers=layers,
                 force=args.force, pre_roll=args.pre_roll, on_warning=reporter.warn, **options,
             )
-            from quietframe.client.sequence import run_sequence
-
             run_sequence(client, job, server, **run_options)
         except OutputConflict as exc:
             raise _conflict_stop(exc, job, settings) from exc
@@ -338,8 +331,6 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
 
 
 def _file_layers(job) -> tuple[str, ...]:
-    from quietframe.client.sequence import SequenceError, file_view_layers
-
     try:
         return file_view_layers(job.files[job.first_written])
     except SequenceError:
@@ -355,9 +346,6 @@ class _ShotWatcher:
         self.shown: str | None = None
 
     def seen(self, p) -> None:
-        from quietframe.client.choice_text import describe_choice
-        from quietframe.client.preflight import format_numbers
-
         result, index = p.result, self.job.indices[p.position]
         if result.reset == "gap":
             previous = self.job.indices[p.position - 1] if p.position else None
@@ -384,13 +372,7 @@ class _ShotWatcher:
 
 
 def _models(args: argparse.Namespace) -> int:
-    from quietframe.client import outcome
-    from quietframe.client.model_table import model_table
-
     if args.server:
-        from quietframe.client.api import Client, QuietframeError
-        from quietframe.client.core import base_url
-
         token = args.token or os.environ.get("QUIETFRAME_TOKEN")
         try:
             server = base_url(args.server)
@@ -434,8 +416,6 @@ def _local_listing() -> dict:
 
 
 def _quick_retry():
-    from quietframe.client.api import RetryPolicy
-
     return RetryPolicy(retries=2, backoff_s=0.5, max_backoff_s=2.0)
 
 
@@ -599,8 +579,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version("quietframe")
     except PackageNotFoundError:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import random
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import httpx
 
@@ -163,6 +163,34 @@ def parse_frame(index: int, response: httpx.Response) -> FrameResult:
         choice=h.get(Header.CHOICE, ""),
         motion=h.get(Header.MOTION, ""),
     )
+
+
+class SyncClient(Protocol):
+    """What a sequence run asks of a client (api.Client): its session and frame calls."""
+
+    def create_session(self, width: int, height: int, model: str = "auto",
+                       **fields: Any) -> dict: ...
+
+    def session(self, session_id: str) -> dict: ...
+
+    def delete_session(self, session_id: str, missing_ok: bool = True) -> None: ...
+
+    def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False,
+                   shot_model: str | None = None) -> FrameResult: ...
+
+
+class AsyncClient(Protocol):
+    """SyncClient's calls awaited (api.AsyncClient): what the sequence protocol is written for."""
+
+    async def create_session(self, width: int, height: int, model: str = "auto",
+                             **fields: Any) -> dict: ...
+
+    async def session(self, session_id: str) -> dict: ...
+
+    async def delete_session(self, session_id: str, missing_ok: bool = True) -> None: ...
+
+    async def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False,
+                         shot_model: str | None = None) -> FrameResult: ...
 
 
 def base_url(url: str) -> str:

@@ -30,6 +30,7 @@ from enum import Enum
 from pathlib import Path
 
 from quietframe.client.frame_source import SequenceError
+from quietframe.client.session_fields import AUTO
 
 RECORD_DIR = ".quietframe"
 RECORD_VERSION = 2  # 2 stamps the output (size, mtime, SHA-256) and says `pending`; 1: size only
@@ -38,7 +39,15 @@ MAX_RECORD_BYTES = 1 << 20  # records and job files are a few hundred bytes
 _NEW_FILE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
 _NO_LINK = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC  # NONBLOCK: a FIFO
 _SOURCE_FIELDS = ("size", "mtime_ns", "sha256")
-AUTO = "auto"
+
+
+class OutputConflict(SequenceError):
+    """Files in the output folder that this run would overwrite but did not make with these
+    sources and settings; `changed` when only the settings differ (a configuration matter)."""
+
+    def __init__(self, message: str, changed: bool) -> None:
+        super().__init__(message)
+        self.changed = changed
 
 
 class Status(str, Enum):

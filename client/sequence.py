@@ -32,11 +32,10 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from quietframe.client import output_records as records
 from quietframe.client import shots
-from quietframe.client.core import FrameResult, QuietframeError
+from quietframe.client.core import AsyncClient, FrameResult, QuietframeError, SyncClient
 from quietframe.client.frame_source import (
     SequenceError,
     find_frames,
@@ -44,22 +43,13 @@ from quietframe.client.frame_source import (
     select_frames,
 )
 from quietframe.client.interrupt import signals_deferred
+from quietframe.client.output_records import OutputConflict
 from quietframe.client.protocol import view_layers
-
-if TYPE_CHECKING:  # the clients call into this module (denoise_sequence): no import back
-    from quietframe.client.api import AsyncClient, Client
+from quietframe.client.session_fields import AUTO
 
 JOB_FILE = ".quietframe-job.json"
-__all__ = ["JOB_FILE", "Job", "SequenceError", "find_frames", "frame_number", "run_sequence"]
-
-
-class OutputConflict(SequenceError):
-    """Files in the output folder that this run would overwrite but did not make with these
-    sources and settings; `changed` when only the settings differ (a configuration matter)."""
-
-    def __init__(self, message: str, changed: bool) -> None:
-        super().__init__(message)
-        self.changed = changed
+__all__ = ["JOB_FILE", "Job", "OutputConflict", "SequenceError", "find_frames", "frame_number",
+           "run_sequence"]
 
 
 def file_view_layers(path: Path) -> tuple[str, ...]:
@@ -209,7 +199,7 @@ class Job:
         """The model this run uses at position `i` per view layer ("" for none): the named
         one, or (auto) its shot's recorded one; None while a layer's shot has no record."""
         layers = settings.get("layer") or [""]
-        if settings.get("model", shots.AUTO) != shots.AUTO:
+        if settings.get("model", AUTO) != AUTO:
             return dict.fromkeys(layers, settings["model"])
         found = {layer: self.shot_record(self.shot_of(i), layer) for layer in layers}
         if any(record is None for record in found.values()):
@@ -437,7 +427,7 @@ def _holds(part, layer: str) -> bool:
     return any(name.startswith(f"{layer}.") for name in part.channels)
 
 
-def run_sequence(client: Client, job: Job, server: str, **options) -> str | None:
+def run_sequence(client: SyncClient, job: Job, server: str, **options) -> str | None:
     """Denoise every pending frame of `job` (options of `arun_sequence`); returns the session id
     (the first layer's when several; None if nothing to do). The sequence protocol is written
     once, in `arun_sequence`; here its coroutine is stepped by hand on the sync client, whose
@@ -455,7 +445,7 @@ def run_sequence(client: Client, job: Job, server: str, **options) -> str | None
 class _Awaitable:
     """A sync Client whose methods can be awaited (they run to completion when called)."""
 
-    def __init__(self, client: Client) -> None:
+    def __init__(self, client: SyncClient) -> None:
         self._client = client
 
     def __getattr__(self, name: str):
@@ -554,7 +544,7 @@ async def _send(client: AsyncClient, job: Job, session_id: str, i: int, data: by
                 layer: str | None, settings: dict) -> FrameResult:
     """Frame `i` to a layer's session, with its shot's recorded model (model=auto): the server
     takes it where the shot's history starts (a first frame, a cut) instead of choosing."""
-    shot = job.shot_record(job.shot_of(i), layer or "") if settings["model"] == shots.AUTO else None
+    shot = job.shot_record(job.shot_of(i), layer or "") if settings["model"] == AUTO else None
     keep = {"shot_model": shot.model} if shot is not None else {}
     return await client.send_frame(session_id, job.indices[i], data, cut=job.is_cut(i), **keep)
 

@@ -28,17 +28,15 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 from urllib.parse import quote
 
 from quietframe.client import output_records as records
+from quietframe.client.core import AsyncClient
+from quietframe.client.output_records import OutputConflict
 from quietframe.client.protocol import CUT_ATTRIBUTE
+from quietframe.client.session_fields import AUTO
 
-if TYPE_CHECKING:
-    from quietframe.client.api import AsyncClient
-    from quietframe.client.sequence import Job, OutputConflict
-
-AUTO = "auto"
 SHOT_VERSION = 1
 # The flags that steer auto's choice (besides the view layer, which has its own record)
 STEERING = ("quality", "latency_ms", "model_option", "channels", "motion_scale")
@@ -73,6 +71,22 @@ class ShotRecord:
         if not (decided_from is None or isinstance(decided_from, str)):
             raise records.DamagedRecord("decided_from is not a file name")
         return cls(model, choice, steering, decided_from)
+
+
+class Job(Protocol):
+    """What settling a run's shots reads of its job (sequence.Job, which reads the shots' records
+    through this module)."""
+
+    out_dir: Path
+    width: int
+    height: int
+    shot_records: dict[tuple[int | None, str], ShotRecord]
+
+    def shots_sent(self) -> list[int | None]: ...
+
+    def shot_record(self, start: int | None, layer: str) -> ShotRecord | None: ...
+
+    def deciding_frame(self, start: int | None) -> tuple[Path, int]: ...
 
 
 def shot_file(start: int | None, layer: str) -> str:
@@ -226,8 +240,6 @@ def contradiction(recorded: ShotRecord, settings: dict) -> str | None:
 
 def _refusal(job: Job, start: int | None, name: str, recorded: ShotRecord, settings: dict,
              conflict: str) -> OutputConflict:
-    from quietframe.client.sequence import OutputConflict
-
     shot = "the sequence's start" if start is None else f"the cut at frame {start}"
     how = (f"chosen by auto from {recorded.decided_from}" if recorded.choice is not None
            else f"named by --model {recorded.model}")

@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from fastapi import APIRouter, Request, Response
 
 from quietframe.service.deps import MetricsDep
 from quietframe.service.errors import NotReady
-from quietframe.service.metrics import CONTENT_TYPE
+from quietframe.service.metrics import CONTENT_TYPE, Metrics
 from quietframe.service.schemas import Health
-
-if TYPE_CHECKING:
-    from quietframe.service.metrics import Metrics
-    from quietframe.service.sessions import SessionRegistry
+from quietframe.service.sessions import SessionRegistry
 
 router = APIRouter(tags=["health"])
 
