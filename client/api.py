@@ -13,7 +13,8 @@ import httpx
 
 from quietframe.client import core
 from quietframe.client.core import Call, FrameResult, QuietframeError, RetryPolicy
-from quietframe.client.sequence import Job, arun_sequence, run_sequence
+from quietframe.client.job import Job
+from quietframe.client.sequence import arun_sequence, run_sequence
 
 
 class _ClientBase:

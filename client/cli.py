@@ -19,8 +19,9 @@ from quietframe.client import outcome
 from quietframe.client.api import Client, QuietframeError, RetryPolicy
 from quietframe.client.choice_text import describe_choice
 from quietframe.client.core import base_url
-from quietframe.client.frame_source import parse_frame_range
+from quietframe.client.frame_source import SequenceError, parse_frame_range
 from quietframe.client.interrupt import Interrupted, stop_on_signals
+from quietframe.client.job import Job, file_view_layers
 from quietframe.client.model_table import model_table
 from quietframe.client.output_records import OutputConflict, UnsafePath
 from quietframe.client.preflight import (
@@ -31,14 +32,7 @@ from quietframe.client.preflight import (
     model_names,
 )
 from quietframe.client.report import Reporter
-from quietframe.client.sequence import (
-    Job,
-    SequenceError,
-    file_view_layers,
-    job_settings,
-    refuse_conflicts,
-    run_sequence,
-)
+from quietframe.client.sequence import job_settings, refuse_conflicts, run_sequence
 from quietframe.client.session_fields import SessionFields
 
 COMMANDS_GROUP = "quietframe.commands"

@@ -213,7 +213,7 @@ def field_or_any(valid: dict) -> st.SearchStrategy:
                                                                   HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_any_json_in_a_job_file_is_used_or_ignored(tmp_path_factory, data):
-    from quietframe.client.sequence import job_file_problem
+    from quietframe.client.job import job_file_problem
 
     folder = tmp_path_factory.mktemp("job")
     src, out = small_shot(folder, 2)
