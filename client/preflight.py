@@ -16,6 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import OpenEXR
+
 from quietframe.client.exr_check import incomplete
 from quietframe.client.outcome import Failure, server_failure
 from quietframe.client.protocol import view_layers
@@ -45,8 +47,6 @@ class Report:
 
 def read_header(path: Path) -> FrameHeader:
     """ValueError with the reason when the header cannot be read."""
-    import OpenEXR
-
     try:
         parts = OpenEXR.File(str(path), header_only=True).parts
     except Exception as exc:

@@ -14,6 +14,8 @@ import time
 from collections import defaultdict
 from typing import TextIO
 
+from tqdm import tqdm
+
 from quietframe.client.preflight import format_numbers
 from quietframe.client.protocol import Reset
 
@@ -44,8 +46,6 @@ class Reporter:
         self.server_ms: dict[str, list[float]] = defaultdict(list)
         self.bar = None
         if mode == "bar":
-            from tqdm import tqdm
-
             self.bar = tqdm(total=total, initial=done, unit="frame", dynamic_ncols=True,
                             file=self.err)
 

@@ -31,6 +31,8 @@ from pathlib import Path
 from typing import Protocol
 from urllib.parse import quote
 
+import OpenEXR
+
 from quietframe.client import output_records as records
 from quietframe.client.core import AsyncClient
 from quietframe.client.output_records import OutputConflict
@@ -123,8 +125,6 @@ def steering(settings: dict) -> dict:
 def is_cut_frame(path: Path) -> bool:
     """Whether the frame's header flags a camera cut (`quietframe.cut`); False for a file
     that cannot be read (the pre-flight reports it)."""
-    import OpenEXR
-
     try:
         flag = OpenEXR.File(str(path), header_only=True).parts[0].header.get(CUT_ATTRIBUTE)
     except Exception:

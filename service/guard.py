@@ -22,6 +22,7 @@ from typing import Any
 
 from starlette.datastructures import Headers
 from starlette.requests import ClientDisconnect
+from uvicorn.protocols.http.auto import AutoHTTPProtocol
 
 from quietframe.service.errors import BodyReadTimeout, BodyTooLarge, error_body
 from quietframe.service.settings import Settings
@@ -317,8 +318,6 @@ def summarise_accept_failures(loop: asyncio.AbstractEventLoop) -> None:
 def guarded_protocol(header_timeout_s: float, max_connections: int) -> type[asyncio.Protocol]:
     """uvicorn's HTTP protocol (what its `http="auto"` picks: httptools when installed, else h11)
     with HeaderDeadline, for uvicorn's `http` parameter; one class per server (its `waiting`)."""
-    from uvicorn.protocols.http.auto import AutoHTTPProtocol
-
     return type(
         "GuardedHTTPProtocol",
         (HeaderDeadline, AutoHTTPProtocol),

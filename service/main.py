@@ -11,7 +11,11 @@ import logging
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 
+import uvicorn
 from fastapi import Depends, FastAPI
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
 
 from quietframe.service import frames, guard, logs
 from quietframe.service.deps import require_auth
@@ -102,10 +106,7 @@ DOCS_ASSETS = "/docs/assets"
 def _serve_docs(app: FastAPI) -> None:
     """Swagger UI at /docs from the files of the `swagger-ui-bundle` wheel (serve extra), not
     from a CDN, so the page works on an offline farm; without the wheel, FastAPI's CDN page."""
-    from fastapi.openapi.docs import get_swagger_ui_html
-    from fastapi.responses import HTMLResponse
-
-    try:
+    try:  # optional: a server without it still serves /docs
         from swagger_ui_bundle import swagger_ui_path
     except ImportError:
         swagger_ui_path = None
@@ -113,8 +114,6 @@ def _serve_docs(app: FastAPI) -> None:
         log.warning("swagger-ui-bundle is not installed: /docs loads Swagger UI from a CDN")
         assets = {}
     else:
-        from fastapi.staticfiles import StaticFiles
-
         app.mount(DOCS_ASSETS, StaticFiles(directory=swagger_ui_path), name="docs-assets")
         assets = {
             "swagger_js_url": f"{DOCS_ASSETS}/swagger-ui-bundle.js",
@@ -150,8 +149,6 @@ def _document_limits(app: FastAPI, settings: Settings) -> None:
 
 def run(host: str, port: int, settings: Settings | None = None) -> None:
     """Serve until interrupted (the `quietframe serve` command)."""
-    import uvicorn
-
     settings = settings or Settings()
     logs.configure(settings.log_level, settings.log_json)
     # Connections that never finish their headers are closed, and at most the cap are open
