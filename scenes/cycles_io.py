@@ -1,8 +1,9 @@
 """Read the Cycles splits (scenes/cycles_render.py) the way the service reads a farm's frames.
 
-Inputs are decoded by the service's own EXR code (service/frames.py: header, alias table,
-decode), so the evaluation and training see exactly what a Blender farm's upload turns into:
-`Noisy Image` as the colour, `Denoising Albedo/Normal/Depth`, `Vector` as backward motion.
+Inputs are decoded by the EXR code the service reads uploads with (runtime/exr_header.py,
+exr_channels.py, exr_codec.py: header, alias table, decode), so the evaluation and training see
+exactly what a Blender farm's upload turns into: `Noisy Image` as the colour, `Denoising
+Albedo/Normal/Depth`, `Vector` as backward motion.
 Also read: Blender's own denoise of the same render (`Combined`), and the reference (the mean
 of its two independent halves). Numpy only (no bpy): runs in the project's venv.
 """
@@ -15,6 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.runtime.buffers import BUFFER_CHANNELS
+from quietframe.runtime.exr_channels import resolve
+from quietframe.runtime.exr_codec import decode
+from quietframe.runtime.exr_header import read_header
 
 MANIFEST = "manifest.json"
 REFERENCE_HALVES = ("reference_a", "reference_b")
@@ -39,13 +43,11 @@ def level_dir(spp: int) -> str:
 def _decode(path: Path, mapping: dict | None = None) -> dict[str, np.ndarray]:
     """(H, W, C) float32 buffers of one Blender EXR through the service's decoder; a buffer
     the file lacks or carries unusable (Vector all zero: a static shot) is absent."""
-    from quietframe.service import frames
-
     data = path.read_bytes()
-    header = frames.read_header(data, _NO_LIMIT, _NO_LIMIT)
+    header = read_header(data, _NO_LIMIT, _NO_LIMIT)
     wanted = ("color",) if mapping else INPUT_BUFFERS
-    sources = frames.resolve(list(header.channels), ["color"], wanted[1:], mapping=mapping)
-    decoded = frames.decode(data, sources)
+    sources = resolve(list(header.channels), ["color"], wanted[1:], mapping=mapping)
+    decoded = decode(data, sources)
     return {k: v.transpose(1, 2, 0) for k, v in decoded.buffers.items()}
 
 

@@ -18,23 +18,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 from starlette.responses import Response
 
+from quietframe.runtime.frame_errors import ServiceError
+
 log = logging.getLogger("quietframe.service")
-
-
-class ServiceError(Exception):
-    status = 500
-    code = "internal_error"
-
-    def __init__(self, detail: str, *, headers: dict[str, str] | None = None) -> None:
-        super().__init__(detail)
-        self.detail = detail
-        self.headers = headers or {}
-
-
-class BadExr(ServiceError):
-    """Not an EXR, truncated, corrupt."""
-
-    status, code = 400, "bad_exr"
 
 
 class Unauthorized(ServiceError):
@@ -65,20 +51,10 @@ class BodyTooLarge(ServiceError):
     status, code = 413, "body_too_large"
 
 
-class ExrHeaderTooLarge(ServiceError):
-    """The EXR header's attributes exceed QUIETFRAME_MAX_HEADER_BYTES."""
-
-    status, code = 413, "exr_header_too_large"
-
-
 class FrameOverMemoryBudget(ServiceError):
     """One frame needs more than the whole memory budget: no retry can succeed."""
 
     status, code = 413, "frame_over_memory_budget"
-
-
-class ResolutionTooLarge(ServiceError):
-    status, code = 413, "resolution_too_large"
 
 
 class UnsupportedMediaType(ServiceError):
@@ -103,24 +79,6 @@ class InvalidModelOptions(ServiceError):
     """A session's model_options that its model (or, for auto, no installed model) takes."""
 
     status, code = 422, "invalid_model_options"
-
-
-class UnsupportedExr(ServiceError):
-    """Deep data, subsampled channels."""
-
-    status, code = 422, "unsupported_exr"
-
-
-class MissingChannels(ServiceError):
-    status, code = 422, "missing_channels"
-
-
-class AmbiguousChannels(ServiceError):
-    status, code = 422, "ambiguous_channels"
-
-
-class SizeMismatch(ServiceError):
-    status, code = 422, "size_mismatch"
 
 
 class TooManySessions(ServiceError):

@@ -1,17 +1,18 @@
 """EXR bytes <-> canonical float32 buffers, in three steps so that a bad request is refused
-before any pixel is decoded (the names the service and the tests use, from their modules):
+before any pixel is decoded (the names the service and the tests use, from their modules in
+runtime/, below the service, because the scene readers decode Cycles frames with them too):
 
-1. `read_header` (exr_header.py) parses the EXR header bytes in pure Python (size limits,
-   channel list, windows, flags; the one attribute reader);
-2. `resolve` (channels.py) maps the header's channel names onto the canonical buffers (the one
-   renderer alias table, ALIASES, or the session's own mapping), naming what was found and
-   what was expected when something is missing;
-3. `decode` / `encode` (exr_codec.py) read the pixels with OpenEXR into planar (C, H, W)
-   float32 buffers and write the input back with the denoised colour in place of the beauty's
-   (exr_warnings.py turns the binding's printed warnings into log fields).
+1. `read_header` (runtime/exr_header.py) parses the EXR header bytes in pure Python (size
+   limits, channel list, windows, flags; the one attribute reader);
+2. `resolve` (runtime/exr_channels.py) maps the header's channel names onto the canonical
+   buffers (the one renderer alias table, ALIASES, or the session's own mapping), naming what
+   was found and what was expected when something is missing;
+3. `decode` / `encode` (runtime/exr_codec.py) read the pixels with OpenEXR into planar
+   (C, H, W) float32 buffers and write the input back with the denoised colour in place of the
+   beauty's (runtime/exr_warnings.py turns the binding's printed warnings into log fields).
 """
 
-from quietframe.service.channels import (
+from quietframe.runtime.exr_channels import (
     ALIASES,
     COMPONENTS,
     Alias,
@@ -20,7 +21,7 @@ from quietframe.service.channels import (
     resolve,
     validate_mapping,
 )
-from quietframe.service.exr_codec import (
+from quietframe.runtime.exr_codec import (
     LOSSY_CODECS,
     DecodedFrame,
     Part,
@@ -31,7 +32,7 @@ from quietframe.service.exr_codec import (
     output_compression,
     output_dtypes,
 )
-from quietframe.service.exr_header import (
+from quietframe.runtime.exr_header import (
     ChannelInfo,
     ExrHeader,
     HeaderScan,

@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.runtime.card import SAMPLES_INPUT, Measurements, ModelCard, finite_figure
-from quietframe.service.exr_header import attribute_number
+from quietframe.runtime.exr_header import attribute_number
 
 # dB below the best expected PSNR a quality accepts in exchange for speed. "balanced" matches
 # the acceptance target of bench/auto_choice.py (within 0.3 dB of the best fixed model).

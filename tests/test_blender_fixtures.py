@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from cycles_support import blender_json, require_cycles
 
+from quietframe.runtime.frame_errors import AmbiguousChannels, MissingChannels
 from quietframe.service import frames
-from quietframe.service.errors import AmbiguousChannels, MissingChannels
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "blender"
 MANIFEST = json.loads((FIXTURES / "manifest.json").read_text())

@@ -160,8 +160,8 @@ def test_health_answers_while_a_huge_header_is_parsed(server):
 def test_header_with_more_channels_than_a_render_is_refused():
     """Matching 650 000 channel names against the renderer aliases took 1.5 s of the event
     loop (after 2.2 s of parsing them): more than 4096 channels is refused from the header."""
+    from quietframe.runtime.frame_errors import UnsupportedExr
     from quietframe.service import frames
-    from quietframe.service.errors import UnsupportedExr
 
     def header(count: int) -> bytes:
         window = struct.pack("<iiii", 0, 0, 7, 7)

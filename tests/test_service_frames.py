@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from conftest import LAYOUTS, frame_bytes, make_buffers, read_exr, write_exr
 
-from quietframe.service import frames
-from quietframe.service.errors import (
+from quietframe.runtime.frame_errors import (
     AmbiguousChannels,
     BadExr,
     MissingChannels,
     ResolutionTooLarge,
     UnsupportedExr,
 )
+from quietframe.service import frames
 
 REQUIRED = ("color", "albedo", "normal", "depth")
 OPTIONAL = ("motion",)

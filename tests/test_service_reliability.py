@@ -481,7 +481,8 @@ def test_openapi_has_size_maxima_and_bearer_scheme():
 
 
 def test_invalid_compression_byte_is_rejected():
-    from quietframe.service import errors, frames
+    from quietframe.runtime import frame_errors as errors
+    from quietframe.service import frames
 
     data = frame_bytes()
     needle = b"compression\0compression\0\x01\0\0\0"
@@ -491,7 +492,8 @@ def test_invalid_compression_byte_is_rejected():
 
 
 def test_openexr_warnings_go_to_the_log(capsys, caplog):
-    from quietframe.service import errors, frames
+    from quietframe.runtime import frame_errors as errors
+    from quietframe.service import frames
 
     data = bytearray(frame_bytes())
     header = frames.read_header(data, 8192, 8192)
@@ -511,7 +513,8 @@ def test_openexr_warnings_of_concurrent_decodes_stay_with_their_frame(capsys, ca
     """Each decoding thread's printed warning goes to its own record, none to stdout."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from quietframe.service import errors, frames
+    from quietframe.runtime import frame_errors as errors
+    from quietframe.service import frames
 
     data = bytearray(frame_bytes())
     header = frames.read_header(data, 8192, 8192)

@@ -18,7 +18,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
-log = logging.getLogger("quietframe.service")
+log = logging.getLogger("quietframe.service")  # a decode's warnings are its request's
 
 
 class _Router(io.TextIOBase):

@@ -1,6 +1,6 @@
 """Pixels: EXR bytes -> planar (C, H, W) float32 buffers, and the denoised frame back to EXR.
 
-`decode` reads the channels `channels.resolve` chose with OpenEXR, converting renderer
+`decode` reads the channels `exr_channels.resolve` chose with OpenEXR, converting renderer
 conventions to ours (motion vectors, an all-zero motion layer); `encode` writes the input
 back, every part, channel and attribute as decoded, with the denoised (3, H, W) planes in
 place of the beauty's R, G, B (or as a layer of their own).
@@ -16,11 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 import OpenEXR
 
-from quietframe.service import exr_warnings
-from quietframe.service.channels import Source, split_name
-from quietframe.service.errors import BadExr
+from quietframe.runtime import exr_warnings
+from quietframe.runtime.exr_channels import Source, split_name
+from quietframe.runtime.frame_errors import BadExr
 
-log = logging.getLogger("quietframe.service")
+log = logging.getLogger("quietframe.service")  # a decode's warnings are its request's
 
 _io = {"threads": 1}  # decoding threads, set once per process by configure_io
 

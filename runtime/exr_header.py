@@ -18,7 +18,7 @@ from typing import NamedTuple
 import OpenEXR
 
 from quietframe.client.protocol import CUT_ATTRIBUTE
-from quietframe.service.errors import (
+from quietframe.runtime.frame_errors import (
     BadExr,
     ExrHeaderTooLarge,
     ResolutionTooLarge,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from quietframe.client.protocol import view_layers
 from quietframe.runtime.buffers import BUFFER_CHANNELS, MissingBuffers, check_buffers
-from quietframe.service.errors import AmbiguousChannels, MissingChannels
+from quietframe.runtime.frame_errors import AmbiguousChannels, MissingChannels
 
 # Component spellings tried for each buffer, in order (matched case-insensitively).
 COMPONENTS: dict[str, tuple[str, ...]] = {
