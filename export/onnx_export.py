@@ -21,8 +21,14 @@ from torch import Tensor, nn
 from quietframe.model import affinity_kernels, resample  # noqa: F401 (registers the op)
 from quietframe.model.grid import range_cells
 from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
+from quietframe.model.nbg_fused import LDR_EXPONENT, fusable, fused_forward
 from quietframe.model.oidn_temporal import OIDNOnlyConfig, OIDNTemporal
-from quietframe.model.temporal import WARP_MODES
+from quietframe.model.temporal import (
+    DEPTH_REL_TOLERANCE,
+    MIN_CURRENT_WEIGHT,
+    NORMAL_MIN_DOT,
+    WARP_MODES,
+)
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.card import (
     OUTPUT,
@@ -131,6 +137,39 @@ def _register_schemas() -> None:
         inputs=[param("image", "T"), param("like", "T")], outputs=[param("output", "T")],
         type_constraints=float_t,
     ))
+    float_attr = OpSchema.Attribute
+    schemas += [
+        OpSchema(
+            "NBGAccumulate", OPS_DOMAIN, 1,
+            doc="temporal accumulation after the history's reprojection; "
+                "quietframe.model.nbg_fused.accumulate_warped",
+            inputs=[param("radiance", "T"), param("warped", "T"), param("inside", "T"),
+                    param("depth", "T"), param("normal", "T"), param("reset", "T")],
+            outputs=[param("accumulated", "T"), param("state", "T")],
+            type_constraints=float_t,
+            attributes=[float_attr("depth_tolerance", OpSchema.AttrType.FLOAT, "relative"),
+                        float_attr("normal_min_dot", OpSchema.AttrType.FLOAT, "cosine"),
+                        float_attr("min_current_weight", OpSchema.AttrType.FLOAT, "α floor")],
+        ),
+        OpSchema(
+            "NBGFeatures", OPS_DOMAIN, 1,
+            doc="GuideNet's input; quietframe.model.nbg_fused.features_scaled",
+            inputs=[param("radiance", "T"), param("safe_albedo", "T"), param("albedo", "T"),
+                    param("normal", "T"), param("depth", "T"), param("depth_scale", "T")],
+            outputs=[param("features", "T")],
+            type_constraints=float_t,
+            attributes=[float_attr("exponent", OpSchema.AttrType.FLOAT, "LDR gamma")],
+        ),
+        OpSchema(
+            "NBGBlend", OPS_DOMAIN, 1,
+            doc="softmax-weighted sum of three sliced grids, remodulated; "
+                "quietframe.model.nbg_fused.blend_sliced",
+            inputs=[param("logits", "T"), param("safe_albedo", "T"), param("sliced0", "T"),
+                    param("sliced1", "T"), param("sliced2", "T")],
+            outputs=[param("denoised", "T")],
+            type_constraints=float_t,
+        ),
+    ]
     for schema in schemas:
         try:
             onnx.defs.get_schema(schema.name, 1, OPS_DOMAIN)
@@ -184,6 +223,21 @@ def _upsample_to_onnx(image, like):
     return _QF.UpsampleBilinear(image, like)
 
 
+def _accumulate_to_onnx(radiance, warped, inside, depth, normal, reset):
+    return _QF.NBGAccumulate(radiance, warped, inside, depth, normal, reset,
+                             depth_tolerance=DEPTH_REL_TOLERANCE, normal_min_dot=NORMAL_MIN_DOT,
+                             min_current_weight=MIN_CURRENT_WEIGHT)
+
+
+def _features_to_onnx(radiance, safe_albedo, albedo, normal, depth, depth_scale):
+    return _QF.NBGFeatures(radiance, safe_albedo, albedo, normal, depth, depth_scale,
+                           exponent=LDR_EXPONENT)
+
+
+def _blend_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2):
+    return _QF.NBGBlend(logits, safe_albedo, sliced0, sliced1, sliced2)
+
+
 def custom_translation_table() -> dict:
     """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
     return {
@@ -193,6 +247,9 @@ def custom_translation_table() -> dict:
         torch.ops.quietframe.affinity_filter.default: _affinity_to_onnx,
         torch.ops.quietframe.affinity_temporal_filter.default: _affinity_temporal_to_onnx,
         torch.ops.quietframe.upsample_bilinear.default: _upsample_to_onnx,
+        torch.ops.quietframe.nbg_accumulate.default: _accumulate_to_onnx,
+        torch.ops.quietframe.nbg_features.default: _features_to_onnx,
+        torch.ops.quietframe.nbg_blend.default: _blend_to_onnx,
     }
 
 
@@ -206,6 +263,14 @@ class _ExportWrapper(nn.Module):
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
                 motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         return self.model(color, albedo, normal, depth, motion, reset, state)
+
+
+class _FusedExportWrapper(_ExportWrapper):
+    """The same through model/nbg_fused.fused_forward: the glue as fused ops."""
+
+    def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
+        return fused_forward(self.model, color, albedo, normal, depth, motion, reset, state)
 
 
 class _ExportWrapperWithSamples(_ExportWrapper):
@@ -241,9 +306,13 @@ def export_nbg(
     version: str = "0",
     training: Mapping | None = None,
     metrics: Mapping | None = None,
+    fuse: bool = True,
 ) -> Path:
     """Write `model` (an NBG variant, the accumulation-only pre-stage or an oidn-temporal
     stage) as a self-describing ONNX file at `path` and return the path.
+
+    `fuse`: a model model/nbg_fused.py can fuse goes through its fused ops (the same frame,
+    without ~60 element-wise nodes); False exports the unfused graph.
 
     A model with `inputs` names its own first graph inputs (oidn-temporal: the prepass result
     "oidn" instead of "color"); a config with `prepass()` becomes quietframe.prepass, which the
@@ -261,7 +330,11 @@ def export_nbg(
     extra = model.run_time_inputs() if hasattr(model, "run_time_inputs") else []
     if [i["name"] for i in extra] not in ([], [SAMPLES_INPUT]):
         raise ValueError(f"export_nbg exports no run-time input but {SAMPLES_INPUT!r}")
-    wrapper = (_ExportWrapperWithSamples if extra else _ExportWrapper)(model).eval()
+    if extra:
+        wrapper_type = _ExportWrapperWithSamples
+    else:
+        wrapper_type = _FusedExportWrapper if fuse and fusable(model) else _ExportWrapper
+    wrapper = wrapper_type(model).eval()
     example = example_inputs(state_channels=model.state_channels)
     if extra:
         example = (*example, torch.full((1,), float(extra[0]["default"])))

@@ -12,5 +12,8 @@ const OrtCustomOp* backward_warp_op();            // backward_warp.cc
 const OrtCustomOp* affinity_filter_op();          // affinity_filter.cc
 const OrtCustomOp* affinity_temporal_filter_op();  // affinity_temporal_filter.cc
 const OrtCustomOp* upsample_bilinear_op();          // upsample_bilinear.cc
+const OrtCustomOp* nbg_accumulate_op();             // nbg_fused.cc
+const OrtCustomOp* nbg_features_op();               // nbg_fused.cc
+const OrtCustomOp* nbg_blend_op();                  // nbg_fused.cc
 
 }  // namespace qf

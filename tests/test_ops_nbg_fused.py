@@ -1,0 +1,186 @@
+"""ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend (export/ops/nbg_fused.cc) against their
+PyTorch references (quietframe.model.nbg_fused): odd sizes, several images, edge values (reset,
+out-of-frame history, zero-length and flipped normals, negative radiance, saturated logits); the
+thread count changes no bit; fused_forward computes NBGDenoiser.forward; the shipped
+nbg-2l-3g.onnx uses the fused ops."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper
+from ops_support import make_session
+
+from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
+
+torch = pytest.importorskip("torch")
+fused = pytest.importorskip("quietframe.model.nbg_fused")
+temporal = pytest.importorskip("quietframe.model.temporal")
+
+REPO = Path(__file__).resolve().parents[1]
+OPS = {
+    "NBGAccumulate": (["radiance", "warped", "inside", "depth", "normal", "reset"],
+                      ["accumulated", "state"],
+                      {"depth_tolerance": temporal.DEPTH_REL_TOLERANCE,
+                       "normal_min_dot": temporal.NORMAL_MIN_DOT,
+                       "min_current_weight": temporal.MIN_CURRENT_WEIGHT}),
+    "NBGFeatures": (["radiance", "safe_albedo", "albedo", "normal", "depth", "depth_scale"],
+                    ["features"], {"exponent": fused.LDR_EXPONENT}),
+    "NBGBlend": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2"], ["denoised"], {}),
+}
+
+
+def op_model(op: str) -> bytes:
+    inputs, outputs, attributes = OPS[op]
+    node = helper.make_node(op, inputs, outputs, domain=OPS_DOMAIN, **attributes)
+    graph = helper.make_graph(
+        [node], op, [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in inputs],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in outputs])
+    opsets = [helper.make_opsetid("", 17), helper.make_opsetid(OPS_DOMAIN, 1)]
+    return helper.make_model(graph, opset_imports=opsets, ir_version=9).SerializeToString()
+
+
+@pytest.fixture(scope="module")
+def run():
+    sessions = {}
+
+    def run(op: str, feeds: dict[str, np.ndarray], threads: int = 2) -> list[np.ndarray]:
+        if (op, threads) not in sessions:
+            sessions[op, threads] = make_session(str(ops_library_path()), op_model(op), threads)
+        return sessions[op, threads].run(None, feeds)
+
+    return run
+
+
+def unit_normals(rng: np.random.Generator, n: int, h: int, w: int) -> np.ndarray:
+    normal = rng.standard_normal((n, 3, h, w)).astype(np.float32)
+    return normal / np.linalg.norm(normal, axis=1, keepdims=True)
+
+
+def accumulate_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    normal = unit_normals(rng, n, h, w)
+    depth = (1 + rng.random((n, 1, h, w)) * 4).astype(np.float32)
+    # A history that is the same surface on about half the pixels, another elsewhere.
+    same = rng.random((n, 1, h, w)) < 0.5
+    warped_depth = np.where(same, depth * 1.02, depth * 1.5).astype(np.float32)
+    warped_normal = np.where(same, normal * 0.8, unit_normals(rng, n, h, w))
+    warped_normal[:, :, 0, 0] = 0  # zero-length: never the same surface
+    count = rng.integers(-1, 12, (n, 1, h, w)).astype(np.float32)  # beyond the clamp both ways
+    warped = np.concatenate((rng.random((n, 3, h, w)) * 3, warped_depth, warped_normal, count),
+                            axis=1).astype(np.float32)
+    reset = np.zeros(n, np.float32)
+    reset[-1] = 1.0 if n > 1 else 0.0
+    return {"radiance": (rng.random((n, 3, h, w)) * 4 - 0.5).astype(np.float32),
+            "warped": warped,
+            "inside": (rng.random((n, 1, h, w)) < 0.9).astype(np.float32),
+            "depth": depth, "normal": normal, "reset": reset}
+
+
+def features_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    albedo = (rng.random((n, 3, h, w)) * 1.4 - 0.2).astype(np.float32)
+    depth = (rng.random((n, 1, h, w)) * 50).astype(np.float32)
+    return {"radiance": (rng.standard_normal((n, 3, h, w)) * 5).astype(np.float32),
+            "safe_albedo": (0.01 + rng.random((n, 3, h, w))).astype(np.float32),
+            "albedo": albedo,
+            "normal": (rng.standard_normal((n, 3, h, w)) * 1.5).astype(np.float32),
+            "depth": depth,
+            "depth_scale": np.maximum(depth.mean(axis=(2, 3), keepdims=True), 1e-6)}
+
+
+def blend_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    logits = (rng.standard_normal((n, 6, h, w)) * 4).astype(np.float32)
+    logits[:, 3, 0, :] = 90.0  # exp overflows without the max subtracted
+    feeds = {"logits": logits, "safe_albedo": (0.01 + rng.random((n, 3, h, w))).astype(np.float32)}
+    for g in range(3):
+        feeds[f"sliced{g}"] = (rng.random((n, 3, h, w)) * 3).astype(np.float32)
+    return feeds
+
+
+REFERENCES = {
+    "NBGAccumulate": (fused.accumulate_warped, accumulate_inputs),
+    "NBGFeatures": (fused.features_scaled, features_inputs),
+    "NBGBlend": (fused.blend_sliced, blend_inputs),
+}
+
+
+@pytest.mark.parametrize("op", sorted(OPS))
+@pytest.mark.parametrize("shape", [(1, 48, 64), (2, 7, 13), (1, 1, 1), (3, 33, 5)])
+def test_matches_reference(run, op: str, shape: tuple[int, int, int]) -> None:
+    reference, make_inputs = REFERENCES[op]
+    feeds = make_inputs(*shape)
+    want = reference(*(torch.from_numpy(feeds[name]) for name in OPS[op][0]))
+    want = want if isinstance(want, tuple) else (want,)
+    got = run(op, feeds)
+    for g, w in zip(got, want, strict=True):
+        assert g.shape == tuple(w.shape)
+        np.testing.assert_allclose(g, w.numpy(), rtol=2e-6, atol=1e-6)
+
+
+def test_reset_and_out_of_frame_drop_history(run) -> None:
+    feeds = accumulate_inputs(2, 9, 11)
+    feeds["inside"][0, 0, :3] = 0.0
+    accumulated, state = run("NBGAccumulate", feeds)
+    # No history kept: the frame alone, a history of length 1.
+    np.testing.assert_array_equal(accumulated[1], feeds["radiance"][1])
+    np.testing.assert_array_equal(state[1, 7], 1.0)
+    np.testing.assert_array_equal(accumulated[0, :, :3], feeds["radiance"][0, :, :3])
+    np.testing.assert_array_equal(state[:, 3:7], np.concatenate((feeds["depth"],
+                                                                 feeds["normal"]), axis=1))
+
+
+@pytest.mark.parametrize("op", sorted(OPS))
+def test_threads_change_no_bit(run, op: str) -> None:
+    feeds = REFERENCES[op][1](2, 67, 45, seed=3)
+    for a, b in zip(run(op, feeds, threads=1), run(op, feeds, threads=3), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_wrong_shape_is_an_error(run) -> None:
+    feeds = blend_inputs(1, 8, 8)
+    feeds["sliced1"] = feeds["sliced1"][:, :, :4]
+    with pytest.raises(Exception, match="NBGBlend: sliced1 must be"):
+        run("NBGBlend", feeds)
+
+
+def _frames(model, count: int = 3, seed: int = 0):
+    """(inputs, reference outputs) of `count` frames of a sequence through the PyTorch model,
+    the state carried."""
+    from quietframe.export.onnx_export import example_inputs
+
+    state, frames = None, []
+    for t in range(count):
+        inputs = example_inputs(40, 56, seed=seed + t)
+        inputs = (*inputs[:5], torch.tensor([float(t == 0)]), inputs[6] if state is None
+                  else state)
+        with torch.no_grad():
+            output, state = model(*inputs)
+        frames.append((inputs, output, state))
+    return frames
+
+
+def test_fused_forward_is_the_model() -> None:
+    from quietframe.model.nbg import VARIANTS, NBGDenoiser
+
+    torch.manual_seed(0)
+    model = NBGDenoiser(VARIANTS["nbg-2l-3g"]).eval()
+    assert fused.fusable(model)
+    for inputs, output, state in _frames(model):
+        with torch.no_grad():
+            got, got_state = fused.fused_forward(model, *inputs)
+        torch.testing.assert_close(got, output, rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(got_state, state, rtol=1e-6, atol=1e-6)
+
+
+def test_shipped_nbg_2l_3g_uses_the_fused_ops() -> None:
+    """(tests/test_export.py holds the shipped file to its checkpoint's PyTorch model.)"""
+    path = REPO / "models" / "nbg-2l-3g.onnx"
+    if not path.is_file():
+        pytest.skip("nbg-2l-3g is not in this checkout")
+    ops = {n.op_type for n in onnx.load(str(path)).graph.node}
+    assert {"NBGAccumulate", "NBGFeatures", "NBGBlend"} <= ops
