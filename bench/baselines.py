@@ -9,6 +9,9 @@ missing motion is a static camera).
 The temporal rule (`nearest_warp`, `history_valid`, the accumulation weights, demodulation) is
 a numpy twin of the NBG pre-stage in `model/temporal.py` and `model/nbg.py`: same names, same
 constants, same formulas (tests/test_baselines.py holds them equal), without torch.
+
+The evaluation times the ones it runs (svgf, oidn-*) per 1280×720 frame in `quietframe-eval`'s
+`ms/frame 720p` column, so this module has no command of its own.
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from quietframe.bench.timing import Timing, time_ms
 from quietframe.runtime.buffers import BUFFER_CHANNELS, BUFFER_NAMES, planes_from_hwc
+from quietframe.runtime.oidn_prepass import QUALITIES, OIDNPrepass, OIDNSettings
 
 # --- shared temporal rule (NBG §4.6; equal to model/temporal.py and model/nbg.py) -------------
 DEPTH_REL_TOLERANCE = 0.1  # history kept where |d_prev - d| <= 0.1 d ...
@@ -465,8 +468,6 @@ class OIDNDenoiser:
         aux_quality: str = "",
         renderer: str | None = None,
     ) -> None:
-        from quietframe.runtime.oidn_prepass import QUALITIES, OIDNPrepass, OIDNSettings
-
         if quality not in QUALITIES:
             raise ValueError(f"OIDNDenoiser: quality must be fast, balanced or high: {quality!r}")
         self.quality, self.prefilter_aux = quality, prefilter_aux
@@ -486,76 +487,3 @@ class OIDNDenoiser:
         """Release filters, then the device, then the memory they were bound to."""
         self._prepass.close()
 
-
-# --- speed -----------------------------------------------------------------------------------
-def synthetic_sequence(
-    height: int, width: int, frames: int, seed: int = 0
-) -> list[dict[str, np.ndarray]]:
-    """Noisy frames of a sphere over a slanted plane, the view panning by (0.7, 0.3) px a frame:
-    subpixel motion, so every warp tap is live, and a thin disoccluded border each frame."""
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
-    out = []
-    for t in range(frames):
-        u, v = x + 0.7 * t, y + 0.3 * t  # scene coordinates of each pixel
-        r = 0.3 * height
-        d2 = ((x - width / 2) ** 2 + (y - height / 2) ** 2) / r**2
-        sphere = d2 < 1
-        nz = np.sqrt(np.clip(1 - d2, 0, 1))
-        normal = np.where(sphere[..., None],
-                          np.stack([(x - width / 2) / r, (y - height / 2) / r, nz], -1),
-                          np.float32([0, 0.6, 0.8]))
-        depth = np.where(sphere, 5 - nz, 10 + 0.01 * v)[..., None]
-        albedo = np.where(sphere[..., None], 0.7, 0.5 + 0.3 * np.sin(u / 23)[..., None])
-        light = (1.2 + np.sin(u / 50) * np.cos(v / 40))[..., None]
-        color = albedo * light * rng.gamma(2.0, 0.5, (height, width, 3))
-        motion = np.where(sphere[..., None], 0, np.float32([-0.7, -0.3]))
-        out.append({"color": color, "albedo": albedo * np.ones(3), "normal": normal,
-                    "depth": depth, "motion": motion})
-    return [{k: np.asarray(v, np.float32) for k, v in f.items()} for f in out]
-
-
-def benchmark(
-    height: int = 720, width: int = 1280, threads: int = 2, warmup: int = 3, repeats: int = 10
-) -> dict[str, Timing]:
-    """ms/frame of every baseline on one synthetic sequence, timed by bench/timing (median).
-    The numpy accumulation runs on one thread (numpy's elementwise ops are single-threaded)."""
-    methods = {
-        "temporal-accumulation": TemporalAccumulation,
-        "svgf": lambda: SVGFStyleFilter(num_threads=threads),
-        **{f"oidn-{q}": partial(OIDNDenoiser, q, num_threads=threads)
-           for q in ("fast", "balanced", "high")},
-        "oidn-high-prefilter-aux": partial(OIDNDenoiser, "high", True, threads),
-    }
-    frames = synthetic_sequence(height, width, warmup + repeats)
-    timings = {}
-    for name, make in methods.items():
-        method = make()
-        sequence = iter(frames)
-        timings[name] = time_ms(lambda m=method, s=sequence: m(next(s)), warmup=warmup,
-                                repeats=repeats)
-        getattr(method, "close", lambda: None)()
-    return timings
-
-
-def main(argv: list[str] | None = None) -> None:
-    import argparse
-    import os
-
-    from quietframe.bench import cli_args
-
-    parser = argparse.ArgumentParser(description="ms/frame of the non-network baselines")
-    parser.add_argument("--height", type=int, default=720)
-    parser.add_argument("--width", type=int, default=1280)
-    cli_args.add_threads(parser)
-    parser.add_argument("--repeats", type=int, default=10)
-    args = parser.parse_args(argv)
-    print(f"{args.width}×{args.height}, {args.threads} threads, {os.cpu_count()} cores, "
-          f"load average {os.getloadavg()[0]:.2f}")
-    for name, timing in benchmark(args.height, args.width, args.threads,
-                                  repeats=args.repeats).items():
-        print(f"{name:24s} {timing}")
-
-
-if __name__ == "__main__":
-    main()
