@@ -247,14 +247,17 @@ def sliding_shot(samples: str | None) -> list[bytes]:
 
 def test_the_header_spp_reaches_a_model_that_takes_it(history_server):
     """oidn-history keeps less resampled history for a cleaner frame: the spp comes from the
-    Cycles header, or the session's option where the file states none; 0 is refused."""
+    Cycles header, or the session's option, which wins over the header's; 0 is refused. (The
+    Cycles header also turns OIDN's rows bottom-up, so the shots compared all carry it.)"""
     url = history_server.url
     stated = {s: denoise(url, sliding_shot(s), "oidn-history") for s in ("1", "64")}
     assert np.allclose(stated["1"][0], stated["64"][0], atol=1e-6)  # no history yet
     assert not np.allclose(stated["1"][-1], stated["64"][-1], rtol=1e-3, atol=1e-4)
-    optioned = denoise(url, sliding_shot(None), "oidn-history", spp=64)
+    optioned = denoise(url, sliding_shot("1"), "oidn-history", spp=64)
     for a, b in zip(stated["64"], optioned, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    unstated = denoise(url, sliding_shot(None), "oidn-history", spp=64)  # no header: top-down
+    assert not np.allclose(unstated[0], stated["64"][0], rtol=1e-3, atol=1e-4)
     assert "spp must be at least 1, got 0" in refused(url, "oidn-history", {"spp": 0})
     listed = {m["name"]: m["options"] for m in httpx.get(f"{url}/v1/models").json()["models"]}
     assert [(o["name"], o["default"], o["minimum"]) for o in listed["oidn-history"]] == [
