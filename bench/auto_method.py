@@ -1,7 +1,8 @@
 """`model=auto` as a method of quietframe-eval: the service's choice, made the service's way.
 
 At a sequence's first frame and at every cut (the harness resets the method there), the choice
-(service/model_choice.choose) is made from that frame among the installed models, with their
+(service/model_choice.choose) is made from that frame among the installed models the service
+offers (not the internal stages other models compose: runtime/loaded_models.py), with their
 tables for the evaluated renderer and the default quality; the chosen model then denoises the
 shot through the runtime. The frame's spp is what its header would state where the renderer
 writes one (Cycles: `header_spp`, set by the evaluation loop), else the reference-free
@@ -19,6 +20,7 @@ import numpy as np
 
 from quietframe.bench.harness import Planes, RuntimeMethod
 from quietframe.runtime import Denoiser, default_model_path
+from quietframe.runtime.loaded_models import composed_stages
 from quietframe.service.model_choice import (
     NoiseLevel,
     choose,
@@ -34,6 +36,8 @@ class AutoMethod:
     def __init__(self, models: Mapping[str, Path], threads: int, renderer: str | None,
                  quality: str | None = None) -> None:
         self.denoisers = {name: Denoiser(path, threads=threads) for name, path in models.items()}
+        for stage in composed_stages(self.denoisers):  # never chosen by the service either
+            del self.denoisers[stage]
         self.profiles = [profile_of(name, d, renderer) for name, d in self.denoisers.items()]
         self.default = default_model_path().stem
         self.calibration = load_calibration()
