@@ -1,8 +1,16 @@
 """Model cards: a markdown file next to each shipped .onnx, written from its ModelCard.
 
+    python -m quietframe.bench.model_card models/*.onnx [--evaluation RUN.json] [--measure]
+    python -m quietframe.bench.model_card --stamp --evaluation VALIDATION.json [--renderer R]
+        [--static-evaluation S.json] [--timing T.json] [--absent A.json]
+        [--noise-points P.json] [--measured-as METHOD] [--no-card] models/*.onnx
+    python -m quietframe.bench.model_card --zoo zoo.json --no-card models/*.onnx
+
 The markdown repeats what the file's card says (runtime/card.py: architecture, composition,
 tiling, training, measured tables per renderer) and adds the speed measured on this machine
-through the shipped runtime, so the markdown and the file can never disagree.
+through the shipped runtime, so the markdown and the file can never disagree. `--stamp` first
+writes the measured tables `model=auto` reads into the files (bench/model_metrics.py), `--zoo`
+how each model held on the validation zoo (bench/zoo_stamp.py); `--no-card` stops there.
 """
 
 from __future__ import annotations
@@ -12,10 +20,14 @@ import json
 from pathlib import Path
 
 from quietframe.bench import cli_args
+from quietframe.bench.model_metrics import RunProblem, TableRuns, card_of, stamp_tables
+from quietframe.bench.oidn_temporal import measure as time_stages
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
+from quietframe.bench.zoo_stamp import stamp_zoo
 from quietframe.runtime import Denoiser
-from quietframe.runtime.card import DEFAULT_RENDERER, GraphStage, ModelCard, OIDNStage
+from quietframe.runtime.card import GraphStage, ModelCard, OIDNStage
+from quietframe.scenes.layout import RENDERERS, split_dir
 
 
 def measure_720p_ms(runtime: Denoiser) -> float:
@@ -49,8 +61,6 @@ def data_lines(training: dict, previous: list[str] = (), metrics: dict | None = 
     validated on nothing (`val_sequences` 0) says so instead of naming a split it never saw."""
     if "data" not in training:
         return []
-    from quietframe.scenes.layout import split_dir
-
     data = Path(training["data"]).expanduser()
     renderers = [r.strip() for r in str(training.get("renderers", "mitsuba")).split(",")
                  if r.strip()]
@@ -88,8 +98,6 @@ def prepass_lines(runtime: Denoiser, threads: int, measure: bool) -> list[str]:
             f"aux {settings.prefilter_aux}; needs pyoidn), {graph}")
     if not measure:
         return [line + ".", ""]
-    from quietframe.bench.oidn_temporal import measure as time_stages
-
     t = time_stages(runtime.info.path, threads, repeats=3)
     return [f"{line}: OIDN {t['oidn'].median_ms:.0f} ms, quietframe's part (the graphs) "
             f"{t['stage'].median_ms:.0f} ms "
@@ -173,8 +181,6 @@ def role_lines(path: Path, card: ModelCard) -> list[str]:
     baseline = path.with_name("oidn-frame.onnx")
     speed = ""
     if baseline.is_file() and table.ms_720p:
-        from quietframe.bench.model_metrics import card_of
-
         oidn = card_of(baseline).measured("cycles").ms_720p
         if oidn:
             speed = f", about {oidn / table.ms_720p:.1f}× faster than OIDN-high at 720p"
@@ -240,38 +246,83 @@ def write_model_card(path: Path, evaluation: list[dict] | None = None, threads: 
     return card
 
 
-def main(argv: list[str] | None = None) -> int:
+STAMP_RUNS = ("renderer", "static_evaluation", "timing", "absent", "noise_points")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="model_card", description=__doc__.split("\n")[0])
     parser.add_argument("models", type=Path, nargs="+")
-    parser.add_argument("--evaluation", type=Path, help="quietframe-eval JSON: quality rows")
+    parser.add_argument("--evaluation", type=Path,
+                        help="quietframe-eval JSON: the card's quality rows (with --stamp, the "
+                             "measured table's too)")
     parser.add_argument("--measure", action="store_true",
                         help="time each model now instead of quoting its card's 720p time")
     cli_args.add_threads(parser)
-    parser.add_argument("--stamp", action="store_true",
-                        help="first stamp --evaluation's rows into each model's measured table "
-                             "(what `model=auto` reads; bench/model_metrics.py)")
     parser.add_argument("--measured-as", metavar="METHOD",
-                        help="the method name --evaluation measured the (one) model under: a "
-                             "candidate installed under the shipped name (model_metrics)")
+                        help="the method name the runs measured the (one) model under: a "
+                             "candidate installed under the shipped name")
+    parser.add_argument("--no-card", action="store_true",
+                        help="stamp only: leave the markdown cards as they are")
+    stamping = parser.add_argument_group(
+        "stamping", "measured tables written into the model files before the cards (what "
+        "`model=auto` reads; bench/model_metrics.py, bench/zoo_stamp.py)")
+    stamping.add_argument("--stamp", action="store_true",
+                          help="stamp --evaluation's rows into each model's table")
+    stamping.add_argument("--renderer", choices=RENDERERS,
+                          help="whose frames the runs measured, the table stamped (default: "
+                               "the renderer --evaluation ran on; every run must agree)")
+    stamping.add_argument("--static-evaluation", type=Path,
+                          help="benchmarks.json of a run on locked-off shots: flicker per spp")
+    stamping.add_argument("--timing", type=Path,
+                          help="benchmarks.json whose ms_720p is stamped instead of the "
+                               "evaluation's (a quiet timing run)")
+    stamping.add_argument("--absent", type=Path,
+                          help="auto_choice.json: per-model PSNR change with each buffer absent")
+    stamping.add_argument("--noise-points", type=Path,
+                          help="auto_choice.json of a validation run: by_noise points per model")
+    stamping.add_argument("--zoo", type=Path,
+                          help="zoo.json of bench/zoo_eval.py --split validation: each model's "
+                               "zoo rows, after --stamp (give oidn-frame.onnx too)")
     args = parser.parse_args(argv)
     if args.measured_as and len(args.models) != 1:
         parser.error("--measured-as names one model's rows: give exactly one model")
+    if args.stamp and not args.evaluation:
+        parser.error("--stamp stamps --evaluation's rows: give --evaluation")
+    given = [f"--{k.replace('_', '-')}" for k in STAMP_RUNS if getattr(args, k)]
+    if given and not args.stamp:
+        parser.error(f"{', '.join(given)}: only with --stamp")
+    if args.no_card and not (args.stamp or args.zoo):
+        parser.error("--no-card: nothing to do without --stamp or --zoo")
+    return args
+
+
+def stamp_models(args: argparse.Namespace) -> None:
+    """The stamping the flags ask for, before the cards: the tables, then the zoo rows (whose
+    shortfall is measured against the tables). Nothing is written where a run cannot make its
+    table (RunProblem)."""
+    if args.stamp:
+        runs = TableRuns(args.evaluation, args.static_evaluation, args.timing, args.absent,
+                         args.noise_points)
+        print("\n".join(stamp_tables(args.models, runs, args.renderer, args.measured_as)))
+    if args.zoo:
+        print("\n".join(stamp_zoo(args.zoo, args.models)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        stamp_models(args)
+    except RunProblem as problem:
+        raise SystemExit(f"model_card: error: {problem}") from None
+    if args.no_card:
+        return 0
     evaluation = json.loads(args.evaluation.read_text()) if args.evaluation else {}
     meta = evaluation.get("meta", {})
-    split = meta.get("split", "")
     for path in args.models:
         method = args.measured_as or path.stem
         rows = sorted((r for r in evaluation.get("rows", []) if r["method"] == method),
                       key=lambda r: r["spp"])
-        if args.stamp and rows:
-            from quietframe.bench.model_metrics import metrics_from_rows, run_problem, stamp
-
-            renderer = meta.get("renderer", DEFAULT_RENDERER)
-            problem = run_problem(renderer, evaluation=evaluation)
-            if problem:
-                parser.error(problem)
-            stamp(path, metrics_from_rows(rows, meta), renderer)
-        card = write_model_card(path, rows, args.threads, split, args.measure,
+        card = write_model_card(path, rows, args.threads, meta.get("split", ""), args.measure,
                                 meta.get("renderer", ""),
                                 str(args.evaluation) if args.evaluation else "")
         print(f"wrote {card}")

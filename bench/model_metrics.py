@@ -1,7 +1,9 @@
 """Write measured speed/error tables into shipped models' metadata (`quietframe.metrics`).
 
-    python -m quietframe.bench.model_metrics --evaluation docs/benchmarks.json models/*.onnx
+    python -m quietframe.bench.model_card --stamp --no-card --evaluation docs/benchmarks.json \
+        models/*.onnx
 
+(bench/model_card.py's command: it stamps, then writes the markdown cards unless `--no-card`).
 The rows of one `quietframe-eval` run (benchmarks.json: method = model file stem) become
 `by_spp` (spp, PSNR, TRMAE) and `ms_720p` (the same run's 1280×720 timing), with the run's
 command and machine as `measured`; `--absent` adds `absent_db` (mean PSNR change per absent
@@ -18,19 +20,19 @@ the same frames. `--measured-as` stamps one model from another method's rows: a 
 measured beside the shipped models under its own name (e.g. `affinity-h16-k5gc-mix`), then
 installed under the shipped name. Existing keys (training's validation score) are kept.
 `--renderer` names whose frames were measured (the card keeps a table per renderer,
-runtime/card.py; default mitsuba). Nothing here is typed in: `model=auto` reads what a
+runtime/card.py; default: the renderer the evaluation ran on, and every run must agree).
+Nothing here is typed in: `model=auto` reads what a
 measurement wrote (docs/model-interface.md).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import onnx
 
-from quietframe.bench import cli_args
 from quietframe.runtime.card import DEFAULT_RENDERER, Measurements, ModelCard, finite_figure
 
 RUN_KEYS = ("command", "machine", "threads", "split", "resolution", "sequences")
@@ -137,62 +139,64 @@ def stamp(path: Path, additions: dict, renderer: str = DEFAULT_RENDERER) -> dict
     return card.metrics()
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="model_metrics", description=__doc__.split("\n")[0])
-    parser.add_argument("models", type=Path, nargs="+")
-    parser.add_argument("--evaluation", type=Path, required=True, help="benchmarks.json")
-    parser.add_argument("--absent", type=Path,
-                        help="auto_choice.json: per-model PSNR change with each buffer absent")
-    parser.add_argument("--noise-points", type=Path,
-                        help="auto_choice.json of a validation run: by_noise points per model")
-    parser.add_argument("--static-evaluation", type=Path,
-                        help="benchmarks.json of a run on locked-off shots: flicker per spp")
-    parser.add_argument("--timing", type=Path,
-                        help="benchmarks.json whose ms_720p is stamped instead of the "
-                             "evaluation's (a quiet timing run)")
-    cli_args.add_renderer(parser, help="the renderer of the evaluated frames: the card keeps "
-                          "one table per renderer")
-    parser.add_argument("--measured-as", metavar="METHOD",
-                        help="the method name the runs measured the (one) model under, where "
-                             "it is not the file stem: a candidate installed under the shipped "
-                             "name")
-    args = parser.parse_args(argv)
-    if args.measured_as and len(args.models) != 1:
-        parser.error("--measured-as names one model's rows: give exactly one model")
-    evaluation = json.loads(args.evaluation.read_text())
-    static = json.loads(args.static_evaluation.read_text()) if args.static_evaluation else None
-    timing = json.loads(args.timing.read_text()) if args.timing else None
-    problem = run_problem(args.renderer, evaluation=evaluation, static_evaluation=static,
+class RunProblem(ValueError):
+    """Runs that cannot make the table asked for: nothing is written (the command's error)."""
+
+
+@dataclass(frozen=True)
+class TableRuns:
+    """The runs one renderer's table is stamped from, as their files were given."""
+
+    evaluation: Path  # benchmarks.json: by_spp and ms_720p
+    static_evaluation: Path | None = None  # benchmarks.json of locked-off shots: flicker
+    timing: Path | None = None  # benchmarks.json of a quiet timing run: ms_720p instead
+    absent: Path | None = None  # auto_choice.json: absent_db and absent_db_worst
+    noise_points: Path | None = None  # auto_choice.json of a validation run: by_noise
+
+
+def _read(path: Path | None) -> dict | None:
+    return json.loads(path.read_text()) if path else None
+
+
+def stamp_tables(models: list[Path], runs: TableRuns, renderer: str | None = None,
+                 measured_as: str | None = None) -> list[str]:
+    """Stamp each model's table for `renderer` (default: the renderer the evaluation ran on)
+    from `runs`, the rows of method `measured_as` or else of the file's stem; one line per
+    model. Raises RunProblem, before any file is written, where the runs cannot make that
+    table."""
+    if measured_as and len(models) != 1:
+        raise RunProblem("--measured-as names one model's rows: give exactly one model")
+    evaluation = _read(runs.evaluation)
+    static, timing = _read(runs.static_evaluation), _read(runs.timing)
+    renderer = renderer or evaluation.get("meta", {}).get("renderer", DEFAULT_RENDERER)
+    problem = run_problem(renderer, evaluation=evaluation, static_evaluation=static,
                           timing=timing)
     if problem:
-        parser.error(problem)
-    absence_run = json.loads(args.absent.read_text()) if args.absent else {}
+        raise RunProblem(problem)
+    absence_run = _read(runs.absent) or {}
     absent = absence_run.get("absent_db", {})
-    choice_run = json.loads(args.noise_points.read_text()) if args.noise_points else None
+    choice_run = _read(runs.noise_points)
     if choice_run and "validation" not in choice_run["meta"]["data"]:
-        parser.error(f"--noise-points {args.noise_points}: not a validation run (model "
-                     "selection never reads the test split)")
-    for path in args.models:
-        method = args.measured_as or path.stem
+        raise RunProblem(f"--noise-points {runs.noise_points}: not a validation run (model "
+                         "selection never reads the test split)")
+    lines = []
+    for path in models:
+        method = measured_as or path.stem
         rows = rows_of(evaluation, method)
         if not rows:
-            print(f"{path}: no rows for {method!r} in {args.evaluation}; left as it is")
+            lines.append(f"{path}: no rows for {method!r} in {runs.evaluation}; left as it is")
             continue
         additions = metrics_from_rows(
             rows, evaluation.get("meta", {}),
             rows_of(static, method) if static else (), static and static.get("meta"),
             rows_of(timing, method) if timing else None, timing and timing.get("meta"),
-            rows_of(evaluation, RENDERER_DENOISE_METHOD.get(args.renderer, "")))
+            rows_of(evaluation, RENDERER_DENOISE_METHOD.get(renderer, "")))
         if method in absent:
             additions["absent_db"] = absent[method]
             additions["absent_db_worst"] = worst_absent_db(absence_run, method)
         by_noise = noise_points(choice_run, method) if choice_run else None
         if by_noise:
             additions["by_noise"] = by_noise
-        metrics = stamp(path, additions, args.renderer)
-        print(f"{path}: {json.dumps(metrics)[:200]}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+        metrics = stamp(path, additions, renderer)
+        lines.append(f"{path}: {json.dumps(metrics)[:200]}")
+    return lines

@@ -1,6 +1,7 @@
 """Stamp how each model held on the validation zoo into its card, where `auto` reads it.
 
-    python -m quietframe.bench.zoo_stamp docs/evaluation/zoo-validation/zoo.json models/*.onnx
+    python -m quietframe.bench.model_card --zoo docs/evaluation/zoo-validation/zoo.json \
+        --no-card models/*.onnx
 
 Per model and spp, from a `bench/zoo_eval.py` run on the zoo's **validation** split (the test
 split is never read for selection): the gap to per-frame OIDN-high in the same run (mean over
@@ -17,14 +18,13 @@ Blender's own denoise, which `auto` reads to prefer models that held on every sh
 
 from __future__ import annotations
 
-import argparse
 import json
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-from quietframe.bench.model_metrics import card_of, stamp
+from quietframe.bench.model_metrics import RunProblem, card_of, stamp
 from quietframe.runtime.card import ModelCard, ZooRow
 from quietframe.service.model_choice import at_spp
 
@@ -64,36 +64,34 @@ def zoo_rows(gaps: dict[float, list[float]], card: ModelCard, baseline: ModelCar
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="zoo_stamp", description=__doc__.splitlines()[0])
-    p.add_argument("zoo", type=Path, help="zoo.json of bench/zoo_eval.py --split validation")
-    p.add_argument("models", type=Path, nargs="+")
-    args = p.parse_args(argv)
-    run = json.loads(args.zoo.read_text())
+def stamp_zoo(zoo: Path, models: list[Path]) -> list[str]:
+    """Stamp each model's zoo rows from `zoo` (zoo.json of a validation run); one line per
+    model. Raises RunProblem, before any file is written, for a run that is not validation's
+    or without oidn-frame among `models` (its table is the baseline of the table gap)."""
+    run = json.loads(zoo.read_text())
     if run["meta"]["split"] != "validation":
-        p.error(f"{args.zoo}: a {run['meta']['split']} run; auto's tables come from the "
-                "validation zoo only (the test zoo is reported, never used for selection)")
-    baseline_path = next((m for m in args.models if m.stem == BASELINE_MODEL), None)
+        raise RunProblem(f"{zoo}: a {run['meta']['split']} run; auto's tables come from the "
+                         "validation zoo only (the test zoo is reported, never used for "
+                         "selection)")
+    baseline_path = next((m for m in models if m.stem == BASELINE_MODEL), None)
     if baseline_path is None:
-        p.error(f"give {BASELINE_MODEL}.onnx too: its table is the baseline of the table gap")
+        raise RunProblem(f"give {BASELINE_MODEL}.onnx too: its table is the baseline of the "
+                         "table gap")
     baseline = card_of(baseline_path)
     measured = {"command": run["meta"]["command"], "zoo": run["meta"]["zoo"],
                 "shots": run["meta"]["shots"], "baseline": BASELINE_METHOD}
-    for path in args.models:
+    lines = []
+    for path in models:
         gaps = zoo_gaps(run["rows"], path.stem)
         if not gaps:
-            print(f"{path}: no zoo rows for {path.stem!r}; left as it is")
+            lines.append(f"{path}: no zoo rows for {path.stem!r}; left as it is")
             continue
         rows = zoo_rows(gaps, card_of(path), baseline,
                         zoo_gaps(run["rows"], path.stem, RENDERER_DENOISE))
         stamp(path, {"zoo": {"by_spp": [r.to_dict() for r in rows], "measured": measured}},
               RENDERER)
-        print(f"{path}: " + ", ".join(f"{r.spp:g} spp {r.gap_db:+.2f} (worst {r.worst_gap_db:+.2f},"
-                                      f" shortfall {r.shortfall_db:+.2f}, worst against "
-                                      f"Blender's denoise {r.worst_vs_denoise_db})"
-                                      for r in rows))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+        lines.append(f"{path}: " + ", ".join(
+            f"{r.spp:g} spp {r.gap_db:+.2f} (worst {r.worst_gap_db:+.2f}, shortfall "
+            f"{r.shortfall_db:+.2f}, worst against Blender's denoise {r.worst_vs_denoise_db})"
+            for r in rows))
+    return lines

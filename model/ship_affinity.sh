@@ -59,8 +59,7 @@ if [ "$STAGE" = ship ]; then
     "$PY" -m quietframe.export.cli --checkpoint models/training/$NAME/best.pt \
         --out models/$NAME.onnx --version "$VERSION"
     "$PY" -m quietframe.bench.model_card --stamp \
-        --evaluation docs/evaluation/validation_affinity.json models/$NAME.onnx
-    "$PY" -m quietframe.bench.model_metrics --evaluation docs/evaluation/validation_affinity.json \
+        --evaluation docs/evaluation/validation_affinity.json \
         --noise-points docs/evaluation/auto_validation_affinity.json \
         --absent docs/evaluation/absence_validation_affinity.json models/$NAME.onnx
 fi

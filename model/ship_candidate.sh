@@ -17,7 +17,7 @@
 #   test:    both test splits with the shipped model, the candidate and oidn-frame (and Blender's
 #            denoise) in one run each, and a before/after table (bench/compare_table);
 #   ship:    install the candidate under NAME with both renderers' tables stamped from the
-#            measure and timing runs (bench/model_metrics --measured-as), then its card.
+#            measure and timing runs (bench/model_card --stamp --measured-as), then its card.
 set -eu
 PY=${PYTHON:-python}
 NAME=${NAME:?the shipped model to replace}
@@ -72,14 +72,16 @@ ship)
     cp "$RUN"/{best.pt,config.json,log.txt} "models/training/$NAME/"
     "$PY" -m quietframe.export.cli --checkpoint "models/training/$NAME/best.pt" \
         --out "models/$NAME.onnx" --version "$VERSION"
-    "$PY" -m quietframe.bench.model_metrics "models/$NAME.onnx" --measured-as "$CANDIDATE" \
-        --renderer mitsuba --evaluation "$OUT/mitsuba-validation/benchmarks.json" \
+    "$PY" -m quietframe.bench.model_card --stamp --no-card "models/$NAME.onnx" \
+        --measured-as "$CANDIDATE" --renderer mitsuba \
+        --evaluation "$OUT/mitsuba-validation/benchmarks.json" \
         --static-evaluation "$OUT/mitsuba-validation-static/benchmarks.json" \
         --noise-points "$OUT/mitsuba-noise-points/auto_choice.json" \
         --absent "$OUT/mitsuba-absence/auto_choice.json" \
         --timing "$OUT/timing-mitsuba/benchmarks.json"
-    "$PY" -m quietframe.bench.model_metrics "models/$NAME.onnx" --measured-as "$CANDIDATE" \
-        --renderer cycles --evaluation "$OUT/cycles-validation/benchmarks.json" \
+    "$PY" -m quietframe.bench.model_card --stamp --no-card "models/$NAME.onnx" \
+        --measured-as "$CANDIDATE" --renderer cycles \
+        --evaluation "$OUT/cycles-validation/benchmarks.json" \
         --static-evaluation "$OUT/cycles-validation-static/benchmarks.json" \
         --timing "$OUT/timing-cycles/benchmarks.json"
     "$PY" -m quietframe.bench.model_card "models/$NAME.onnx" --measured-as "$CANDIDATE" \

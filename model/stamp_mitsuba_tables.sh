@@ -13,12 +13,12 @@
 #            any candidates of model/evaluate_cycles_mix.sh export under their own names
 #            (models/training/<name>-mix/), with their noise points and buffer-absence figures
 #            (bench/auto_choice), so shipping one stamps it from these same runs
-#            (bench/model_metrics --measured-as);
+#            (bench/model_card --stamp --measured-as);
 #   measure-history: the noise points and buffer-absence figures of the history tiers
 #            (oidn-history*), which `measure` does not take;
 #   timing:  a quiet 720p timing run of every model on Mitsuba frames (pause the renders);
-#   stamp:   bench/model_metrics --renderer mitsuba into models/*.onnx (then regenerate the
-#            cards: python -m quietframe.bench.model_card models/*.onnx);
+#   stamp:   bench/model_card --stamp --no-card --renderer mitsuba into models/*.onnx (then
+#            regenerate the cards: python -m quietframe.bench.model_card models/*.onnx);
 #   test:    auto and the temporal tiers against oidn-frame on the Mitsuba test split and its
 #            locked-off shots (needs test topped up to 64 spp), and the targets table.
 set -eu
@@ -81,8 +81,8 @@ stamp)
     # auto considers a model only with a 720p time on the table it reads; the history tiers
     # also get their noise points and absence figures (measure-history), which the others
     # keep from the runs that shipped them
-    stamp() {  # more model_metrics args, then the models
-        "$PY" -m quietframe.bench.model_metrics --renderer mitsuba \
+    stamp() {  # more stamping args, then the models
+        "$PY" -m quietframe.bench.model_card --stamp --no-card --renderer mitsuba \
             --evaluation "$OUT/validation/benchmarks.json" \
             --static-evaluation "$OUT/validation-static/benchmarks.json" \
             --timing "$OUT/timing/benchmarks.json" "$@"

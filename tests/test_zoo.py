@@ -1,5 +1,6 @@
 """The validation zoo: its shot list covers the shot types farms send, and its figures reach `auto`
-(bench/zoo_stamp.py -> the card's `zoo` rows -> ModelProfile's shortfall)."""
+(bench/zoo_stamp.py, `bench.model_card --zoo` -> the card's `zoo` rows -> ModelProfile's
+shortfall)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from quietframe.bench import zoo_stamp
+from quietframe.bench import model_card, zoo_stamp
 from quietframe.bench.zoo_eval import report
 from quietframe.runtime.registry import installed_models
 from quietframe.scenes.zoo_shots import SHOTS, shots
@@ -70,7 +71,7 @@ def test_stamp_writes_the_shortfall_against_the_table_and_auto_takes_it_off(tmp_
     zoo.write_text(json.dumps({"meta": meta, "rows": _rows({"nbg-2l-3g": -5.0,
                                                             "oidn-frame": 0.0,
                                                             "blender-denoise": 0.2})}))
-    assert zoo_stamp.main([str(zoo), *map(str, models.values())]) == 0
+    assert model_card.main(["--zoo", str(zoo), "--no-card", *map(str, models.values())]) == 0
     card = zoo_stamp.card_of(models["nbg-2l-3g"])
     rows = card.measured("cycles").zoo
     assert [r.spp for r in rows] == [1.0, 4.0]
@@ -141,7 +142,7 @@ def test_stamp_refuses_the_test_split(tmp_path, models):
     zoo.write_text(json.dumps({"meta": {"split": "test", "command": "", "zoo": "zoo1",
                                         "shots": []}, "rows": []}))
     with pytest.raises(SystemExit):
-        zoo_stamp.main([str(zoo), *map(str, models.values())])
+        model_card.main(["--zoo", str(zoo), "--no-card", *map(str, models.values())])
 
 
 def test_report_tables_per_shot_history_and_flicker():
