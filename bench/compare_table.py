@@ -2,7 +2,7 @@
 per-frame baselines of the same run, at every spp, and whether it meets the targets (with the
 amount where it misses).
 
-    python -m quietframe.bench.compare_table RUN.json [--static STATIC.json]
+    quietframe-eval --compare RUN.json [--static STATIC.json]
         [--methods a,b] [--against oidn-frame,blender-denoise] [--trmae 0.7] [--flicker 0.5]
         [--wide]
 
@@ -15,10 +15,14 @@ Ratios and differences are of figures measured in one run, so machine load cance
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
+
+DEFAULT_AGAINST = ("oidn-frame", "blender-denoise")  # the per-frame baselines of a Cycles run
+TRMAE_TARGET = 0.7  # × the first baseline's
+FLICKER_TARGET = 0.5  # × the first baseline's, on locked-off shots
 
 
 def load_rows(path: Path) -> dict[tuple[str, int], dict]:
@@ -29,7 +33,7 @@ def _ratio(value: float, base: float) -> float:
     return value / base if base and math.isfinite(base) and math.isfinite(value) else math.nan
 
 
-def compare(run: dict, static: dict | None, methods: list[str], against: list[str],
+def compare(run: dict, static: dict | None, methods: list[str], against: Sequence[str],
             trmae_target: float, flicker_target: float) -> tuple[list[str], list[str]]:
     """(markdown lines of the per-spp table, markdown lines of the targets summary)."""
     spps = sorted({spp for (_, spp) in run})
@@ -96,32 +100,19 @@ def wide(run: dict, methods: list[str], base: str) -> list[str]:
     return lines
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("run", type=Path)
-    p.add_argument("--static", type=Path)
-    p.add_argument("--methods", help="comma list (default: every method of the run)")
-    p.add_argument("--against", default="oidn-frame,blender-denoise")
-    p.add_argument("--trmae", type=float, default=0.7)
-    p.add_argument("--flicker", type=float, default=0.5)
-    p.add_argument("--wide", action="store_true",
-                   help="only PSNR by spp, one row per method, difference to the first baseline")
-    args = p.parse_args(argv)
-    run = load_rows(args.run)
-    static = load_rows(args.static) if args.static else None
-    against = args.against.split(",")
+def table_text(run_path: Path, static_path: Path | None = None, methods: Sequence[str] = (),
+               against: Sequence[str] = DEFAULT_AGAINST, trmae: float = TRMAE_TARGET,
+               flicker: float = FLICKER_TARGET, wide_only: bool = False) -> str:
+    """The markdown `quietframe-eval --compare` prints: `methods` (default every method of the
+    run) against the baselines `against`, as the targets table and its summary, or with
+    `wide_only` PSNR by spp alone. Raises ValueError where the run lacks a baseline."""
+    run = load_rows(run_path)
+    static = load_rows(static_path) if static_path else None
     missing = [b for b in against if not any(m == b for m, _ in run)]
     if missing:
-        p.error(f"{args.run} has no rows of {', '.join(missing)}")
-    methods = (args.methods.split(",") if args.methods
-               else list(dict.fromkeys(m for m, _ in run)))
-    if args.wide:
-        print("\n".join(wide(run, methods, against[0])))
-        return 0
-    table, summary = compare(run, static, methods, against, args.trmae, args.flicker)
-    print("\n".join(table), "", "\n".join(summary), sep="\n")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+        raise ValueError(f"{run_path} has no rows of {', '.join(missing)}")
+    methods = list(methods) or list(dict.fromkeys(m for m, _ in run))
+    if wide_only:
+        return "\n".join(wide(run, methods, against[0]))
+    table, summary = compare(run, static, methods, against, trmae, flicker)
+    return "\n".join([*table, "", *summary])

@@ -1,6 +1,7 @@
 """quietframe-eval: every method on the validation sequences through the same loader.
 
     quietframe-eval [--split validation] [--spp 1,2,4,8] [--threads 2] [--out docs]
+    quietframe-eval --compare RUN.json [--static STATIC.json] [--against a,b] [--wide]
 
 Methods: the noisy input, temporal accumulation alone (models/accumulation.onnx: the NBG
 pre-stage), an SVGF-style à-trous filter, Open Image Denoise (fast/balanced/high, high with
@@ -12,7 +13,8 @@ runtime cannot run here (oidn-temporal without pyoidn) is skipped with a line.
 affinity tier); `--single-frame <model>` adds `<model>/frame`, its history cleared every frame.
 Per method and spp: PSNR, SSIM, SMAPE, relMSE (mean over frames), TRMAE (mean over sequences),
 ms/frame at the evaluation resolution and at 1280×720 — one run, same machine, same threads.
-Writes <out>/benchmarks.md, <out>/psnr_vs_ms.png and <out>/crops.png.
+Writes <out>/benchmarks.md, <out>/psnr_vs_ms.png and <out>/crops.png. `--compare` evaluates
+nothing: it prints the temporal tiers' targets table of earlier runs (bench/compare_table.py).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.bench import cli_args
+from quietframe.bench import cli_args, compare_table
 from quietframe.bench.harness import (
     FRAME_METRICS,
     Frames,
@@ -336,7 +338,7 @@ def write_report(rows: list[dict], meta: dict, path: Path) -> None:
     path.write_text("\n".join(lines))
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> tuple[argparse.ArgumentParser, argparse.Namespace]:
     parser = argparse.ArgumentParser(prog="quietframe-eval", description=__doc__.split("\n")[0])
     cli_args.add_data(parser)
     cli_args.add_split(parser, help="train, validation or test, or the locked-off "
@@ -359,7 +361,46 @@ def main(argv: list[str] | None = None) -> int:
                         help="skip the 720p timing of each method (quality figures only; the "
                              "table shows – for ms/frame 720p)")
     parser.add_argument("--out", type=Path, default=Path("docs"))
+    comparing = parser.add_argument_group(
+        "compare", "instead of evaluating: the targets table of earlier runs' JSON, printed "
+        "(bench/compare_table.py; --methods: the rows, default every method of the run)")
+    comparing.add_argument("--compare", type=Path, metavar="RUN.json",
+                           help="benchmarks.json of moving shots: each method against the "
+                                "run's per-frame baselines")
+    comparing.add_argument("--static", type=Path, metavar="STATIC.json",
+                           help="benchmarks.json of locked-off shots: flicker against the "
+                                "first baseline's")
+    comparing.add_argument("--against", default=",".join(compare_table.DEFAULT_AGAINST),
+                           help="the baselines, comma list (default %(default)s)")
+    comparing.add_argument("--trmae", type=float, default=compare_table.TRMAE_TARGET,
+                           help="TRMAE target, × the first baseline's (default %(default)s)")
+    comparing.add_argument("--flicker", type=float, default=compare_table.FLICKER_TARGET,
+                           help="flicker target, × the first baseline's (default %(default)s)")
+    comparing.add_argument("--wide", action="store_true",
+                           help="only PSNR by spp, one row per method, difference to the "
+                                "first baseline")
     args = parser.parse_args(argv)
+    if (args.static or args.wide) and not args.compare:
+        parser.error("--static and --wide read an earlier run: give --compare RUN.json")
+    return parser, args
+
+
+def print_comparison(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """`--compare`: the targets table of earlier runs, nothing evaluated."""
+    methods = [m for m in args.methods.split(",") if m]
+    try:
+        print(compare_table.table_text(args.compare, args.static, methods,
+                                       args.against.split(","), args.trmae, args.flicker,
+                                       args.wide))
+    except ValueError as exc:
+        parser.error(str(exc))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, args = parse_args(argv)
+    if args.compare:
+        return print_comparison(parser, args)
     missing = [str(p) for p in args.model if not p.is_file()]
     if missing:
         raise SystemExit(f"--model: no such file {missing}")

@@ -9,13 +9,13 @@
 #            stamped with version NBG_VERSION / AFFINITY_VERSION (the shipped card's + 1);
 #   test:    quietframe-eval on the Mitsuba test split (1-16 spp) and the Cycles test split
 #            (1-64 spp) with the shipped and the fine-tuned models, the targets table and a
-#            before/after table per spp (bench/compare_table) under $OUT (default
+#            before/after table per spp (quietframe-eval --compare) under $OUT (default
 #            docs/evaluation/cycles-mix); test-mitsuba / test-cycles: one split alone;
 #   docs:    once a candidate is shipped (model/ship_candidate.sh), the reports that show the
 #            learned tiers, re-run: docs/benchmarks.md's Mitsuba test table (its sections from
 #            the auto_choice marker on are kept) and docs/evaluation/cycles-test (its table in
 #            docs/benchmarks.md is pasted by hand from
-#            python -m quietframe.bench.compare_table ... --against blender-denoise --wide).
+#            quietframe-eval --compare ... --against blender-denoise --wide).
 # A candidate ships only if it loses at most 0.2 dB on the Mitsuba test split at every spp
 # (docs/training.md, "Cycles in the mix").
 set -eu
@@ -45,21 +45,21 @@ done
 before_after() {  # split folder: each fine-tuned model against its shipped self, per spp
     for name in "${NAMES[@]}"; do
         printf '\n%s against %s (PSNR, in brackets the difference):\n\n' "$name-mix" "$name"
-        "$PY" -m quietframe.bench.compare_table "$OUT/$1/benchmarks.json" --wide \
+        "$PY" -m quietframe.bench.evaluate --compare "$OUT/$1/benchmarks.json" --wide \
             --methods "$name-mix" --against "$name"
     done > "$OUT/$1/before_after.md"
 }
 mitsuba() {
     "$PY" -m quietframe.bench.evaluate --split test --spp 1,2,4,8,16 --threads 2 --no-timing \
         --methods "$methods" "${models[@]}" --out "$OUT/mitsuba-test"
-    "$PY" -m quietframe.bench.compare_table "$OUT/mitsuba-test/benchmarks.json" --wide \
+    "$PY" -m quietframe.bench.evaluate --compare "$OUT/mitsuba-test/benchmarks.json" --wide \
         --against oidn-frame > "$OUT/mitsuba-test/targets.md"
     before_after mitsuba-test
 }
 cycles() {
     "$PY" -m quietframe.bench.evaluate --renderer cycles --split test --threads 2 --no-timing \
         --methods "blender-denoise,$methods" "${models[@]}" --out "$OUT/cycles-test"
-    "$PY" -m quietframe.bench.compare_table "$OUT/cycles-test/benchmarks.json" --wide \
+    "$PY" -m quietframe.bench.evaluate --compare "$OUT/cycles-test/benchmarks.json" --wide \
         --against oidn-frame,blender-denoise > "$OUT/cycles-test/targets.md"
     before_after cycles-test
 }

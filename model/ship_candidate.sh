@@ -15,7 +15,7 @@
 #            on Mitsuba also the noise points and buffer-absence figures (bench/auto_choice);
 #   timing:  720p time on each renderer's frames beside oidn-frame (nothing else running);
 #   test:    both test splits with the shipped model, the candidate and oidn-frame (and Blender's
-#            denoise) in one run each, and a before/after table (bench/compare_table);
+#            denoise) in one run each, and a before/after table (quietframe-eval --compare);
 #   ship:    install the candidate under NAME with both renderers' tables stamped from the
 #            measure and timing runs (bench/model_card --stamp --measured-as), then its card.
 set -eu
@@ -63,7 +63,7 @@ test)
     evaluate cycles test "blender-denoise,oidn-frame,$NAME,$CANDIDATE" "$OUT/cycles-test" \
         --no-timing
     for renderer in mitsuba cycles; do
-        "$PY" -m quietframe.bench.compare_table "$OUT/$renderer-test/benchmarks.json" --wide \
+        "$PY" -m quietframe.bench.evaluate --compare "$OUT/$renderer-test/benchmarks.json" --wide \
             --methods "$CANDIDATE" --against "$NAME" > "$OUT/$renderer-test/before_after.md"
     done
     ;;

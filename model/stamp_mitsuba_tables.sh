@@ -103,10 +103,10 @@ test)
     evaluate test "$methods" "$OUT/test"
     evaluate test-static "$methods" "$OUT/test-static"
     {
-        "$PY" -m quietframe.bench.compare_table "$OUT/test/benchmarks.json" --wide \
+        "$PY" -m quietframe.bench.evaluate --compare "$OUT/test/benchmarks.json" --wide \
             --against oidn-frame
         echo
-        "$PY" -m quietframe.bench.compare_table "$OUT/test/benchmarks.json" \
+        "$PY" -m quietframe.bench.evaluate --compare "$OUT/test/benchmarks.json" \
             --against oidn-frame --static "$OUT/test-static/benchmarks.json"
     } > "$OUT/targets.md"
     ;;
