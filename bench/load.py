@@ -1,22 +1,29 @@
-"""Load: N sessions x M frames at a given size against one server on 127.0.0.1.
+"""Load: N sessions x M frames at a given size against one server on 127.0.0.1; or, with
+`--soak`, session churn for a set time and the server's RSS slope.
 
     python -m quietframe.bench.load [--sessions 4] [--frames 8] [--width 640 --height 360]
-    python -m quietframe.bench.soak [--minutes 2] ...   (session churn for a set time)
+    python -m quietframe.bench.load --soak 2 [--clients 2] [--frames 4] [--width 320 ...]
 
 Starts a `quietframe serve` process (env QUIETFRAME_*), streams every session on its own thread
 (frames in order, as a render farm does), and reports: requests and errors (by status),
 latency p50/p99 of a frame request (upload + denoise + download), frames/s over all sessions,
 the server's peak RSS (VmHWM), and non-finite values in the replies' pixels. A client honours
 Retry-After on 429/503 as the CLI does (at most RETRIES times a frame; retries are counted,
-not errors). Frames are the render-like synthetic Blender EXRs of
-bench/http_overhead.py. Bounded by the counts given; loopback only.
-"""
+not errors). Frames are the render-like synthetic Blender EXRs of bench/synthetic.py. Bounded
+by the counts given; loopback only.
 
+`--soak MINUTES`: each of `--clients` threads loops: create a session, send `--frames` frames,
+delete it (every few rounds one session is left to expire instead, after the server's `--ttl`,
+and one upload is aborted mid-body). The server's RSS is sampled every second; the slope
+(MiB/min, least squares) over the second half of the run says whether memory grows with churn
+once warm. Also reports requests, errors and status counts.
+"""
 from __future__ import annotations
 
 import argparse
+import io
 import json
-import os
+import socket
 import sys
 import threading
 import time
@@ -25,13 +32,13 @@ from collections import Counter
 import numpy as np
 
 from quietframe.bench import cli_args
-from quietframe.bench.http_overhead import (
-    blender_exr,
-    loopback_server,
-    rss_mib,
-    run_threads,
-    synthetic_buffers,
-)
+from quietframe.bench.loopback import loopback_server, rss_mib, run_threads, server_env
+from quietframe.bench.synthetic import blender_exr, synthetic_buffers
+
+# The defaults of each mode: a load run streams a few sessions of a working size, a soak
+# churns many small ones (what a leak per session would show in).
+DEFAULTS = {"load": {"sessions": 4, "frames": 8, "width": 640, "height": 360},
+            "soak": {"clients": 2, "frames": 4, "width": 320, "height": 180, "ttl": 20.0}}
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -72,9 +79,7 @@ class Tally:
 
 
 def non_finite_values(exr: bytes) -> int:
-    import io
-
-    import OpenEXR
+    import OpenEXR  # the serve and client extras, as the server's replies need
 
     with OpenEXR.File(io.BytesIO(exr), separate_channels=True) as f:
         return sum(int((~np.isfinite(c.pixels)).sum()) for part in f.parts
@@ -112,15 +117,6 @@ def run_session(http, url: str, size, frames: list[bytes], count: int, tally: Ta
     http.delete(f"{url}/v1/sessions/{sid}")
 
 
-def server_env(threads: int, workers: int) -> dict[str, str]:
-    return {
-        **os.environ,
-        "QUIETFRAME_THREADS": str(threads),
-        "QUIETFRAME_WORKERS": str(workers),
-        "QUIETFRAME_LOG_LEVEL": "warning",
-    }
-
-
 def report(tally: Tally, seconds: float, peak_rss: float, **extra) -> dict:
     done = len(tally.latency_ms)
     return {
@@ -139,19 +135,45 @@ def report(tally: Tally, seconds: float, peak_rss: float, **extra) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    import httpx
+def abort_upload(port: int, sid: str, data: bytes) -> None:
+    """Half a frame body, then the connection closes (a client that went away)."""
+    head = (
+        f"POST /v1/sessions/{sid}/frames/0 HTTP/1.1\r\nHost: x\r\n"
+        f"Content-Type: image/x-exr\r\nContent-Length: {len(data)}\r\n\r\n"
+    )
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(head.encode() + data[: len(data) // 2])
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sessions", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=8, help="frames per session")
-    parser.add_argument("--width", type=int, default=640)
-    parser.add_argument("--height", type=int, default=360)
-    cli_args.add_threads(parser, help="server onnxruntime threads per frame")
-    cli_args.add_workers(parser)
-    args = parser.parse_args(argv)
-    size = (args.width, args.height)
-    frames = frames_for(*size, 4)
+
+def churn(http, url, port, size, frames, count, deadline, tally, ttl_leave: bool) -> None:
+    """One soak client: sessions created, streamed and deleted until `deadline`."""
+    round_ = 0
+    while time.monotonic() < deadline:
+        round_ += 1
+        r = http.post(f"{url}/v1/sessions", json={"width": size[0], "height": size[1]})
+        if r.status_code != 201:
+            tally.add(r.status_code, None, r.text)
+            time.sleep(1)
+            continue
+        sid = r.json()["id"]
+        if round_ % 5 == 0:
+            abort_upload(port, sid, frames[0])
+        for i in range(count):
+            start = time.perf_counter()
+            r = http.post(
+                f"{url}/v1/sessions/{sid}/frames/{i}",
+                content=frames[i % len(frames)],
+                headers={"content-type": "image/x-exr"},
+            )
+            tally.add(r.status_code, 1e3 * (time.perf_counter() - start), r.text)
+        if not (ttl_leave and round_ % 7 == 0):  # else left for the TTL reaper
+            http.delete(f"{url}/v1/sessions/{sid}")
+
+
+def load(args: argparse.Namespace, size: tuple[int, int], frames: list[bytes]) -> dict:
+    """Every session on its own thread through one server; the report."""
+    import httpx  # the client extra, as the CLI's
+
     tally = Tally()
     with loopback_server(server_env(args.threads, args.workers)) as (url, server):
         with httpx.Client(timeout=600) as http:
@@ -161,11 +183,84 @@ def main(argv: list[str] | None = None) -> int:
                 for _ in range(args.sessions)
             ])
         peak = rss_mib(server.pid, "VmHWM")
-    result = report(
+    return report(
         tally, seconds, peak, size=f"{size[0]}x{size[1]}", sessions=args.sessions,
         frames_per_session=args.frames, exr_mib=round(len(frames[0]) / 2**20, 2),
     )
+
+
+def soak(args: argparse.Namespace, size: tuple[int, int], frames: list[bytes]) -> dict:
+    """`--soak`: session churn for the minutes given, the server's RSS sampled every second;
+    the report with the RSS slope over the second half."""
+    import httpx  # the client extra, as the CLI's
+
+    env = server_env(args.threads, args.workers)
+    env["QUIETFRAME_SESSION_TTL_S"] = str(args.ttl)
+    tally, samples = Tally(), []
+    deadline = time.monotonic() + 60 * args.soak
+    with loopback_server(env) as (url, server), httpx.Client(timeout=600) as http:
+        port = int(url.rsplit(":", 1)[1])
+        workers = [
+            threading.Thread(
+                target=churn,
+                args=(http, url, port, size, frames, args.frames, deadline, tally, i == 0),
+            )
+            for i in range(args.clients)
+        ]
+        start = time.monotonic()
+        for w in workers:
+            w.start()
+        while any(w.is_alive() for w in workers):
+            samples.append((time.monotonic() - start, rss_mib(server.pid)))
+            time.sleep(1)
+        seconds = time.monotonic() - start
+        peak = rss_mib(server.pid, "VmHWM")
+    t, rss = np.array(samples).T
+    half = t >= t[-1] / 2
+    slope = float(np.polyfit(t[half], rss[half], 1)[0]) * 60 if half.sum() > 2 else float("nan")
+    return report(
+        tally, seconds, peak, size=f"{size[0]}x{size[1]}", clients=args.clients,
+        rss_start_mib=round(float(rss[0])), rss_end_mib=round(float(rss[-1])),
+        rss_slope_mib_per_min_second_half=round(slope, 2),
+    )
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sessions", type=int, help="sessions streamed at once (default 4)")
+    parser.add_argument("--frames", type=int, help="frames per session (default 8; --soak 4)")
+    parser.add_argument("--width", type=int, help="default 640; --soak 320")
+    parser.add_argument("--height", type=int, help="default 360; --soak 180")
+    cli_args.add_threads(parser, help="server onnxruntime threads per frame")
+    cli_args.add_workers(parser)
+    churning = parser.add_argument_group("soak", "session churn for a set time instead")
+    churning.add_argument("--soak", type=float, metavar="MINUTES",
+                          help="churn sessions for this long; report the RSS slope")
+    churning.add_argument("--clients", type=int, help="client threads churning (default 2)")
+    churning.add_argument("--ttl", type=float, help="server session TTL, s (default 20)")
+    args = parser.parse_args(argv)
+    if args.soak is not None and args.soak <= 0:
+        parser.error("--soak: the minutes to churn for, > 0")
+    mode = "soak" if args.soak else "load"
+    other = [f"--{k}" for k in DEFAULTS["soak" if mode == "load" else "load"]
+             if k not in DEFAULTS[mode] and getattr(args, k) is not None]
+    if other:
+        parser.error(f"{', '.join(other)}: not read {'with' if args.soak else 'without'} "
+                     "--soak")
+    for key, value in DEFAULTS[mode].items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    size = (args.width, args.height)
+    frames = frames_for(*size, 4)
+    result = (soak if args.soak else load)(args, size, frames)
     print(json.dumps(result, indent=1))
+    if args.soak:  # a soak reports; its figure is the slope, read by whoever runs it
+        return 0
     return 1 if result["errors"] or result["non_finite_values"] else 0
 
 
