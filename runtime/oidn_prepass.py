@@ -30,7 +30,7 @@ bottom-up differs (up to ~0.3 dB a shot). Cycles hands OIDN its buffers bottom-u
 images start at the bottom row); EXRs and the service's planes are top-down. For a frame whose
 renderer denoises bottom-up (`BOTTOM_UP_RENDERERS`), the stage gives OIDN the rows in that
 order, so its per-frame output is the renderer's own denoise (Blender's `Combined` to the
-half-float rounding of the stored file: bench/blender_denoise_match.py), the baseline a farm
+half-float rounding of the stored file: experiments/blender_denoise_match.py), the baseline a farm
 compares with; every other frame keeps the stored order.
 """
 

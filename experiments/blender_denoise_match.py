@@ -1,6 +1,6 @@
 """How close the per-frame OIDN stage comes to Blender's own denoise on Cycles renders.
 
-    python -m quietframe.bench.blender_denoise_match --split validation \
+    python -m quietframe.experiments.blender_denoise_match --split validation \
         --shots garden-blur,study-locked --spp 1,4,16 [--threads 2] [--json out.json]
 
 Blender's denoise (Cycles' OIDN denoiser, prefilter Accurate, quality High, the `Combined` pass
@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.bench import cli_args
+from quietframe.bench.baselines import OIDNDenoiser
 from quietframe.model import metrics
 from quietframe.scenes import cycles_io
 from quietframe.scenes.zoo_shots import ZOO_SPLITS, zoo_dir
@@ -77,8 +78,6 @@ def main(argv: list[str] | None = None) -> int:
     cli_args.add_threads(p)
     cli_args.add_json(p)
     args = p.parse_args(argv)
-    from quietframe.bench.baselines import OIDNDenoiser
-
     root = zoo_dir(args.data, args.split)
     folders = [f.parent for f in sorted(root.glob("*/manifest.json"))
                if not args.shots or f.parent.name in args.shots.split(",")]
