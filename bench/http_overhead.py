@@ -54,7 +54,9 @@ def synthetic_buffers(width: int, height: int, seed: int) -> dict[str, np.ndarra
     return {"color": color, "albedo": albedo, "normal": normal, "depth": depth, "motion": motion}
 
 
-def blender_exr(buffers: dict[str, np.ndarray], compression: str, half: bool) -> bytes:
+def blender_exr(buffers: dict[str, np.ndarray], compression: str, half: bool,
+                attributes: dict[str, str] | None = None) -> bytes:
+    """`attributes`: more header attributes (e.g. Cycles' `cycles.ViewLayer.samples`)."""
     import OpenEXR
 
     dtype = np.float16 if half else np.float32
@@ -81,6 +83,7 @@ def blender_exr(buffers: dict[str, np.ndarray], compression: str, half: bool) ->
     header = {
         "compression": getattr(OpenEXR, f"{compression.upper()}_COMPRESSION"),
         "type": OpenEXR.scanlineimage,
+        **(attributes or {}),
     }
     arrays = {k: np.ascontiguousarray(v, dtype=dtype) for k, v in channels.items()}
     out = io.BytesIO()

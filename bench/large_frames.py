@@ -7,7 +7,9 @@ Each size runs in its own process (peak RSS = that process's VmHWM): synthetic r
 buffers (float32, built without float64 temporaries), `frames` frames with the history carried,
 through `Denoiser.denoise` with its tiles sized by the memory bound (runtime/tiling.py;
 `--tile-pixels N` fixes them, 0 runs untiled). Prints a Markdown table:
-ms per frame (median), peak RSS, the inputs' and state's share of it, and the tile count.
+ms per frame (median), CPU seconds per frame (every thread's: what the frame costs when other
+jobs share the cores) with the load average, peak RSS, the inputs' and state's share of it,
+and the tile count.
 """
 
 from __future__ import annotations
@@ -62,12 +64,13 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
     denoiser = Denoiser(path, threads=threads, tile_pixels=tiles_by, max_memory_mb=max_memory_mb)
     tile_pixels = denoiser.tile_pixels
     base = rss_mib(os.getpid(), "VmHWM")
-    times, state = [], None
+    times, cpu, state = [], [], None
     for i in range(frames):
         planes = buffers(width, height, i)
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         result = denoiser.denoise(planes, state)
         times.append(1e3 * (time.perf_counter() - start))
+        cpu.append(time.process_time() - start_cpu)  # every thread's: robust to other load
         assert np.isfinite(result.color).all()
         state = result.state
     inputs = sum(p.nbytes for p in planes.values()) / 2**20
@@ -82,6 +85,8 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
         "size": f"{width}x{height}",
         "ms_per_frame": round(statistics.median(times), 0),
         "ms_all": [round(t) for t in times],
+        "cpu_s_per_frame": round(statistics.median(cpu), 2),
+        "load_average": round(os.getloadavg()[0], 1),
         "peak_rss_mib": round(rss_mib(os.getpid(), "VmHWM")),
         "base_rss_mib": round(base),
         "inputs_mib": round(inputs),
@@ -117,11 +122,13 @@ def main(argv: list[str] | None = None) -> int:
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         rows.append(json.loads(out.strip().splitlines()[-1]))
         print(json.dumps(rows[-1]), file=sys.stderr)
-    print("| size | ms/frame (median) | peak RSS MiB | of which inputs + state MiB | tiles |")
-    print("|---|---|---|---|---|")
+    print("| size | ms/frame (median) | CPU s/frame | load | peak RSS MiB "
+          "| of which inputs + state MiB | tiles |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['size']} | {r['ms_per_frame']:.0f} ({r['ms_all']}) | {r['peak_rss_mib']} "
-              f"| {r['inputs_mib']} + 2 x {r['state_mib']} | {r['tiles']} |")
+        print(f"| {r['size']} | {r['ms_per_frame']:.0f} ({r['ms_all']}) | {r['cpu_s_per_frame']} "
+              f"| {r['load_average']} | {r['peak_rss_mib']} | {r['inputs_mib']} + 2 x "
+              f"{r['state_mib']} | {r['tiles']} |")
     return 0
 
 

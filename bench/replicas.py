@@ -239,20 +239,32 @@ def throughput(replicas: int, sessions: int, frames: list[bytes], size, store: b
 
 
 def session_payload(width: int, height: int) -> tuple[dict, dict[str, np.ndarray], bytes]:
-    """meta, state tensors (the default model's shapes) and a reply the size of a render-like
-    ZIP EXR at this size, as a frame stores them."""
+    """meta, state (the default model's after two render-like frames at this size, probe
+    included, as a session keeps it) and a reply the size of a render-like ZIP EXR at this
+    size, as a frame stores them."""
+    from quietframe.bench.harness import RuntimeMethod
     from quietframe.bench.http_overhead import blender_exr, synthetic_buffers
-    from quietframe.runtime import Denoiser, installed_models
+    from quietframe.runtime import installed_models
+    from quietframe.runtime.buffers import planes_from_hwc
 
     path = next(p for p in installed_models() if p.stem == MODEL)
-    info = Denoiser(path, threads=1).info
-    rng = np.random.default_rng(0)
-    state = {s.name: rng.random(s.shape(height, width), dtype=np.float32)
-             for s in info.state_specs}
+    method = RuntimeMethod(path, threads=2)
+    for i in range(2):
+        method(planes_from_hwc(synthetic_buffers(width, height, i)))
+    state = method.state
+    assert state is not None
     reply = blender_exr(synthetic_buffers(width, height, 0), "zip", True)
     meta = {"id": "A" * 22, "model": MODEL, "width": width, "height": height, "last_index": 1,
             "frames_done": 1, "resets": 1, "choice": None}
     return meta, state, reply
+
+
+def stored_bytes(meta: dict, state: dict[str, np.ndarray], reply: bytes) -> int:
+    """What a store is sent for this state and reply (service/state_codec.py's form)."""
+    from quietframe.service.session_store import Reply, record
+
+    stored, arrays = record(meta, dict(state), Reply(1, reply, {}, len(reply), "0" * 64))
+    return len(json.dumps(stored)) + sum(a.nbytes for a in arrays.values())
 
 
 def time_store(store, meta, state, reply, repeats: int, shapes) -> dict:
@@ -290,9 +302,9 @@ def store_costs(size_name: str, repeats: int) -> list[dict]:
     shapes = {name: a.shape for name, a in state.items()}
     state_bytes = sum(a.nbytes for a in state.values())
     rows = []
-    base = {"size": size_name, "state_mib": round(state_bytes / 2**20, 1),
+    base = {"size": size_name, "state_float32_mib": round(state_bytes / 2**20, 1),
             "reply_mib": round(len(reply) / 2**20, 2),
-            "bytes_per_frame_mib": round((state_bytes + len(reply)) / 2**20, 1)}
+            "bytes_per_frame_mib": round(stored_bytes(meta, state, reply) / 2**20, 1)}
     for persistence in ("always", "everysec", "none"):
         with Cluster(replicas=0, persistence=persistence) as cluster:
             store = RedisStore(f"redis://127.0.0.1:{cluster.redis_port}/0", 900, 30)
@@ -315,11 +327,10 @@ def estimate(replicas: int, cameras: int, size_name: str, seconds_per_frame: flo
     """What the store and the load balancer carry for a farm: every frame writes its session's
     state and reply once; a failover reads one session back."""
     width, height = SIZES[size_name]
-    _, state_tensors, reply = session_payload(width, height)  # the `store` measurement's
-    state = sum(a.nbytes for a in state_tensors.values())
+    meta, state, reply = session_payload(width, height)  # the `store` measurement's
     exr = len(reply)  # a render-like Blender EXR (ZIP, half) in, about as large out
     frames_s = min(cameras, replicas) / seconds_per_frame  # one frame per replica at a time
-    per_frame = state + exr
+    per_frame = stored_bytes(meta, state, reply)
     return {
         "size": size_name, "replicas": replicas, "cameras": cameras,
         "seconds_per_frame_per_replica": seconds_per_frame, "frames_per_s": round(frames_s, 1),
