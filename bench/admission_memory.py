@@ -31,6 +31,15 @@ import numpy as np
 
 from quietframe.bench import cli_args
 from quietframe.bench.large_frames import SIZES, buffers
+from quietframe.client.protocol import Reset
+from quietframe.runtime import Denoiser, find_model, installed_models
+from quietframe.runtime.motion_evidence import history_nbytes
+from quietframe.service import admission
+from quietframe.service import frames as frame_io
+from quietframe.service.frame_context import frame_context
+from quietframe.service.frame_path import process_frame
+from quietframe.service.session_spec import SessionSpec
+from quietframe.service.settings import Settings
 
 TARGET_RATIO = 1.1
 MIB = 2**20
@@ -71,16 +80,6 @@ def _status_bytes(field: str) -> int:
 
 def measure(model: str, width: int, height: int, frames: int, threads: int) -> dict:
     """One process's measurement (run by `main` in a child process)."""
-    from quietframe.client.protocol import Reset
-    from quietframe.runtime import Denoiser, find_model
-    from quietframe.runtime.motion_evidence import history_nbytes
-    from quietframe.service import admission
-    from quietframe.service import frames as frame_io
-    from quietframe.service.frame_context import frame_context
-    from quietframe.service.frame_path import process_frame
-    from quietframe.service.session_spec import SessionSpec
-    from quietframe.service.settings import Settings
-
     settings = Settings()
     denoiser = Denoiser(find_model(model), threads=threads)
     spec = SessionSpec(model=model, width=width, height=height, precision="input",
@@ -124,8 +123,6 @@ def measure(model: str, width: int, height: int, frames: int, threads: int) -> d
 
 def shipped_models() -> list[str]:
     """Every installed model (all of them are served)."""
-    from quietframe.runtime import installed_models
-
     return [path.stem for path in installed_models()]
 
 

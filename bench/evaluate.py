@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.bench import cli_args, compare_table
+from quietframe.bench import baselines, cli_args, compare_table
+from quietframe.bench.auto_method import AutoMethod
 from quietframe.bench.harness import (
     FRAME_METRICS,
     Frames,
@@ -41,11 +42,16 @@ from quietframe.bench.harness import (
     planar_frames,
     score_sequence,
 )
+from quietframe.bench.oidn_temporal import measure
+from quietframe.bench.sid_temporal import SIDTemporal
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
+from quietframe.scenes import cycles_io
+from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
+from quietframe.scenes.layout import split_dir
 from quietframe.service.model_choice import RENDERERS_STATING_SPP as HEADER_STATES_SPP
 
 AUX = ("albedo", "normal", "depth", "motion")
@@ -110,8 +116,6 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
     .onnx files (e.g. fresh training runs), named by file stem. `kernel_sizes` and
     `single_frame` (model names) add model_variants. Cycles data adds Blender's denoise. Every
     OIDN call sees the rows in `renderer`'s order, as the service's does for its frames."""
-    from quietframe.bench import baselines
-
     models = {p.stem: p for p in (*installed_models(), *extra)}
     methods: dict[str, Callable[[], object]] = {"noisy": Noisy}
     if renderer == "cycles":
@@ -131,14 +135,10 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
             baselines.OIDNDenoiser("high", prefilter_aux=True, num_threads=threads,
                                    aux_quality=q, renderer=renderer))
     # the SID add-on's temporal mode: its defaults (fake motion blur on), and without the blur
-    from quietframe.bench.sid_temporal import SIDTemporal
-
     methods["sid-temporal-default"] = lambda: SIDTemporal(num_threads=threads, renderer=renderer)
     methods["sid-temporal"] = lambda: SIDTemporal(motion_blur=False, num_threads=threads,
                                                   renderer=renderer)
     if models:  # the service's choice among the installed models (bench/auto_method.py)
-        from quietframe.bench.auto_method import AutoMethod
-
         installed = {p.stem: p for p in installed_models()}
         methods["auto"] = lambda: AutoMethod(installed, threads, renderer)
     for name, path in models.items():
@@ -153,9 +153,6 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
 def sequence_dirs(data: Path, split: str, renderer: str = "mitsuba",
                   spp_levels: tuple[int, ...] = ()) -> list[Path]:
     """Sequence folders of a split; of a Cycles split only those finished at `spp_levels`."""
-    from quietframe.scenes import cycles_io
-    from quietframe.scenes.layout import split_dir
-
     root = split_dir(data, split, renderer)
     folders = sorted(p.parent for p in root.glob("*/manifest.json"))
     if renderer == "cycles":
@@ -166,9 +163,6 @@ def sequence_dirs(data: Path, split: str, renderer: str = "mitsuba",
 def load_sequence(folder: Path, spp: int) -> list[tuple[dict, np.ndarray, bool]]:
     """[(buffers, reference, reset)] for every frame of a sequence at `spp`. A Cycles frame's
     buffers also hold Blender's own denoise of it (STORED_BLENDER)."""
-    from quietframe.scenes import cycles_io
-    from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
-
     if cycles_io.is_cycles_sequence(folder):
         resets = cycles_io.frame_resets(folder)
         frames = []
@@ -233,8 +227,6 @@ def prepass_shares(method, threads: int) -> dict[str, float]:
     denoiser = getattr(method, "denoiser", None)
     if denoiser is None or denoiser.prepass is None:
         return {}
-    from quietframe.bench.oidn_temporal import measure
-
     timings = measure(denoiser.info.path, threads, repeats=3)
     return {"ms_720p_oidn": timings["oidn"].median_ms,
             "ms_720p_stage": timings["stage"].median_ms}

@@ -19,14 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.bench import cli_args
+from quietframe.scenes.exr_io import color_layer, frame_layers, load_frame
 from quietframe.service.model_choice import CALIBRATION_FILE, noise_statistic
 
 SPLITS = ("validation",)  # model selection data; the test split only reports
 
 
 def rendered_points(data: Path, max_frames: int) -> tuple[list[tuple[float, float]], list[str]]:
-    from quietframe.scenes.exr_io import color_layer, frame_layers, load_frame
-
     points, used = [], []
     files = sorted(p for s in SPLITS for p in data.glob(f"*/{s}/*/frame_*.exr"))[:max_frames]
     for path in files:

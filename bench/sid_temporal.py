@@ -36,8 +36,9 @@ COM_GaussianAlpha{X,Y}BlurOperation and COM_BlurBaseOperation, COM_VectorBlurOpe
 kernel `primitive_motion_vector`): Displace outputs in(p - scale·v(p)), reading the vector at
 the output pixel; Cycles' Vector.XY is the position in t-1 minus the position in t and ZW the
 position in t minus the position in t+1. In quietframe's convention `motion` is Vector.XY with
-y flipped to image rows (pixel p of frame t was at p + motion_t(p) in t-1; service/channels.py,
-bench/baselines.py `nearest_warp`), so the add-on's alignment reads, per pixel p:
+y flipped to image rows (pixel p of frame t was at p + motion_t(p) in t-1;
+runtime/exr_channels.py, bench/baselines.py `nearest_warp`), so the add-on's alignment reads,
+per pixel p:
 
     frame t-1 aligned:  D[t-1](p + motion[t-1](p))     (its own vectors, towards t-2)
     frame t+1 aligned:  D[t+1](p - motion[t+1](p))     (its vectors the other way)
@@ -88,6 +89,7 @@ from typing import Literal
 
 import numpy as np
 
+from quietframe.bench import baselines
 from quietframe.bench.harness import Frames, ImageMethod, Planes
 from quietframe.runtime.buffers import BUFFER_NAMES
 
@@ -242,8 +244,6 @@ class _Frame:
 def oidn_per_frame(num_threads: int = 0, renderer: str | None = None) -> ImageMethod:
     """OIDN as Blender's Denoise node runs it (high, albedo + normal, prefiltered aux, rows in
     the renderer's order); raises PrepassUnavailable without pyoidn."""
-    from quietframe.bench import baselines
-
     return ImageMethod(baselines.OIDNDenoiser("high", prefilter_aux=True,
                                               num_threads=num_threads, renderer=renderer))
 
