@@ -17,14 +17,14 @@ average ms/frame of the best model (highest mean PSNR). The summary adds an orac
 model within 0.3 dB of each sequence's best): the floor of the ms share any rule can reach.
 
 Run on the validation split (`--split validation --out docs/evaluation/auto_validation`), its
-rows are what `bench/model_metrics.py --noise-points` stamps as each model's `by_noise` points
+rows are what `bench/model_card.py --stamp --noise-points` stamps as each model's `by_noise` points
 (the first frame's noise statistic, the model's PSNR on the sequence); only a test run updates
 docs/benchmarks.md.
 
 The buffer-absence table (`absence` in the JSON, docs/benchmarks.md): each model with each
 buffer absent, fed as zeros (what a dropout-trained model saw in training), PSNR and TRMAE, next
 to OIDN given the same buffers; `absent_db` (PSNR change per absent buffer) is what
-bench/model_metrics.py --absent writes into a model's metadata.
+bench/model_card.py --stamp --absent writes into a model's metadata.
 
 --synthetic: tiny generated sequences instead (proves the harness; the figures mean nothing).
 """
@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.bench import cli_args
+from quietframe.bench.baselines import OIDNDenoiser
 from quietframe.bench.evaluate import AUX
 from quietframe.bench.harness import (
     Frames,
@@ -51,8 +52,10 @@ from quietframe.bench.harness import (
     score_sequence,
 )
 from quietframe.runtime import Denoiser, default_model_path, installed_models
+from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
 from quietframe.scenes.stored_sequence import TOPUP_KEY
 from quietframe.service.model_choice import (
+    ModelProfile,
     NoiseLevel,
     choose,
     estimate_spp,
@@ -84,8 +87,6 @@ class Run:
 
 
 def load_frames(folder: Path, spp: int, max_frames: int) -> ImageFrames:
-    from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
-
     frames = []
     for path in sorted(folder.glob("frame_*.exr"))[:max_frames]:
         layers = load_frame(path, [color_layer(spp), "reference", *AUX])
@@ -113,7 +114,7 @@ def synthetic_frames(seed: int, spp: int, count: int = 3, size: int = 48) -> Ima
 
 def frame_noise(buffers: dict[str, np.ndarray]) -> dict[str, float | None]:  # planes
     """The first frame's noise statistic (log2), demodulated and of the colour alone: what
-    bench/model_metrics.py --noise-points stamps as a model's by_noise points."""
+    bench/model_card.py --stamp --noise-points stamps as a model's by_noise points."""
     color, albedo = buffers["color"], buffers["albedo"]
     return {"log2_sigma": log2_statistic(noise_statistic(color, albedo)),
             "log2_sigma_colour": log2_statistic(noise_statistic(color, None))}
@@ -135,8 +136,6 @@ def runtime_call(denoiser: Denoiser, zeros_for_required: bool = False) -> Runtim
 def oidn_call(present: tuple[str, ...], threads: int) -> ImageMethod:
     """OIDN (balanced) given the same buffers: colour, + albedo, + normal (OIDN takes a normal
     only together with an albedo)."""
-    from quietframe.bench.baselines import OIDNDenoiser
-
     aux = ("albedo", "normal") if {"albedo", "normal"} <= set(present) else (
         ("albedo",) if "albedo" in present else ())
     oidn = OIDNDenoiser("balanced", num_threads=threads, aux=aux)
@@ -145,7 +144,8 @@ def oidn_call(present: tuple[str, ...], threads: int) -> ImageMethod:
                                    "motion": lambda c: np.zeros_like(c[..., :2])})
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, dict[str, Path]]:
+    """The arguments, and the models to run by name (installed, --model, cut to --only)."""
     parser = argparse.ArgumentParser(prog="auto_choice", description=__doc__.split("\n")[0])
     cli_args.add_data(parser)
     cli_args.add_split(parser)
@@ -162,44 +162,123 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"comma list of {list(BUFFER_SETS)}")
     parser.add_argument("--only", default="",
                         help="comma list: run only these models (to measure a new model's "
-                             "tables for bench/model_metrics.py; auto then chooses among them)")
+                             "tables for bench/model_card.py --stamp; auto then chooses among "
+                             "them)")
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args(argv)
-    buffer_sets = {name: BUFFER_SETS[name] for name in args.buffer_sets.split(",")
-                   if name in BUFFER_SETS or parser.error(f"--buffer-sets: unknown {name!r}")}
-
+    unknown = [name for name in args.buffer_sets.split(",") if name not in BUFFER_SETS]
+    if unknown:
+        parser.error(f"--buffer-sets: unknown {unknown[0]!r}")
     paths = {p.stem: p for p in (*installed_models(), *args.model)}
     if args.only:
         unknown = sorted(set(args.only.split(",")) - set(paths))
         if unknown:
             parser.error(f"--only: no model {unknown}; known: {sorted(paths)}")
         paths = {name: paths[name] for name in args.only.split(",")}
-    denoisers = {name: Denoiser(p, threads=args.threads) for name, p in paths.items()}
-    profiles = [profile_of(n, d) for n, d in denoisers.items()]
-    default = default_model_path().stem  # the service's fallback for 'auto'
+    return args, paths
 
-    calibration = load_calibration()
-    sources: list[tuple[str, list[int], object]] = []
+
+Source = tuple[str, list[int], object]  # (sequence name, spp levels, its folder or seed)
+
+
+def sequence_sources(args: argparse.Namespace) -> tuple[list[Source], str]:
+    """The test sequences' sources and the line that describes them in the results."""
     if args.synthetic:
-        sources = [(f"synthetic-{s}", [1, 4, 16], s) for s in (1, 2)]
-        data_note = "synthetic sequences (48×48, 3 frames): proves the harness, no more"
-    else:
-        root = args.data.expanduser()
-        folders = sorted(p.parent for p in root.glob(f"*/{args.split}/*/manifest.json"))
-        wanted = {int(v) for v in args.spp.split(",")} if args.spp else None
-        for folder in folders[:args.sequences or None]:
-            manifest = json.loads((folder / "manifest.json").read_text())
-            if any(folder.glob("frame_*.exr")):  # stored levels + topped-up ones (16 spp)
-                levels = sorted(spp for spp in {*manifest["config"]["spp_levels"],
-                                                *manifest.get(TOPUP_KEY, [])}
-                                if wanted is None or spp in wanted)
-                sources.append((folder.name, levels, folder))
-        frames_used = sum(min(len(list(f.glob("frame_*.exr"))), args.max_frames)
-                          for _, _, f in sources)
-        levels = sorted({spp for _, spps, _ in sources for spp in spps})
-        data_note = (f"rendered {args.data}/*/{args.split}: {len(sources)} sequences, "
+        return ([(f"synthetic-{s}", [1, 4, 16], s) for s in (1, 2)],
+                "synthetic sequences (48×48, 3 frames): proves the harness, no more")
+    sources: list[Source] = []
+    root = args.data.expanduser()
+    folders = sorted(p.parent for p in root.glob(f"*/{args.split}/*/manifest.json"))
+    wanted = {int(v) for v in args.spp.split(",")} if args.spp else None
+    for folder in folders[:args.sequences or None]:
+        manifest = json.loads((folder / "manifest.json").read_text())
+        if any(folder.glob("frame_*.exr")):  # stored levels + topped-up ones (16 spp)
+            levels = sorted(spp for spp in {*manifest["config"]["spp_levels"],
+                                            *manifest.get(TOPUP_KEY, [])}
+                            if wanted is None or spp in wanted)
+            sources.append((folder.name, levels, folder))
+    frames_used = sum(min(len(list(f.glob("frame_*.exr"))), args.max_frames)
+                      for _, _, f in sources)
+    levels = sorted({spp for _, spps, _ in sources for spp in spps})
+    return sources, (f"rendered {args.data}/*/{args.split}: {len(sources)} sequences, "
                      f"{frames_used} frames in all (at most {args.max_frames} per sequence), "
                      f"each at every spp level of its sequence ({levels})")
+
+
+@dataclass
+class Chooser:
+    """What `auto` chooses from, as the service has it."""
+
+    denoisers: dict[str, Denoiser]
+    profiles: list[ModelProfile]
+    default: str  # the service's fallback for 'auto'
+    calibration: dict | None
+    quality: str
+
+
+def choice_row(name: str, spp: int, frames: Frames, set_name: str, present: tuple[str, ...],
+               looks: dict, chooser: Chooser) -> dict:
+    """Every fixed model that accepts `present` on one sequence, and auto's choice with the
+    spp a header states and with the estimate (its figures: its choice's, plus its time)."""
+    fixed = {m: run_model(runtime_call(d), frames, present)
+             for m, d in chooser.denoisers.items()
+             if set(d.info.required_buffers) <= set(present)}
+    row = {"sequence": name, "spp": spp, "buffers": set_name, "noise": looks,
+           "fixed": {m: vars(r) for m, r in fixed.items()}}
+    for mode in ("header", "estimate"):
+        start = time.perf_counter()  # the service measures the statistic either way
+        first = frames[0][0]
+        albedo = first["albedo"] if "albedo" in present else None
+        stated = NoiseLevel(spp, "header") if mode == "header" else None
+        noise = estimate_spp(first["color"], albedo, chooser.calibration, header=stated)
+        pick = choose(present, noise, chooser.profiles, chooser.default,
+                      quality=chooser.quality,
+                      pixels=frames[0][1].shape[0] * frames[0][1].shape[1])
+        overhead = 1e3 * (time.perf_counter() - start) / len(frames)
+        chosen = fixed.get(pick.model)
+        row[f"auto_{mode}"] = {
+            "model": pick.model, "spp": noise.spp, "reason": pick.reason,
+            "psnr": chosen.psnr if chosen else None,
+            "ms": chosen.ms + overhead if chosen else None,
+        }
+    print(json.dumps({k: row[k] for k in ("sequence", "spp", "buffers")}),
+          {m: round(r.psnr, 2) for m, r in fixed.items()},
+          row["auto_header"]["model"], row["auto_estimate"]["model"], flush=True)
+    return row
+
+
+def absence_entries(name: str, spp: int, frames: Frames, denoisers: dict[str, Denoiser],
+                    threads: int) -> list[dict]:
+    """Each model, and OIDN given the same buffers, with each buffer absent (fed as zeros)."""
+    entries = []
+    for missing in ("none", *ABSENT, "all-aux"):
+        gone = set(ABSENT) if missing == "all-aux" else {missing}
+        present = tuple(b for b in ("color", *ABSENT) if b not in gone)
+        entry = {"sequence": name, "spp": spp, "absent": missing}
+        for m, d in denoisers.items():
+            entry[m] = vars(run_model(runtime_call(d, True), frames, present))
+        entry["oidn-balanced"] = vars(run_model(oidn_call(present, threads), frames, present))
+        entries.append(entry)
+    return entries
+
+
+def write_results(result: dict, models: list[str], args: argparse.Namespace) -> None:
+    """auto_choice.json and .md under --out; a test-split run also docs/benchmarks.md's
+    section."""
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "auto_choice.json").write_text(json.dumps(result, indent=1) + "\n")
+    (args.out / "auto_choice.md").write_text(report(result, models))
+    if not args.synthetic and args.split == "test":  # reported figures: the test split only
+        update_section(args.out / "benchmarks.md", section(result, models))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, paths = parse_args(argv)
+    buffer_sets = {name: BUFFER_SETS[name] for name in args.buffer_sets.split(",")}
+    denoisers = {name: Denoiser(p, threads=args.threads) for name, p in paths.items()}
+    chooser = Chooser(denoisers, [profile_of(n, d) for n, d in denoisers.items()],
+                      default_model_path().stem, load_calibration(), args.quality)
+    sources, data_note = sequence_sources(args)
     rows, absence = [], []
     for name, levels, where in sources:
         for spp in levels:
@@ -207,41 +286,10 @@ def main(argv: list[str] | None = None) -> int:
                 synthetic_frames(where, spp) if args.synthetic  # type: ignore[arg-type]
                 else load_frames(where, spp, args.max_frames))  # type: ignore[arg-type]
             looks = frame_noise(frames[0][0])
-            for set_name, present in buffer_sets.items():
-                fixed = {m: run_model(runtime_call(d), frames, present)
-                         for m, d in denoisers.items()
-                         if set(d.info.required_buffers) <= set(present)}
-                row = {"sequence": name, "spp": spp, "buffers": set_name, "noise": looks,
-                       "fixed": {m: vars(r) for m, r in fixed.items()}}
-                for mode in ("header", "estimate"):
-                    start = time.perf_counter()  # the service measures the statistic either way
-                    first = frames[0][0]
-                    albedo = first["albedo"] if "albedo" in present else None
-                    stated = NoiseLevel(spp, "header") if mode == "header" else None
-                    noise = estimate_spp(first["color"], albedo, calibration, header=stated)
-                    pick = choose(present, noise, profiles, default, quality=args.quality,
-                                  pixels=frames[0][1].shape[0] * frames[0][1].shape[1])
-                    overhead = 1e3 * (time.perf_counter() - start) / len(frames)
-                    chosen = fixed.get(pick.model)
-                    row[f"auto_{mode}"] = {
-                        "model": pick.model, "spp": noise.spp, "reason": pick.reason,
-                        "psnr": chosen.psnr if chosen else None,
-                        "ms": chosen.ms + overhead if chosen else None,
-                    }
-                rows.append(row)
-                print(json.dumps({k: row[k] for k in ("sequence", "spp", "buffers")}),
-                      {m: round(r.psnr, 2) for m, r in fixed.items()},
-                      row["auto_header"]["model"], row["auto_estimate"]["model"], flush=True)
+            rows += [choice_row(name, spp, frames, set_name, present, looks, chooser)
+                     for set_name, present in buffer_sets.items()]
             if not args.no_absence:
-                for missing in ("none", *ABSENT, "all-aux"):
-                    gone = set(ABSENT) if missing == "all-aux" else {missing}
-                    present = tuple(b for b in ("color", *ABSENT) if b not in gone)
-                    entry = {"sequence": name, "spp": spp, "absent": missing}
-                    for m, d in denoisers.items():
-                        entry[m] = vars(run_model(runtime_call(d, True), frames, present))
-                    entry["oidn-balanced"] = vars(run_model(oidn_call(present, args.threads),
-                                                            frames, present))
-                    absence.append(entry)
+                absence += absence_entries(name, spp, frames, denoisers, args.threads)
     summary = summarise(rows, list(denoisers))
     absent_db = {
         m: {b: round(float(np.mean([e[m]["psnr"] for e in absence if e["absent"] == b]) -
@@ -249,15 +297,11 @@ def main(argv: list[str] | None = None) -> int:
             for b in ABSENT}
         for m in denoisers} if absence else {}
     result = {"meta": {"data": data_note, "threads": args.threads, "quality": args.quality,
-                       "calibration": (calibration or {}).get("source"),
+                       "calibration": (chooser.calibration or {}).get("source"),
                        "command": "python -m quietframe.bench.auto_choice "
                                   + " ".join(argv if argv is not None else sys.argv[1:])},
               "summary": summary, "rows": rows, "absence": absence, "absent_db": absent_db}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "auto_choice.json").write_text(json.dumps(result, indent=1) + "\n")
-    (args.out / "auto_choice.md").write_text(report(result, list(denoisers)))
-    if not args.synthetic and args.split == "test":  # reported figures: the test split only
-        update_section(args.out / "benchmarks.md", section(result, list(denoisers)))
+    write_results(result, list(denoisers), args)
     print(json.dumps(summary, indent=1))
     return 0
 
