@@ -30,6 +30,7 @@ from quietframe.bench import cli_args
 from quietframe.model import affinity, metrics
 from quietframe.model import train as qt
 from quietframe.model.nbg import demodulation_divisor, luminance
+from quietframe.runtime import Denoiser
 
 
 def restore_energy(output: torch.Tensor, accumulated: torch.Tensor, albedo: torch.Tensor,
@@ -126,8 +127,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report_exported(path: Path, batches: list[dict], threads: int) -> None:
-    from quietframe.runtime import Denoiser
-
     denoiser = Denoiser(path, threads=threads)
     per_frame: list[list[float]] = []
     energy = []

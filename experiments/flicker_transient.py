@@ -32,6 +32,13 @@ import numpy as np
 import torch
 
 from quietframe.bench import cli_args
+from quietframe.bench.evaluate import (
+    _inputs,
+    build_methods,
+    give_header_spp,
+    load_sequence,
+    sequence_dirs,
+)
 from quietframe.bench.harness import planar_frames, score_sequence
 from quietframe.model import metrics
 from quietframe.model.temporal import history_weights
@@ -63,14 +70,6 @@ def flicker_ratio(outputs: dict[str, list[np.ndarray]], name: str, first: int) -
 
 
 def main(argv: list[str] | None = None) -> int:
-    from quietframe.bench.evaluate import (
-        _inputs,
-        build_methods,
-        give_header_spp,
-        load_sequence,
-        sequence_dirs,
-    )
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     cli_args.add_data(p)
     cli_args.add_renderer(p)

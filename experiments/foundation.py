@@ -24,6 +24,7 @@ import torch
 from quietframe.bench import cli_args
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
+from quietframe.experiments import grid_ops
 from quietframe.export.onnx_export import export_nbg
 from quietframe.model.nbg import GUIDE_INPUT_CHANNELS, VARIANTS, GuideNet, NBGDenoiser
 from quietframe.runtime import Denoiser
@@ -101,8 +102,6 @@ def main(argv: list[str] | None = None) -> int:
             print(rows[-1], flush=True)
     lines += rows
     try:
-        from quietframe.experiments import grid_ops
-
         lines += ["", "## Splat + slice", "", grid_ops.report(threads=args.threads)]
     except (ImportError, AttributeError) as error:
         lines += ["", f"(grid op benchmark unavailable: {error})"]

@@ -19,6 +19,7 @@ import numpy as np
 
 from quietframe.bench.synthetic import frame_buffers
 from quietframe.runtime import Denoiser, find_model
+from quietframe.service import frames
 
 
 def farm_exr(planes: dict[str, np.ndarray]) -> bytes:
@@ -57,8 +58,6 @@ class _TimedSession:
 def measure(denoiser: Denoiser, width: int, height: int, repeats: int) -> dict[str, float]:
     """Median thread-CPU ms of decode, the runtime outside session.run, and encode, over a
     sequence with the state carried (so allocations behave as in a session)."""
-    from quietframe.service import frames
-
     body = farm_exr(frame_buffers(height, width))
     info = denoiser.info
     header = frames.read_header(body, 1 << 16, 1 << 16)

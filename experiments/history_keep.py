@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from quietframe.bench import cli_args
+from quietframe.bench.evaluate import load_sequence, sequence_dirs
 from quietframe.model import temporal
 from quietframe.runtime.sanitize import sanitize_buffer
 
@@ -97,8 +98,6 @@ def measure_sequence(frames: list[dict[str, np.ndarray]], resets: list[bool]) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    from quietframe.bench.evaluate import load_sequence, sequence_dirs
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     cli_args.add_data(p)
     cli_args.add_renderer(p)

@@ -29,6 +29,15 @@ import torch
 import torch.nn.functional as F
 
 from quietframe.bench import cli_args
+from quietframe.bench.evaluate import (
+    Scores,
+    give_header_spp,
+    load_sequence,
+    run_sequence,
+    sequence_dirs,
+)
+from quietframe.bench.harness import planar_frames
+from quietframe.experiments.output_history import RUNTIME_BUFFERS, PreStage
 from quietframe.model.output_history import OutputHistoryConfig, clamp_to_neighbourhood
 from quietframe.model.temporal import (
     MIN_CURRENT_WEIGHT,
@@ -37,6 +46,8 @@ from quietframe.model.temporal import (
     pixel_aligned,
     reproject_history,
 )
+from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+from quietframe.runtime.sanitize import sanitize_buffer
 
 # (a, b) of floor = a + b·g: the median g on the Cycles validation split is +0.56 at 1 spp and
 # -2.10 at 64 spp, where the schedule gives 0.35 and 0.80.
@@ -52,9 +63,6 @@ def base_outputs(sequences, oidn) -> tuple[dict, dict, dict]:
     """Per frame of the sequences (by frame_key): OIDN on the pixel-aligned accumulation (the
     history tiers' base, what `oidn-history` composes), OIDN on the frame alone (oidn-frame),
     and the sanitised noisy colour. One OIDN pass per frame, shared by every row."""
-    from quietframe.experiments.output_history import RUNTIME_BUFFERS, PreStage
-    from quietframe.runtime.sanitize import sanitize_buffer
-
     base, frame, noisy = {}, {}, {}
     for frames in sequences:
         pre = PreStage(aligned_only=True)
@@ -149,16 +157,6 @@ class HistoryRule:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from quietframe.bench.evaluate import (
-        Scores,
-        give_header_spp,
-        load_sequence,
-        run_sequence,
-        sequence_dirs,
-    )
-    from quietframe.bench.harness import planar_frames
-    from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     cli_args.add_data(p)
     cli_args.add_renderer(p)

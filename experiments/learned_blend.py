@@ -32,9 +32,19 @@ import numpy as np
 import torch
 
 from quietframe.bench import cli_args
+from quietframe.bench.evaluate import (
+    HEADER_STATES_SPP,
+    Scores,
+    load_sequence,
+    run_sequence,
+    sequence_dirs,
+)
+from quietframe.bench.harness import planar_frames
 from quietframe.experiments.history_weight import Cached, base_outputs, frame_key
+from quietframe.experiments.output_history import ShippedStage
 from quietframe.model.learned_blend import LearnedBlendHistory
 from quietframe.model.losses import tonemap_tau
+from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
 
 WINDOW = 4  # frames unrolled per training item (the Cycles train split's sequence length)
 TEMPORAL_WEIGHT = 0.25  # of the τ-MSE of frame differences (steadiness; Işık et al. eq. 13)
@@ -56,9 +66,6 @@ class Item:
 
 def gather(folders: list[Path], levels: tuple[int, ...], header_spp: bool, oidn) -> list[Item]:
     """Training items of a split: every sequence at every spp level."""
-    from quietframe.bench.evaluate import load_sequence
-    from quietframe.bench.harness import planar_frames
-
     items = []
     for folder in folders:
         for spp in levels:
@@ -144,10 +151,6 @@ def train(model: LearnedBlendHistory, items: list[Item], steps: int, seed: int, 
 def score(models: dict[str, LearnedBlendHistory], folders: list[Path], levels, header_spp,
           oidn, renderer: str) -> list[dict]:
     """Rows (method, spp, PSNR, SSIM, TRMAE, ...) of oidn-frame and each blend on a split."""
-    from quietframe.bench.evaluate import Scores, load_sequence, run_sequence
-    from quietframe.bench.harness import planar_frames
-    from quietframe.experiments.output_history import ShippedStage
-
     rows = []
     for spp in levels:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
@@ -184,9 +187,6 @@ def table(rows: list[dict], renderer: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from quietframe.bench.evaluate import HEADER_STATES_SPP, sequence_dirs
-    from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     cli_args.add_data(p)
     p.add_argument("--steps", type=int, default=1500)

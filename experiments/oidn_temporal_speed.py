@@ -32,7 +32,11 @@ from quietframe.bench import cli_args
 from quietframe.bench.oidn_temporal import measure
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import Timing, time_ms
+from quietframe.model import metrics
+from quietframe.model.oidn_cache import oidn_output
 from quietframe.models import MODELS_DIR
+from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+from quietframe.scenes.exr_io import color_layer, load_frame
 
 
 def export_cases(variants: list[str], kernels: list[tuple[int, int]], widths: list[int],
@@ -59,11 +63,6 @@ def export_cases(variants: list[str], kernels: list[tuple[int, int]], widths: li
 
 def compare_prefilter(folder: Path, qualities: list[str], threads: int) -> str:
     """PSNR/SSIM of OIDN without and with prefiltered aux on the frames under `folder`."""
-    from quietframe.model import metrics
-    from quietframe.model.oidn_cache import oidn_output
-    from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-    from quietframe.scenes.exr_io import color_layer, load_frame
-
     frames = sorted(folder.glob("*/frame_*.exr"))
     if not frames:
         raise SystemExit(f"--prefilter: no frames under {folder}")

@@ -45,14 +45,29 @@ import numpy as np
 import torch
 
 from quietframe.bench import cli_args
-from quietframe.bench.harness import Method, Planes, RuntimeMethod
-from quietframe.model.output_history import clamp_to_neighbourhood
+from quietframe.bench.evaluate import (
+    Noisy,
+    Scores,
+    build_methods,
+    give_header_spp,
+    load_sequence,
+    run_sequence,
+    sequence_dirs,
+    time_720p,
+)
+from quietframe.bench.harness import Method, Planes, RuntimeMethod, planar_frames
+from quietframe.model.nbg import AccumulationDenoiser, demodulation_divisor
+from quietframe.model.output_history import OutputHistory as ShippedOutputHistory
+from quietframe.model.output_history import OutputHistoryConfig, clamp_to_neighbourhood
 from quietframe.model.temporal import (
     backward_warp,
     history_weights,
     pixel_aligned,
     reproject_history,
 )
+from quietframe.runtime import find_model
+from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+from quietframe.runtime.sanitize import sanitize_buffer
 
 BASELINES = ("oidn-frame", "oidn-acc", "blender-denoise")
 # name: (base model, clamp, sharp only)
@@ -89,8 +104,6 @@ class OutputHistory:
         current = torch.from_numpy(np.asarray(self.base(planes), np.float32))[None]
         divisor = torch.ones(())
         if self.demodulate:
-            from quietframe.model.nbg import demodulation_divisor
-
             divisor = demodulation_divisor(torch.from_numpy(planes["albedo"])[None])
             current = current / divisor
         depth = torch.from_numpy(planes["depth"])[None]
@@ -127,8 +140,6 @@ class ThenOIDN:
     compose it."""
 
     def __init__(self, first: Method, threads: int) -> None:
-        from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-
         self.first = first
         self.oidn = OIDNPrepass(OIDNSettings("high", False), threads)
 
@@ -136,8 +147,6 @@ class ThenOIDN:
         self.first.reset()
 
     def __call__(self, planes: Planes) -> np.ndarray:
-        from quietframe.runtime.sanitize import sanitize_buffer
-
         clean = {k: sanitize_buffer(k, planes[k])[0] for k in RUNTIME_BUFFERS}
         color = np.ascontiguousarray(self.first(clean), np.float32)
         return self.oidn({**clean, "color": color})[0]
@@ -150,8 +159,6 @@ class PreStage:
     history under sub-pixel motion."""
 
     def __init__(self, aligned_only: bool) -> None:
-        from quietframe.model.nbg import AccumulationDenoiser
-
         self.accumulation = AccumulationDenoiser(aligned_history=aligned_only)
         self.state: torch.Tensor | None = None
 
@@ -180,9 +187,8 @@ class ShippedStage:
     module with the same interface instead (model/learned_blend.LearnedBlendHistory)."""
 
     def __init__(self, base: Method, config=None, stage: torch.nn.Module | None = None) -> None:
-        from quietframe.model.output_history import OutputHistory as Stage
-
-        self.base, self.stage = base, stage if stage is not None else Stage(config)
+        self.base = base
+        self.stage = stage if stage is not None else ShippedOutputHistory(config)
         self.state: torch.Tensor | None = None
         self.header_spp: float | None = None  # the frame's spp, as the service gives it
 
@@ -206,10 +212,6 @@ class ShippedStage:
 
 def candidate_methods(threads: int, renderer: str, resampled_weights: str) -> dict:
     """Every row's method factory, baselines first, in the tables' order."""
-    from quietframe.bench.evaluate import Noisy, build_methods
-    from quietframe.model.output_history import OutputHistoryConfig
-    from quietframe.runtime import find_model
-
     known = build_methods(threads, renderer=renderer)
     methods = {name: known[name] for name in BASELINES if name in known}
     for name, (model, clamp, sharp) in CANDIDATES.items():
@@ -259,16 +261,6 @@ def print_rows(rows: list[dict], title: str, locked_off: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from quietframe.bench.evaluate import (
-        Scores,
-        give_header_spp,
-        load_sequence,
-        run_sequence,
-        sequence_dirs,
-        time_720p,
-    )
-    from quietframe.bench.harness import planar_frames
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     cli_args.add_data(p)
     cli_args.add_renderer(p)

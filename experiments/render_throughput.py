@@ -23,6 +23,12 @@ import time
 
 import numpy as np
 
+from quietframe.scenes.camera import Camera
+from quietframe.scenes.generator import GENERATOR_VERSION, generate
+from quietframe.scenes.mitsuba_scene import set_frame, set_variant
+from quietframe.scenes.mitsuba_trace import _trace_passes, render_reference
+from quietframe.scenes.render import RenderConfig, load_scene, render_sequence
+
 
 def _msps(samples: float, seconds: float) -> float:
     return samples / max(seconds, 1e-9) / 1e6
@@ -40,12 +46,6 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     import mitsuba as mi
-
-    from quietframe.scenes.camera import Camera
-    from quietframe.scenes.generator import GENERATOR_VERSION, generate
-    from quietframe.scenes.mitsuba_scene import set_frame, set_variant
-    from quietframe.scenes.mitsuba_trace import _trace_passes, render_reference
-    from quietframe.scenes.render import RenderConfig, load_scene, render_sequence
 
     variant = set_variant(args.variant)
     w, h = (int(v) for v in args.size.lower().split("x"))

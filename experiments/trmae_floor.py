@@ -48,9 +48,15 @@ from pathlib import Path
 import numpy as np
 
 from quietframe.bench import cli_args
+from quietframe.bench.evaluate import build_methods, load_sequence
+from quietframe.bench.harness import planar_frames, score_sequence
 from quietframe.model import metrics
 from quietframe.model.oidn_cache import save_array
+from quietframe.runtime.oidn_prepass import PrepassUnavailable
+from quietframe.scenes.exr_io import load_frame
 from quietframe.scenes.layout import CACHE_DIR, split_dir
+from quietframe.scenes.mitsuba_scene import set_variant
+from quietframe.scenes.stored_sequence import render_second_reference
 
 # Salt of the second references here: the stored reference uses 1_000_003 and
 # `reference_noise` REFERENCE_NOISE_SALT (2_000_003), so these are independent of both.
@@ -74,8 +80,6 @@ def cache_path(root: Path, split: str, seed: int, frame: int) -> Path:
 
 
 def _render(seq_dir: Path, frame: int) -> np.ndarray:
-    from quietframe.scenes.stored_sequence import render_second_reference
-
     image, seconds = render_second_reference(seq_dir, frame, SECOND_REF_SALT)
     print(f"  rendered {seq_dir.name} frame {frame} in {seconds:.0f} s", flush=True)
     return image
@@ -102,8 +106,6 @@ def method_trmae(method: object, frames: list, at: list[int]) -> float:
     """TRMAE at frames `at` of a (planar) method run like quietframe-eval runs it (the
     harness's loop: from frame 0, state carried, reset at cuts); `frames` as
     `evaluate.load_sequence` returns them."""
-    from quietframe.bench.harness import planar_frames, score_sequence
-
     score = score_sequence(method, planar_frames(frames[: max(at) + 1]), ())
     preds = np.stack([score.outputs[t] for t in at])
     return metrics.trmae(preds, np.stack([frames[t][1] for t in at]))
@@ -150,11 +152,7 @@ def main(argv: list[str] | None = None) -> int:
            if any(frames[0] < c <= frames[-1]
                   for c in json.loads((f / "manifest.json").read_text()).get("cuts", []))}
 
-    from quietframe.scenes.exr_io import load_frame
-
     if any(not cache_path(args.cache, args.split, s, t).is_file() for s in seeds for t in frames):
-        from quietframe.scenes.mitsuba_scene import set_variant
-
         variant = set_variant("auto")
         if variant != "scalar_rgb":
             import drjit as dr
@@ -172,9 +170,6 @@ def main(argv: list[str] | None = None) -> int:
         figures = floor_figures(stored, second)
         for key, label in labels.items():
             floor[label][seed] = figures[key]
-
-    from quietframe.bench.evaluate import build_methods, load_sequence
-    from quietframe.runtime.oidn_prepass import PrepassUnavailable
 
     wanted = [m for m in args.methods.split(",") if m]
     factories = build_methods(args.threads)
