@@ -1,7 +1,7 @@
 """Large frames through the runtime: peak memory and time per frame at 1080p, 4K and 8K.
 
     python -m quietframe.bench.large_frames [--sizes 1080p 4k 8k] [--frames 2] [--threads 2]
-        [--model affinity-h16-k5gc] [--max-memory-mb 1536 | --tile-pixels 0]
+        [--model affinity-h16-k5gc[,blender-oidn,...]] [--max-memory-mb 1536 | --tile-pixels 0]
 
 Each size runs in its own process (peak RSS = that process's VmHWM): synthetic render-like
 buffers (float32, built without float64 temporaries), `frames` frames with the history carried,
@@ -9,13 +9,18 @@ through `Denoiser.denoise` with its tiles sized by the memory bound (runtime/til
 `--tile-pixels N` fixes them, 0 runs untiled). Prints a Markdown table:
 ms per frame (median), CPU seconds per frame (every thread's: what the frame costs when other
 jobs share the cores) with the load average, peak RSS, the inputs' and state's share of it,
-and the tile count.
+and the tile count. `--model` takes a comma list, each run at every size in the same run;
+`blender-oidn` is per-frame OIDN as Blender's denoise runs it (RT filter, quality high, aux
+prefiltered at high quality, `cleanAux`, OIDN's own memory default, rows bottom-up) on the same
+buffers: the cost a farm compares with. Frames are given as Cycles' (OIDN sees them bottom-up).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
 import statistics
 import subprocess
 import sys
@@ -26,6 +31,7 @@ import numpy as np
 from quietframe.bench import cli_args
 
 BY_MEMORY = -1  # --tile-pixels: tiles sized by the runtime's max_memory_mb
+BLENDER_OIDN = "blender-oidn"  # --model: OIDN as Blender's denoise runs it (module docstring)
 
 SIZES = {"720p": (1280, 720), "1080p": (1920, 1080), "4k": (3840, 2160),
          "8k": (7680, 4320)}
@@ -52,29 +58,36 @@ def buffers(width: int, height: int, seed: int) -> dict[str, np.ndarray]:
 
 def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | None,
         model: str = "", max_memory_mb: float | None = None) -> dict:
-    import os
-
     from quietframe.bench.http_overhead import rss_mib
     from quietframe.runtime import Denoiser, default_model_path, find_model
     from quietframe.runtime.denoiser import BY_MEMORY as RUNTIME_BY_MEMORY
     from quietframe.runtime.tiling import overlap_for, plan_tiles
 
-    path = find_model(model) if model else default_model_path()
-    tiles_by = RUNTIME_BY_MEMORY if tile_pixels == BY_MEMORY else tile_pixels
-    denoiser = Denoiser(path, threads=threads, tile_pixels=tiles_by, max_memory_mb=max_memory_mb)
-    tile_pixels = denoiser.tile_pixels
+    if model == BLENDER_OIDN:
+        from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+
+        denoiser = OIDNPrepass(OIDNSettings("high", True), num_threads=threads)
+    else:
+        path = find_model(model) if model else default_model_path()
+        tiles_by = RUNTIME_BY_MEMORY if tile_pixels == BY_MEMORY else tile_pixels
+        denoiser = Denoiser(path, threads=threads, tile_pixels=tiles_by,
+                            max_memory_mb=max_memory_mb)
+        tile_pixels = denoiser.tile_pixels
     base = rss_mib(os.getpid(), "VmHWM")
-    times, cpu, state = [], [], None
+    times, cpu, state = [], [], {}
     for i in range(frames):
         planes = buffers(width, height, i)
         start, start_cpu = time.perf_counter(), time.process_time()
-        result = denoiser.denoise(planes, state)
+        if isinstance(denoiser, Denoiser):
+            result = denoiser.denoise(planes, state or None, renderer="cycles")
+            color, state = result.color, result.state
+        else:
+            color = denoiser(planes, "cycles")
         times.append(1e3 * (time.perf_counter() - start))
         cpu.append(time.process_time() - start_cpu)  # every thread's: robust to other load
-        assert np.isfinite(result.color).all()
-        state = result.state
+        assert np.isfinite(color).all()
     inputs = sum(p.nbytes for p in planes.values()) / 2**20
-    tiling = denoiser.graph.card.tiling
+    tiling = denoiser.graph.card.tiling if isinstance(denoiser, Denoiser) else None
     tiles = 1
     if tile_pixels is not None and tiling is not None:
         defaults = {spec.name: spec.default for spec in denoiser.graph.card.inputs}
@@ -82,6 +95,7 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
         tiles = len(plan_tiles(height, width, overlap, tiling.align, tile_pixels,
                                tiling.size_ratios))
     return {
+        "model": model or default_model_path().stem,
         "size": f"{width}x{height}",
         "ms_per_frame": round(statistics.median(times), 0),
         "ms_all": [round(t) for t in times],
@@ -103,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--tile-pixels", type=int, default=BY_MEMORY,
         help="padded pixels per tile; 0: untiled (comparison); default: from the memory bound")
-    parser.add_argument("--model", default="", help="an installed model (default: the default)")
+    parser.add_argument("--model", default="",
+                        help=f"installed models, comma-separated, or {BLENDER_OIDN} "
+                             "(default: the default model)")
     parser.add_argument("--max-memory-mb", type=float, help="the runtime's memory bound")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -115,18 +131,21 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = []
     for size in args.sizes:
-        cmd = [sys.executable, "-m", "quietframe.bench.large_frames", "--one", size,
-               "--frames", str(args.frames), "--threads", str(args.threads),
-               "--tile-pixels", str(args.tile_pixels), "--model", args.model,
-               *(["--max-memory-mb", str(args.max_memory_mb)] if args.max_memory_mb else [])]
-        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
-        rows.append(json.loads(out.strip().splitlines()[-1]))
-        print(json.dumps(rows[-1]), file=sys.stderr)
-    print("| size | ms/frame (median) | CPU s/frame | load | peak RSS MiB "
+        for model in args.model.split(","):
+            cmd = [sys.executable, "-m", "quietframe.bench.large_frames", "--one", size,
+                   "--frames", str(args.frames), "--threads", str(args.threads),
+                   "--tile-pixels", str(args.tile_pixels), "--model", model,
+                   *(["--max-memory-mb", str(args.max_memory_mb)] if args.max_memory_mb else [])]
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+            rows.append(json.loads(out.strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), file=sys.stderr)
+    print(f"{platform.node()}: {os.cpu_count()} CPUs, {args.threads} threads")
+    print("| model | size | ms/frame (median) | CPU s/frame | load | peak RSS MiB "
           "| of which inputs + state MiB | tiles |")
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['size']} | {r['ms_per_frame']:.0f} ({r['ms_all']}) | {r['cpu_s_per_frame']} "
+        print(f"| {r['model']} | {r['size']} | {r['ms_per_frame']:.0f} ({r['ms_all']}) "
+              f"| {r['cpu_s_per_frame']} "
               f"| {r['load_average']} | {r['peak_rss_mib']} | {r['inputs_mib']} + 2 x "
               f"{r['state_mib']} | {r['tiles']} |")
     return 0
