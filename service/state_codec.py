@@ -14,9 +14,9 @@ oidn-temporal-acc keeps its state so):
 - history length: whole numbers 1..6; uint8 where every value is one (else float32).
 The motion probe stays float32: on a locked-off shot the motion test compares it with the next
 frame's to the last bit, where rounding would read as a change (runtime/motion_evidence.py).
-A state of any other layout is stored as it is (float32). bench/state_codec.py measures
-that the rounding leaves PSNR and flicker within 0.01 dB / 1% on the Cycles zoo and test
-sequence at 1-64 spp.
+A state of any other layout is stored as it is (float32). experiments/state_codec.py
+measures that the rounding leaves PSNR and flicker within 0.01 dB / 1% on the Cycles zoo and
+test sequence at 1-64 spp.
 
 The aux planes (depth, normal, history length, probe) are smooth or constant over large areas:
 they are stored zlib-compressed (level 1) after a byte shuffle; radiance is not (noise barely

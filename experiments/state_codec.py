@@ -3,7 +3,7 @@ tiers make? Each tier runs every Cycles zoo shot (validation and test) and the g
 twice: its state kept in memory between frames, and its state written to the stored form and
 read back between frames (what a replica that loads the session from a store continues from).
 
-    python -m quietframe.bench.state_codec [--spp 1,4,16,64] [--threads 2] [--json rows.json]
+    python -m quietframe.experiments.state_codec [--spp 1,4,16,64] [--threads 2] [--json rows.json]
         [--models oidn-history-cleanaux,oidn-history,oidn-fast-history,nbg-2l-3g]
 
 Prints, per tier, shot and spp: mean PSNR (tone-mapped, as everywhere) of both runs and their
