@@ -29,6 +29,11 @@ import time
 import numpy as np
 
 from quietframe.bench import cli_args
+from quietframe.bench.loopback import rss_mib
+from quietframe.runtime import Denoiser, default_model_path, find_model
+from quietframe.runtime.denoiser import BY_MEMORY as RUNTIME_BY_MEMORY
+from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+from quietframe.runtime.tiling import overlap_for, plan_tiles
 
 BY_MEMORY = -1  # --tile-pixels: tiles sized by the runtime's max_memory_mb
 BLENDER_OIDN = "blender-oidn"  # --model: OIDN as Blender's denoise runs it (module docstring)
@@ -58,14 +63,7 @@ def buffers(width: int, height: int, seed: int) -> dict[str, np.ndarray]:
 
 def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | None,
         model: str = "", max_memory_mb: float | None = None) -> dict:
-    from quietframe.bench.http_overhead import rss_mib
-    from quietframe.runtime import Denoiser, default_model_path, find_model
-    from quietframe.runtime.denoiser import BY_MEMORY as RUNTIME_BY_MEMORY
-    from quietframe.runtime.tiling import overlap_for, plan_tiles
-
     if model == BLENDER_OIDN:
-        from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
-
         denoiser = OIDNPrepass(OIDNSettings("high", True), num_threads=threads)
     else:
         path = find_model(model) if model else default_model_path()

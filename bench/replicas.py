@@ -31,6 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench.harness import RuntimeMethod
+from quietframe.bench.load import Tally, frames_for, report
+from quietframe.bench.synthetic import blender_exr, synthetic_buffers
+from quietframe.runtime import installed_models
+from quietframe.runtime.buffers import planes_from_hwc
+from quietframe.service.session_store import Reply, SessionStore, record
+
 MODEL = "nbg-2l-3g"  # the fast tier, with a temporal state (a failover must carry it)
 HAPROXY_CFG = Path(__file__).resolve().parents[1] / "deploy" / "haproxy.cfg"
 SIZES = {"512x288": (512, 288), "720p": (1280, 720), "1080p": (1920, 1080), "4k": (3840, 2160)}
@@ -214,8 +221,6 @@ def stream(url: str, size: tuple[int, int], frames: list[bytes], tally) -> None:
 
 
 def throughput(replicas: int, sessions: int, frames: list[bytes], size, store: bool) -> dict:
-    from quietframe.bench.load import Tally, report
-
     workers = 2 if replicas == 1 else 1  # both cores busy either way (threads = 1 per frame)
     with Cluster(replicas, threads=1, workers=workers, store=store) as cluster:
         stream(cluster.url, size, frames[:1], Tally())  # warm-up: onnxruntime's arena
@@ -242,11 +247,6 @@ def session_payload(width: int, height: int) -> tuple[dict, dict[str, np.ndarray
     """meta, state (the default model's after two render-like frames at this size, probe
     included, as a session keeps it) and a reply the size of a render-like ZIP EXR at this
     size, as a frame stores them."""
-    from quietframe.bench.harness import RuntimeMethod
-    from quietframe.bench.http_overhead import blender_exr, synthetic_buffers
-    from quietframe.runtime import installed_models
-    from quietframe.runtime.buffers import planes_from_hwc
-
     path = next(p for p in installed_models() if p.stem == MODEL)
     method = RuntimeMethod(path, threads=2)
     for i in range(2):
@@ -261,15 +261,11 @@ def session_payload(width: int, height: int) -> tuple[dict, dict[str, np.ndarray
 
 def stored_bytes(meta: dict, state: dict[str, np.ndarray], reply: bytes) -> int:
     """What a store is sent for this state and reply (service/state_codec.py's form)."""
-    from quietframe.service.session_store import Reply, record
-
     stored, arrays = record(meta, dict(state), Reply(1, reply, {}, len(reply), "0" * 64))
     return len(json.dumps(stored)) + sum(a.nbytes for a in arrays.values())
 
 
 def time_store(store, meta, state, reply, repeats: int, shapes) -> dict:
-    from quietframe.service.session_store import Reply
-
     answer = Reply(1, reply, {"X-Quietframe-Frame": "1"}, len(reply), "0" * 64)
     writes, checks, reads = [], [], []
     version = ""
@@ -294,8 +290,7 @@ def time_store(store, meta, state, reply, repeats: int, shapes) -> dict:
 
 
 def store_costs(size_name: str, repeats: int) -> list[dict]:
-    from quietframe.service.session_store import SessionStore
-    from quietframe.service.state_store_redis import RedisStore
+    from quietframe.service.state_store_redis import RedisStore  # redis: this command alone
 
     width, height = SIZES[size_name]
     meta, state, reply = session_payload(width, height)
@@ -361,8 +356,6 @@ def main(argv: list[str] | None = None) -> int:
                    help="one replica's time per frame (docs/reliability.md: 1080p, 2 threads)")
     args = parser.parse_args(argv)
     if args.what == "throughput":
-        from quietframe.bench.load import frames_for
-
         size = (args.width, args.height)
         frames = frames_for(args.width, args.height, args.frames)
         runs = [(1, False)] if args.no_store else []

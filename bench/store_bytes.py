@@ -8,7 +8,7 @@ file's size.
 
 Starts redis-server (no persistence: what it writes to disk follows what it receives) and one
 `quietframe serve` on loopback (bench/replicas.Cluster), and streams `frames` Cycles-style frames
-(bench/http_overhead's render-like Blender EXR: half float, ZIP, `cycles.ViewLayer.samples` =
+(bench/synthetic.py's render-like Blender EXR: half float, ZIP, `cycles.ViewLayer.samples` =
 spp in the header, so `auto` chooses as for a Cycles render) through one session; then the same
 against a server with a state folder. Prints per store and frame the bytes written and the
 session's float32 form (its state tensors and reply as the server holds them: what a store was
@@ -34,8 +34,8 @@ from pathlib import Path
 import httpx
 
 from quietframe.bench.cli_args import add_json, add_threads
-from quietframe.bench.http_overhead import blender_exr, synthetic_buffers
 from quietframe.bench.replicas import SIZES, Cluster
+from quietframe.bench.synthetic import blender_exr, synthetic_buffers
 
 EXR = {"content-type": "image/x-exr"}
 MIB = 2**20

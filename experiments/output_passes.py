@@ -2,7 +2,7 @@
 
     python -m quietframe.experiments.output_passes [--width 1280 --height 720] [--repeats 5]
 
-The frame is Blender's multilayer layout (bench/http_overhead.py's render-like buffers): the
+The frame is Blender's multilayer layout (bench/synthetic.py's render-like buffers): the
 passes the model reads (Combined RGBA, Denoising Albedo half; Denoising Normal, Denoising Depth
 float) plus 10 extra passes a farm renders for compositing (Vector, Depth, Normal, Position,
 Mist float; DiffCol, GlossCol, Emit, AO half; CryptoObject00 float). For each output
@@ -22,7 +22,7 @@ import io
 import numpy as np
 
 from quietframe.bench import cli_args
-from quietframe.bench.http_overhead import synthetic_buffers
+from quietframe.bench.synthetic import synthetic_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.service import frames
 

@@ -35,6 +35,8 @@ OPTIONAL = {
         "the serve extra: `quietframe serve` is registered in the client's command",
     ("quietframe.service.session_store", "quietframe.service.state_store_redis"):
         "redis, only where QUIETFRAME_STORE_URL names a Redis",
+    ("quietframe.bench.replicas", "quietframe.service.state_store_redis"):
+        "redis, for the `store` command alone (throughput and estimate need none here)",
     ("quietframe.experiments.affinity_ops", "quietframe.model.affinity_kernels"):
         "torch, for the PyTorch reference row alone (--no-torch leaves it out)",
     ("quietframe.experiments.grid_ops", "quietframe.model.grid"):
@@ -48,7 +50,7 @@ OPTIONAL = {
 # once a listed room keeps the rule, so that it leaves this list.
 PENDING = {
     "circles": {"service"},
-    "function_imports": {"bench", "service"},
+    "function_imports": {"service"},
 }
 
 
