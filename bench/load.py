@@ -29,6 +29,7 @@ import threading
 import time
 from collections import Counter
 
+import httpx
 import numpy as np
 
 from quietframe.bench import cli_args
@@ -172,8 +173,6 @@ def churn(http, url, port, size, frames, count, deadline, tally, ttl_leave: bool
 
 def load(args: argparse.Namespace, size: tuple[int, int], frames: list[bytes]) -> dict:
     """Every session on its own thread through one server; the report."""
-    import httpx  # the client extra, as the CLI's
-
     tally = Tally()
     with loopback_server(server_env(args.threads, args.workers)) as (url, server):
         with httpx.Client(timeout=600) as http:
@@ -192,8 +191,6 @@ def load(args: argparse.Namespace, size: tuple[int, int], frames: list[bytes]) -
 def soak(args: argparse.Namespace, size: tuple[int, int], frames: list[bytes]) -> dict:
     """`--soak`: session churn for the minutes given, the server's RSS sampled every second;
     the report with the RSS slope over the second half."""
-    import httpx  # the client extra, as the CLI's
-
     env = server_env(args.threads, args.workers)
     env["QUIETFRAME_SESSION_TTL_S"] = str(args.ttl)
     tally, samples = Tally(), []

@@ -16,6 +16,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
+
 START_TIMEOUT_S = 120  # a cold start loads every installed model
 
 
@@ -38,8 +40,6 @@ def free_port() -> int:
 
 def start_server(port: int, env: dict[str, str]) -> subprocess.Popen:
     """`quietframe serve` on `port`, returned once /readyz answers 200."""
-    import httpx  # the client extra: only the service benchmarks talk HTTP
-
     cmd = [sys.executable, "-m", "quietframe.service.cli", "--port", str(port)]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + START_TIMEOUT_S

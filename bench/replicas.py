@@ -29,6 +29,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
+import httpx
 import numpy as np
 
 from quietframe.bench.harness import RuntimeMethod
@@ -59,8 +60,6 @@ def wait_for(check, timeout_s: float, what: str) -> None:
 
 
 def http_ok(url: str) -> bool:
-    import httpx
-
     try:
         return httpx.get(url, timeout=2).status_code == 200
     except httpx.HTTPError:
@@ -200,8 +199,6 @@ def stop_processes(procs: Iterable[subprocess.Popen]) -> None:
 
 def stream(url: str, size: tuple[int, int], frames: list[bytes], tally) -> None:
     """One camera: create a session through `url`, send every frame in order, delete it."""
-    import httpx
-
     with httpx.Client(timeout=300) as http:
         r = http.post(f"{url}/v1/sessions",
                       json={"width": size[0], "height": size[1], "model": MODEL})
