@@ -458,7 +458,7 @@ def choose(
     if quality != "fast":
         pool, shot_note = holding_on_every_shot(pool, noise.spp)
         budget_note += shot_note
-    # Steadiness first (issue 24: auto's choice is to be as good as per-frame OIDN and steadier):
+    # Steadiness first (auto is to be as good as per-frame OIDN and steadier):
     # where some candidate above the floor meets the flicker target, the tolerance is counted
     # from the best of those, so a sharper model that flickers more does not push them out.
     steady_pool, steady_note = meeting_flicker_target(pool, noise.spp, baseline)

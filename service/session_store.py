@@ -65,7 +65,7 @@ def checked_session_id(text: str) -> str:
 
 def request_digest(body: bytes | bytearray) -> str:
     """What identifies a frame's request body for a retry: a CRC can be forged to match a
-    different body (issue 13); BLAKE2b-256 cannot."""
+    different body; BLAKE2b-256 cannot."""
     return hashlib.blake2b(body, digest_size=32).hexdigest()
 
 
