@@ -4,7 +4,7 @@ twice: its state kept in memory between frames, and its state written to the sto
 read back between frames (what a replica that loads the session from a store continues from).
 
     python -m quietframe.experiments.state_codec [--spp 1,4,16,64] [--threads 2] [--json rows.json]
-        [--models oidn-history-cleanaux,oidn-history,oidn-fast-history,nbg-2l-3g]
+        [--models oidn-history-cleanaux,oidn-history,oidn-fast-history,nbg-2l-3g] [--shots a,b]
 
 Prints, per tier, shot and spp: mean PSNR (tone-mapped, as everywhere) of both runs and their
 difference, TRMAE's, and on a locked-off shot the flicker of both; then the worst differences
@@ -77,9 +77,11 @@ def main(argv: list[str] | None = None) -> int:
     add_json(p)
     p.add_argument("--spp", default="1,4,16,64")
     p.add_argument("--models", default=",".join(MODELS))
+    p.add_argument("--shots", default="", help="comma list of shot names (default: all)")
     args = p.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    found = sequences(args.data)
+    found = [f for f in sequences(args.data)
+             if not args.shots or f[0] in args.shots.split(",")]
     if not found:
         raise SystemExit(f"no Cycles zoo shots or g2 test sequence under {args.data}")
     rows = []
@@ -117,9 +119,11 @@ def main(argv: list[str] | None = None) -> int:
         mine = [r for r in rows if r["model"] == model]
         worst = max(mine, key=lambda r: abs(r["delta_db"]))
         flick = [abs(r["flicker_stored"] / r["flicker_memory"] - 1) for r in mine if r["locked"]]
+        trmae = max(abs(r["delta_trmae"]) for r in mine)
         print(f"{model}: worst |Δ PSNR| {abs(worst['delta_db']):.4f} dB ({worst['shot']}, "
               f"{worst['spp']} spp); mean Δ {np.mean([r['delta_db'] for r in mine]):+.5f} dB; "
-              f"worst locked-off flicker change {100 * max(flick, default=0):.2f}%; stored "
+              f"worst locked-off flicker change {100 * max(flick, default=0):.3f}%; worst "
+              f"|Δ TRMAE| {trmae:.5f}; stored "
               f"{np.mean([r['stored_bytes_px'] for r in mine]):.2f} B/px (float32 form "
               f"{mine[0]['float32_bytes_px']:.1f})")
     if args.json:
