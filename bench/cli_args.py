@@ -3,7 +3,8 @@
 A script adds the ones it reads (`add_threads(parser)`, `add_renderer(parser)`, ...). These name
 the machine and the data, so `--threads 2` or `--split validation` mean the same in every
 command; flags that describe one measurement (its spp levels, repeats, frame sizes) stay with
-their script. A documented command that needs another value than the default states it.
+their script (`add_sequences` parses `--spp` the one way, but its default list is the script's).
+A documented command that needs another value than the default states it.
 """
 
 from __future__ import annotations
@@ -57,6 +58,22 @@ def add_split(parser: argparse.ArgumentParser, choices: Sequence[str] | None = N
     """`--split`: train, validation, test or a locked-off `*-static` split (or `choices`)."""
     parser.add_argument("--split", choices=choices, default=DEFAULT_SPLIT,
                         help=help or f"the split read (default {DEFAULT_SPLIT})")
+
+
+def spp_levels(text: str) -> tuple[int, ...]:
+    """`"1,4,16"` -> (1, 4, 16): the samples per pixel a run measures, in the order given."""
+    return tuple(int(s) for s in text.split(","))
+
+
+def add_sequences(parser: argparse.ArgumentParser, spp: str) -> None:
+    """`--data`, `--renderer`, `--split` and `--spp`: which rendered sequences a run reads, at
+    which sample counts (`spp`: the script's default comma list; `args.spp` is a tuple of ints)."""
+    add_data(parser)
+    add_renderer(parser)
+    add_split(parser)
+    # argparse runs `type` over a string default too, so args.spp is always parsed
+    parser.add_argument("--spp", type=spp_levels, default=spp,
+                        help=f"comma list of samples per pixel (default {spp})")
 
 
 def add_json(parser: argparse.ArgumentParser,

@@ -71,28 +71,24 @@ def flicker_ratio(outputs: dict[str, list[np.ndarray]], name: str, first: int) -
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    cli_args.add_data(p)
-    cli_args.add_renderer(p)
-    cli_args.add_split(p)
-    p.add_argument("--spp", default="4,16,64")
+    cli_args.add_sequences(p, spp="4,16,64")
     p.add_argument("--methods", default="oidn-history,oidn-fast-history,oidn-acc")
     p.add_argument("--settle", type=int, default=3, help="first frame of the settled figure")
     cli_args.add_threads(p)
     cli_args.add_json(p)
     args = p.parse_args(argv)
-    levels = tuple(int(s) for s in args.spp.split(","))
     names = [BASE, *args.methods.split(",")]
     factories = build_methods(args.threads, renderer=args.renderer)
     unknown = [n for n in names if n not in factories]
     if unknown:
         print(f"unknown methods {unknown}; known: {sorted(factories)}", file=sys.stderr)
         return 2
-    folders = sequence_dirs(args.data, args.split, args.renderer, levels)
+    folders = sequence_dirs(args.data, args.split, args.renderer, args.spp)
     if not folders:
         print(f"no sequences in {args.split} ({args.renderer}) under {args.data}", file=sys.stderr)
         return 1
     rows = []
-    for spp in levels:
+    for spp in args.spp:
         outputs: dict[str, list[np.ndarray]] = {n: [] for n in names}
         for folder in folders:
             frames = planar_frames(load_sequence(folder, spp))

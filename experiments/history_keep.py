@@ -99,20 +99,16 @@ def measure_sequence(frames: list[dict[str, np.ndarray]], resets: list[bool]) ->
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    cli_args.add_data(p)
-    cli_args.add_renderer(p)
-    cli_args.add_split(p)
-    p.add_argument("--spp", default=DEFAULT_SPP)
+    cli_args.add_sequences(p, spp=DEFAULT_SPP)
     cli_args.add_json(p)
     args = p.parse_args(argv)
-    levels = tuple(int(s) for s in args.spp.split(","))
-    folders = sequence_dirs(args.data, args.split, args.renderer, levels)
+    folders = sequence_dirs(args.data, args.split, args.renderer, args.spp)
     if not folders:
         print(f"no finished sequences in {args.split} ({args.renderer}) under {args.data}",
               file=sys.stderr)
         return 1
     rows = []
-    for spp in levels:
+    for spp in args.spp:
         per = []
         for folder in folders:
             seq = load_sequence(folder, spp)

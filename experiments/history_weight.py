@@ -158,21 +158,17 @@ class HistoryRule:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    cli_args.add_data(p)
-    cli_args.add_renderer(p)
-    cli_args.add_split(p)
-    p.add_argument("--spp", default="1,2,4,8,16,64")
+    cli_args.add_sequences(p, spp="1,2,4,8,16,64")
     cli_args.add_threads(p)
     cli_args.add_json(p)
     args = p.parse_args(argv)
-    levels = tuple(int(s) for s in args.spp.split(","))
-    folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, levels)
+    folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, args.spp)
     if not folders:
         print(f"no finished {args.renderer} {args.split} sequences", file=sys.stderr)
         return 1
     oidn = OIDNPrepass(OIDNSettings("high", False), args.threads)
     rows = []
-    for spp in levels:
+    for spp in args.spp:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
         base, frame, noisy = base_outputs(sequences, oidn)
         methods = {
@@ -192,8 +188,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append({"method": name, "spp": spp, **scores.summary()})
     base_rows = {r["spp"]: r for r in rows if r["method"] == "oidn-frame"}
     print(f"{args.renderer} {args.split}: {len(folders)} sequence(s); Δ PSNR to oidn-frame\n")
-    print("| row | " + " | ".join(f"{s}" for s in levels) + " spp | worst |")
-    print("|---" * (len(levels) + 2) + "|")
+    print("| row | " + " | ".join(f"{s}" for s in args.spp) + " spp | worst |")
+    print("|---" * (len(args.spp) + 2) + "|")
     for name in dict.fromkeys(r["method"] for r in rows):
         delta = [r["psnr"] - base_rows[r["spp"]]["psnr"] for r in rows if r["method"] == name]
         print(f"| {name} | " + " | ".join(f"{d:+.2f}" for d in delta) + f" | {min(delta):+.2f} |")

@@ -31,21 +31,17 @@ def without(names: tuple[str, ...]):
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("models", nargs="+", help="installed model names (optional normal buffer)")
-    cli_args.add_data(p)
-    cli_args.add_renderer(p)
-    cli_args.add_split(p)
+    cli_args.add_sequences(p, spp="4,64")
     p.add_argument("--sequences", type=int, default=12)
-    p.add_argument("--spp", default="4,64")
     cli_args.add_threads(p)
     args = p.parse_args(argv)
-    levels = [int(s) for s in args.spp.split(",")]
-    folders = sequence_dirs(args.data, args.split, args.renderer, tuple(levels))[: args.sequences]
+    folders = sequence_dirs(args.data, args.split, args.renderer, args.spp)[: args.sequences]
     print(f"{len(folders)} {args.renderer} {args.split} sequences; mean PSNR (dB)\n")
     print("| model | spp | " + " | ".join(WITHOUT) + " |")
     print("|---|---|" + "---|" * len(WITHOUT))
     for name in args.models:
         method = RuntimeMethod(find_model(name), threads=args.threads)
-        for spp in levels:
+        for spp in args.spp:
             scores = {k: [] for k in WITHOUT}
             for folder in folders:
                 frames = planar_frames(load_sequence(folder, spp))

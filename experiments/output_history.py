@@ -262,10 +262,7 @@ def print_rows(rows: list[dict], title: str, locked_off: bool) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    cli_args.add_data(p)
-    cli_args.add_renderer(p)
-    cli_args.add_split(p)
-    p.add_argument("--spp", default="1,2,4,8,16,64")
+    cli_args.add_sequences(p, spp="1,2,4,8,16,64")
     p.add_argument("--sequences", type=int, default=0, help="limit (0 = all)")
     cli_args.add_threads(p)
     cli_args.add_json(p)
@@ -277,8 +274,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="also ms per 1280x720 frame of each method (evaluate.time_720p), "
                         "in one run, and its ratio to oidn-frame's")
     args = p.parse_args(argv)
-    levels = tuple(int(s) for s in args.spp.split(","))
-    folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, levels)
+    folders = sequence_dirs(args.data.expanduser(), args.split, args.renderer, args.spp)
     folders = folders[: args.sequences] if args.sequences else folders
     if not folders:
         print(f"no finished {args.renderer} {args.split} sequences under {args.data}",
@@ -296,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {name} | {value:.0f} | {value / ms['oidn-frame']:.2f} |")
         print()
     rows = []
-    for spp in levels:
+    for spp in args.spp:
         sequences = [planar_frames(load_sequence(f, spp)) for f in folders]
         for name, factory in methods.items():
             method, scores = factory(), Scores()
