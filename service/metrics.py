@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 from prometheus_client import CONTENT_TYPE_LATEST as CONTENT_TYPE  # noqa: F401  (re-export)
 from prometheus_client import (
     CollectorRegistry,
@@ -20,63 +22,47 @@ class Metrics:
     def __init__(self) -> None:
         disable_created_metrics()  # the *_created series only add noise to every scrape
         self.registry = CollectorRegistry()
-        r = self.registry
-        self.frames = Counter(
-            "quietframe_frames", "Frames denoised", ["model", "reset"], registry=r
-        )
-        self.replays = Counter(
-            "quietframe_frame_replays",
-            "Idempotent retries answered from the last reply",
-            registry=r,
+        # Every metric lives in this app's registry, not the process-wide default one.
+        counter = partial(Counter, registry=self.registry)
+        gauge = partial(Gauge, registry=self.registry)
+        self.frames = counter("quietframe_frames", "Frames denoised", ["model", "reset"])
+        self.replays = counter(
+            "quietframe_frame_replays", "Idempotent retries answered from the last reply"
         )
         self.latency = Histogram(
-            "quietframe_frame_seconds",
-            "Time per frame by stage",
-            ["stage"],
-            buckets=_BUCKETS,
-            registry=r,
+            "quietframe_frame_seconds", "Time per frame by stage", ["stage"],
+            buckets=_BUCKETS, registry=self.registry,
         )
-        self.sessions = Gauge("quietframe_sessions", "Open sessions", registry=r)
-        self.sessions_created = Counter(
-            "quietframe_sessions_created", "Sessions created", registry=r
+        self.sessions = gauge("quietframe_sessions", "Open sessions")
+        self.sessions_created = counter("quietframe_sessions_created", "Sessions created")
+        self.sessions_closed = counter("quietframe_sessions_closed", "Sessions ended", ["reason"])
+        self.history_bytes = gauge(
+            "quietframe_history_bytes", "State and last replies held in memory"
         )
-        self.sessions_closed = Counter(
-            "quietframe_sessions_closed", "Sessions ended", ["reason"], registry=r
-        )
-        self.history_bytes = Gauge(
-            "quietframe_history_bytes", "State and last replies held in memory", registry=r
-        )
-        self.bytes_in = Counter("quietframe_request_bytes", "EXR bytes received", registry=r)
-        self.bytes_out = Counter("quietframe_response_bytes", "EXR bytes sent", registry=r)
-        self.sanitized = Counter(
-            "quietframe_sanitized_values",
-            "Input values replaced by the sanitising rule",
+        self.bytes_in = counter("quietframe_request_bytes", "EXR bytes received")
+        self.bytes_out = counter("quietframe_response_bytes", "EXR bytes sent")
+        self.sanitized = counter(
+            "quietframe_sanitized_values", "Input values replaced by the sanitising rule",
             ["buffer"],
-            registry=r,
         )
-        self.choices = Counter(
+        self.choices = counter(
             "quietframe_auto_choices",
             "Models chosen by model=auto (a session's first frame and each cut)",
             ["model", "quality", "noise_source"],
-            registry=r,
         )
-        self.errors = Counter(
-            "quietframe_errors", "Error responses", ["status", "code"], registry=r
-        )
+        self.errors = counter("quietframe_errors", "Error responses", ["status", "code"])
         # Load, read at each scrape (observe_load): what the autoscaler scales on
         # (deploy/k8s/autoscaler.yaml, through prometheus-adapter).
-        self.frames_in_flight = Gauge(
+        self.frames_in_flight = gauge(
             "quietframe_frames_in_flight",
             "Frames being received or denoised (waiting for a worker included)",
-            registry=r,
         )
-        self.frame_slots = Gauge(
-            "quietframe_frame_slots", "Frames denoised at once (QUIETFRAME_WORKERS)", registry=r
+        self.frame_slots = gauge(
+            "quietframe_frame_slots", "Frames denoised at once (QUIETFRAME_WORKERS)"
         )
-        self.memory_reserved = Gauge(
+        self.memory_reserved = gauge(
             "quietframe_memory_reserved_bytes",
             "Memory budget reserved by frames in flight (QUIETFRAME_MEMORY_BUDGET_MB)",
-            registry=r,
         )
 
     def count_error(self, status: int, code: str) -> None:
