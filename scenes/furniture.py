@@ -9,6 +9,8 @@ the piece is centred in x and z and its front faces +Z.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from . import meshes
@@ -17,12 +19,32 @@ from .meshes import MeshData, box_at, cylinder_at
 Parts = list[tuple[str, MeshData]]
 
 
-def _u(rng: np.random.Generator, lo: float, hi: float) -> float:
-    return float(rng.uniform(lo, hi))
+# How one parameter of a piece is drawn from the scene's generator.
+Draw = Callable[[np.random.Generator], float | int | bool | str]
 
 
-def _pick(rng: np.random.Generator, *options: str) -> str:
-    return str(rng.choice(options))
+def _uniform(lo: float, hi: float) -> Draw:
+    return lambda rng: float(rng.uniform(lo, hi))
+
+
+def _integer(lo: int, hi: int) -> Draw:
+    """An int in [lo, hi)."""
+    return lambda rng: int(rng.integers(lo, hi))
+
+
+def _one_of(*options: str) -> Draw:
+    """One of `options` (one listed twice is twice as likely)."""
+    return lambda rng: str(rng.choice(options))
+
+
+def _chance(p: float) -> Draw:
+    """True with probability `p`."""
+    return lambda rng: bool(rng.random() < p)
+
+
+def _seed(rng: np.random.Generator) -> int:
+    """The seed of a piece's own generator (its books, its leaves)."""
+    return int(rng.integers(2**31))
 
 
 def _legs(w: float, d: float, h: float, leg: float, inset: float, round_: bool) -> list:
@@ -47,105 +69,73 @@ def _yaw(mesh: MeshData, angle: float, shift=(0.0, 0.0, 0.0)) -> MeshData:
 # Parameters
 
 
+# Each piece's parameters (sizes in metres, part materials as roles) and how each is drawn,
+# in drawing order: they take turns on the scene's generator, so reordering a piece's entries
+# (or adding one) changes every scene that has that piece.
+_PARAMS: dict[str, dict[str, Draw]] = {
+    "table": {
+        "w": _uniform(0.8, 1.8), "d": _uniform(0.6, 1.0), "h": _uniform(0.42, 0.78),
+        "top": _uniform(0.02, 0.05), "leg": _uniform(0.03, 0.07), "round": _chance(0.3),
+        "top_role": _one_of("wood", "wood", "glass", "stone"),
+        "leg_role": _one_of("wood", "metal"),
+    },
+    "chair": {
+        "w": _uniform(0.4, 0.5), "seat": _uniform(0.42, 0.48), "back": _uniform(0.35, 0.5),
+        "leg": _uniform(0.02, 0.04), "slats": _integer(0, 5),
+        "seat_role": _one_of("wood", "fabric"), "leg_role": _one_of("wood", "metal"),
+    },
+    "bookcase": {
+        "w": _uniform(0.6, 1.6), "h": _uniform(1.0, 2.2), "d": _uniform(0.25, 0.4),
+        "boards": _integer(3, 7), "seed": _seed,
+    },
+    "sofa": {
+        "w": _uniform(1.5, 2.4), "d": _uniform(0.8, 1.0), "arm": _uniform(0.12, 0.25),
+        "cushions": _integer(2, 4),
+    },
+    "bed": {"w": _uniform(1.0, 1.8), "l": _uniform(2.0, 2.15), "pillows": _integer(1, 3)},
+    "cabinet": {
+        "w": _uniform(0.8, 1.8), "h": _uniform(0.5, 0.9), "d": _uniform(0.4, 0.5),
+        "doors": _integer(2, 5),
+    },
+    "plant": {
+        "h": _uniform(0.4, 1.6), "pot": _uniform(0.1, 0.22), "leaves": _integer(12, 40),
+        "seed": _seed,
+    },
+    "floor_lamp": {
+        "h": _uniform(1.3, 1.8), "shade": _uniform(0.15, 0.25), "bulb": _uniform(0.02, 0.04),
+    },
+    "pendant": {
+        "drop": _uniform(0.5, 1.1), "shade": _uniform(0.12, 0.3),
+        "shape": _one_of("cone", "dome", "drum"), "bulb": _uniform(0.02, 0.04),
+        "shade_role": _one_of("metal", "ceramic", "fabric"),
+    },
+    "picture": {
+        "w": _uniform(0.3, 1.2), "h": _uniform(0.3, 1.0), "frame": _uniform(0.015, 0.06),
+        "frame_role": _one_of("wood", "metal", "dark"),
+    },
+    "rug": {"w": _uniform(1.2, 3.0), "d": _uniform(0.8, 2.0)},
+    "railing": {
+        "l": _uniform(1.5, 4.0), "h": _uniform(0.85, 1.05), "gap": _uniform(0.1, 0.16),
+        "bar": _uniform(0.008, 0.015), "role": _one_of("metal", "wood"),
+    },
+    "bench": {"w": _uniform(1.2, 2.0), "slats": _integer(3, 7)},
+    "column": {"r": _uniform(0.14, 0.3), "h": _uniform(3.0, 4.0)},
+    "vase": {
+        "h": _uniform(0.15, 0.45), "r": _uniform(0.05, 0.12), "bulge": _uniform(0.6, 1.6),
+        "role": _one_of("glass", "glass", "ceramic", "metal"),
+    },
+    "bowl": {"r": _uniform(0.08, 0.18), "role": _one_of("ceramic", "metal", "glass")},
+    "ball": {"r": _uniform(0.06, 0.2), "role": _one_of("metal", "ceramic", "glass")},
+    # a tiny very bright emitter: fireflies in glossy surfaces
+    "led": {"r": _uniform(0.004, 0.012)},
+}
+
+
 def draw(kind: str, rng: np.random.Generator) -> dict:
     """Random parameters of a piece (sizes in metres, part materials as roles)."""
-    if kind == "table":
-        return {
-            "w": _u(rng, 0.8, 1.8),
-            "d": _u(rng, 0.6, 1.0),
-            "h": _u(rng, 0.42, 0.78),
-            "top": _u(rng, 0.02, 0.05),
-            "leg": _u(rng, 0.03, 0.07),
-            "round": bool(rng.random() < 0.3),
-            "top_role": _pick(rng, "wood", "wood", "glass", "stone"),
-            "leg_role": _pick(rng, "wood", "metal"),
-        }
-    if kind == "chair":
-        return {
-            "w": _u(rng, 0.4, 0.5),
-            "seat": _u(rng, 0.42, 0.48),
-            "back": _u(rng, 0.35, 0.5),
-            "leg": _u(rng, 0.02, 0.04),
-            "slats": int(rng.integers(0, 5)),
-            "seat_role": _pick(rng, "wood", "fabric"),
-            "leg_role": _pick(rng, "wood", "metal"),
-        }
-    if kind == "bookcase":
-        return {
-            "w": _u(rng, 0.6, 1.6),
-            "h": _u(rng, 1.0, 2.2),
-            "d": _u(rng, 0.25, 0.4),
-            "boards": int(rng.integers(3, 7)),
-            "seed": int(rng.integers(2**31)),
-        }
-    if kind == "sofa":
-        return {
-            "w": _u(rng, 1.5, 2.4),
-            "d": _u(rng, 0.8, 1.0),
-            "arm": _u(rng, 0.12, 0.25),
-            "cushions": int(rng.integers(2, 4)),
-        }
-    if kind == "bed":
-        return {"w": _u(rng, 1.0, 1.8), "l": _u(rng, 2.0, 2.15), "pillows": int(rng.integers(1, 3))}
-    if kind == "cabinet":
-        return {
-            "w": _u(rng, 0.8, 1.8),
-            "h": _u(rng, 0.5, 0.9),
-            "d": _u(rng, 0.4, 0.5),
-            "doors": int(rng.integers(2, 5)),
-        }
-    if kind == "plant":
-        return {
-            "h": _u(rng, 0.4, 1.6),
-            "pot": _u(rng, 0.1, 0.22),
-            "leaves": int(rng.integers(12, 40)),
-            "seed": int(rng.integers(2**31)),
-        }
-    if kind == "floor_lamp":
-        return {"h": _u(rng, 1.3, 1.8), "shade": _u(rng, 0.15, 0.25), "bulb": _u(rng, 0.02, 0.04)}
-    if kind == "pendant":
-        return {
-            "drop": _u(rng, 0.5, 1.1),
-            "shade": _u(rng, 0.12, 0.3),
-            "shape": _pick(rng, "cone", "dome", "drum"),
-            "bulb": _u(rng, 0.02, 0.04),
-            "shade_role": _pick(rng, "metal", "ceramic", "fabric"),
-        }
-    if kind == "picture":
-        return {
-            "w": _u(rng, 0.3, 1.2),
-            "h": _u(rng, 0.3, 1.0),
-            "frame": _u(rng, 0.015, 0.06),
-            "frame_role": _pick(rng, "wood", "metal", "dark"),
-        }
-    if kind == "rug":
-        return {"w": _u(rng, 1.2, 3.0), "d": _u(rng, 0.8, 2.0)}
-    if kind == "railing":
-        return {
-            "l": _u(rng, 1.5, 4.0),
-            "h": _u(rng, 0.85, 1.05),
-            "gap": _u(rng, 0.1, 0.16),
-            "bar": _u(rng, 0.008, 0.015),
-            "role": _pick(rng, "metal", "wood"),
-        }
-    if kind == "bench":
-        return {"w": _u(rng, 1.2, 2.0), "slats": int(rng.integers(3, 7))}
-    if kind == "column":
-        return {"r": _u(rng, 0.14, 0.3), "h": _u(rng, 3.0, 4.0)}
-    if kind == "vase":
-        return {
-            "h": _u(rng, 0.15, 0.45),
-            "r": _u(rng, 0.05, 0.12),
-            "bulge": _u(rng, 0.6, 1.6),
-            "role": _pick(rng, "glass", "glass", "ceramic", "metal"),
-        }
-    if kind == "bowl":
-        return {"r": _u(rng, 0.08, 0.18), "role": _pick(rng, "ceramic", "metal", "glass")}
-    if kind == "ball":
-        return {"r": _u(rng, 0.06, 0.2), "role": _pick(rng, "metal", "ceramic", "glass")}
-    if kind == "led":  # a tiny very bright emitter: fireflies in glossy surfaces
-        return {"r": _u(rng, 0.004, 0.012)}
-    raise ValueError(f"unknown piece {kind!r}")
+    if kind not in _PARAMS:
+        raise ValueError(f"unknown piece {kind!r}")
+    return {name: draw_one(rng) for name, draw_one in _PARAMS[kind].items()}
 
 
 # ---------------------------------------------------------------------------------------------
