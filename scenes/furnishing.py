@@ -8,6 +8,8 @@ a chair sliding through the first frame's view, clear of furniture, walls and th
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 from . import architecture, furniture, materials, textures
@@ -43,6 +45,21 @@ def _within(r: list[float], space: dict, margin: float = 0.0) -> bool:
     )
 
 
+def _overlaps_opening(u: float, width: float, opening: dict, pad: float) -> bool:
+    """Something `width` wide centred at `u` along a wall reaches within `pad` of `opening`."""
+    return u - width / 2 < opening["u"][1] + pad and u + width / 2 > opening["u"][0] - pad
+
+
+def _on_wall(space: dict, side: str, u: float, y: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Wall `side` of `space` at `u` along it and height `y`: (inward normal, the yaw that
+    turns a piece's front (+Z) to face it, the point on the wall)."""
+    axis, idx, inward = architecture.SIDES[side]
+    plane = space["rect"][idx]
+    n = np.array([0, 0, inward]) if axis == "x" else np.array([inward, 0, 0])
+    on_plane = np.array([u, y, plane]) if axis == "x" else np.array([plane, y, u])
+    return n, float(np.arctan2(n[0], n[2])), on_plane
+
+
 class Furnisher:
     """Places pieces without overlaps; records blockers (boxes the camera must stay out of)."""
 
@@ -60,6 +77,28 @@ class Furnisher:
             piece["light"] = light
         self.pieces.append(piece)
         return piece
+
+    def wall_spots(
+        self, space: dict, width: float, clear: float, margin: float, tries: int
+    ) -> Iterator[tuple[str, float]]:
+        """Random places for something `width` wide along the walls of `space`: (side, u), u
+        at least `margin` from the wall's ends. Each of the `tries` draws a wall; one under
+        `width + clear` long uses up its try."""
+        for _ in range(tries):
+            side = str(self.rng.choice(list(architecture.SIDES)))
+            lo, hi = architecture.wall_span(space["rect"], side)
+            if hi - lo >= width + clear:
+                yield side, self.rng.uniform(lo + width / 2 + margin, hi - width / 2 - margin)
+
+    def openings_on(self, space: dict, side: str) -> list[dict]:
+        """The doors and windows in wall `side` of `space`."""
+        axis, idx, _ = architecture.SIDES[side]
+        plane = space["rect"][idx]
+        return [
+            o
+            for o in self.layout["openings"]
+            if o["axis"] == axis and any(abs(q - plane) < 1e-6 for q in o["planes"])
+        ]
 
     def free(self, rect: list[float], skip: int = 0) -> bool:
         return not any(
@@ -80,26 +119,14 @@ class Furnisher:
         rng, space = self.rng, self.layout["spaces"][si]
         params = params or furniture.draw(kind, rng)
         fw, fd, fh = furniture.footprint(kind, params)
-        for _ in range(30):
-            side = str(rng.choice(list(architecture.SIDES)))
-            axis, idx, inward = architecture.SIDES[side]
-            lo, hi = architecture.wall_span(space["rect"], side)
-            if hi - lo < fw + 0.2:
+        for side, u in self.wall_spots(space, fw, clear=0.2, margin=0.05, tries=30):
+            if any(
+                _overlaps_opening(u, fw, o, 0.5 if o["kind"] == "door" else 0.05)
+                and (o["kind"] == "door" or fh > o["v"][0] - 0.05)  # a window: if over the sill
+                for o in self.openings_on(space, side)
+            ):
                 continue
-            u = rng.uniform(lo + fw / 2 + 0.05, hi - fw / 2 - 0.05)
-            plane = space["rect"][idx]
-            clash = False
-            for o in self.layout["openings"]:
-                if o["axis"] != axis or not any(abs(p - plane) < 1e-6 for p in o["planes"]):
-                    continue
-                pad = 0.5 if o["kind"] == "door" else 0.05
-                if u - fw / 2 < o["u"][1] + pad and u + fw / 2 > o["u"][0] - pad:
-                    clash |= o["kind"] == "door" or fh > o["v"][0] - 0.05
-            if clash:
-                continue
-            n = np.array([0, 0, inward]) if axis == "x" else np.array([inward, 0, 0])
-            theta = float(np.arctan2(n[0], n[2]))
-            on_plane = np.array([u, 0, plane]) if axis == "x" else np.array([plane, 0, u])
+            n, theta, on_plane = _on_wall(space, side, u, 0)
             c = on_plane + n * (fd / 2 + 0.02)
             rect = _aabb(fw, fd, theta, c[0], c[2])
             if not _within(rect, space, 0.01) or not self.free(rect):
@@ -164,30 +191,17 @@ class Furnisher:
         rng, space = self.rng, self.layout["spaces"][si]
         p = furniture.draw("picture", rng)
         w, h = p["w"] + 2 * p["frame"], p["h"] + 2 * p["frame"]
-        for _ in range(20):
-            side = str(rng.choice(list(architecture.SIDES)))
-            axis, idx, inward = architecture.SIDES[side]
-            lo, hi = architecture.wall_span(space["rect"], side)
-            if hi - lo < w + 0.4:
-                continue
-            u, y = rng.uniform(lo + w / 2 + 0.2, hi - w / 2 - 0.2), rng.uniform(1.3, 1.8)
+        for side, u in self.wall_spots(space, w, clear=0.4, margin=0.2, tries=20):
+            y = rng.uniform(1.3, 1.8)
             if y + h / 2 > space["h"] - 0.1:
                 continue
-            plane = space["rect"][idx]
-            if any(
-                o["axis"] == axis
-                and any(abs(q - plane) < 1e-6 for q in o["planes"])
-                and u - w / 2 < o["u"][1] + 0.1
-                and u + w / 2 > o["u"][0] - 0.1
-                for o in self.layout["openings"]
-            ):
+            if any(_overlaps_opening(u, w, o, 0.1) for o in self.openings_on(space, side)):
                 continue
-            n = np.array([0, 0, inward]) if axis == "x" else np.array([inward, 0, 0])
-            on_plane = np.array([u, y, plane]) if axis == "x" else np.array([plane, y, u])
-            strip = _aabb(w, 0.8, float(np.arctan2(n[0], n[2])), *(on_plane + n * 0.4)[[0, 2]])
+            n, theta, on_plane = _on_wall(space, side, u, y)
+            strip = _aabb(w, 0.8, theta, *(on_plane + n * 0.4)[[0, 2]])
             if any(_overlap(strip, b["rect"]) and b["y"][1] > y - h / 2 for b in self.blockers):
                 continue
-            self.add("picture", p, _transform(float(np.arctan2(n[0], n[2])), on_plane + n * 0.002))
+            self.add("picture", p, _transform(theta, on_plane + n * 0.002))
             return
 
     def pendant(self, si: int, force_on: bool = False) -> None:
