@@ -664,16 +664,16 @@ struct BackwardWarp : Kernel<BackwardWarp, Mode, read_mode> {
     const float* image = in[0].data;
     const float* motion = in[1].data;
     const Shape& is = in[0].shape;
-    if (OrtStatus* s = check_planes(api, kName, "image", is)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "motion", in[1].shape, 2, is)) return s;
+    if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {kAnyChannels, 2})) {
+      return s;
+    }
     const int64_t N = is[0], C = is[1], H = is[2], W = is[3];
     // Texel offsets inside one plane are int32 (the gathers' index type).
     if (H * W > INT32_MAX - W - 1) {
       return op_error(api, kName, "image planes of more than 2^31 pixels are not supported, got " +
                                       is.str());
     }
-    Shape inside_shape = is;
-    inside_shape.dims[1] = 1;
+    const Shape inside_shape = with_channels(is, 1);
     float* warped = nullptr;
     float* inside = nullptr;
     if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "warped", is, &warped)) return s;

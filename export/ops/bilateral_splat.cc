@@ -342,8 +342,9 @@ struct BilateralSplat : Kernel<BilateralSplat, grid::Attributes, grid::read_attr
     const float* image = in[0].data;
     const float* guide = in[1].data;
     const Shape& is = in[0].shape;
-    if (OrtStatus* s = check_planes(api, kName, "image", is)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "guide", in[1].shape, 1, is)) return s;
+    if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {kAnyChannels, 1})) {
+      return s;
+    }
     const int64_t N = is[0], C = is[1], H = is[2], W = is[3];
     const int64_t D = attributes_.depth;
     const int64_t GH = grid::spatial_cells(H, attributes_.sigma_s);

@@ -198,6 +198,33 @@ inline OrtStatus* check_planes_like(const ort::Api& api, const char* op, const c
                                std::to_string(W) + ") like the image, got " + shape.str());
 }
 
+// A (N, C, H, W) input's channel count left to the op (the image an op filters).
+constexpr int64_t kAnyChannels = -1;
+
+// The first inputs of `in`, named `names`, are planes of one image: input 0 is (N, C, H, W) with
+// every size >= 1, and input i is (N, channels[i], H, W) with input 0's N, H and W (input 0
+// too: its C must be channels[0], unless that is kAnyChannels).
+template <size_t n, size_t k>
+inline OrtStatus* check_image_inputs(const ort::Api& api, const char* op, const char* const* names,
+                                     const FloatInputs<n>& in, const int64_t (&channels)[k]) {
+  static_assert(k >= 1 && k <= n, "channels: one per checked input, input 0 first");
+  const Shape& image = in[0].shape;
+  if (OrtStatus* s = check_planes(api, op, names[0], image)) return s;
+  for (size_t i = channels[0] == kAnyChannels ? 1 : 0; i < k; ++i) {
+    if (OrtStatus* s = check_planes_like(api, op, names[i], in[i].shape, channels[i], image)) {
+      return s;
+    }
+  }
+  return nullptr;
+}
+
+// The (N, channels, H, W) shape of an output that goes with the (N, C, H, W) `image`.
+inline Shape with_channels(const Shape& image, int64_t channels) {
+  Shape out = image;
+  out.dims[1] = channels;
+  return out;
+}
+
 // Runs task(i) for i in [0, count) (parallel_for); `failure` is the error if a task threw.
 template <class Task>
 inline OrtStatus* run_tasks(const ort::Api& api, const char* op, OrtKernelContext* ctx,

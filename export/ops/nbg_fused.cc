@@ -140,20 +140,15 @@ struct NBGAccumulate : Kernel<NBGAccumulate, AccumulateAttributes, read_accumula
 
   OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<6>& in) const {
     const Shape& rs = in[0].shape;
-    if (OrtStatus* s = check_planes(api, kName, "radiance", rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "radiance", rs, 3, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "warped", in[1].shape, 8, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "inside", in[2].shape, 1, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "depth", in[3].shape, 1, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "normal", in[4].shape, 3, rs)) return s;
+    // radiance, warped, inside, depth, normal
+    if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {3, 8, 1, 1, 3})) return s;
     const Shape& reset_shape = in[5].shape;
     if (reset_shape.rank != 1 || reset_shape[0] != rs[0]) {
       return op_error(api, kName, "reset must be (N,) = (" + std::to_string(rs[0]) + ",), got " +
                                       reset_shape.str());
     }
     const int64_t N = rs[0], H = rs[2], W = rs[3], P = H * W;
-    Shape state_shape = rs;
-    state_shape.dims[1] = 8;
+    const Shape state_shape = with_channels(rs, 8);
     float* acc = nullptr;
     float* state = nullptr;
     if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "accumulated", rs, &acc)) return s;
@@ -189,19 +184,14 @@ struct NBGFeatures : Kernel<NBGFeatures, FeaturesAttributes, read_features> {
 
   OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<6>& in) const {
     const Shape& rs = in[0].shape;
-    if (OrtStatus* s = check_planes(api, kName, "radiance", rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "radiance", rs, 3, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "safe_albedo", in[1].shape, 3, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "albedo", in[2].shape, 3, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "normal", in[3].shape, 3, rs)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "depth", in[4].shape, 1, rs)) return s;
+    // radiance, safe_albedo, albedo, normal, depth
+    if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {3, 3, 3, 3, 1})) return s;
     const Shape& ss = in[5].shape;
     if (ss.rank != 4 || ss[0] != rs[0] || ss[1] != 1 || ss[2] != 1 || ss[3] != 1) {
       return op_error(api, kName, "depth_scale must be (N, 1, 1, 1), got " + ss.str());
     }
     const int64_t N = rs[0], H = rs[2], W = rs[3], P = H * W;
-    Shape fs = rs;
-    fs.dims[1] = 10;
+    const Shape fs = with_channels(rs, 10);
     float* features = nullptr;
     if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "features", fs, &features)) return s;
     const float exponent = attributes_.exponent;
@@ -255,18 +245,13 @@ struct NBGBlend : Kernel<NBGBlend, NoAttributes, read_no_attributes> {
 
   OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<5>& in) const {
     const Shape& ls = in[0].shape;
-    if (OrtStatus* s = check_planes(api, kName, "logits", ls)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "logits", ls, 2 * kGrids, ls)) return s;
-    if (OrtStatus* s = check_planes_like(api, kName, "safe_albedo", in[1].shape, 3, ls)) return s;
-    for (int64_t g = 0; g < kGrids; ++g) {
-      const std::string name = "sliced" + std::to_string(g);
-      if (OrtStatus* s = check_planes_like(api, kName, name.c_str(), in[2 + g].shape, 3, ls)) {
-        return s;
-      }
+    // logits, safe_albedo, sliced0 … sliced2
+    static_assert(kGrids == 3, "one sliced input and channel count below per grid");
+    if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {2 * kGrids, 3, 3, 3, 3})) {
+      return s;
     }
     const int64_t N = ls[0], H = ls[2], W = ls[3], P = H * W;
-    Shape os = ls;
-    os.dims[1] = 3;
+    const Shape os = with_channels(ls, 3);
     float* denoised = nullptr;
     if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "denoised", os, &denoised)) return s;
     auto body = [&](int64_t n, int64_t first, int64_t end) {
