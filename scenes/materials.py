@@ -141,6 +141,16 @@ def _tex(rng: np.random.Generator, pattern: str, period: float) -> dict:
     }
 
 
+def _textured(kind: str, color: list[float], alpha: float | None, texture: dict) -> dict:
+    """A patterned surface: kind, colour, roughness `alpha` (glossy kinds; None: left out) and
+    texture. A call draws its arguments in this order, the scenes' order: keep it."""
+    mat: dict = {"kind": kind, "color": color}
+    if alpha is not None:
+        mat["alpha"] = alpha
+    mat["texture"] = texture
+    return mat
+
+
 def _pale(rng: np.random.Generator) -> list[float]:
     return (0.45 + 0.4 * textures.random_color(rng, 0.5, 1.0)).clip(0, 0.9).tolist()
 
@@ -176,65 +186,30 @@ def role_material(rng: np.random.Generator, role: str) -> dict:
     if role == "ceiling":
         return {"kind": "diffuse", "color": [float(rng.uniform(0.6, 0.85))] * 3}
     if role == "wallpaper":
-        return {
-            "kind": "diffuse",
-            "color": _pale(rng),
-            "texture": _tex(rng, "wallpaper", u(0.2, 0.8)),
-        }
+        return _textured("diffuse", _pale(rng), None, _tex(rng, "wallpaper", u(0.2, 0.8)))
     if role == "wall_tiles":
-        return {
-            "kind": str(rng.choice(["plastic", "roughplastic"])),
-            "color": _pale(rng),
-            "alpha": u(0.03, 0.15),
-            "texture": _tex(rng, "tiles", u(0.4, 1.6)),
-        }
+        kind = str(rng.choice(["plastic", "roughplastic"]))
+        return _textured(kind, _pale(rng), u(0.03, 0.15), _tex(rng, "tiles", u(0.4, 1.6)))
     if role == "brick":
-        return {
-            "kind": "diffuse",
-            "color": [0.5, 0.3, 0.2],
-            "texture": _tex(rng, "bricks", u(1, 2.5)),
-        }
+        return _textured("diffuse", [0.5, 0.3, 0.2], None, _tex(rng, "bricks", u(1, 2.5)))
     if role == "floor_wood":
         kind = "plastic" if rng.random() < 0.3 else "roughplastic"  # polished: sharp reflections
-        return {
-            "kind": kind,
-            "color": [0.4, 0.25, 0.12],
-            "alpha": u(0.04, 0.25),
-            "texture": _tex(rng, "planks", u(1.2, 3.0)),
-        }
+        return _textured(kind, [0.4, 0.25, 0.12], u(0.04, 0.25), _tex(rng, "planks", u(1.2, 3.0)))
     if role == "floor_tiles":
-        return {
-            "kind": str(rng.choice(["plastic", "roughplastic"])),
-            "color": _pale(rng),
-            "alpha": u(0.03, 0.2),
-            "texture": _tex(rng, str(rng.choice(["tiles", "checker"])), u(0.8, 3.0)),
-        }
+        kind = str(rng.choice(["plastic", "roughplastic"]))
+        return _textured(kind, _pale(rng), u(0.03, 0.2),
+                         _tex(rng, str(rng.choice(["tiles", "checker"])), u(0.8, 3.0)))
     if role == "carpet":
-        return {
-            "kind": "diffuse",
-            "color": _pale(rng),
-            "texture": _tex(rng, "fabric", u(0.03, 0.15)),
-        }
+        return _textured("diffuse", _pale(rng), None, _tex(rng, "fabric", u(0.03, 0.15)))
     if role == "stone":
-        return {
-            "kind": "roughplastic",
-            "color": [0.5, 0.48, 0.45],
-            "alpha": u(0.2, 0.5),
-            "texture": _tex(rng, str(rng.choice(["noise", "tiles"])), u(1.0, 4.0)),
-        }
+        return _textured("roughplastic", [0.5, 0.48, 0.45], u(0.2, 0.5),
+                         _tex(rng, str(rng.choice(["noise", "tiles"])), u(1.0, 4.0)))
     if role == "wood":
-        return {
-            "kind": "roughplastic",
-            "color": [0.4, 0.25, 0.12],
-            "alpha": u(0.05, 0.35),
-            "texture": _tex(rng, "wood", u(0.3, 1.2)),
-        }
+        return _textured("roughplastic", [0.4, 0.25, 0.12], u(0.05, 0.35),
+                         _tex(rng, "wood", u(0.3, 1.2)))
     if role == "fabric":
-        return {
-            "kind": "diffuse",
-            "color": textures.random_color(rng).tolist(),
-            "texture": _tex(rng, "fabric", u(0.01, 0.05)),
-        }
+        color = textures.random_color(rng).tolist()
+        return _textured("diffuse", color, None, _tex(rng, "fabric", u(0.01, 0.05)))
     if role == "metal":
         mat: dict = {"kind": "conductor" if rng.random() < 0.3 else "roughconductor"}
         mat["metal"] = str(rng.choice(list(METALS)))
