@@ -107,44 +107,33 @@ inline void grad_pixels_scalar(const GradJob& j, const GradImage& im, int64_t y,
     }
     for (int64_t k = 0; k < D; ++k) gF[k * plane] = 0.0f;
     float ga = 0.0f;
-    for (int64_t i = -r; i <= r; ++i) {  // eq. 4 + 6
-      const int64_t yq = y + i * dil;
-      if (yq < 0 || yq >= f.H) continue;
-      for (int64_t k = -r; k <= r; ++k) {
-        const int64_t xq = x + k * dil;
-        if ((i == 0 && k == 0) || xq < 0 || xq >= f.W) continue;
-        const int64_t q = yq * f.W + xq;
-        float d2 = 0.0f;
+    for_each_tap<1>(y, x, r, dil, true, f.H, f.W, [&](int64_t q, int64_t) {  // eq. 4 + 6
+      const float d2 = distance2(in.F, p, in.F, q, D, plane);
+      float coef = 0.0f;  // of (f_p - f_q) in ∂ℓ/∂f_p
+      const float w_own = weight_of(a * d2);  // w_pq: p owns it
+      if (w_own > 0.0f) {
+        float G = hp;
+        for (int64_t ch = 0; ch < C; ++ch) G += im.gD[ch * plane + p] * in.L[ch * plane + q];
+        ga -= G * w_own * d2;
+        coef += -2.0f * a * G * w_own;
+      }
+      const float aq = non_negative(in.A[q]);
+      const float w_nb = weight_of(aq * d2);  // w_qp: p is q's neighbour
+      if (w_nb > 0.0f) {
+        float G = im.h[q];
+        for (int64_t ch = 0; ch < C; ++ch) {
+          const float gDq = im.gD[ch * plane + q];
+          G += gDq * in.L[ch * plane + p];
+          gL[ch * plane] += w_nb * gDq;
+        }
+        coef += -2.0f * aq * G * w_nb;
+      }
+      if (coef != 0.0f) {
         for (int64_t e = 0; e < D; ++e) {
-          const float diff = in.F[e * plane + p] - in.F[e * plane + q];
-          d2 += diff * diff;
-        }
-        float coef = 0.0f;  // of (f_p - f_q) in ∂ℓ/∂f_p
-        const float w_own = weight_of(a * d2);  // w_pq: p owns it
-        if (w_own > 0.0f) {
-          float G = hp;
-          for (int64_t ch = 0; ch < C; ++ch) G += im.gD[ch * plane + p] * in.L[ch * plane + q];
-          ga -= G * w_own * d2;
-          coef += -2.0f * a * G * w_own;
-        }
-        const float aq = non_negative(in.A[q]);
-        const float w_nb = weight_of(aq * d2);  // w_qp: p is q's neighbour
-        if (w_nb > 0.0f) {
-          float G = im.h[q];
-          for (int64_t ch = 0; ch < C; ++ch) {
-            const float gDq = im.gD[ch * plane + q];
-            G += gDq * in.L[ch * plane + p];
-            gL[ch * plane] += w_nb * gDq;
-          }
-          coef += -2.0f * aq * G * w_nb;
-        }
-        if (coef != 0.0f) {
-          for (int64_t e = 0; e < D; ++e) {
-            gF[e * plane] += coef * (in.F[e * plane + p] - in.F[e * plane + q]);
-          }
+          gF[e * plane] += coef * (in.F[e * plane + p] - in.F[e * plane + q]);
         }
       }
-    }
+    });
     im.gA[p] = in.A[p] > 0.0f ? ga : 0.0f;  // a = max(bandwidth, 0), NaN -> 0
     im.gC[p] = in.Cw[p] > 0.0f ? own_dot : 0.0f;
     if (im.gB == nullptr) continue;
@@ -156,51 +145,36 @@ inline void grad_pixels_scalar(const GradJob& j, const GradImage& im, int64_t y,
     float gb = 0.0f;
     if (in.on > 0.0f) {  // eq. 7 + 8, dilation 1, the centre included
       const float b = non_negative(in.B[p]);
-      for (int64_t i = -rt; i <= rt; ++i) {
-        const int64_t yq = y + i;
-        if (yq < 0 || yq >= f.H) continue;
-        for (int64_t k = -rt; k <= rt; ++k) {
-          const int64_t xq = x + k;
-          if (xq < 0 || xq >= f.W) continue;
-          const int64_t q = yq * f.W + xq;
-          // p owns ω_pq' (f_p against PF_q')
-          float d2 = 0.0f;
+      for_each_tap<1>(y, x, rt, 1, false, f.H, f.W, [&](int64_t q, int64_t) {
+        // p owns ω_pq' (f_p against PF_q')
+        const float d2 = distance2(in.F, p, in.PF, q, D, plane);
+        const float w_own = in.on * weight_of(b * d2);
+        if (w_own > 0.0f) {
+          float G = hp;
+          for (int64_t ch = 0; ch < C; ++ch) G += im.gD[ch * plane + p] * in.O[ch * plane + q];
+          gb -= G * w_own * d2;
+          const float coef = -2.0f * b * G * w_own;
           for (int64_t e = 0; e < D; ++e) {
-            const float diff = in.F[e * plane + p] - in.PF[e * plane + q];
-            d2 += diff * diff;
-          }
-          const float w_own = in.on * weight_of(b * d2);
-          if (w_own > 0.0f) {
-            float G = hp;
-            for (int64_t ch = 0; ch < C; ++ch) G += im.gD[ch * plane + p] * in.O[ch * plane + q];
-            gb -= G * w_own * d2;
-            const float coef = -2.0f * b * G * w_own;
-            for (int64_t e = 0; e < D; ++e) {
-              gF[e * plane] += coef * (in.F[e * plane + p] - in.PF[e * plane + q]);
-            }
-          }
-          // p is the neighbour q' of pixel q's window (f_q against PF_p)
-          float d2n = 0.0f;
-          for (int64_t e = 0; e < D; ++e) {
-            const float diff = in.F[e * plane + q] - in.PF[e * plane + p];
-            d2n += diff * diff;
-          }
-          const float bq = non_negative(in.B[q]);
-          const float w_nb = in.on * weight_of(bq * d2n);
-          if (w_nb > 0.0f) {
-            float G = im.h[q];
-            for (int64_t ch = 0; ch < C; ++ch) {
-              const float gDq = im.gD[ch * plane + q];
-              G += gDq * in.O[ch * plane + p];
-              gO[ch * plane] += w_nb * gDq;
-            }
-            const float coef = 2.0f * bq * G * w_nb;
-            for (int64_t e = 0; e < D; ++e) {
-              gPF[e * plane] += coef * (in.F[e * plane + q] - in.PF[e * plane + p]);
-            }
+            gF[e * plane] += coef * (in.F[e * plane + p] - in.PF[e * plane + q]);
           }
         }
-      }
+        // p is the neighbour q' of pixel q's window (f_q against PF_p)
+        const float d2n = distance2(in.F, q, in.PF, p, D, plane);
+        const float bq = non_negative(in.B[q]);
+        const float w_nb = in.on * weight_of(bq * d2n);
+        if (w_nb > 0.0f) {
+          float G = im.h[q];
+          for (int64_t ch = 0; ch < C; ++ch) {
+            const float gDq = im.gD[ch * plane + q];
+            G += gDq * in.O[ch * plane + p];
+            gO[ch * plane] += w_nb * gDq;
+          }
+          const float coef = 2.0f * bq * G * w_nb;
+          for (int64_t e = 0; e < D; ++e) {
+            gPF[e * plane] += coef * (in.F[e * plane + q] - in.PF[e * plane + p]);
+          }
+        }
+      });
     }
     im.gB[p] = in.B[p] > 0.0f ? gb : 0.0f;
   }
@@ -235,50 +209,41 @@ inline void grad_spatial8(const GradJob& j, const GradImage& im, int64_t y, int6
   }
   for (int e = 0; e < kD; ++e) gF[e] = zero;
   __m256 ga = zero;
-  for (int64_t i = -r; i <= r; ++i) {
-    const int64_t yq = y + i * dil;
-    if (yq < 0 || yq >= f.H) continue;
-    for (int64_t k = -r; k <= r; ++k) {
-      const int64_t xq = x + k * dil;
-      if ((i == 0 && k == 0) || xq + 8 <= 0 || xq >= f.W) continue;
-      const bool whole = xq >= 0 && xq + 8 <= f.W;
-      const __m256 mask = whole ? zero : lanes_inside(xq, f.W);
-      const int64_t q = yq * f.W + xq;
-      __m256 diff[kD];
-      __m256 d2 = zero;
-      for (int e = 0; e < kD; ++e) {
-        diff[e] = _mm256_sub_ps(_mm256_loadu_ps(in.F + e * plane + p),
-                                load8(in.F + e * plane, q, whole, mask));
-        d2 = _mm256_fmadd_ps(diff[e], diff[e], d2);
-      }
-      // w_pq, p owns it: G = gD_p · L_q + h_p
-      __m256 w_own = weight_of8(_mm256_mul_ps(a, d2));
-      if (!whole) w_own = _mm256_and_ps(mask, w_own);
-      const __m256 keep_own = positive(w_own);
-      __m256 G = hp;
-      for (int ch = 0; ch < kC; ++ch) {
-        G = _mm256_fmadd_ps(_mm256_loadu_ps(im.gD + ch * plane + p),
-                            load8(in.L + ch * plane, q, whole, mask), G);
-      }
-      const __m256 gw_own = _mm256_mul_ps(G, w_own);
-      ga = _mm256_sub_ps(ga, only(keep_own, _mm256_mul_ps(gw_own, d2)));
-      __m256 coef = only(keep_own, _mm256_mul_ps(minus2, _mm256_mul_ps(a, gw_own)));
-      // w_qp, p is q's neighbour: G = gD_q · L_p + h_q
-      const __m256 aq = _mm256_max_ps(load8(in.A, q, whole, mask), zero);
-      __m256 w_nb = weight_of8(_mm256_mul_ps(aq, d2));
-      if (!whole) w_nb = _mm256_and_ps(mask, w_nb);
-      __m256 Gq = load8(im.h, q, whole, mask);
-      for (int ch = 0; ch < kC; ++ch) {
-        const __m256 gDq = load8(im.gD + ch * plane, q, whole, mask);
-        Gq = _mm256_fmadd_ps(gDq, _mm256_loadu_ps(in.L + ch * plane + p), Gq);
-        gL[ch] = _mm256_fmadd_ps(w_nb, gDq, gL[ch]);
-      }
-      const __m256 gw_nb = _mm256_mul_ps(Gq, w_nb);
-      coef = _mm256_add_ps(
-          coef, only(positive(w_nb), _mm256_mul_ps(minus2, _mm256_mul_ps(aq, gw_nb))));
-      for (int e = 0; e < kD; ++e) gF[e] = _mm256_fmadd_ps(coef, diff[e], gF[e]);
+  for_each_tap8(y, x, r, dil, true, f.H, f.W, [&](int64_t q, bool whole, __m256 mask) {
+    __m256 diff[kD];
+    __m256 d2 = zero;
+    for (int e = 0; e < kD; ++e) {
+      diff[e] = _mm256_sub_ps(_mm256_loadu_ps(in.F + e * plane + p),
+                              load8(in.F + e * plane, q, whole, mask));
+      d2 = _mm256_fmadd_ps(diff[e], diff[e], d2);
     }
-  }
+    // w_pq, p owns it: G = gD_p · L_q + h_p
+    __m256 w_own = weight_of8(_mm256_mul_ps(a, d2));
+    if (!whole) w_own = _mm256_and_ps(mask, w_own);
+    const __m256 keep_own = positive(w_own);
+    __m256 G = hp;
+    for (int ch = 0; ch < kC; ++ch) {
+      G = _mm256_fmadd_ps(_mm256_loadu_ps(im.gD + ch * plane + p),
+                          load8(in.L + ch * plane, q, whole, mask), G);
+    }
+    const __m256 gw_own = _mm256_mul_ps(G, w_own);
+    ga = _mm256_sub_ps(ga, only(keep_own, _mm256_mul_ps(gw_own, d2)));
+    __m256 coef = only(keep_own, _mm256_mul_ps(minus2, _mm256_mul_ps(a, gw_own)));
+    // w_qp, p is q's neighbour: G = gD_q · L_p + h_q
+    const __m256 aq = _mm256_max_ps(load8(in.A, q, whole, mask), zero);
+    __m256 w_nb = weight_of8(_mm256_mul_ps(aq, d2));
+    if (!whole) w_nb = _mm256_and_ps(mask, w_nb);
+    __m256 Gq = load8(im.h, q, whole, mask);
+    for (int ch = 0; ch < kC; ++ch) {
+      const __m256 gDq = load8(im.gD + ch * plane, q, whole, mask);
+      Gq = _mm256_fmadd_ps(gDq, _mm256_loadu_ps(in.L + ch * plane + p), Gq);
+      gL[ch] = _mm256_fmadd_ps(w_nb, gDq, gL[ch]);
+    }
+    const __m256 gw_nb = _mm256_mul_ps(Gq, w_nb);
+    coef = _mm256_add_ps(
+        coef, only(positive(w_nb), _mm256_mul_ps(minus2, _mm256_mul_ps(aq, gw_nb))));
+    for (int e = 0; e < kD; ++e) gF[e] = _mm256_fmadd_ps(coef, diff[e], gF[e]);
+  });
   for (int ch = 0; ch < kC; ++ch) _mm256_storeu_ps(im.gL + ch * plane + p, gL[ch]);
   for (int e = 0; e < kD; ++e) _mm256_storeu_ps(im.gF + e * plane + p, gF[e]);
   // a = max(bandwidth, 0): gradient only where bandwidth > 0 (NaN: none)
@@ -303,59 +268,50 @@ inline void grad_temporal8(const GradJob& j, const GradImage& im, int64_t y, int
   for (int ch = 0; ch < kC; ++ch) gO[ch] = zero;
   for (int e = 0; e < kD; ++e) gPF[e] = gF[e] = zero;
   __m256 gb = zero;
-  for (int64_t i = -rt; i <= rt; ++i) {
-    const int64_t yq = y + i;
-    if (yq < 0 || yq >= f.H) continue;
-    for (int64_t k = -rt; k <= rt; ++k) {
-      const int64_t xq = x + k;
-      if (xq + 8 <= 0 || xq >= f.W) continue;
-      const bool whole = xq >= 0 && xq + 8 <= f.W;
-      const __m256 mask = whole ? zero : lanes_inside(xq, f.W);
-      const int64_t q = yq * f.W + xq;
-      {  // ω_pq', p owns it: f_p against PF_q'
-        __m256 diff[kD];
-        __m256 d2 = zero;
-        for (int e = 0; e < kD; ++e) {
-          diff[e] = _mm256_sub_ps(_mm256_loadu_ps(in.F + e * plane + p),
-                                  load8(in.PF + e * plane, q, whole, mask));
-          d2 = _mm256_fmadd_ps(diff[e], diff[e], d2);
-        }
-        __m256 w = _mm256_mul_ps(on, weight_of8(_mm256_mul_ps(b, d2)));
-        if (!whole) w = _mm256_and_ps(mask, w);
-        const __m256 keep = positive(w);
-        __m256 G = hp;
-        for (int ch = 0; ch < kC; ++ch) {
-          G = _mm256_fmadd_ps(_mm256_loadu_ps(im.gD + ch * plane + p),
-                              load8(in.O + ch * plane, q, whole, mask), G);
-        }
-        const __m256 gw = _mm256_mul_ps(G, w);
-        gb = _mm256_sub_ps(gb, only(keep, _mm256_mul_ps(gw, d2)));
-        const __m256 coef = only(keep, _mm256_mul_ps(minus2, _mm256_mul_ps(b, gw)));
-        for (int e = 0; e < kD; ++e) gF[e] = _mm256_fmadd_ps(coef, diff[e], gF[e]);
+  for_each_tap8(y, x, rt, 1, false, f.H, f.W, [&](int64_t q, bool whole, __m256 mask) {
+    {  // ω_pq', p owns it: f_p against PF_q'
+      __m256 diff[kD];
+      __m256 d2 = zero;
+      for (int e = 0; e < kD; ++e) {
+        diff[e] = _mm256_sub_ps(_mm256_loadu_ps(in.F + e * plane + p),
+                                load8(in.PF + e * plane, q, whole, mask));
+        d2 = _mm256_fmadd_ps(diff[e], diff[e], d2);
       }
-      {  // p is the neighbour q' of pixel q's window: f_q against PF_p
-        __m256 diff[kD];
-        __m256 d2 = zero;
-        for (int e = 0; e < kD; ++e) {
-          diff[e] = _mm256_sub_ps(load8(in.F + e * plane, q, whole, mask),
-                                  _mm256_loadu_ps(in.PF + e * plane + p));
-          d2 = _mm256_fmadd_ps(diff[e], diff[e], d2);
-        }
-        const __m256 bq = _mm256_max_ps(load8(in.B, q, whole, mask), zero);
-        __m256 w = _mm256_mul_ps(on, weight_of8(_mm256_mul_ps(bq, d2)));
-        if (!whole) w = _mm256_and_ps(mask, w);
-        __m256 G = load8(im.h, q, whole, mask);
-        for (int ch = 0; ch < kC; ++ch) {
-          const __m256 gDq = load8(im.gD + ch * plane, q, whole, mask);
-          G = _mm256_fmadd_ps(gDq, _mm256_loadu_ps(in.O + ch * plane + p), G);
-          gO[ch] = _mm256_fmadd_ps(w, gDq, gO[ch]);
-        }
-        const __m256 coef =
-            only(positive(w), _mm256_mul_ps(two, _mm256_mul_ps(bq, _mm256_mul_ps(G, w))));
-        for (int e = 0; e < kD; ++e) gPF[e] = _mm256_fmadd_ps(coef, diff[e], gPF[e]);
+      __m256 w = _mm256_mul_ps(on, weight_of8(_mm256_mul_ps(b, d2)));
+      if (!whole) w = _mm256_and_ps(mask, w);
+      const __m256 keep = positive(w);
+      __m256 G = hp;
+      for (int ch = 0; ch < kC; ++ch) {
+        G = _mm256_fmadd_ps(_mm256_loadu_ps(im.gD + ch * plane + p),
+                            load8(in.O + ch * plane, q, whole, mask), G);
       }
+      const __m256 gw = _mm256_mul_ps(G, w);
+      gb = _mm256_sub_ps(gb, only(keep, _mm256_mul_ps(gw, d2)));
+      const __m256 coef = only(keep, _mm256_mul_ps(minus2, _mm256_mul_ps(b, gw)));
+      for (int e = 0; e < kD; ++e) gF[e] = _mm256_fmadd_ps(coef, diff[e], gF[e]);
     }
-  }
+    {  // p is the neighbour q' of pixel q's window: f_q against PF_p
+      __m256 diff[kD];
+      __m256 d2 = zero;
+      for (int e = 0; e < kD; ++e) {
+        diff[e] = _mm256_sub_ps(load8(in.F + e * plane, q, whole, mask),
+                                _mm256_loadu_ps(in.PF + e * plane + p));
+        d2 = _mm256_fmadd_ps(diff[e], diff[e], d2);
+      }
+      const __m256 bq = _mm256_max_ps(load8(in.B, q, whole, mask), zero);
+      __m256 w = _mm256_mul_ps(on, weight_of8(_mm256_mul_ps(bq, d2)));
+      if (!whole) w = _mm256_and_ps(mask, w);
+      __m256 G = load8(im.h, q, whole, mask);
+      for (int ch = 0; ch < kC; ++ch) {
+        const __m256 gDq = load8(im.gD + ch * plane, q, whole, mask);
+        G = _mm256_fmadd_ps(gDq, _mm256_loadu_ps(in.O + ch * plane + p), G);
+        gO[ch] = _mm256_fmadd_ps(w, gDq, gO[ch]);
+      }
+      const __m256 coef =
+          only(positive(w), _mm256_mul_ps(two, _mm256_mul_ps(bq, _mm256_mul_ps(G, w))));
+      for (int e = 0; e < kD; ++e) gPF[e] = _mm256_fmadd_ps(coef, diff[e], gPF[e]);
+    }
+  });
   for (int ch = 0; ch < kC; ++ch) _mm256_storeu_ps(im.gO + ch * plane + p, gO[ch]);
   for (int e = 0; e < kD; ++e) {
     _mm256_storeu_ps(im.gPF + e * plane + p, gPF[e]);

@@ -135,6 +135,37 @@ inline float finite_result(float v) {
   return v > FLT_MAX ? FLT_MAX : (v < -FLT_MAX ? -FLT_MAX : v);
 }
 
+// ---- windows ------------------------------------------------------------------------------------
+
+// The window of the kLanes pixels from (y, x) on in a row: calls tap(q, xq) for each tap
+// (yq, xq) = (y + i·step, x + k·step), -r <= i, k <= r, row by row (the sums' order), with q its
+// index in the H×W plane, whose row is inside the image and whose kLanes columns from xq on reach
+// into it; the centre is left out if `skip_centre`.
+template <int kLanes, class Tap>
+inline void for_each_tap(int64_t y, int64_t x, int64_t r, int64_t step, bool skip_centre,
+                         int64_t H, int64_t W, const Tap& tap) {
+  for (int64_t i = -r; i <= r; ++i) {
+    const int64_t yq = y + i * step;
+    if (yq < 0 || yq >= H) continue;
+    for (int64_t k = -r; k <= r; ++k) {
+      const int64_t xq = x + k * step;
+      if ((skip_centre && i == 0 && k == 0) || xq + kLanes <= 0 || xq >= W) continue;
+      tap(yq * W + xq, xq);
+    }
+  }
+}
+
+// ||a_p - b_q||² over the D feature planes of a and b (`plane` floats apart).
+inline float distance2(const float* a, int64_t p, const float* b, int64_t q, int64_t D,
+                       int64_t plane) {
+  float d2 = 0.0f;
+  for (int64_t e = 0; e < D; ++e) {
+    const float diff = a[e * plane + p] - b[e * plane + q];
+    d2 += diff * diff;
+  }
+  return d2;
+}
+
 // ---- scalar reference ---------------------------------------------------------------------------
 
 // Pixels [x0, x1) of row y: the numerators are summed in the output planes themselves.
@@ -149,43 +180,19 @@ inline void filter_pixels_scalar(const Job& j, const Image& im, int64_t y, int64
       out[ch * plane] = c * im.L[ch * plane + p];  // w_pp = c_p
     }
     float den = c;
-    for (int64_t i = -r; i <= r; ++i) {  // eq. 4 + 6
-      const int64_t yq = y + i * dil;
-      if (yq < 0 || yq >= j.H) continue;
-      for (int64_t k = -r; k <= r; ++k) {
-        const int64_t xq = x + k * dil;
-        if ((i == 0 && k == 0) || xq < 0 || xq >= j.W) continue;
-        const int64_t q = yq * j.W + xq;
-        float d2 = 0.0f;
-        for (int64_t f = 0; f < j.D; ++f) {
-          const float diff = im.F[f * plane + p] - im.F[f * plane + q];
-          d2 += diff * diff;
-        }
-        const float w = weight_of(a * d2);
-        for (int64_t ch = 0; ch < j.C; ++ch) out[ch * plane] += w * im.L[ch * plane + q];
-        den += w;
-      }
-    }
+    for_each_tap<1>(y, x, r, dil, true, j.H, j.W, [&](int64_t q, int64_t) {  // eq. 4 + 6
+      const float w = weight_of(a * distance2(im.F, p, im.F, q, j.D, plane));
+      for (int64_t ch = 0; ch < j.C; ++ch) out[ch * plane] += w * im.L[ch * plane + q];
+      den += w;
+    });
     if (im.on > 0.0f) {  // eq. 7 + 8, dilation 1, the centre included
       const float b = non_negative(im.B[p]);
       const int64_t rt = j.temporal_radius;
-      for (int64_t i = -rt; i <= rt; ++i) {
-        const int64_t yq = y + i;
-        if (yq < 0 || yq >= j.H) continue;
-        for (int64_t k = -rt; k <= rt; ++k) {
-          const int64_t xq = x + k;
-          if (xq < 0 || xq >= j.W) continue;
-          const int64_t q = yq * j.W + xq;
-          float d2 = 0.0f;
-          for (int64_t f = 0; f < j.D; ++f) {
-            const float diff = im.F[f * plane + p] - im.PF[f * plane + q];
-            d2 += diff * diff;
-          }
-          const float w = im.on * weight_of(b * d2);
-          for (int64_t ch = 0; ch < j.C; ++ch) out[ch * plane] += w * im.O[ch * plane + q];
-          den += w;
-        }
-      }
+      for_each_tap<1>(y, x, rt, 1, false, j.H, j.W, [&](int64_t q, int64_t) {
+        const float w = im.on * weight_of(b * distance2(im.F, p, im.PF, q, j.D, plane));
+        for (int64_t ch = 0; ch < j.C; ++ch) out[ch * plane] += w * im.O[ch * plane + q];
+        den += w;
+      });
     }
     const float denominator = j.epsilon + den;
     for (int64_t ch = 0; ch < j.C; ++ch) {
@@ -247,6 +254,17 @@ inline __m256 load8(const float* base, int64_t offset, bool whole, __m256 mask) 
   return whole ? _mm256_loadu_ps(at) : _mm256_maskload_ps(at, _mm256_castps_si256(mask));
 }
 
+// for_each_tap for the 8 pixels at (y, x): tap(q, whole, mask), q that of lane 0; whole: every
+// lane's tap is inside the image, else `mask` holds the lanes whose tap is.
+template <class Tap>
+inline void for_each_tap8(int64_t y, int64_t x, int64_t r, int64_t step, bool skip_centre,
+                          int64_t H, int64_t W, const Tap& tap) {
+  for_each_tap<8>(y, x, r, step, skip_centre, H, W, [&](int64_t q, int64_t xq) {
+    const bool whole = xq >= 0 && xq + 8 <= W;
+    tap(q, whole, whole ? _mm256_setzero_ps() : lanes_inside(xq, W));
+  });
+}
+
 // Adds the taps of one window (the spatial one: `features`/`values` = F/L, skipping the centre;
 // the temporal one: PF/O with dilation 1 and the weights times `scale`) for the 8 pixels at
 // (y, x) and channels [c0, c0 + G) to num[] and den. kD > 0: D = kD, the pixels' own features
@@ -264,35 +282,26 @@ inline void add_window8(const Job& j, const Image& im, int64_t y, int64_t x, int
   const int64_t dil = kTemporal ? 1 : j.dilation;
   const float* neighbours = kTemporal ? im.PF : im.F;
   const float* values = kTemporal ? im.O : im.L;
-  for (int64_t i = -r; i <= r; ++i) {
-    const int64_t yq = y + i * dil;
-    if (yq < 0 || yq >= j.H) continue;
-    for (int64_t k = -r; k <= r; ++k) {
-      const int64_t xq = x + k * dil;
-      if ((!kTemporal && i == 0 && k == 0) || xq + 8 <= 0 || xq >= j.W) continue;
-      const bool whole = xq >= 0 && xq + 8 <= j.W;
-      const __m256 mask = whole ? _mm256_setzero_ps() : lanes_inside(xq, j.W);
-      const int64_t q = yq * j.W + xq;
-      __m256 d2 = _mm256_setzero_ps();
-      for (int64_t f = 0; f < D; ++f) {
-        __m256 fp;
-        if constexpr (kD > 0) {
-          fp = own[f];
-        } else {
-          fp = _mm256_loadu_ps(im.F + f * plane + p);
-        }
-        const __m256 diff = _mm256_sub_ps(fp, load8(neighbours + f * plane, q, whole, mask));
-        d2 = _mm256_fmadd_ps(diff, diff, d2);
+  for_each_tap8(y, x, r, dil, !kTemporal, j.H, j.W, [&](int64_t q, bool whole, __m256 mask) {
+    __m256 d2 = _mm256_setzero_ps();
+    for (int64_t f = 0; f < D; ++f) {
+      __m256 fp;
+      if constexpr (kD > 0) {
+        fp = own[f];
+      } else {
+        fp = _mm256_loadu_ps(im.F + f * plane + p);
       }
-      __m256 w = weight_of8(_mm256_mul_ps(bandwidth, d2));
-      if (kTemporal) w = _mm256_mul_ps(scale, w);
-      if (!whole) w = _mm256_and_ps(mask, w);
-      for (int g = 0; g < G; ++g) {
-        num[g] = _mm256_fmadd_ps(w, load8(values + (c0 + g) * plane, q, whole, mask), num[g]);
-      }
-      den = _mm256_add_ps(den, w);
+      const __m256 diff = _mm256_sub_ps(fp, load8(neighbours + f * plane, q, whole, mask));
+      d2 = _mm256_fmadd_ps(diff, diff, d2);
     }
-  }
+    __m256 w = weight_of8(_mm256_mul_ps(bandwidth, d2));
+    if (kTemporal) w = _mm256_mul_ps(scale, w);
+    if (!whole) w = _mm256_and_ps(mask, w);
+    for (int g = 0; g < G; ++g) {
+      num[g] = _mm256_fmadd_ps(w, load8(values + (c0 + g) * plane, q, whole, mask), num[g]);
+    }
+    den = _mm256_add_ps(den, w);
+  });
 }
 
 // filter_pixels_scalar for the 8 pixels at (y, x), x + 8 <= W, channels [c0, c0 + G).
