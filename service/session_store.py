@@ -20,7 +20,7 @@ is damaged (or gone), the session can still continue from a fresh history.
 Two backends behind one small interface (`Store`): this folder (one server owns it; `shared`
 False) and Redis (`state_store_redis.py`, `shared` True: every replica behind the load balancer
 reads it, and each write is a compare-and-set on the session's version, so two replicas never
-both advance one session). `open_store` picks one from the settings.
+both advance one session). service/stores.py `open_store` picks one from the settings.
 """
 
 from __future__ import annotations
@@ -36,15 +36,12 @@ import zlib
 from collections.abc import Iterator, Mapping, MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from quietframe.service import state_codec
 from quietframe.service.state_codec import ReplyRecipe
-
-if TYPE_CHECKING:
-    from quietframe.service.settings import Settings
 
 SESSION_ID = re.compile(r"[A-Za-z0-9_-]{22}")  # secrets.token_urlsafe(16): 128 random bits
 
@@ -123,21 +120,6 @@ class Store(Protocol):
              ) -> tuple[dict[str, np.ndarray] | None, Reply | None]: ...
     def quarantine(self, session_id: str) -> object: ...
     def delete(self, session_id: str) -> None: ...
-
-
-def open_store(settings: Settings) -> Store | None:
-    """Redis when `store_url` is set (replicas share it; redis+cluster://: a Redis Cluster),
-    else the state folder, else none."""
-    if settings.store_url:
-        from quietframe.service.state_store_redis import RedisStore
-
-        return RedisStore(
-            settings.store_url, settings.session_ttl_s, settings.store_timeout_s,
-            settings.replica_id,
-        )
-    if settings.state_dir:
-        return SessionStore(settings.state_dir, settings.state_fsync)
-    return None
 
 
 def record(

@@ -19,8 +19,8 @@ from quietframe.service.model_choice import Choice
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.session import Session, reserve_bytes
 from quietframe.service.session_spec import SessionSpec
-from quietframe.service.session_store import open_store
 from quietframe.service.settings import Settings
+from quietframe.service.stores import open_store
 
 log = logging.getLogger("quietframe.service")
 

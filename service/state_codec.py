@@ -47,6 +47,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from quietframe.runtime.motion_evidence import PROBE_STATE
+from quietframe.runtime.sanitize import clamp_to_half
+from quietframe.service import frames
 
 FORMAT = 1  # meta["codec"]["format"]; a record without meta["codec"] is the float32 form
 HALF_MAX = np.float32(np.finfo(np.float16).max)
@@ -115,9 +117,6 @@ def reply_recipe(color: np.ndarray, state: Mapping[str, np.ndarray],
 def rebuild_reply(recipe: ReplyRecipe, color: np.ndarray, body: bytes | bytearray) -> bytes:
     """The reply's bytes again, from the request `body` it answered (the caller has checked its
     digest) and the stored `color` (3, H, W) float32: what process_frame wrote."""
-    from quietframe.runtime.sanitize import clamp_to_half
-    from quietframe.service import frames
-
     frame = frames.decode(body, {"color": frames.Source(recipe.color_channels, "stored")})
     color = np.array(color, np.float32)
     half = [i for i, d in enumerate(recipe.dtypes) if d == "float16"]
