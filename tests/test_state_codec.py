@@ -282,36 +282,10 @@ def test_a_model_without_its_colour_in_the_state_keeps_the_reply_bytes(tmp_path)
 @pytest.fixture
 def redis_url(tmp_path):
     """A redis-server on loopback, no persistence, ended with the test."""
-    import shutil
-    import socket
-    import subprocess
-    import time
+    from conftest import redis_server
 
-    import redis
-
-    if not shutil.which("redis-server"):
-        pytest.skip("needs redis-server (Debian package redis-server)")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = subprocess.Popen(
-        ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "",
-         "--appendonly", "no", "--dir", str(tmp_path)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
-    try:
-        client, deadline = redis.Redis(port=port, socket_timeout=1), time.monotonic() + 10
-        while True:
-            try:
-                client.ping()
-                break
-            except redis.RedisError:
-                assert time.monotonic() < deadline, "redis-server did not start"
-                time.sleep(0.05)
-        yield f"redis://127.0.0.1:{port}/0"
-    finally:
-        server.terminate()
-        server.wait(10)
+    with redis_server(tmp_path) as url:
+        yield url
 
 
 def test_another_replica_answers_a_retry_with_the_same_bytes(redis_url):
