@@ -19,6 +19,7 @@ import OpenEXR
 from quietframe.runtime import exr_warnings
 from quietframe.runtime.exr_channels import Source, split_name
 from quietframe.runtime.frame_errors import BadExr
+from quietframe.runtime.sanitize import clamp_to_half
 
 log = logging.getLogger("quietframe.service")  # a decode's warnings are its request's
 
@@ -173,6 +174,30 @@ def output_compression(given, session: str):
     if given is None or given.name.removesuffix("_COMPRESSION") in LOSSY_CODECS:
         return OpenEXR.ZIP_COMPRESSION
     return given
+
+
+def encode_denoised(
+    color: np.ndarray,
+    frame: DecodedFrame,
+    color_channels: Sequence[str],
+    precision: str,
+    extra: Mapping[str, str] | None = None,
+    compression: str = "input",
+    denoised_layer: str | None = None,
+) -> tuple[bytes, int]:
+    """`encode` of a model's output: the channels written as half are first clamped to ±65504
+    (a plain cast turns larger values into ±Inf); also how many values were clamped. One place
+    for it, because a retry's reply is written again from the stored colour and must come out
+    byte for byte the same (service/state_codec.py)."""
+    half = [i for i, d in enumerate(output_dtypes(frame, precision)) if d == np.float16]
+    clamped = 0
+    if half:
+        rows, clamped = clamp_to_half(color[half])
+        if clamped:
+            color = color.copy()
+            color[half] = rows
+    return encode(color, frame, color_channels, precision, extra, compression,
+                  denoised_layer), clamped
 
 
 def encode(

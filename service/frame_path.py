@@ -11,7 +11,6 @@ from quietframe.client.protocol import Header, Reset, format_counts, format_timi
 from quietframe.runtime import Denoiser
 from quietframe.runtime.model_options import options_for
 from quietframe.runtime.motion_evidence import HistoryGate, gate_history, keep_probe
-from quietframe.runtime.sanitize import clamp_to_half
 from quietframe.service import frames, state_codec
 from quietframe.service.frame_context import FrameContext
 from quietframe.service.model_choice import Choice
@@ -54,16 +53,8 @@ def process_frame(
     info = denoiser.info
     model = f"{info.name} {info.version}"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
-    color, clamped = result.color, 0
-    dtypes = frames.output_dtypes(frame, spec.precision)
-    half = [i for i, d in enumerate(dtypes) if d == np.float16]
-    if half:  # a plain cast would turn values beyond ±65504 into ±Inf
-        rows, clamped = clamp_to_half(color[half])
-        if clamped:
-            color = color.copy()
-            color[half] = rows
-    body_out = frames.encode(
-        color,
+    body_out, clamped = frames.encode_denoised(
+        result.color,
         frame,
         sources["color"].channels,
         spec.precision,
@@ -98,6 +89,7 @@ def process_frame(
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
     # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
+    dtypes = frames.output_dtypes(frame, spec.precision)
     recipe = state_codec.reply_recipe(result.color, new_state, dtypes, sources["color"].channels,
                                       spec.precision, spec.compression, spec.denoised_layer, extra)
     return ProcessedFrame(

@@ -47,7 +47,6 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from quietframe.runtime.motion_evidence import PROBE_STATE
-from quietframe.runtime.sanitize import clamp_to_half
 from quietframe.service import frames
 
 FORMAT = 1  # meta["codec"]["format"]; a record without meta["codec"] is the float32 form
@@ -118,12 +117,9 @@ def rebuild_reply(recipe: ReplyRecipe, color: np.ndarray, body: bytes | bytearra
     """The reply's bytes again, from the request `body` it answered (the caller has checked its
     digest) and the stored `color` (3, H, W) float32: what process_frame wrote."""
     frame = frames.decode(body, {"color": frames.Source(recipe.color_channels, "stored")})
-    color = np.array(color, np.float32)
-    half = [i for i, d in enumerate(recipe.dtypes) if d == "float16"]
-    if half:
-        color[half] = clamp_to_half(color[half])[0]
-    return frames.encode(color, frame, recipe.color_channels, recipe.precision, recipe.extra,
-                         recipe.compression, recipe.denoised_layer)
+    return frames.encode_denoised(np.asarray(color, np.float32), frame, recipe.color_channels,
+                                  recipe.precision, recipe.extra, recipe.compression,
+                                  recipe.denoised_layer)[0]
 
 
 # ---- encode --------------------------------------------------------------------------------------
