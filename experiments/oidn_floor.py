@@ -86,7 +86,10 @@ def _up(x: np.ndarray, s: int, h: int, w: int) -> np.ndarray:
 
 
 class FloorRunner:
-    """A Floor on (H, W, 3) images given bottom-up to OIDN; one device, filters per call."""
+    """A Floor on (H, W, 3) images given bottom-up to OIDN; one device, filters per call.
+    It drives pyoidn itself rather than the runtime's stage (runtime/oidn_prepass.py) for what
+    the stage has no use for: each filter timed alone, and the aux resampled between the
+    prefilters and the main filter. `blender` and `shipped` are the stage's own calls."""
 
     def __init__(self, threads: int) -> None:
         import pyoidn
