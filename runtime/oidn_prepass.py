@@ -91,27 +91,33 @@ def usable_aux(wanted: tuple[str, ...], present: Iterable[str]) -> tuple[str, ..
 
 
 class _FilterSet:
-    """Committed RT filters for one frame size and aux set on one device, with the arrays they
-    bind."""
+    """Committed RT filters for one image size and aux set on one device, with the arrays they
+    bind. `prefilters`: the aux filters of a `prefilter_aux` stage run first (False: the aux
+    given are already clean: prefiltered for an earlier frame); `main`: the colour filter (False:
+    the aux filters alone, their outputs under `clean_<name>`)."""
 
     def __init__(self, pyoidn, device, settings: OIDNSettings, shape: tuple[int, int],
-                 aux: tuple[str, ...], max_memory_mb: float | None = None) -> None:
+                 aux: tuple[str, ...], max_memory_mb: float | None = None,
+                 prefilters: bool = True, main: bool = True) -> None:
         self._oidn, self._device = pyoidn, device
         self._max_memory_mb = max_memory_mb
-        self.inputs = ("color", *aux)
-        names = [*self.inputs, "output"]
-        if settings.prefilter_aux:
+        prefilters = prefilters and settings.prefilter_aux
+        self.inputs = ("color", *aux) if main else aux
+        names = [*self.inputs, *(("output",) if main else ())]
+        if prefilters:
             names += [f"clean_{name}" for name in aux]
         # (H, W, 3) interleaved: OIDN's FLOAT3 layout; the runtime's planes are copied in.
         self.bound = {k: np.zeros((*shape, 3), np.float32) for k in names}
         self.filters: list = []  # execution order: [albedo, normal,] main
         images = {name: name for name in aux}
-        if settings.prefilter_aux:
+        if prefilters:
             for name in aux:
                 self._add({name: name, "output": f"clean_{name}"}, settings,
                           settings.aux_quality or settings.quality)
             images = {name: f"clean_{name}" for name in aux}
-        self._add({"color": "color", **images, "output": "output"}, settings, settings.quality)
+        if main:
+            self._add({"color": "color", **images, "output": "output"}, settings,
+                      settings.quality)
 
     def _add(self, images: dict[str, str], settings: OIDNSettings, quality: str) -> None:
         oidn = self._oidn
@@ -128,15 +134,17 @@ class _FilterSet:
         flt.commit()
         _check(self._device, "filter commit")
 
-    def run(self, planes: Mapping[str, np.ndarray], out: np.ndarray,
-            bottom_up: bool = False) -> None:
+    def run(self, planes: Mapping[str, np.ndarray], bottom_up: bool = False,
+            outputs: tuple[str, ...] = ("output",)) -> dict[str, np.ndarray]:
+        """Run the filters on (3, H, W) `planes`; the named bound outputs as (3, H, W) copies."""
         rows = slice(None, None, -1) if bottom_up else slice(None)  # the copies reorder rows
         for name in self.inputs:  # (3, H, W) -> (H, W, 3)
             np.copyto(self.bound[name], planes[name][:, rows].transpose(1, 2, 0))
         for flt in self.filters:
             flt.execute()
             _check(self._device, "execute")
-        np.copyto(out, self.bound["output"][rows].transpose(2, 0, 1))
+        return {name: np.ascontiguousarray(self.bound[name][rows].transpose(2, 0, 1))
+                for name in outputs}
 
     def close(self) -> None:
         for flt in self.filters:  # filters first, then (by dropping them) the bound arrays
@@ -197,19 +205,37 @@ class OIDNPrepass:
         scratch = self.max_memory_mb if self.max_memory_mb else OIDN_DEFAULT_MAX_MEMORY_MB
         return arrays * 12 * height * width + int(scratch * 2**20)
 
-    def __call__(self, planes: Mapping[str, np.ndarray],
-                 renderer: str | None = None) -> np.ndarray:
+    def __call__(self, planes: Mapping[str, np.ndarray], renderer: str | None = None,
+                 clean_aux: bool = False) -> np.ndarray:
         """OIDN's output (1, 3, H, W) float32 for sanitised (3, H, W) planes: the colour, and
         the settings' aux images the frame has (absent ones are not given to OIDN: it filters
         the colour alone, or with the albedo alone, rather than read zeros as a black albedo).
-        `renderer` (the frame's, where known) sets the row order OIDN sees (rows_bottom_up)."""
+        `renderer` (the frame's, where known) sets the row order OIDN sees (rows_bottom_up).
+        `clean_aux`: the aux planes are already prefiltered (`prefilter`), so the stage's aux
+        filters do not run again."""
         _, height, width = planes["color"].shape
-        out = np.empty((1, 3, height, width), np.float32)
         aux = usable_aux(self.settings.aux, planes)
-        filter_set = _FilterSet(self._oidn, self._device().device, self.settings,
-                                (height, width), aux, self.max_memory_mb)
+        out = self._run(planes, (height, width), aux, renderer, ("output",),
+                        prefilters=not clean_aux)
+        return out["output"][None]
+
+    def prefilter(self, planes: Mapping[str, np.ndarray],
+                  renderer: str | None = None) -> dict[str, np.ndarray]:
+        """The stage's aux filters alone on (3, H, W) aux planes (any size: a crop of a frame
+        too): {name: prefiltered (3, H, W)} for the settings' aux the planes hold."""
+        aux = usable_aux(self.settings.aux, planes)
+        _, height, width = planes[aux[0]].shape
+        out = self._run(planes, (height, width), aux, renderer,
+                        tuple(f"clean_{name}" for name in aux), main=False)
+        return {name: out[f"clean_{name}"] for name in aux}
+
+    def _run(self, planes: Mapping[str, np.ndarray], shape: tuple[int, int],
+             aux: tuple[str, ...], renderer: str | None, outputs: tuple[str, ...],
+             **roles: bool) -> dict[str, np.ndarray]:
+        filter_set = _FilterSet(self._oidn, self._device().device, self.settings, shape, aux,
+                                self.max_memory_mb, **roles)
         try:
-            filter_set.run(planes, out[0], rows_bottom_up(renderer))
+            out = filter_set.run(planes, rows_bottom_up(renderer), outputs)
         finally:
             filter_set.close()  # its scratch and bound arrays go with it (module docstring)
         with self._lock:
