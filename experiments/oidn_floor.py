@@ -8,8 +8,9 @@ Question: Blender's denoise (aux prefiltered by OIDN at high quality, then the m
 `cleanAux`) costs ~7x plain OIDN-high on this CPU, because `cleanAux` at high quality and the
 high-quality aux filters run OIDN's large network. Which cheaper settings keep its PSNR within
 0.05 dB? Variants: the main filter's quality (high: the large network; balanced: the default
-network; fast: the small one), the aux prefilters' quality, and the aux prefiltered at half
-resolution (2x2 means, bilinear back). Every variant sees Cycles' rows bottom-up, as the
+network; fast: the small one), the aux prefilters' quality, the aux prefiltered at half
+resolution (2x2 means, bilinear back), and the rendered aux given as clean without a prefilter
+(does a high-spp render's aux need one?). Every variant sees Cycles' rows bottom-up, as the
 runtime does (runtime/oidn_prepass.py).
 
 Quality: mean tone-mapped PSNR over each zoo shot's frames, per spp, and the difference to
@@ -47,10 +48,11 @@ class Floor:
     main: str
     aux_quality: str | None = None
     aux_scale: int = 1
+    raw_as_clean: bool = False  # the rendered aux given as clean (`cleanAux`), not prefiltered
 
     @property
     def clean(self) -> bool:
-        return self.aux_quality is not None
+        return self.aux_quality is not None or self.raw_as_clean
 
 
 FLOORS = {
@@ -61,6 +63,7 @@ FLOORS = {
     "clean-fast": Floor("fast", "fast"),
     "half-aux/clean-high": Floor("high", "fast", 2),
     "half-aux/clean-balanced": Floor("balanced", "fast", 2),
+    "raw-aux/clean-high": Floor("high", raw_as_clean=True),  # no prefilter: at high spp?
 }
 
 
@@ -125,7 +128,7 @@ class FloorRunner:
         self.seconds = {}
         flip = [np.ascontiguousarray(x[::-1], np.float32) for x in (color, albedo, normal)]
         aux = {"albedo": flip[1], "normal": flip[2]}
-        if floor.clean:
+        if floor.aux_quality is not None:
             for name in ("albedo", "normal"):
                 src = _down(aux[name], floor.aux_scale) if floor.aux_scale > 1 else aux[name]
                 out = np.zeros_like(src)
