@@ -2,8 +2,8 @@
 uvicorn server on 127.0.0.1: the affinity model's kernel size chosen per session changes the
 denoised frames, is checked at creation against the model's declared inputs (and, for auto,
 against every installed model that declares it), is listed by /v1/models and survives a
-restart of a durable server. An untrained, seeded affinity-h8 export sits in models_dir next to
-a copy of nbg-2l-3g; 64x64 frames."""
+restart of a durable server. Copies of the shipped affinity-h16-k5gc and nbg-2l-3g sit in
+models_dir; 64x64 frames."""
 
 from __future__ import annotations
 
@@ -20,19 +20,17 @@ from quietframe.client.cli import build_parser, main, session_options
 
 SIZE = (64, 64)
 ALLOWED = [5, 7, 9, 11, 13]
+AFFINITY, DEFAULT = "affinity-h16-k5gc", 5  # the shipped affinity model and its card's default
 HINT = "GET /v1/models lists each model's options"
 
 
 @pytest.fixture(scope="module")
 def models_dir(tmp_path_factory):
-    pytest.importorskip("torch")  # the export; serving needs no torch
-    from quietframe.export import cli as export_cli
     from quietframe.runtime import find_model
 
     folder = tmp_path_factory.mktemp("models")
-    out = folder / "affinity-h8.onnx"
-    assert export_cli.main(["--variant", "affinity-h8", "--out", str(out)]) == 0
-    shutil.copy(find_model("nbg-2l-3g"), folder / "nbg-2l-3g.onnx")
+    for name in (AFFINITY, "nbg-2l-3g"):
+        shutil.copy(find_model(name), folder / f"{name}.onnx")
     return folder
 
 
@@ -72,21 +70,21 @@ def refused(url: str, model: str, options: dict, code: str = "invalid_model_opti
 
 
 def test_kernel_size_changes_the_denoised_frames(server, frames):
-    nine = denoise(server.url, frames, "affinity-h8", kernel_size=9)
-    five = denoise(server.url, frames, "affinity-h8", kernel_size=5)
-    default = denoise(server.url, frames, "affinity-h8")  # 13, the export's default
+    nine = denoise(server.url, frames, AFFINITY, kernel_size=9)
+    five = denoise(server.url, frames, AFFINITY, kernel_size=5)
+    default = denoise(server.url, frames, AFFINITY)  # DEFAULT, the card's
     assert all(np.isfinite(f).all() for f in (*nine, *five))
     for a, b, c in zip(nine, five, default, strict=True):
         assert not np.allclose(a, b, rtol=1e-3, atol=1e-4)
         assert not np.allclose(a, c, rtol=1e-3, atol=1e-4)
-    again = denoise(server.url, frames, "affinity-h8", kernel_size=9)  # the session's, not noise
+    again = denoise(server.url, frames, AFFINITY, kernel_size=9)  # the session's, not noise
     for a, b in zip(nine, again, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
 
 
 def test_the_session_shows_its_options(server):
     with Client(server.url) as client:
-        created = client.create_session(*SIZE, model="affinity-h8",
+        created = client.create_session(*SIZE, model=AFFINITY,
                                         model_options={"kernel_size": 7})
         status = client.session(created["id"])
         client.delete_session(created["id"])
@@ -95,19 +93,19 @@ def test_the_session_shows_its_options(server):
 
 
 def test_a_value_outside_the_allowed_ones_is_refused(server):
-    detail = refused(server.url, "affinity-h8", {"kernel_size": 6})
+    detail = refused(server.url, AFFINITY, {"kernel_size": 6})
     assert f"kernel_size must be one of {ALLOWED}, got 6" in detail and HINT in detail
-    assert "must be one of" in refused(server.url, "affinity-h8", {"kernel_size": 9.5})
+    assert "must be one of" in refused(server.url, AFFINITY, {"kernel_size": 9.5})
     # not a number at all: the request's own validation
-    assert "kernel_size" in refused(server.url, "affinity-h8", {"kernel_size": "9"},
+    assert "kernel_size" in refused(server.url, AFFINITY, {"kernel_size": "9"},
                                     code="invalid_request")
-    refused(server.url, "affinity-h8", {"kernel_size": True}, code="invalid_request")
+    refused(server.url, AFFINITY, {"kernel_size": True}, code="invalid_request")
 
 
 def test_an_unknown_option_names_the_models_options(server):
-    detail = refused(server.url, "affinity-h8", {"kernal_size": 9})
+    detail = refused(server.url, AFFINITY, {"kernal_size": 9})
     assert "has no option kernal_size" in detail
-    assert f"its options: kernel_size (one of {ALLOWED}, default 13)" in detail
+    assert f"its options: kernel_size (one of {ALLOWED}, default {DEFAULT})" in detail
 
 
 def test_an_option_on_a_model_without_inputs_is_refused(server):
@@ -115,7 +113,7 @@ def test_an_option_on_a_model_without_inputs_is_refused(server):
     assert "'nbg-2l-3g' has no option kernel_size: it takes no run-time options" in detail
     # every installed model that takes the option is named (the shipped affinity tier too)
     named = detail.split("models with kernel_size: ")[1].split(";")[0].split(", ")
-    assert "affinity-h8" in named and "nbg-2l-3g" not in named
+    assert AFFINITY in named and "nbg-2l-3g" not in named
 
 
 def test_auto_takes_an_option_some_model_has_and_gives_it_only_to_those(server, frames):
@@ -135,21 +133,21 @@ def test_auto_takes_an_option_some_model_has_and_gives_it_only_to_those(server, 
 
 def test_models_lists_each_models_options(server, capsys):
     models = {m["name"]: m for m in httpx.get(f"{server.url}/v1/models").json()["models"]}
-    (option,) = models["affinity-h8"]["options"]
-    assert option["name"] == "kernel_size" and option["default"] == 13
+    (option,) = models[AFFINITY]["options"]
+    assert option["name"] == "kernel_size" and option["default"] == DEFAULT
     assert option["allowed"] == ALLOWED and "kernel size" in option["doc"]
     assert models["nbg-2l-3g"]["options"] == []
     assert main(["models", "--server", server.url]) == 0
     listing = capsys.readouterr().out
-    assert "options: kernel_size (default 13; one of 5, 7, 9, 11, 13)" in listing
+    assert f"options: kernel_size (default {DEFAULT}; one of 5, 7, 9, 11, 13)" in listing
 
 
 def test_options_survive_a_restart_and_older_sessions_still_load(tmp_path, models_dir, frames):
     state = tmp_path / "state"
     with LiveServer(models_dir=str(models_dir), state_dir=str(state)) as live:
-        reference = denoise(live.url, frames, "affinity-h8", kernel_size=9)
+        reference = denoise(live.url, frames, AFFINITY, kernel_size=9)
         with Client(live.url) as client:
-            sid = client.create_session(*SIZE, model="affinity-h8",
+            sid = client.create_session(*SIZE, model=AFFINITY,
                                         model_options={"kernel_size": 9})["id"]
             old = client.create_session(*SIZE, model="nbg-2l-3g")["id"]
             for i in range(2):
@@ -206,9 +204,9 @@ def test_cli_denoise_sends_model_options(tmp_path, server, frames):
     for i, data in enumerate(frames):
         (src / f"shot.{1001 + i}.exr").write_bytes(data)
     code = main(["denoise", "--server", server.url, str(src), "--out", str(out), "--quiet",
-                 "--model", "affinity-h8", "--model-option", "kernel_size=9"])
+                 "--model", AFFINITY, "--model-option", "kernel_size=9"])
     assert code == 0
-    expected = denoise(server.url, frames, "affinity-h8", kernel_size=9)
+    expected = denoise(server.url, frames, AFFINITY, kernel_size=9)
     for i, reference in enumerate(expected):
         np.testing.assert_allclose(colour((out / f"shot.{1001 + i}.exr").read_bytes()),
                                    reference, rtol=1e-5, atol=1e-6)
