@@ -32,7 +32,9 @@ def frame_inputs(index: int) -> tuple:
     return moving_frame(index, HEIGHT, WIDTH)
 
 
-@pytest.fixture(scope="module", params=["affinity-h16", "affinity-f16", "affinity-h16-single",
+# Each export path: the U-Net at full (f16) and half resolution without history (h16-single) and
+# with it, with K = 5 kernels, the guide and the coarse-first order (h16-k5gc, the shipped one).
+@pytest.fixture(scope="module", params=["affinity-f16", "affinity-h16-single",
                                       "affinity-h16-k5gc"])
 def exported(request, tmp_path_factory):
     torch.manual_seed(0)

@@ -45,7 +45,9 @@ def moving_frames(index: int, seed: int = 3) -> dict[str, np.ndarray]:
     return planes
 
 
-@pytest.fixture(scope="module", params=["oidn-temporal-high", "oidn-temporal-fast"])
+# The default architecture (the shipped oidn-temporal-acc's); oidn-temporal-fast, kept for a
+# comparison and not shipped, is trained below (test_trains_on_cached_oidn_outputs).
+@pytest.fixture(scope="module", params=["oidn-temporal-high"])
 def exported(request, tmp_path_factory) -> tuple[ot.OIDNTemporal, Path]:
     torch.manual_seed(0)
     model = ot.OIDNTemporal(ot.VARIANTS[request.param]).eval()
