@@ -10,7 +10,10 @@ and the runtime (`Denoiser`) runs OIDN's RT filter on the frame's sanitised colo
 normal and feeds the result to the graph input named by "input". With "color_from" (optional),
 OIDN denoises the output of that model (a file in the composed model's folder, run with its own
 state, e.g. the reprojected accumulation of the noisy colour) instead of the frame's colour: it
-then sees several frames' samples instead of one. pyoidn is optional: without it
+then sees several frames' samples instead of one. A `prefilter_aux` stage can also run in two
+calls: its aux filters alone (`prefilter`, on a frame or any crop of one), then its colour filter
+on those aux (`clean_aux=True`), equal to the one call (experiments/aux_history.py uses the split
+to give the colour filter aux prefiltered for an earlier frame). pyoidn is optional: without it
 `OIDNPrepass` raises `PrepassUnavailable`, and the service leaves such models out.
 
 Resources: one OIDN device per worker thread (OIDN devices are not meant to be shared between
