@@ -23,7 +23,7 @@ Quality: the zoo's shots per spp, mean tone-mapped PSNR and locked-off flicker b
 denoise. Speed: CPU seconds per 1280x720 frame on a locked-off synthetic sequence (colour noise
 new every frame) and a moving one, frame by frame, beside the runtime's plain OIDN-high on the
 same frames: ratios measured in the same run.
-Result (docs/evaluation/oidn-floor/README.md, "Aux history"): rejected.
+Result (docs/evaluation/oidn-floor/README.md, "Aux across frames"): rejected.
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from quietframe.bench.evaluate import build_methods
 from quietframe.bench.harness import RuntimeMethod
 from quietframe.bench.synthetic import frame_buffers
 from quietframe.bench.zoo_eval import evaluate, shot_folders
+from quietframe.model.temporal import DEPTH_REL_TOLERANCE, MIN_CURRENT_WEIGHT
 from quietframe.runtime.card import OIDNStage
 from quietframe.runtime.denoiser import Denoiser
 from quietframe.runtime.oidn_prepass import OIDNPrepass
@@ -52,10 +53,8 @@ from quietframe.scenes.zoo_shots import ZOO_SPLITS
 MODEL = "oidn-history-cleanaux"
 AUX_NAMES = ("albedo", "normal")
 RAW, CLEAN, DEPTH, COUNT = slice(0, 6), slice(6, 12), 12, 13  # the history's planes
-MIN_CURRENT_WEIGHT = 0.2  # the colour accumulation's (model/temporal.py)
 COUNT_CAP = round(1 / MIN_CURRENT_WEIGHT) + 1  # its weight stops changing at this length
 STILL_TOLERANCE = 0.01  # px of motion that counts as none
-DEPTH_TOLERANCE = 0.1  # the surface test's (model/temporal.py DEPTH_REL_TOLERANCE)
 TILE = 32  # px: the unit of the staleness test and of the crops
 MARGIN = 32  # px of context around a crop
 WHOLE_FRAME_SHARE = 0.8  # crops covering more than this: prefilter the whole frame
@@ -98,7 +97,7 @@ def step(policy: Policy, aux: Mapping[str, np.ndarray], motion: np.ndarray, dept
     if previous is None or not still.any():
         clean = np.concatenate(list(prefilter(_named(raw)).values()))
         return AuxStep(_named(clean), _state(raw, clean, depth, np.ones_like(depth)), 1.0)
-    moved_surface = np.abs(depth - previous[DEPTH]) > DEPTH_TOLERANCE * np.abs(depth)
+    moved_surface = np.abs(depth - previous[DEPTH]) > DEPTH_REL_TOLERANCE * np.abs(depth)
     keep = still & (previous[COUNT] >= 1) & ~_opened(moved_surface)
     keep &= ~_stale_tiles(raw, previous[RAW], keep)
     count = np.where(keep, np.minimum(previous[COUNT], COUNT_CAP - 1) + 1, 1).astype(np.float32)
@@ -147,7 +146,7 @@ def _state(raw: np.ndarray, clean: np.ndarray, depth: np.ndarray,
     return np.concatenate((raw, clean, depth[None], count[None])).astype(np.float32, copy=False)
 
 
-def _tile_means(x: np.ndarray, height: int, width: int) -> np.ndarray:
+def _tile_sums(x: np.ndarray, height: int, width: int) -> np.ndarray:
     """(C, ⌈H/TILE⌉, ⌈W/TILE⌉) sums over each tile of (C, H, W) `x` (edge tiles padded with 0)."""
     th, tw = -(-height // TILE), -(-width // TILE)
     padded = np.zeros((x.shape[0], th * TILE, tw * TILE), np.float32)
@@ -160,8 +159,8 @@ def _stale_tiles(raw: np.ndarray, accumulated: np.ndarray, keep: np.ndarray) -> 
     by more than STALE_LIMIT in some channel."""
     _, height, width = raw.shape
     diff = np.where(keep, raw - accumulated, 0)
-    sums = _tile_means(diff, height, width)
-    counts = _tile_means(keep[None].astype(np.float32), height, width)[0]
+    sums = _tile_sums(diff, height, width)
+    counts = _tile_sums(keep[None].astype(np.float32), height, width)[0]
     stale = (np.abs(sums).max(axis=0) > STALE_LIMIT * np.maximum(counts, 1))
     return np.repeat(np.repeat(stale, TILE, 0), TILE, 1)[:height, :width]
 
@@ -172,7 +171,7 @@ def _prefilter_dirty(accumulated: np.ndarray, clean: np.ndarray, refresh: np.nda
     hold such a pixel, in crops with MARGIN px of context, or the whole frame once the crops
     would cover WHOLE_FRAME_SHARE of it. Returns the share of the frame prefiltered."""
     _, height, width = accumulated.shape
-    dirty = _tile_means(refresh[None].astype(np.float32), height, width)[0] > 0
+    dirty = _tile_sums(refresh[None].astype(np.float32), height, width)[0] > 0
     if not dirty.any():
         return 0.0
     boxes = ([] if dirty.mean() >= WHOLE_FRAME_SHARE  # the crops' margins only add to it

@@ -227,6 +227,9 @@ class OIDNPrepass:
         """The stage's aux filters alone on (3, H, W) aux planes (any size: a crop of a frame
         too): {name: prefiltered (3, H, W)} for the settings' aux the planes hold."""
         aux = usable_aux(self.settings.aux, planes)
+        if not self.settings.prefilter_aux or not aux:
+            raise ValueError("prefilter: the stage prefilters no aux (prefilter_aux off) or the "
+                             "planes hold no albedo; give an albedo, and a normal if wanted")
         _, height, width = planes[aux[0]].shape
         out = self._run(planes, (height, width), aux, renderer,
                         tuple(f"clean_{name}" for name in aux), main=False)
