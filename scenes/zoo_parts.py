@@ -33,14 +33,28 @@ def mesh(name: str, verts, faces, mat: bpy.types.Material, smooth: bool = False)
     return link(bpy.data.objects.new(name, data))
 
 
+_BOX_FACES = ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
+
+
+def _box_verts(lo, hi) -> list[tuple[float, float, float]]:
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    return [(x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0),
+            (x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1)]
+
+
 def box(name: str, lo, hi, mat) -> bpy.types.Object:
     """An axis-aligned box from corner `lo` to corner `hi` (vertices in world metres, so
     object-space texture coordinates are metres)."""
-    (x0, y0, z0), (x1, y1, z1) = lo, hi
-    v = [(x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0),
-         (x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1)]
-    f = [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)]
-    return mesh(name, v, f, mat)
+    return boxes(name, [(lo, hi)], mat)
+
+
+def boxes(name: str, corners, mat) -> bpy.types.Object:
+    """Many axis-aligned boxes (lo, hi) as one mesh: fence pickets, book spines, comb teeth."""
+    verts, faces = [], []
+    for lo, hi in corners:
+        faces += [tuple(len(verts) + i for i in f) for f in _BOX_FACES]
+        verts += _box_verts(lo, hi)
+    return mesh(name, verts, faces, mat)
 
 
 def quad(name: str, corner, u, v, mat) -> bpy.types.Object:
@@ -99,6 +113,78 @@ def leaves(name: str, center, radius, count: int, leaf: float, rng, mat):
     verts = np.concatenate([p - a, p - b, p + a, p + b], 1).reshape(-1, 3)
     faces = [(4 * i, 4 * i + 1, 4 * i + 2, 4 * i + 3) for i in range(count)]
     return mesh(name, verts, faces, mat)
+
+
+def rods(name: str, segments, radius: float, mat, sides: int = 6) -> bpy.types.Object:
+    """Thin round bars (cables, branches, posts of a railing) from point pairs, one mesh of
+    `sides`-gon prisms: geometry a pixel or less wide at the shots' distances."""
+    verts, faces = [], []
+    ring = np.linspace(0.0, 2 * np.pi, sides, endpoint=False)
+    for p0, p1 in segments:
+        p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+        axis = (p1 - p0) / max(np.linalg.norm(p1 - p0), 1e-9)
+        a = np.cross(axis, (0.0, 0.0, 1.0) if abs(axis[2]) < 0.9 else (1.0, 0.0, 0.0))
+        a /= np.linalg.norm(a)
+        b = np.cross(axis, a)
+        offsets = radius * (np.cos(ring)[:, None] * a + np.sin(ring)[:, None] * b)
+        base = len(verts)
+        verts += list(p0 + offsets) + list(p1 + offsets)
+        faces += [(base + k, base + (k + 1) % sides, base + sides + (k + 1) % sides,
+                   base + sides + k) for k in range(sides)]
+    return mesh(name, verts, faces, mat)
+
+
+def branches(origin, length: float, depth: int, rng, spread: float = 0.6) -> list:
+    """Segments of a bare tree grown upward from `origin`: each branch splits in two to
+    three shorter ones (0.6-0.8 of its length) turned by up to `spread` radians."""
+    segments = []
+
+    def grow(p, direction, size, level):
+        end = p + direction * size
+        segments.append((p, end))
+        if level == 0:
+            return
+        for _ in range(int(rng.integers(2, 4))):
+            d = direction + rng.normal(0.0, spread, 3)
+            d[2] = abs(d[2]) * 0.7 + 0.2
+            grow(end, d / np.linalg.norm(d), size * rng.uniform(0.6, 0.8), level - 1)
+
+    grow(np.asarray(origin, float), np.array([0.0, 0.0, 1.0]), length, depth)
+    return segments
+
+
+def wireframe(obj: bpy.types.Object, thickness: float) -> bpy.types.Object:
+    """Keep only `obj`'s edges, as bars `thickness` metres thick (Blender's Wireframe
+    modifier): a rotating object made of lines a pixel or two wide."""
+    mod = obj.modifiers.new("wireframe", "WIREFRAME")
+    mod.thickness, mod.use_replace = thickness, True
+    return obj
+
+
+def spin(obj: bpy.types.Object, degrees_per_frame: float, frames: int = 40,
+         axis: int = 2) -> bpy.types.Object:
+    """Key a turn of `degrees_per_frame` about one axis on frames 0..frames (object motion in
+    the Vector pass); the keys are made linear by the shot's camera set-up."""
+    obj.rotation_mode = "XYZ"
+    start = tuple(obj.rotation_euler)
+    for t in range(frames + 1):
+        rot = list(start)
+        rot[axis] += math.radians(degrees_per_frame * t)
+        obj.rotation_euler = rot
+        obj.keyframe_insert("rotation_euler", frame=t)
+    return linear_keys(obj)
+
+
+def linear_keys(obj: bpy.types.Object) -> bpy.types.Object:
+    """Linear keys with linear extrapolation, so the Vector pass of every keyed frame is the
+    motion since the frame before."""
+    anim = obj.animation_data
+    if anim and anim.action:
+        for curve in anim.action.fcurves:
+            curve.extrapolation = "LINEAR"
+            for key in curve.keyframe_points:
+                key.interpolation = "LINEAR"
+    return obj
 
 
 # ---------------------------------------------------------------------------------------------
@@ -297,6 +383,16 @@ def sun(elevation_deg: float, azimuth_deg: float, strength: float, rgb=(1.0, 0.9
     obj.rotation_euler = Euler((math.radians(90 - elevation_deg), 0.0,
                                 math.radians(azimuth_deg + 90)), "XYZ")
     return link(obj)
+
+
+def point(name: str, location, watts: float, radius: float = 0.01, rgb=(1.0, 0.9, 0.75)):
+    """A small bright bulb: through glass it casts caustics a path tracer finds only by chance
+    (fireflies at every spp a farm renders)."""
+    light = bpy.data.lights.new(name, "POINT")
+    light.energy, light.color, light.shadow_soft_size = watts, rgb, radius
+    obj = link(bpy.data.objects.new(name, light))
+    obj.location = location
+    return obj
 
 
 def area(name: str, location, target, size: float, watts: float, rgb=(1.0, 0.92, 0.82)):

@@ -2,7 +2,7 @@
 Cycles splits (scenes/cycles_render.py), so every evaluation tool reads a zoo shot as it reads
 a g2 sequence:
 
-    <data>/zoo1-cycles/<split>/<shot>/manifest.json, spp0001/frame_0001.exr, ...,
+    <data>/<zoo round>-cycles/<split>/<shot>/manifest.json, spp0001/frame_0001.exr, ...,
                                       reference_a/frame_0001.exr, reference_b/...
 
 Inputs at 1-64 spp with Blender's own denoise (OIDN, Accurate prefilter, High) stored beside
@@ -38,14 +38,14 @@ from .cycles_render import (
 )
 from .layout import DATA_DIR
 from .manifest import MANIFEST, open_sequence, write_json
-from .zoo_shots import ZOO_SPLITS, ZOO_VERSION, Shot, shots, zoo_dir
+from .zoo_shots import ZOO_ROUNDS, ZOO_SPLITS, ZOO_VERSION, Shot, shots, zoo_dir
 
 
 def shot_config(shot: Shot, reference_spp: int, threads: int) -> CyclesConfig:
     w, h = shot.size
     return CyclesConfig(width=w, height=h, frames=(shot.frames, shot.frames),
-                        reference_spp=reference_spp, threads=threads,
-                        locked_off=shot.locked_off, extra={"zoo": ZOO_VERSION})
+                        spp_levels=shot.spp_levels, reference_spp=reference_spp,
+                        threads=threads, locked_off=shot.locked_off, extra={"zoo": shot.zoo})
 
 
 def choose_exposure(shot: Shot, cfg: CyclesConfig, work: Path) -> float:
@@ -74,7 +74,7 @@ def render_shot(shot: Shot, out: Path, cfg: CyclesConfig, log=print) -> dict:
         t0, cpu0 = time.perf_counter(), time.process_time()
         exposure = choose_exposure(shot, cfg, out)
         manifest = {
-            "generator": ZOO_VERSION, "renderer": "cycles", "blender": bpy.app.version_string,
+            "generator": shot.zoo, "renderer": "cycles", "blender": bpy.app.version_string,
             "seed": shot.seed, "config": cfg.key(), "frame_count": shot.frames,
             "exposure": exposure, "zoo": shot.record(),
             "cuts": [] if shot.cut_at is None else [shot.cut_at],
@@ -98,7 +98,7 @@ def motion_stats(out: Path, n_frames: int) -> dict:
     return {"mean_abs_vector_px": mean}
 
 
-def summarize(root: Path, selected: list[Shot]) -> dict:
+def summarize(root: Path, selected: list[Shot], zoo: str = ZOO_VERSION) -> dict:
     """<split>/split.json: per shot, CPU-hours, reference noise and PSNR ceiling (median over
     its reference frames) and the motion the renderer wrote; the split's medians."""
     per_shot, noise, ceiling, cpu = {}, [], [], 0.0
@@ -124,7 +124,7 @@ def summarize(root: Path, selected: list[Shot]) -> dict:
             **(motion_stats(root / s.name, len(m["frames"])) if m["frames"] else {}),
         }
     summary = {
-        "zoo": ZOO_VERSION, "renderer": "cycles", "blender": bpy.app.version_string,
+        "zoo": zoo, "renderer": "cycles", "blender": bpy.app.version_string,
         "command": " ".join(sys.argv), "cpu_hours": round(cpu / 3600, 3),
         "reference_noise_median": float(np.median(noise)) if noise else None,
         "psnr_ceiling_db_median": float(np.median(ceiling)) if ceiling else None,
@@ -138,24 +138,27 @@ def summarize(root: Path, selected: list[Shot]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--split", required=True, choices=ZOO_SPLITS)
+    p.add_argument("--zoo", default=ZOO_VERSION, choices=ZOO_ROUNDS, help="the round")
     p.add_argument("--shots", default="", help="comma list of shot names (default: the split's)")
-    p.add_argument("--reference-spp", type=int, default=512, help="both halves together")
+    p.add_argument("--reference-spp", type=int, default=0,
+                   help="both halves together (default: the shot's)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", type=Path, default=DATA_DIR)
     args = p.parse_args(argv)
-    selected = [s for s in shots(args.split)
+    selected = [s for s in shots(args.split, args.zoo)
                 if not args.shots or s.name in args.shots.split(",")]
-    root = zoo_dir(args.out, args.split)
+    root = zoo_dir(args.out, args.split, args.zoo)
     print(f"zoo {args.split}: {len(selected)} shots -> {root}", flush=True)
     failed = 0
     for s in selected:
         try:
-            render_shot(s, root / s.name, shot_config(s, args.reference_spp, args.threads),
+            cfg = shot_config(s, args.reference_spp or s.reference_spp, args.threads)
+            render_shot(s, root / s.name, cfg,
                         log=lambda m, n=s.name: print(f"{n}: {m}", flush=True))
         except Exception as e:  # noqa: BLE001 - one bad shot must not stop the night's render
             failed += 1
             print(f"shot {s.name}: failed: {e!r}", flush=True)
-    summary = summarize(root, shots(args.split))
+    summary = summarize(root, shots(args.split, args.zoo), args.zoo)
     print(json.dumps({k: summary[k] for k in ("cpu_hours", "reference_noise_median",
                                                "psnr_ceiling_db_median")}), flush=True)
     return 1 if failed else 0

@@ -16,6 +16,7 @@ import bpy  # only in the Cycles venv
 import numpy as np
 from mathutils import Euler, Vector
 
+from . import zoo_sets2
 from .zoo_parts import (
     Material,
     area,
@@ -26,6 +27,7 @@ from .zoo_parts import (
     glass,
     leaf_material,
     leaves,
+    linear_keys,
     link,
     metal,
     photo_material,
@@ -159,7 +161,7 @@ def set_gallery(rng, v: dict) -> dict[str, Anchor]:
     for t in range(0, 40):  # turns 3 degrees a frame: object motion in the Vector pass
         head.rotation_euler = (0.0, 0.0, math.radians(3.0 * t))
         head.keyframe_insert("rotation_euler", frame=t)
-    _linear(head)
+    linear_keys(head)
     sphere("orb", (3.5, 2.5, 0.5), 0.5, glass("glass"))
     for k in range(3):
         area(f"skylight{k}", (2.5 + 4.5 * k, 3.0, h - 0.05), (2.5 + 4.5 * k, 3.5, 0), 1.5,
@@ -243,22 +245,12 @@ def set_courtyard(rng, v: dict) -> dict[str, Anchor]:
 SETS: dict[str, Callable[[np.random.Generator, dict], dict[str, Anchor]]] = {
     "study": set_study, "street": set_street, "gallery": set_gallery,
     "tabletop": set_tabletop, "garden": set_garden, "courtyard": set_courtyard,
+    **zoo_sets2.SETS,
 }
 
 
 # ---------------------------------------------------------------------------------------------
 # Camera work
-
-
-def _linear(obj) -> None:
-    """Linear keys with linear extrapolation, so the Vector pass of every keyed frame is the
-    motion since the frame before."""
-    anim = obj.animation_data
-    if anim and anim.action:
-        for curve in anim.action.fcurves:
-            curve.extrapolation = "LINEAR"
-            for key in curve.keyframe_points:
-                key.interpolation = "LINEAR"
 
 
 def _pixel_angle(fov_deg: float, width: int) -> float:
@@ -280,6 +272,8 @@ def camera_poses(shot: Shot, anchor: Anchor, rng, frames: range) -> list[tuple[V
         loc, rot = eye.copy(), base.copy()
         if shot.camera == "dolly":
             loc = eye + forward * shot.speed * t
+        elif shot.camera == "truck":  # sideways: near things cross fast, far ones slowly
+            loc = eye + forward.cross(Vector((0.0, 0.0, 1.0))).normalized() * shot.speed * t
         elif shot.camera == "pan":
             yaw = Euler((0.0, 0.0, -shot.speed * per_px * t)).to_quaternion()
             rot = yaw @ base
@@ -308,7 +302,7 @@ def add_camera(name: str, shot: Shot, anchor: Anchor, rng) -> bpy.types.Object:
         obj.location, obj.rotation_euler = loc, rot
         obj.keyframe_insert("location", frame=t + 1)
         obj.keyframe_insert("rotation_euler", frame=t + 1)
-    _linear(obj)
+    linear_keys(obj)
     if shot.zero_first_motion:  # hold before frame 1: the renderer sees no motion there
         for curve in obj.animation_data.action.fcurves:
             curve.extrapolation = "CONSTANT"

@@ -15,6 +15,12 @@ sub-pixel shake, fine textures, a daylight exterior, motion blur (Cycles then wr
 
 The split is by shot: validation shots give `auto` its tables, test shots are reported only.
 Each split has one shot of every camera kind, on different sets, lights and textures.
+
+Round 2 (`zoo2`) holds the shots a reprojected history finds hard, longer (24 frames) and
+larger (320x180): thin geometry in front of a distant background under a camera truck
+(parallax), rotating wireframe objects, a defocused foreground crossing the frame, a wide range
+of screen motion in one frame, caustic fireflies, and a locked-off shot of that content for
+the still/moving verdict at low spp. Its sets are in scenes/zoo_sets2.py.
 """
 
 from __future__ import annotations
@@ -22,8 +28,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-ZOO_VERSION = "zoo1"  # bump when a shot's content changes: renders land in a new folder
+ZOO_VERSION = "zoo1"  # round 1; bump a round when a shot's content changes (new folder)
+ZOO_ROUNDS = ("zoo1", "zoo2")
 ZOO_SPLITS = ("validation", "test")
+ROUND1_SPP = (1, 2, 4, 8, 16, 64)
+ROUND2_SPP = (1, 4, 16, 64)
 
 
 @dataclass(frozen=True)
@@ -42,6 +51,9 @@ class Shot:
     zero_first_motion: bool = False  # no motion keyed before frame 1: its Vector is all zero
     cut_at: int | None = None  # frame index (0-based) where a second camera takes over
     variant: dict = field(default_factory=dict)  # set options (environment, textures)
+    zoo: str = ZOO_VERSION  # the round: renders land in <data>/<zoo>-cycles/<split>/
+    spp_levels: tuple[int, ...] = ROUND1_SPP
+    reference_spp: int = 512  # both adaptive halves together
 
     @property
     def locked_off(self) -> bool:
@@ -50,7 +62,18 @@ class Shot:
     def record(self) -> dict:
         d = asdict(self)
         d["tags"], d["size"] = list(self.tags), list(self.size)
+        d["spp_levels"] = list(self.spp_levels)
         return d
+
+
+def _round2(name: str, split: str, set_: str, camera: str, tags: tuple[str, ...], seed: int,
+            **kw) -> Shot:
+    """A round-2 shot: 24 frames at 320x180, inputs at 1/4/16/64 spp, references of 256 spp
+    (both halves; 4x on a locked-off shot): 2.6x round 1's pixels per shot, so half the
+    reference samples keep a split near 4 CPU-hours (docs/zoo.md states the ceilings)."""
+    kw.setdefault("size", (320, 180))
+    return Shot(name, split, set_, camera, tags, seed, frames=24, zoo="zoo2",
+                spp_levels=ROUND2_SPP, reference_spp=256, **kw)
 
 
 SHOTS: tuple[Shot, ...] = (
@@ -91,16 +114,48 @@ SHOTS: tuple[Shot, ...] = (
     Shot("garden-cut", "test", "garden", "orbit",
          ("camera cut", "foliage", "depth of field"), seed=8_100_006, speed=1.5, cut_at=5,
          dof=True, variant={"environment": "sunrise"}),
+    # --- round 2, validation: shots the history finds hard -------------------------------------
+    # truck speeds are metres a frame: 0.07 m moves the fence (3 m) ~6 px, the near post
+    # (1.1 m) ~18 px and the far facades (40 m) ~0.5 px a frame at 320 px and 60 degrees
+    _round2("fence-truck", "validation", "yard", "truck",
+            ("thin geometry", "parallax", "wide motion range", "daylight exterior",
+             "bare branches", "cables"), seed=8_200_001, speed=0.07),
+    _round2("studio-spin", "validation", "studio", "orbit",
+            ("rotating wireframe", "thin geometry", "caustic fireflies", "dark"),
+            seed=8_200_002, speed=0.8, variant={"spin": 4.0}),
+    _round2("shelf-whip", "validation", "library", "truck",
+            ("fast move", "thin geometry", "defocused foreground", "wide motion range",
+             "parallax", "depth of field"), seed=8_200_003, speed=0.09, dof=True),
+    _round2("studio-locked", "validation", "studio", "locked",
+            ("locked-off", "thin geometry", "caustic fireflies", "dark"), seed=8_200_004,
+            variant={"spin": 0.0, "environment": "night"}),
+    # --- round 2, test: reported only ----------------------------------------------------------
+    _round2("railing-truck-blur", "test", "yard", "truck",
+            ("thin geometry", "parallax", "wide motion range", "daylight exterior",
+             "bare branches", "cables", "motion blur"), seed=8_300_001, speed=-0.06,
+            motion_blur=True, variant={"railing": True, "sun_elevation": 25.0}),
+    _round2("wire-dolly", "test", "studio", "dolly",
+            ("rotating wireframe", "thin geometry", "caustic fireflies", "dark"),
+            seed=8_300_002, speed=0.05, variant={"spin": -5.0, "environment": "studio"}),
+    _round2("comb-whip", "test", "library", "truck",
+            ("fast move", "thin geometry", "defocused foreground", "wide motion range",
+             "parallax", "depth of field"), seed=8_300_003, speed=-0.11, dof=True,
+            variant={"combs": True, "environment": "sunset"}),
+    _round2("yard-locked", "test", "yard", "locked",
+            ("locked-off", "thin geometry", "bare branches", "daylight exterior"),
+            seed=8_300_004, variant={"sun_elevation": 8.0}),
 )
 
 
-def zoo_dir(data: Path | str, split: str) -> Path:
-    """Where a zoo split's shots are rendered: <data>/<ZOO_VERSION>-cycles/<split>/<shot>/."""
-    return Path(data).expanduser() / f"{ZOO_VERSION}-cycles" / split
+def zoo_dir(data: Path | str, split: str, zoo: str = ZOO_VERSION) -> Path:
+    """Where a zoo round's split is rendered: <data>/<zoo>-cycles/<split>/<shot>/."""
+    return Path(data).expanduser() / f"{zoo}-cycles" / split
 
 
-def shots(split: str | None = None) -> list[Shot]:
-    return [s for s in SHOTS if split is None or s.split == split]
+def shots(split: str | None = None, zoo: str | None = ZOO_VERSION) -> list[Shot]:
+    """A round's shots (`zoo=None`: every round's), of one split or all."""
+    return [s for s in SHOTS if (split is None or s.split == split)
+            and (zoo is None or s.zoo == zoo)]
 
 
 def shot(name: str) -> Shot:

@@ -20,6 +20,9 @@ from quietframe.service.model_choice import ModelProfile, NoiseLevel, choose
 COVERED = ("locked-off", "slow dolly", "fast pan", "hand-held shake", "daylight exterior",
            "motion blur", "depth of field", "first frame zero motion", "camera cut")
 FINE = ("foliage", "fabric", "printed text", "fine brick")
+# Round 2 (issue 51): what a reprojected history finds hard, in every split
+HARD = ("thin geometry", "parallax", "rotating wireframe", "defocused foreground",
+        "wide motion range", "caustic fireflies", "locked-off")
 
 
 def test_each_split_covers_every_camera_and_content_kind():
@@ -38,6 +41,20 @@ def test_each_split_covers_every_camera_and_content_kind():
             assert s.camera == "pan" and s.speed >= 8, s.name
         if "hand-held shake" in s.tags:
             assert s.camera == "shake" and s.speed < 1, s.name
+
+
+def test_round_two_holds_the_shots_a_history_finds_hard():
+    for split in ("validation", "test"):
+        hard = shots(split, "zoo2")
+        tags = {t for s in hard for t in s.tags}
+        assert set(HARD) <= tags, (split, set(HARD) - tags)
+        for s in hard:  # long and large enough for a loss that builds up to show
+            assert s.frames >= 24 and s.size[0] >= 320 and s.size[1] >= 180, s.name
+            assert s.spp_levels == (1, 4, 16, 64), s.name
+    assert {s.zoo for s in SHOTS} == {"zoo1", "zoo2"}
+    assert not {s.name for s in shots(None, "zoo1")} & {s.name for s in shots(None, "zoo2")}
+    trucks = [s for s in shots(None, "zoo2") if s.camera == "truck"]
+    assert trucks and all("parallax" in s.tags for s in trucks)
 
 
 def _rows(gap_by_method: dict[str, float], spps=(1, 4)) -> list[dict]:
