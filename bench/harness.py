@@ -57,7 +57,8 @@ class RuntimeMethod:
 
     def __init__(self, path: Path | Denoiser, threads: int = 2, options: dict | None = None,
                  single_frame: bool = False, zeros_for_required: bool = False,
-                 renderer: str | None = None) -> None:
+                 renderer: str | None = None, camera: str = "auto") -> None:
+        self.camera = camera  # the session's `camera` (runtime/motion_evidence.gate_history)
         self.denoiser = path if isinstance(path, Denoiser) else Denoiser(
             path, threads=threads, options=options)
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
@@ -80,7 +81,7 @@ class RuntimeMethod:
         options = options_for(self.denoiser.info, {}, self.header_spp)  # the service's rule
         gate = None
         if self.denoiser.info.state_specs:  # the service's rule for history without vectors
-            gate = gate_history(planes, self.state)
+            gate = gate_history(planes, self.state, self.camera)
             self.dropped += gate.dropped
         result = self.denoiser.denoise(planes, gate.state if gate else self.state, options,
                                        self.renderer)

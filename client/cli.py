@@ -516,6 +516,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="factors for a motion layer named in --channels (Blender Vector: 1 -1)",
     )
     denoise.add_argument(
+        "--locked-off",
+        dest="camera",
+        action="store_const",
+        const="locked",
+        default="auto",
+        help="the camera is locked off for the whole shot: frames without motion vectors keep "
+        "their history without being judged from their aux (at 1-4 spp aux noise can look "
+        "like motion); a cut the aux show still resets it",
+    )
+    denoise.add_argument(
         "--denoised-layer",
         metavar="NAME",
         help="write the denoised colour as a new layer <view layer>.NAME and keep the noisy "

@@ -145,7 +145,8 @@ class Reporter:
             self.warn(f"{len(self.no_motion)} frame(s) moved without usable motion vectors "
                       f"(an all-zero or missing Vector pass: motion blur on?), so the "
                       f"temporal history was not used on them (denoised frame by frame, no "
-                      f"ghosting): frames {format_numbers(self.no_motion)} "
+                      f"ghosting): frames {format_numbers(self.no_motion)}; if the camera "
+                      f"is locked off and nothing moves, --locked-off keeps the history "
                       f"(docs/service.md, 'Motion evidence')")
         text = f"{written} frame(s) written to {out_dir}"
         measured = self.measured_ms()

@@ -64,6 +64,13 @@ class SessionFields(BaseModel):
         description="factors for (x, y) of a mapped motion layer, to reach quietframe's "
         "convention: backward motion in pixels, y down",
     )
+    camera: Literal["auto", "locked"] = Field(
+        "auto",
+        description="'locked': the camera is locked off for the whole session, so frames "
+        "without motion vectors keep their history without being judged from their aux (which "
+        "at 1-4 spp can look like motion); a cut the aux show still resets it. 'auto' judges "
+        "every such frame (docs/service.md, 'Motion evidence')",
+    )
     layer: str | None = Field(
         None,
         description="view layer to denoise in a multilayer file (`<layer>.<pass>.<channel>`): "

@@ -62,14 +62,16 @@ class MotionEvidence:
 
     verdict: `static` (zero motion is right: keep the history), `moving` (the history would
     ghost: start it afresh), `unknown` (no previous frame, another frame size, or too little
-    structure to tell); with motion vectors, `cut` (the aux changed everywhere: a camera
-    switch the vectors do not show)."""
+    structure to tell), `locked` (the session says the camera is locked off: not judged);
+    `cut` (the aux changed everywhere: a camera switch the vectors do not show)."""
 
     verdict: str
     moving_share: float | None = None  # of the tiles with structure, those that moved
     tiles: int = 0  # tiles with structure
 
     def describe(self) -> str:
+        if self.verdict == "locked":
+            return "locked-off (session camera: locked)"
         if self.moving_share is None:
             return self.verdict
         what = "changed" if self.verdict == "cut" else "moved"
@@ -221,13 +223,22 @@ def _tile_means(x: np.ndarray) -> np.ndarray:
     return _tiles(x).mean(axis=(3, 4))
 
 
-def gate_history(planes: Mapping[str, np.ndarray],
-                 state: Mapping[str, np.ndarray] | None) -> HistoryGate:
+CAMERAS = ("auto", "locked")  # a session's `camera`: judged per frame, or locked off by the TD
+
+
+def gate_history(planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
+                 camera: str = "auto") -> HistoryGate:
     """The history a temporal model may read for this frame. With motion vectors: all of it,
     unless the aux show a cut the vectors do not (judge_cut). Without: all of it where the
     image stayed put (a locked-off shot: zero motion is exact), none where it moved
     (reprojecting with zero motion would ghost), all of it where the frame cannot tell (too
-    little structure to show either, so nothing to ghost visibly)."""
+    little structure to show either, so nothing to ghost visibly).
+
+    `camera="locked"` (the session says the camera is locked off): zero motion is trusted
+    without the judge, whose low-spp aux noise can pass for motion, and only a cut the aux
+    show (judge_cut along zero motion) starts the history afresh."""
+    if camera not in CAMERAS:
+        raise ValueError(f"camera must be one of {CAMERAS}, got {camera!r}")
     current = probe(planes)
     model_state = None if state is None else {k: v for k, v in state.items() if k != PROBE_STATE}
     previous = None if state is None else state.get(PROBE_STATE)
@@ -236,6 +247,12 @@ def gate_history(planes: Mapping[str, np.ndarray],
         if cut is not None:
             return HistoryGate(None, current, cut, model_state is not None)
         return HistoryGate(model_state, current, None, False)
+    if camera == "locked":
+        h, w = planes["color"].shape[-2:]
+        cut = judge_cut(previous, current, np.zeros((2, h, w), np.float32))
+        if cut is not None:
+            return HistoryGate(None, current, cut, model_state is not None)
+        return HistoryGate(model_state, current, MotionEvidence("locked"), False)
     evidence = judge(previous, current)
     if evidence.verdict == "moving":
         return HistoryGate(None, current, evidence, model_state is not None)

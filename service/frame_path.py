@@ -42,7 +42,8 @@ def process_frame(
     options = options_for(denoiser.info, spec.model_options, context.samples(choice))
     # A temporal model reads its history only where the motion is evidence (motion_evidence):
     # a frame without vectors whose aux moved starts afresh, as after a cut.
-    gate = gate_history(frame.buffers, state) if denoiser.info.state_specs else None
+    gate = (gate_history(frame.buffers, state, spec.camera) if denoiser.info.state_specs
+            else None)
     if gate is not None and gate.dropped:
         assert gate.evidence is not None
         reset = Reset.DETECTED_CUT if gate.evidence.verdict == "cut" else Reset.NO_MOTION

@@ -267,3 +267,12 @@ def test_clients_stream_a_directory(tmp_path, live_server):
         np.testing.assert_allclose(
             colour(sync.read_bytes()), colour(other.read_bytes()), rtol=1e-5, atol=1e-6
         )
+
+
+def test_locked_off_flag_asks_the_session_to_trust_zero_motion():
+    from quietframe.client.cli import build_parser, session_options
+
+    parser = build_parser()
+    base = ["denoise", "frames/", "--out", "out/", "--server", "http://127.0.0.1:1"]
+    assert session_options(parser.parse_args(base))["camera"] == "auto"
+    assert session_options(parser.parse_args([*base, "--locked-off"]))["camera"] == "locked"

@@ -270,3 +270,21 @@ def test_a_cut_the_vectors_do_not_show_drops_the_history():
     other["motion"] = planes("locked_off", 2)["motion"]  # the new camera's own (tiny) motion
     cut = me.gate_history(other, kept)
     assert cut.state is None and cut.dropped and cut.evidence.verdict == "cut", cut.evidence
+
+
+def test_a_locked_off_session_keeps_its_history_unjudged_and_still_resets_at_a_cut():
+    """camera="locked": the judge is not asked (a TD's word that nothing moves), so even frames
+    it would call moving keep their history; a cut the aux show still resets it."""
+    state = {"history": np.ones((3, 72, 128), np.float32)}
+    kept = me.keep_probe(state, me.probe(planes("motion_blur", 1)))
+    judged_ = me.gate_history(planes("motion_blur", 2), kept)
+    assert judged_.evidence.verdict == "moving" and judged_.state is None
+    locked = me.gate_history(planes("motion_blur", 2), kept, camera="locked")
+    assert locked.state is not None and not locked.dropped
+    assert locked.evidence.verdict == "locked" and "locked" in locked.evidence.describe()
+    still = me.keep_probe(state, me.probe(planes("locked_off", 1, vectors=False)))
+    other = {k: np.roll(v, 36, axis=1) for k, v in planes("locked_off", 2, vectors=False).items()}
+    cut = me.gate_history(other, still, camera="locked")
+    assert cut.state is None and cut.dropped and cut.evidence.verdict == "cut", cut.evidence
+    with pytest.raises(ValueError, match="camera must be one of"):
+        me.gate_history(planes("locked_off", 2), still, camera="tripod")

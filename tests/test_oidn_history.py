@@ -134,6 +134,69 @@ def test_a_cleaner_frame_keeps_less_resampled_history():
     assert centre(1.0, 0.5) < centre(4.0, 0.5) < centre(64.0, 0.5)
 
 
+TRUSTING = oh.OutputHistoryConfig(edge_depth=0.1, edge_motion=0.5)
+
+
+def _constant_history_then(frames: list[dict], last: torch.Tensor) -> list[dict]:
+    for f in frames[:-1]:  # a constant history: any fetch of it reads 0.5
+        f["oidn"] = torch.full_like(f["oidn"], 0.5)
+    frames[-1]["oidn"] = last.contiguous()
+    return frames
+
+
+def test_a_resampled_history_is_not_trusted_across_a_depth_edge():
+    """Under sub-pixel motion a pixel within a pixel of a depth edge (now, or around where it
+    was in the previous frame) is its per-frame stage; a pixel on one flat surface keeps the
+    history; pixel-aligned motion keeps it at the edge too (nearest is exact there)."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    for shift, trusted_at_edge in ((0.5, False), (1.0, True)):
+        frames = _constant_history_then(surface(4, (shift, 0.0)), stripes)
+        for f in frames:  # a thin post 2 px wide at columns 12-13, far wall elsewhere
+            f["depth"][..., 12:14] = 1.0
+        out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
+        shipped = run_stage(oh.OutputHistory(), frames)[-1]
+        edge = out[0, 0, H // 2, 14]  # beside the post: its 3x3 depth range spans both
+        flat = out[0, 0, H // 2, 20]  # an even column on the wall, 6 px from the post
+        frame = frames[-1]["oidn"]
+        if trusted_at_edge:
+            torch.testing.assert_close(edge, shipped[0, 0, H // 2, 14])
+        else:
+            torch.testing.assert_close(edge, frame[0, 0, H // 2, 14])
+            assert not torch.isclose(shipped[0, 0, H // 2, 14], frame[0, 0, H // 2, 14])
+        torch.testing.assert_close(flat, shipped[0, 0, H // 2, 20])
+        assert not torch.isclose(flat, frame[0, 0, H // 2, 20])
+
+
+def test_the_previous_frames_edge_at_the_fetch_is_tested_too():
+    """A post that was at columns 12-13 in the previous frame and has left: the pixels whose
+    fetch lands beside where it was take the frame, though their own depth is flat now."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    frames = _constant_history_then(surface(4, (0.4, 0.0)), stripes)
+    for f in frames[:-1]:
+        f["depth"][..., 12:14] = 1.0
+    out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
+    frame = frames[-1]["oidn"]
+    # p + 0.4 is nearest p: columns 11 and 14 pass the surface test at their own pixel, but
+    # their target's 3x3 touches the post (12-13 fail it: the post was there)
+    torch.testing.assert_close(out[..., 11:15], frame[..., 11:15])
+    assert not torch.allclose(run_stage(oh.OutputHistory(), frames)[-1][..., 11], frame[..., 11])
+    assert not torch.allclose(out[..., 18:22], frame[..., 18:22])
+
+
+def test_a_resampled_history_is_not_trusted_where_neighbours_move_differently():
+    """Parallax: the left half moves 0.3 px a frame, the right half 1.3 px: the pixels at the
+    seam take the frame, each half keeps its history."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    frames = _constant_history_then(surface(4, (0.3, 0.0)), stripes)
+    for f in frames[1:]:
+        f["motion"][:, 0, :, W // 2:] = 1.3
+    out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
+    frame = frames[-1]["oidn"]
+    torch.testing.assert_close(out[..., W // 2 - 1:W // 2 + 1], frame[..., W // 2 - 1:W // 2 + 1])
+    assert not torch.allclose(out[..., 4:8], frame[..., 4:8])
+    assert not torch.allclose(out[..., W - 8:W - 4], frame[..., W - 8:W - 4])
+
+
 class _Given:
     """A per-frame 'method' that returns the stage's given OIDN output (bench interface)."""
 

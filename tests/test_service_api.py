@@ -82,7 +82,9 @@ def test_create_session(client):
     other = client.post("/v1/sessions", json=SIZE).json()
     assert other["id"] != body["id"] and other["precision"] == "input"
     assert other["layer"] is None and other["denoised_layer"] is None
-    options = {"layer": "Objects", "denoised_layer": "Denoised", "quality": "fast"}
+    assert other["camera"] == "auto"
+    options = {"layer": "Objects", "denoised_layer": "Denoised", "quality": "fast",
+               "camera": "locked"}
     chosen = client.post("/v1/sessions", json={**SIZE, **options}).json()
     assert {k: chosen[k] for k in options} == options
 
@@ -99,6 +101,7 @@ def test_create_session(client):
         {**SIZE, "layer": ""},
         {**SIZE, "denoised_layer": "Denoised."},
         {**SIZE, "quality": "ultra"},
+        {**SIZE, "camera": "tripod"},
     ],
 )
 def test_create_session_rejects_invalid_bodies(client, body):
