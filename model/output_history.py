@@ -67,6 +67,12 @@ class OutputHistoryConfig:
     resampled_weight_per_doubling: float = 0.075
     resampled_weight_max: float = 0.85
     default_spp: float = 4.0  # w = 0.5 there: the constant the tier shipped with before
+    # Per-pixel trust of a resampled history (`trusted_resample`): the bicubic fetch is used
+    # only where its footprint lies on one surface moving as one, now and in the previous
+    # frame; elsewhere the pixel is its per-frame stage. 0 turns a test off (the tier's
+    # version 2 behaviour: every pixel that passes the nearest pixel's surface test).
+    edge_depth: float = 0.0  # max relative 3x3 depth range (current, and previous at p + m)
+    edge_motion: float = 0.0  # max 3x3 range of either motion component, pixels
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
@@ -90,6 +96,34 @@ VARIANTS: dict[str, OutputHistoryConfig] = {
     "oidn-history-cleanaux": OutputHistoryConfig(name="oidn-history-cleanaux",
                                                  prefilter_aux=True, aux_quality="fast"),
 }
+
+
+def _range3(x: Tensor) -> Tensor:
+    """Per channel, max - min over each pixel's 3×3 neighbourhood (inside the frame)."""
+    return F.max_pool2d(x, 3, 1, 1) + F.max_pool2d(-x, 3, 1, 1)
+
+
+def trusted_resample(config: OutputHistoryConfig, motion: Tensor, depth: Tensor,
+                     previous_depth: Tensor) -> Tensor:
+    """(N, 1, H, W) 1 where a bicubic fetch of the history can be right, else 0. It cannot
+    where its 4×4 footprint straddles surfaces: a depth edge around p now or around p + m in
+    the previous frame (mixed pixels of thin geometry against a far background, silhouettes,
+    disocclusions), or where neighbouring pixels move differently (parallax, a turning object:
+    the footprint's pixels came from different places). Clipping to the 3×3 range of OIDN's
+    output does not catch these: there the range spans both surfaces."""
+    smooth = torch.ones_like(depth)
+    if config.edge_depth > 0:
+        scale = config.edge_depth * depth.clamp_min(1e-6)
+        here = (_range3(depth) <= scale).to(depth.dtype)
+        spans = torch.cat((F.max_pool2d(previous_depth, 3, 1, 1),
+                           -F.max_pool2d(-previous_depth, 3, 1, 1)), dim=1)
+        there, _ = backward_warp(spans, motion, mode="nearest")
+        before = ((there[:, 0:1] - there[:, 1:2]) <= scale).to(depth.dtype)
+        smooth = smooth * here * before
+    if config.edge_motion > 0:
+        spread = _range3(motion).amax(dim=1, keepdim=True)
+        smooth = smooth * (spread <= config.edge_motion).to(depth.dtype)
+    return smooth
 
 
 def clamp_to_neighbourhood(previous: Tensor, current: Tensor) -> Tensor:
@@ -132,6 +166,10 @@ class OutputHistory(nn.Module):
         # channels slowly (three Wheres were a quarter of this graph's time at 720p).
         exact = pixel_aligned(motion).to(oidn.dtype)  # 1: the nearest pixel is exact
         previous = fetched + exact * (warped[:, 0:3] - fetched)
+        if self.config.edge_depth > 0 or self.config.edge_motion > 0:
+            # a resampled pixel whose footprint cannot be right starts afresh (its stage)
+            trust = trusted_resample(self.config, motion, depth, state[:, 3:4])
+            keep = keep * (exact + (1 - exact) * trust)
         alpha, count = history_weights(keep, warped[:, 7:8])  # alpha = 1 where not kept
         if spp is None:
             spp = torch.full((1,), self.config.default_spp)

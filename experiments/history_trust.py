@@ -1,0 +1,167 @@
+"""Experiment (issue 51): which pixels may an `oidn-history` tier's history be trusted at? Each
+candidate rule is scored against the tier's own per-frame stage (OIDN on the frame alone) per
+shot, spp and frame index, on the zoo (scenes/zoo_shots.py; round 2 holds the shots the
+history finds hard).
+
+    python -m quietframe.experiments.history_trust --zoo zoo2 --split validation \
+        [--shots fence-truck] [--spp 1,4,16,64] [--model oidn-history-cleanaux] [--json out]
+
+The tier is OIDN on the pixel-aligned accumulation (its first graph and OIDN stage, run here
+through the shipped runtime pieces, once per frame), then the output history
+(model/output_history.OutputHistory). Only the last step differs between candidates, so it runs
+in PyTorch on the cached OIDN outputs: each candidate is an OutputHistoryConfig (the shipped
+one, and the per-pixel trust tests `edge_depth`, `edge_motion`). The exported graph computes the
+same (tests/test_output_history.py); the zoo figures of the shipped models come from
+bench/zoo_eval, not from here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from quietframe.bench.evaluate import AUX, STORED_BLENDER
+from quietframe.bench.harness import planar_frames
+from quietframe.model import metrics
+from quietframe.model.output_history import VARIANTS, OutputHistory, OutputHistoryConfig
+from quietframe.runtime import Denoiser, find_model
+from quietframe.runtime.card import OIDNStage
+from quietframe.runtime.model_options import options_for
+from quietframe.runtime.motion_evidence import has_motion
+from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS
+from quietframe.scenes import cycles_io
+from quietframe.scenes.layout import DATA_DIR
+from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
+
+# name -> changes to the shipped config
+CANDIDATES: dict[str, dict] = {
+    "shipped": {},
+    "depth-edge": {"edge_depth": 0.1},
+    "motion-edge": {"edge_motion": 0.5},
+    "depth+motion": {"edge_depth": 0.1, "edge_motion": 0.5},
+    "tight": {"edge_depth": 0.05, "edge_motion": 0.25},
+}
+
+
+def stage_outputs(denoiser: Denoiser, frames, spp: float) -> tuple[list, list]:
+    """(D_t: OIDN on the tier's pixel-aligned accumulation, S_t: OIDN on the frame alone) per
+    frame, through the shipped stages before the output history (Denoiser.denoise's loop,
+    stopped before its last graph)."""
+    first, oidn, last = denoiser.stages
+    assert isinstance(oidn, OIDNStage) and last is denoiser.graph
+    options = options_for(denoiser.info, {}, spp)
+    state, outputs, stages = None, [], []
+    for planes, _, reset in frames:
+        feeds, _, missing, (h, w) = denoiser._feeds(planes)
+        feeds |= denoiser._options(denoiser.option_feeds, options)
+        aux = {n: feeds[n][0] for n in PREPASS_BUFFERS[1:] if n not in missing}
+        if reset:
+            state = None
+        accumulated, new = first.run(feeds, state, h, w)
+        state = {first.stage.state_key(k): v for k, v in new.items()}
+        outputs.append(denoiser.prepass({"color": accumulated[0], **aux}, "cycles")[0])
+        stages.append(denoiser.prepass({"color": feeds["color"][0], **aux}, "cycles")[0])
+    return outputs, stages
+
+
+def history_run(config: OutputHistoryConfig, outputs, frames, spp: float) -> list[np.ndarray]:
+    model = OutputHistory(config)
+    state = None
+    result = []
+    with torch.no_grad():
+        for d, (planes, _, reset) in zip(outputs, frames, strict=True):
+            h, w = d.shape[-2:]
+            t = {k: torch.from_numpy(np.ascontiguousarray(planes[k]))[None]
+                 for k in ("albedo", "normal", "depth")}
+            motion = planes.get("motion") if has_motion(planes) else None
+            m = (torch.zeros(1, 2, h, w) if motion is None
+                 else torch.from_numpy(np.nan_to_num(motion[:2]).astype(np.float32))[None])
+            if state is None or reset:
+                state, r = model.initial_state(1, h, w), torch.ones(1)
+            else:
+                r = torch.zeros(1)
+            out, state = model(torch.from_numpy(d)[None], t["albedo"], t["normal"], t["depth"],
+                               m, r, state, torch.full((1,), float(spp)))
+            result.append(out[0].numpy())
+    return result
+
+
+def rendered_frames(folder: Path, spp: int) -> list:
+    """The frames of a shot rendered so far (a render in progress: its manifest's frames),
+    as bench.evaluate.load_sequence gives them."""
+    manifest = json.loads((folder / "manifest.json").read_text())
+    done = sorted(f["index"] for f in manifest["frames"])
+    done = done[: next((i for i, t in enumerate(done) if t != i), len(done))]  # no gaps
+    resets = cycles_io.frame_resets(folder)
+    frames = []
+    for t in done:
+        reference = cycles_io.frame_file(cycles_io.reference_frame(folder, t))
+        if not (folder / "reference_b" / reference).exists():
+            break
+        f = cycles_io.load_frame(folder, t, spp)
+        frames.append(({k: f[k] for k in ("color", *AUX, STORED_BLENDER)}, f["reference"],
+                       resets[t]))
+    return frames
+
+
+def _psnr(pred: np.ndarray, ref: np.ndarray) -> float:
+    return metrics.psnr(pred.transpose(1, 2, 0), ref)  # planar prediction, (H, W, 3) reference
+
+
+def run_shot(folder: Path, model: str, spps: list[int]) -> list[dict]:
+    denoiser = Denoiser(find_model(model))
+    base = VARIANTS[model]
+    rows = []
+    for spp in spps:
+        frames = planar_frames(rendered_frames(folder, spp))
+        outputs, stages = stage_outputs(denoiser, frames, spp)
+        refs = [ref for _, ref, _ in frames]
+        scored = {"stage": stages,
+                  "blender": [p[STORED_BLENDER] for p, _, _ in frames]}
+        for name, change in CANDIDATES.items():
+            scored[name] = history_run(dataclasses.replace(base, **change), outputs, frames, spp)
+        for method, preds in scored.items():
+            per_frame = [_psnr(p, r) for p, r in zip(preds, refs, strict=True)]
+            rows.append({"shot": folder.name, "spp": spp, "method": method,
+                         "psnr": float(np.mean(per_frame)), "per_frame": per_frame})
+        stage = {r["method"]: r for r in rows if r["spp"] == spp and r["shot"] == folder.name}
+        line = "  ".join(f"{m} {stage[m]['psnr'] - stage['stage']['psnr']:+.2f}"
+                         for m in scored if m != "stage")
+        print(f"{folder.name} {spp:>3} spp: stage {stage['stage']['psnr']:.2f} dB; {line}",
+              flush=True)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--zoo", default="zoo2", choices=ZOO_ROUNDS)
+    p.add_argument("--split", default="validation")
+    p.add_argument("--shots", default="")
+    p.add_argument("--spp", default="1,4,16,64")
+    p.add_argument("--model", default="oidn-history-cleanaux", choices=sorted(VARIANTS))
+    p.add_argument("--data", type=Path, default=DATA_DIR)
+    p.add_argument("--json", type=Path)
+    args = p.parse_args(argv)
+    root = zoo_dir(args.data, args.split, args.zoo)
+    names = [s.name for s in shots(args.split, args.zoo)
+             if not args.shots or s.name in args.shots.split(",")]
+    rows = []
+    for name in names:
+        folder = root / name
+        if not (folder / "manifest.json").exists():
+            print(f"{name}: not rendered", file=sys.stderr)
+            continue
+        rows += run_shot(folder, args.model, [int(s) for s in args.spp.split(",")])
+    if args.json:
+        args.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
