@@ -34,7 +34,7 @@ from quietframe.runtime import Denoiser, find_model
 from quietframe.runtime.card import OIDNStage
 from quietframe.runtime.model_options import options_for
 from quietframe.runtime.motion_evidence import has_motion
-from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS
+from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass
 from quietframe.scenes import cycles_io
 from quietframe.scenes.layout import DATA_DIR
 from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
@@ -46,13 +46,19 @@ CANDIDATES: dict[str, dict] = {
     "motion-edge": {"edge_motion": 0.5},
     "depth+motion": {"edge_depth": 0.1, "edge_motion": 0.5},
     "tight": {"edge_depth": 0.05, "edge_motion": 0.25},
+    "d+m u(spp)": {"edge_depth": 0.1, "edge_motion": 0.5, "untrusted_weight": 0.5,
+                   "untrusted_weight_per_doubling": 0.25},
+    "m u(spp)": {"edge_motion": 0.5, "untrusted_weight": 0.5,
+                 "untrusted_weight_per_doubling": 0.25},
 }
 
 
-def stage_outputs(denoiser: Denoiser, frames, spp: float) -> tuple[list, list]:
+def stage_outputs(denoiser: Denoiser, frames, spp: float,
+                  prepass: OIDNPrepass | None = None) -> tuple[list, list]:
     """(D_t: OIDN on the tier's pixel-aligned accumulation, S_t: OIDN on the frame alone) per
     frame, through the shipped stages before the output history (Denoiser.denoise's loop,
-    stopped before its last graph)."""
+    stopped before its last graph); `prepass`: another OIDN stage in place of the model's."""
+    prepass = prepass or denoiser.prepass
     first, oidn, last = denoiser.stages
     assert isinstance(oidn, OIDNStage) and last is denoiser.graph
     options = options_for(denoiser.info, {}, spp)
@@ -65,8 +71,8 @@ def stage_outputs(denoiser: Denoiser, frames, spp: float) -> tuple[list, list]:
             state = None
         accumulated, new = first.run(feeds, state, h, w)
         state = {first.stage.state_key(k): v for k, v in new.items()}
-        outputs.append(denoiser.prepass({"color": accumulated[0], **aux}, "cycles")[0])
-        stages.append(denoiser.prepass({"color": feeds["color"][0], **aux}, "cycles")[0])
+        outputs.append(prepass({"color": accumulated[0], **aux}, "cycles")[0])
+        stages.append(prepass({"color": feeds["color"][0], **aux}, "cycles")[0])
     return outputs, stages
 
 
@@ -114,13 +120,23 @@ def _psnr(pred: np.ndarray, ref: np.ndarray) -> float:
     return metrics.psnr(pred.transpose(1, 2, 0), ref)  # planar prediction, (H, W, 3) reference
 
 
-def run_shot(folder: Path, model: str, spps: list[int]) -> list[dict]:
+def worst_frame_gap(row: dict, stage: dict) -> float:
+    """The lowest per-frame PSNR difference to the stage (frame 0 is the stage itself)."""
+    return min(a - b for a, b in zip(row["per_frame"][1:], stage["per_frame"][1:], strict=True))
+
+
+def run_shot(folder: Path, model: str, spps: list[int], aux_quality: str = "") -> list[dict]:
     denoiser = Denoiser(find_model(model))
+    prepass = None
+    if aux_quality:  # the same tier with its aux prefiltered at another quality
+        assert denoiser.card.prepass is not None
+        prepass = OIDNPrepass(dataclasses.replace(denoiser.card.prepass, prefilter_aux=True,
+                                                  aux_quality=aux_quality), num_threads=2)
     base = VARIANTS[model]
     rows = []
     for spp in spps:
         frames = planar_frames(rendered_frames(folder, spp))
-        outputs, stages = stage_outputs(denoiser, frames, spp)
+        outputs, stages = stage_outputs(denoiser, frames, spp, prepass)
         refs = [ref for _, ref, _ in frames]
         scored = {"stage": stages,
                   "blender": [p[STORED_BLENDER] for p, _, _ in frames]}
@@ -132,9 +148,10 @@ def run_shot(folder: Path, model: str, spps: list[int]) -> list[dict]:
                          "psnr": float(np.mean(per_frame)), "per_frame": per_frame})
         stage = {r["method"]: r for r in rows if r["spp"] == spp and r["shot"] == folder.name}
         line = "  ".join(f"{m} {stage[m]['psnr'] - stage['stage']['psnr']:+.2f}"
+                         f" (worst frame {worst_frame_gap(stage[m], stage['stage']):+.2f})"
                          for m in scored if m != "stage")
-        print(f"{folder.name} {spp:>3} spp: stage {stage['stage']['psnr']:.2f} dB; {line}",
-              flush=True)
+        print(f"{folder.name} {spp:>3} spp, {len(frames)} frames: stage "
+              f"{stage['stage']['psnr']:.2f} dB; {line}", flush=True)
     return rows
 
 
@@ -146,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spp", default="1,4,16,64")
     p.add_argument("--model", default="oidn-history-cleanaux", choices=sorted(VARIANTS))
     p.add_argument("--data", type=Path, default=DATA_DIR)
+    p.add_argument("--aux-quality", default="", choices=("", "fast", "balanced", "high"),
+                   help="prefilter the aux at this quality instead of the model's")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     root = zoo_dir(args.data, args.split, args.zoo)
@@ -157,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
         if not (folder / "manifest.json").exists():
             print(f"{name}: not rendered", file=sys.stderr)
             continue
-        rows += run_shot(folder, args.model, [int(s) for s in args.spp.split(",")])
+        rows += run_shot(folder, args.model, [int(s) for s in args.spp.split(",")],
+                         args.aux_quality)
     if args.json:
         args.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
     return 0

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 from pathlib import Path
 
 import torch
@@ -15,6 +16,17 @@ from quietframe.export.affinity_export import export_affinity
 from quietframe.export.onnx_export import export_nbg, export_oidn_only
 from quietframe.model import affinity, oidn_temporal, output_history
 from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
+
+
+def carried_metrics(old: Path, training: dict) -> tuple[dict, dict]:
+    """(training notes, measured tables) for a new version of the model in `old`: its tables,
+    and in the notes the version that measured them."""
+    import onnx
+
+    props = {p.key: p.value for p in onnx.load(str(old), load_external_data=False).metadata_props}
+    metrics = json.loads(props.get("quietframe.metrics", "{}"))
+    notes = {**training, "tables_measured_with_version": props.get("quietframe.version", "?")}
+    return notes, metrics
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,6 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="initialisation seed (untrained)")
     parser.add_argument("--version", default="0")
     parser.add_argument("--out", type=Path, required=True, help="output .onnx path")
+    parser.add_argument("--metrics-from", type=Path, metavar="OLD.onnx",
+                        help="carry the measured tables of an earlier version of this model "
+                             "into the new file (its training notes say which version measured "
+                             "them), for a change the tables could not yet be measured again for")
     args = parser.parse_args(argv)
 
     if args.variant in oidn_temporal.OIDN_ONLY_VARIANTS and not args.checkpoint:
@@ -44,6 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.variant in output_history.VARIANTS and not args.checkpoint:
         model = output_history.OutputHistory(output_history.VARIANTS[args.variant])
         training, metrics = {"trained": False, "learned_stage": False}, {}
+        if args.metrics_from:
+            training, metrics = carried_metrics(args.metrics_from, training)
     elif args.checkpoint:
         saved = torch.load(args.checkpoint, map_location="cpu", weights_only=True)["config"]
         if affinity.is_affinity_config(saved):

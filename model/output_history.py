@@ -73,12 +73,23 @@ class OutputHistoryConfig:
     # version 2 behaviour: every pixel that passes the nearest pixel's surface test).
     edge_depth: float = 0.0  # max relative 3x3 depth range (current, and previous at p + m)
     edge_motion: float = 0.0  # max 3x3 range of either motion component, pixels
+    # An untrusted pixel's current-frame weight is at least u(spp) = clamp(untrusted_weight +
+    # untrusted_weight_per_doubling · log2 spp, MIN_CURRENT_WEIGHT, 1): 1 makes it its stage;
+    # below 1 at low spp, where a doubtful history still beats the stage's noise.
+    untrusted_weight: float = 1.0
+    untrusted_weight_per_doubling: float = 0.0
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
         doublings = torch.log2(spp.clamp_min(1.0))
         floor = self.resampled_weight + self.resampled_weight_per_doubling * doublings
         return floor.clamp(MIN_CURRENT_WEIGHT, self.resampled_weight_max).view(-1, 1, 1, 1)
+
+    def untrusted_floor(self, spp: Tensor) -> Tensor:
+        """u(spp) of the comment above, (1,) -> (1, 1, 1, 1)."""
+        doublings = torch.log2(spp.clamp_min(1.0))
+        floor = self.untrusted_weight + self.untrusted_weight_per_doubling * doublings
+        return floor.clamp(MIN_CURRENT_WEIGHT, 1.0).view(-1, 1, 1, 1)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -166,14 +177,18 @@ class OutputHistory(nn.Module):
         # channels slowly (three Wheres were a quarter of this graph's time at 720p).
         exact = pixel_aligned(motion).to(oidn.dtype)  # 1: the nearest pixel is exact
         previous = fetched + exact * (warped[:, 0:3] - fetched)
-        if self.config.edge_depth > 0 or self.config.edge_motion > 0:
-            # a resampled pixel whose footprint cannot be right starts afresh (its stage)
-            trust = trusted_resample(self.config, motion, depth, state[:, 3:4])
-            keep = keep * (exact + (1 - exact) * trust)
         alpha, count = history_weights(keep, warped[:, 7:8])  # alpha = 1 where not kept
         if spp is None:
             spp = torch.full((1,), self.config.default_spp)
         alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_floor(spp))
+        if self.config.edge_depth > 0 or self.config.edge_motion > 0:
+            # a resampled pixel whose footprint cannot be right weighs at least u(spp); at 1
+            # it is its stage, and its history starts afresh (length 1)
+            doubt = (1 - exact) * (1 - trusted_resample(self.config, motion, depth,
+                                                        state[:, 3:4]))
+            floor = self.config.untrusted_floor(spp)
+            alpha = torch.maximum(alpha, doubt * floor)
+            count = count - doubt * floor * (count - 1)
         return previous, alpha, count, exact
 
     def run_time_inputs(self) -> list[dict]:

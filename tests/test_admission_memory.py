@@ -7,11 +7,13 @@ QUIETFRAME_MEMORY_MATRIX=1 runs it here (or `python -m quietframe.bench.admissio
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from quietframe.bench.admission_memory import TARGET_RATIO, shipped_models
@@ -76,3 +78,37 @@ def test_an_auto_session_reserves_for_the_model_it_chose():
                                       [registry.models.denoiser("oidn-history")])
         assert registry.frame_need(session, header, len(body)) == chosen < every
         assert registry.frame_need(session, header, len(body), cut=True) == every
+
+
+def _multipart_exr(parts: int) -> bytes:
+    """A valid EXR of `parts` parts, each one 64x48 half channel (audit round 4, R4-14)."""
+    import tempfile
+
+    import OpenEXR
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = f"{tmp}/parts.exr"
+        OpenEXR.File([OpenEXR.Part({"compression": OpenEXR.ZIP_COMPRESSION,
+                                    "type": OpenEXR.scanlineimage},
+                                   {f"p{k}.R": np.zeros((48, 64), np.float16)}, name=f"p{k}")
+                      for k in range(parts)]).write(path)
+        with open(path, "rb") as f:
+            return f.read()
+
+
+def test_a_header_of_too_many_parts_is_refused_and_each_part_is_charged():
+    from quietframe.runtime.exr_header import MAX_PARTS, read_header
+    from quietframe.runtime.frame_errors import UnsupportedExr
+    from quietframe.service.admission import PART_OVERHEAD_BYTES, frame_need
+
+    few, many = _multipart_exr(4), _multipart_exr(MAX_PARTS + 1)
+    with pytest.raises(UnsupportedExr, match=f"over {MAX_PARTS} parts"):
+        read_header(many, max_width=64, max_height=48)
+    header = read_header(few, max_width=64, max_height=48)
+    assert header.parts == 4
+    from quietframe.runtime import Denoiser, find_model
+
+    models = [Denoiser(find_model("nbg-2l-3g"), threads=1)]
+    one = dataclasses.replace(header, parts=1)
+    assert (frame_need(header, len(few), models) - frame_need(one, len(few), models)
+            == 3 * PART_OVERHEAD_BYTES)
