@@ -35,7 +35,7 @@ from quietframe.bench.evaluate import (
 from quietframe.bench.harness import planar_frames
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes import cycles_io
-from quietframe.scenes.zoo_shots import ZOO_SPLITS, ZOO_VERSION, zoo_dir
+from quietframe.scenes.zoo_shots import ZOO_ROUNDS, ZOO_SPLITS, ZOO_VERSION, zoo_dir
 
 HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")
 LEARNED = ("nbg-2l-3g", "affinity-h16-k5gc")
@@ -43,8 +43,9 @@ METHODS = ("blender-denoise", "oidn-high", "oidn-high-cleanaux", "oidn-frame", *
            *(f"{t}/frame" for t in HISTORY_TIERS), *LEARNED, "auto", "sid-temporal")
 
 
-def shot_folders(data: Path, split: str, spp_levels: tuple[int, ...]) -> list[Path]:
-    root = zoo_dir(data, split)
+def shot_folders(data: Path, split: str, spp_levels: tuple[int, ...],
+                 zoo: str = ZOO_VERSION) -> list[Path]:
+    root = zoo_dir(data, split, zoo)
     return [p.parent for p in sorted(root.glob("*/manifest.json"))
             if cycles_io.finished(p.parent, spp_levels)]
 
@@ -77,7 +78,8 @@ def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
                 summary = scores.summary()
                 row = {"shot": info["name"], "tags": info["tags"], "camera": info["camera"],
                        "spp": spp, "method": name,
-                       **{k: round(v, 4) for k, v in summary.items() if k != "ms"}}
+                       **{k: round(v, 4) for k, v in summary.items() if k != "ms"},
+                       "psnr_per_frame": [round(v, 3) for v in scores.per_frame["psnr"]]}
                 chosen = getattr(method, "choices", None)
                 if chosen:
                     row["chosen"] = dict(chosen)
@@ -97,6 +99,24 @@ def _cell(rows: dict, method: str, key: str, against: str | None = None) -> str:
     if against is not None and against in rows:
         return f"{value - rows[against][key]:+.2f}"
     return f"{value:.3f}" if key != "psnr" else f"{value:.2f}"
+
+
+def per_frame_gaps(by: dict) -> list[str]:
+    """Per shot, spp and history tier: the gap to its per-frame stage at each frame index (a
+    loss that builds up over a long shot shows as a falling row)."""
+    lines = ["", "## History tiers against their own stage, per frame index (dB)", "",
+             "Frame 1 is the stage itself (no history yet).", ""]
+    for (shot, spp), row in sorted(by.items()):
+        for tier in HISTORY_TIERS:
+            ours, stage = row.get(tier, {}), row.get(f"{tier}/frame", {})
+            a, b = ours.get("psnr_per_frame"), stage.get("psnr_per_frame")
+            if not a or not b or len(a) != len(b):
+                continue
+            gaps = " ".join(f"{x - y:+.2f}" for x, y in zip(a, b, strict=True))
+            lines.append(f"- {shot}, {spp} spp, {tier}: {gaps} (worst "
+                         f"{min(x - y for x, y in zip(a[1:], b[1:], strict=True)):+.2f})"
+                         if len(a) > 1 else f"- {shot}, {spp} spp, {tier}: {gaps}")
+    return lines
 
 
 def report(rows: list[dict], meta: dict) -> str:
@@ -128,6 +148,7 @@ def report(rows: list[dict], meta: dict) -> str:
         dropped = ", ".join(str(row[t].get("history_dropped", "–")) for t in HISTORY_TIERS
                             if t in row)
         lines.append(f"| {shot} | {spp} | " + " | ".join(cells) + f" | {dropped} |")
+    lines += per_frame_gaps(by)
     lines += ["", "## TRMAE (temporal error against the reference's own change; lower is steadier)",
               "", "| shot | spp | " + " | ".join(methods) + " |",
               "|---|---|" + "---|" * len(methods)]
@@ -152,6 +173,7 @@ def report(rows: list[dict], meta: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     cli_args.add_split(p, choices=ZOO_SPLITS)
+    p.add_argument("--zoo", default=ZOO_VERSION, choices=ZOO_ROUNDS, help="the round")
     cli_args.add_data(p)
     p.add_argument("--spp", default="1,2,4,8,16,64")
     p.add_argument("--shots", default="", help="comma list (default: every finished shot)")
@@ -167,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         return write(args.out, *merge([json.loads(f.read_text()) for f in args.merge]))
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     spp_levels = tuple(int(s) for s in args.spp.split(","))
-    folders = [f for f in shot_folders(args.data, args.split, spp_levels)
+    folders = [f for f in shot_folders(args.data, args.split, spp_levels, args.zoo)
                if not args.shots or f.name in args.shots.split(",")]
     if not folders:
         raise SystemExit(f"no finished zoo {args.split} shots under {args.data} "
@@ -176,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     everything = build_methods(args.threads, single_frame=HISTORY_TIERS, renderer="cycles")
     methods = {m: everything[m] for m in wanted if m in everything}
     rows = evaluate(folders, spp_levels, methods, args.flag_cuts)
-    meta = {"split": args.split, "zoo": ZOO_VERSION, "threads": args.threads,
+    meta = {"split": args.split, "zoo": args.zoo, "threads": args.threads,
             "flag_cuts": args.flag_cuts, "shots": [f.name for f in folders],
             "command": "python -m quietframe.bench.zoo_eval " + " ".join(
                 sys.argv[1:] if argv is None else argv)}

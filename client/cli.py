@@ -520,7 +520,7 @@ def build_parser() -> argparse.ArgumentParser:
         dest="camera",
         action="store_const",
         const="locked",
-        default="auto",
+        default=None,  # unset: the server's default (auto), and no new setting in the records
         help="the camera is locked off for the whole shot: frames without motion vectors keep "
         "their history without being judged from their aux (at 1-4 spp aux noise can look "
         "like motion); a cut the aux show still resets it",

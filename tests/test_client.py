@@ -274,5 +274,5 @@ def test_locked_off_flag_asks_the_session_to_trust_zero_motion():
 
     parser = build_parser()
     base = ["denoise", "frames/", "--out", "out/", "--server", "http://127.0.0.1:1"]
-    assert session_options(parser.parse_args(base))["camera"] == "auto"
+    assert session_options(parser.parse_args(base))["camera"] is None  # the server's default
     assert session_options(parser.parse_args([*base, "--locked-off"]))["camera"] == "locked"
