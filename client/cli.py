@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 from importlib.metadata import PackageNotFoundError, entry_points, version
@@ -18,6 +17,7 @@ from pathlib import Path
 from quietframe.client import outcome
 from quietframe.client.api import Client, QuietframeError, RetryPolicy
 from quietframe.client.choice_text import describe_choice
+from quietframe.client.cli_args import add_denoise_arguments, flag_problem, session_options
 from quietframe.client.core import base_url
 from quietframe.client.frame_source import SequenceError, parse_frame_range
 from quietframe.client.interrupt import Interrupted, stop_on_signals
@@ -26,6 +26,7 @@ from quietframe.client.model_table import model_table
 from quietframe.client.output_records import OutputConflict, UnsafePath
 from quietframe.client.preflight import (
     check_frames,
+    check_mapping,
     check_model,
     check_view_layers,
     format_numbers,
@@ -33,58 +34,14 @@ from quietframe.client.preflight import (
 )
 from quietframe.client.report import Reporter
 from quietframe.client.sequence import job_settings, refuse_conflicts, run_sequence
-from quietframe.client.session_fields import SessionFields
 
 COMMANDS_GROUP = "quietframe.commands"
-# Session fields a run sets itself: the frames' size, one session per view layer, and the
-# settings it passes apart (sequence.job_settings, run_sequence)
-RUN_FIELDS = frozenset({"width", "height", "model", "precision", "compression", "layer"})
 RENDERERS = ("cycles", "mitsuba")  # the renderers the model cards hold tables for
 DEFAULT_RENDERER = "cycles"
 EXIT_CODES_HELP = """exit codes: 0 done; 1 unexpected failure; 2 configuration (flags, server URL,
 token, model, channel mapping, changed flags); 3 input (unreadable or truncated frames, size
 changes, missing passes, files in the way); 75 server unavailable or busy (retry later);
 130 / 143 interrupted by Ctrl-C / SIGTERM (run again to resume)."""
-
-
-def model_option(text: str) -> tuple[str, int | float]:
-    """One --model-option NAME=VALUE: the value an int when integral (kernel_size=9), else a
-    float; argparse turns the ArgumentTypeError into a usage error."""
-    name, sep, raw = text.partition("=")
-    try:
-        value = float(raw)
-    except ValueError:
-        value = math.nan
-    if not sep or not name.strip() or not math.isfinite(value):
-        raise argparse.ArgumentTypeError(
-            f"expected NAME=VALUE with a number as VALUE, e.g. kernel_size=9; got {text!r}"
-        )
-    return name.strip(), int(value) if value.is_integer() else value
-
-
-def session_options(args: argparse.Namespace) -> dict:
-    """Session fields from the command line, each from the flag of its name (--latency-ms:
-    latency_ms), besides those the run sets itself (RUN_FIELDS); ValueError for a --channels
-    that is not a JSON object (or @file holding one)."""
-    text = args.channels
-    if text is not None and text.startswith("@"):
-        try:
-            text = Path(text[1:]).read_text()
-        except OSError as exc:
-            raise ValueError(f"--channels {args.channels}: {exc}") from exc
-    try:
-        mapping = json.loads(text) if text is not None else None
-    except ValueError as exc:
-        raise ValueError(f"--channels is not JSON ({exc}): {text!r}") from exc
-    if mapping is not None and not isinstance(mapping, dict):
-        raise ValueError('--channels must be a JSON object, e.g. \'{"albedo": "alb"}\'')
-    given = {name: getattr(args, name) for name in SessionFields.model_fields
-             if name not in RUN_FIELDS and hasattr(args, name)}
-    return given | {
-        "channels": mapping or None,
-        "motion_scale": tuple(args.motion_scale) if args.motion_scale else None,
-        "model_options": dict(args.model_option or ()),  # a repeated name: the last one
-    }
 
 
 def _layers(job, layer: str | None, options: dict) -> tuple[str | None, ...]:
@@ -117,10 +74,12 @@ def _plan(args: argparse.Namespace):
         frames = parse_frame_range(args.frames) if args.frames else None
     except ValueError as exc:
         raise _Stop(outcome.CONFIG, str(exc)) from exc
-    if args.pre_roll < 0 or args.warmup < 0:
-        raise _Stop(outcome.CONFIG, "--pre-roll and --warmup take a frame count >= 0")
+    problem = flag_problem(args, options)
+    if problem is not None:
+        raise _Stop(outcome.CONFIG, *problem)
     try:
-        job = Job.plan(args.input, args.out, frames, args.pre_roll, tuple(args.cut or ()))
+        job = Job.plan(args.input, args.out, frames, args.pre_roll, tuple(args.cut or ()),
+                       create_out=not args.dry_run)
     except SequenceError as exc:
         raise _Stop(outcome.INPUT, str(exc)) from exc
     except ValueError as exc:
@@ -205,7 +164,9 @@ def _interrupted(reporter, job, at: int, signal_name: str) -> int:
 
 def _dry_run(args, server, options, job, layers, report, reporter) -> None:
     """What the run checks before its first frame is denoised, without sending one: the files
-    in the way, the server (reachable, token), the model and its options, the view layers.
+    in the way, the server (reachable, token), the model and its options, the view layers, the
+    channel mapping against the first frame, the session's settings (a session is opened and
+    deleted).
     _Stop for the first that fails, with the run's exit code and words (the run's failures
     name the first frame to write, so these do too)."""
     settings = job_settings(args.model, args.precision, args.compression, layers, **options)
@@ -221,16 +182,26 @@ def _dry_run(args, server, options, job, layers, report, reporter) -> None:
             listing = client.models()
         except QuietframeError as exc:
             raise _server_stop(exc, at, server, mapping, report.layers) from exc
-    failure = (check_model(listing, args.model, options["model_options"], server)
-               or check_view_layers(report, args.layer, bool(options["channels"]), server))
-    if failure is not None:
-        raise _Stop(failure.code, f"at {at}: {failure.message}", failure.advice)
+        failure = (check_model(listing, args.model, options["model_options"], server)
+                   or check_view_layers(report, args.layer, bool(options["channels"]), server)
+                   or check_mapping(report, options["channels"], server))
+        if failure is not None:
+            raise _Stop(failure.code, f"at {at}: {failure.message}", failure.advice)
+        try:  # the server judges the settings as it will the run's sessions (a newer server
+            for layer in layers:  # may take values this client does not know): open, delete
+                created = client.create_session(job.width, job.height, args.model,
+                                                precision=args.precision,
+                                                compression=args.compression, layer=layer,
+                                                **options)
+                client.delete_session(created["id"])
+        except QuietframeError as exc:
+            raise _server_stop(exc, at, server, mapping, report.layers) from exc
     pending = job.first_pending(settings) - job.first_written
     todo = len(job.written) - pending
     redo = f"; --force redoes {_force_redoes(job, settings)}" if args.force and todo else ""
     reporter.event("dry-run", f"quietframe: dry run: {server} answers ({len(model_names(listing))} "
                    f"models), --model {args.model} accepted; {todo} of {len(job.written)} "
-                   f"frame(s) to denoise{redo}; nothing was sent", server=server,
+                   f"frame(s) to denoise{redo}; no frame was sent", server=server,
                    model=args.model, to_denoise=todo, total=len(job.written))
 
 
@@ -426,139 +397,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     denoise = sub.add_parser("denoise", help="denoise a folder or glob of EXR frames",
                              allow_abbrev=False)
-    denoise.add_argument(
-        "input",
-        help="folder of .exr frames, a glob like 'shot/*.exr', or a frame pattern like "
-        "'shot.####.exr' or 'shot.%%04d.exr'",
-    )
-    denoise.add_argument("--out", required=True, help="output folder (same file names)")
-    denoise.add_argument(
-        "--frames",
-        metavar="RANGE",
-        help="frames to denoise and write, e.g. 1001-1100 (or Blender's 1001..1100) or "
-        "1001-1012,1050 (default: all)",
-    )
-    denoise.add_argument(
-        "--pre-roll",
-        type=int,
-        default=0,
-        metavar="N",
-        help="send the N frames before --frames first, to warm the history without writing "
-        "them (a farm chunk then continues its shot without a visible pop)",
-    )
-    denoise.add_argument(
-        "--cut",
-        type=int,
-        action="append",
-        metavar="FRAME",
-        help="a camera cut at FRAME: the history starts afresh there (repeatable)",
-    )
-    denoise.add_argument(
-        "--force",
-        action="store_true",
-        help="redo outputs that are not this job's (other files, re-rendered sources, changed "
-        "flags) in a new session instead of refusing",
-    )
-    denoise.add_argument(
-        "--dry-run",
-        action="store_true",
-        help="check what the run checks before it sends a frame, and send none: every frame's "
-        "header (size, view layers, passes, truncation, gaps), the files in --out, the server "
-        "(reachable, token), the model and its options, --layer; the same exit codes",
-    )
-    denoise.add_argument(
-        "--strict", action="store_true", help="a missing frame in the range is an error"
-    )
-    denoise.add_argument(
-        "--json", action="store_true", help="one JSON event per line on stdout, for scripts"
-    )
-    denoise.add_argument(
-        "--server",
-        default=os.environ.get("QUIETFRAME_SERVER"),
-        help="server URL (env QUIETFRAME_SERVER)",
-    )
-    denoise.add_argument("--model", default="auto", help="installed model name, or auto")
-    denoise.add_argument(
-        "--quality",
-        choices=("fast", "balanced", "best"),
-        help="target for --model auto: fast (within 1 dB of the best expected), balanced "
-        "(0.3 dB), best",
-    )
-    denoise.add_argument(
-        "--latency-ms",
-        type=float,
-        help="budget for --model auto: expected denoise ms per frame at the frames' size",
-    )
-    denoise.add_argument(
-        "--model-option",
-        type=model_option,
-        action="append",
-        metavar="NAME=VALUE",
-        help="a run-time option of the model, repeatable, e.g. kernel_size=9 for an affinity "
-        "model (`quietframe models` lists each model's options)",
-    )
-    denoise.add_argument(
-        "--layer",
-        help="view layer to denoise (Blender: ViewLayer, ...); 'all': every view layer of the "
-        "files, one session each, written into one output file per frame",
-    )
-    denoise.add_argument(
-        "--channels",
-        metavar="JSON",
-        help="session channel mapping, buffer -> layer or channel list, as JSON or @file: "
-        '\'{"albedo": "alb", "depth": "Z"}\'',
-    )
-    denoise.add_argument(
-        "--motion-scale",
-        nargs=2,
-        type=float,
-        metavar=("X", "Y"),
-        help="factors for a motion layer named in --channels (Blender Vector: 1 -1)",
-    )
-    denoise.add_argument(
-        "--locked-off",
-        dest="camera",
-        action="store_const",
-        const="locked",
-        default=None,  # unset: the server's default (auto), and no new setting in the records
-        help="the camera is locked off for the whole shot: frames without motion vectors keep "
-        "their history without being judged from their aux (at 1-4 spp aux noise can look "
-        "like motion); a cut the aux show still resets it",
-    )
-    denoise.add_argument(
-        "--denoised-layer",
-        metavar="NAME",
-        help="write the denoised colour as a new layer <view layer>.NAME and keep the noisy "
-        "beauty (default: the denoised colour replaces the beauty's R, G, B)",
-    )
-    denoise.add_argument(
-        "--precision",
-        choices=("input", "half", "float"),
-        default="input",
-        help="output pixel type; input: that of the input colour",
-    )
-    denoise.add_argument(
-        "--compression",
-        default="input",
-        help="output EXR compression: input (keep), none, zip, piz, dwaa, ...",
-    )
-    denoise.add_argument("--token", help="bearer token (env QUIETFRAME_TOKEN)")
-    denoise.add_argument(
-        "--warmup",
-        type=int,
-        default=4,
-        help="frames re-sent to rebuild history when resuming in a new session",
-    )
-    denoise.add_argument("--timeout", type=float, default=300.0, help="seconds per request")
-    denoise.add_argument(
-        "--retries",
-        type=int,
-        default=5,
-        help="retries per request on 429/5xx/connection errors (with backoff)",
-    )
-    denoise.add_argument(
-        "--quiet", action="store_true", help="errors and warnings only (no progress)"
-    )
+    add_denoise_arguments(denoise)
     denoise.set_defaults(func=_denoise)
 
     models = sub.add_parser("models", help="list models (installed here, or on --server)",

@@ -72,6 +72,7 @@ class Job:
         frames: tuple[int, ...] | None = None,
         pre_roll: int = 0,
         cuts: tuple[int, ...] = (),
+        create_out: bool = True,
     ) -> Job:
         chosen = select_frames(source, frames, pre_roll)
         out = Path(out_dir)
@@ -89,7 +90,8 @@ class Job:
         files = [*pre_roll_files, *chosen.files]
         indices = [*(frame_number(f) for f in pre_roll_files), *indices]  # type: ignore[misc]
         all_cuts = frozenset(flagged | ({start} if start is not None else set()))
-        out.mkdir(parents=True, exist_ok=True)
+        if create_out:  # a dry run leaves no trace
+            out.mkdir(parents=True, exist_ok=True)
         width, height = frame_size(chosen.files[0])
         job_file = JOB_FILE
         if frames is not None:

@@ -6,9 +6,11 @@ The server's alias table (which channels are colour, albedo, ...) stays on the s
 every frame is compared with the first one: the same size, view layers and channel names.
 
 `--dry-run` adds what the server would refuse before the first frame is denoised, read from its
-model listing (GET /v1/models) and the first frame's header: an unknown model or option, and
-view layers that need `--layer`. Each is said as the run says it (outcome.server_failure with
-the server's own words), so a dry run and the run end with the same exit code and advice.
+model listing (GET /v1/models) and the first frame's header: an unknown model or option,
+view layers that need `--layer`, a `--channels` entry naming no channel of the file. Each is
+said as the run says it (outcome.server_failure with the server's own words), so a dry run and
+the run end with the same exit code and advice. The session's settings themselves the server
+judges: the dry run opens the session the run would open and deletes it (cli._dry_run).
 """
 
 from __future__ import annotations
@@ -224,4 +226,26 @@ def check_view_layers(report: Report, layer: str | None, mapping: bool,
         return server_failure(422, "ambiguous_channels", "the beauty is found in each of the "
                               f"view layers {list(report.layers)}; pass --channels", server,
                               False, report.layers)
+    return None
+
+
+def _names_channels(spec: str | list[str], buffer: str, names: tuple[str, ...]) -> bool:
+    """Whether a mapping's value can name channels of the file: a list, every one of them;
+    a layer name (any case), some channel `<layer>.<component>`; a depth mapping may also name
+    one channel (the server's runtime.exr_channels reads the components)."""
+    if not isinstance(spec, str):
+        return all(c in names for c in spec)
+    if buffer == "depth" and spec in names:
+        return True
+    return any(n.rpartition(".")[0].lower() == spec.lower() for n in names)
+
+
+def check_mapping(report: Report, mapping: dict | None, server: str) -> Failure | None:
+    """The server's refusal of the first frame for a --channels entry that names nothing in
+    it (the run's 422 missing_channels, in its words)."""
+    for buffer, spec in (mapping or {}).items():
+        if not _names_channels(spec, buffer, report.names):
+            return server_failure(422, "missing_channels", f"session mapping {buffer}={spec!r} "
+                                  f"names channels that are not in the file; found "
+                                  f"{list(report.names)}", server, True)
     return None
