@@ -159,7 +159,10 @@ def test_image_recipe_in_a_fresh_virtualenv(tmp_path):
             _run(native(run), src, build_env)
     wheel = next(wheels.glob("quietframe-*.whl"))
     with zipfile.ZipFile(wheel) as archive:
-        assert any(n.endswith("libquietframe_ops.so") for n in archive.namelist()), wheel.name
+        names = archive.namelist()
+        assert any(n.endswith("libquietframe_ops.so") for n in names), wheel.name
+        # the image's wheel carries the licence and the third-party notices (its dist-info)
+        assert {"LICENSE", "NOTICE.md"} <= {Path(n).name for n in names if ".dist-info/" in n}
 
     runtime = stages["runtime"]
     for entry in runtime.all("ENV"):
