@@ -514,7 +514,8 @@ def above_floor(pool: list[Scored], baseline: Scored, spp: float,
         above = [s for s in pool if s[1] >= floor - 1e-9]
         if above:
             left = len(pool) - len(above)
-            return above, (f", {left} below {name} less {slack:g} dB left out" if left else "")
+            margin = f" less {slack:g} dB" if slack else ""  # "less 0 dB" read as a typo
+            return above, (f", {left} below {name}{margin} left out" if left else "")
     return pool, f", none that fits is above per-frame {profile.name}"
 
 

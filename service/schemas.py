@@ -63,7 +63,9 @@ class SessionPublic(SessionFields):
     """A session as created (its fields, `model` the model in use), and how it is doing."""
 
     id: str = Field(description="unguessable session id (the capability to use the session)")
-    model: ModelRef  # type: ignore[assignment]  # the model in use; as created: requested_model
+    model: ModelRef | None = Field(  # type: ignore[assignment]  # as created: requested_model
+        None, description="the model in use; none until the first frame of an 'auto' session "
+        "has chosen one")
     required_buffers: list[str] = Field(description="buffers every frame must carry")
     optional_buffers: list[str] = Field(description="buffers used when present (else defaults)")
     requested_model: str = Field(description="as created: a model name or 'auto'")

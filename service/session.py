@@ -12,6 +12,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from quietframe.client.protocol import Reset
+from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.service.errors import FrameConflict, FrameOutOfOrder
@@ -129,7 +130,8 @@ class Session:
         return SessionPublic(
             **self.spec.model_dump(exclude={"model"}),
             id=self.id,
-            model=ModelRef(name=self.info.name, version=self.info.version),
+            model=(None if self.spec.model == AUTO and self.choice is None  # nothing chosen yet
+                   else ModelRef(name=self.info.name, version=self.info.version)),
             requested_model=self.spec.model,
             choice=ChoicePublic(**self.choice.to_dict()) if self.choice else None,
             required_buffers=list(self.info.required_buffers),

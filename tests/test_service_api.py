@@ -77,7 +77,11 @@ def test_create_session(client):
     assert r.status_code == 201
     body = r.json()
     assert len(body["id"]) == 22 and r.headers["location"] == f"/v1/sessions/{body['id']}"
-    assert body["model"]["name"] and "color" in body["required_buffers"]
+    # auto: no model is in use until the first frame chooses one (the reply named a fallback)
+    assert body["model"] is None and body["requested_model"] == "auto" and body["choice"] is None
+    assert "color" in body["required_buffers"]
+    named = client.post("/v1/sessions", json={**SIZE, "model": "nbg-2l-3g"}).json()
+    assert named["model"]["name"] == "nbg-2l-3g"
     assert body["frames_done"] == 0 and body["last_index"] is None and body["reserved_bytes"] > 0
     other = client.post("/v1/sessions", json=SIZE).json()
     assert other["id"] != body["id"] and other["precision"] == "input"
