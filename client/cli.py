@@ -11,6 +11,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from importlib.metadata import PackageNotFoundError, entry_points, version
 from pathlib import Path
 
@@ -34,6 +35,7 @@ from quietframe.client.preflight import (
 )
 from quietframe.client.report import Reporter
 from quietframe.client.sequence import job_settings, refuse_conflicts, run_sequence
+from quietframe.client.session_fields import AUTO
 
 COMMANDS_GROUP = "quietframe.commands"
 RENDERERS = ("cycles", "mitsuba")  # the renderers the model cards hold tables for
@@ -134,6 +136,11 @@ def _denoise(args: argparse.Namespace) -> int:
         return stop.code
     total = len(job.written)
     reporter = _reporter(args, total, 0)
+    try:
+        job = _shot_starts_rendered(args, job, layers, reporter)
+    except _Stop as stop:
+        reporter.error(stop.message, stop.advice, stop.code)
+        return stop.code
     position = {"at": job.first_written}
     with stop_on_signals():
         try:
@@ -152,6 +159,26 @@ def _denoise(args: argparse.Namespace) -> int:
             return _interrupted(reporter, job, position["at"], "SIGINT")
     reporter.summary(written, job.out_dir)
     return outcome.OK
+
+
+def _shot_starts_rendered(args, job, layers, reporter):
+    """The job, once the first frame of every shot it sends whose model is not recorded yet
+    is rendered (auto decides a shot from that frame only): waited for up to
+    --wait-for-shot-start seconds, re-reading the input; _Stop (75: retry later) after."""
+    if args.model != AUTO:
+        return job
+    deadline = time.monotonic() + (0 if args.dry_run else args.wait_for_shot_start)
+    while missing := job.undecided_starts(layers):
+        if time.monotonic() >= deadline:
+            shots = ", ".join(str(n) for n in missing)
+            raise _Stop(outcome.UNAVAILABLE, f"the first frame of the shot from frame {shots} "
+                        "is not rendered yet, and --model auto decides a shot's model from it",
+                        "retry once it is rendered (the farm's retry of exit 75), wait for it "
+                        "with --wait-for-shot-start SECONDS, or name the model with --model")
+        reporter.note(f"waiting for frame {missing[0]}, the first of its shot")
+        time.sleep(min(5.0, max(0.0, deadline - time.monotonic())))
+        job = _plan(args)[2]  # the input read again
+    return job
 
 
 def _interrupted(reporter, job, at: int, signal_name: str) -> int:
@@ -331,8 +358,12 @@ class _ShotWatcher:
             measured = self.reporter.measured_ms(choice["model"]) if choice else None
             text = describe_choice(choice, measured_ms=measured) if choice else result.model
         if text != self.shown or result.reset == "cut":
-            self.reporter.event("shot", f"quietframe: shot from frame {index}: {text}",
-                                frame=index, model=result.model, choice=choice, text=text)
+            start = self.job.shot_of(p.position)  # the shot by its cut, not this run's frame
+            first = start if start is not None else min(self.job.sequence, default=index)
+            here = "" if first == index else f" (this run from frame {index})"
+            self.reporter.event("shot", f"quietframe: shot from frame {first}{here}: {text}",
+                                frame=index,
+                                shot_start=start, model=result.model, choice=choice, text=text)
             self.shown = text
 
 

@@ -64,6 +64,8 @@ def flag_problem(args: argparse.Namespace, options: dict) -> tuple[str, str] | N
     if not args.timeout > 0 or not math.isfinite(args.timeout):
         return (f"--timeout is seconds per request, > 0; got {args.timeout:g}",
                 "e.g. --timeout 300 (a farm requeues a failure it cannot fix forever)")
+    if not args.wait_for_shot_start >= 0 or not math.isfinite(args.wait_for_shot_start):
+        return f"--wait-for-shot-start is seconds >= 0; got {args.wait_for_shot_start:g}", ""
     if args.retries < 0:
         return f"--retries is a count >= 0; got {args.retries}", "0: no retries"
     if args.motion_scale and "motion" not in (options["channels"] or {}):
@@ -107,6 +109,16 @@ def add_denoise_arguments(denoise: argparse.ArgumentParser) -> None:
         action="append",
         metavar="FRAME",
         help="a camera cut at FRAME: the history starts afresh there (repeatable)",
+    )
+    denoise.add_argument(
+        "--wait-for-shot-start",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="with --model auto, wait up to SECONDS for the first frame of a shot this run "
+        "sends (a cut) when it is not rendered yet and no chunk has recorded the shot's model: "
+        "auto decides a shot from its first frame only. Then, or at once by default, exit 75 "
+        "(retry later)",
     )
     denoise.add_argument(
         "--force",

@@ -174,6 +174,17 @@ class Job:
             return None
         return {layer: record.model for layer, record in found.items()}  # type: ignore
 
+    def undecided_starts(self, layers: tuple[str | None, ...]) -> list[int]:
+        """Cuts that start shots this job sends whose own frame is not rendered yet while no
+        record holds the shot's model: auto decides a shot from its first frame only, so these
+        must wait for it (a later frame could choose another model than the shot's other
+        chunks)."""
+        if not self.sequence:
+            return []
+        return [start for start in self.shots_sent()
+                if start is not None and start not in self.sequence
+                and any(self.shot_record(start, layer or "") is None for layer in layers)]
+
     def deciding_frame(self, start: int | None) -> tuple[Path, int]:
         """The frame auto decides a shot from: its first present, the cut's frame itself
         where it is there (any chunk finds the same), as (file, index)."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 from pathlib import Path
 
 from conftest import LAYOUTS, make_buffers, read_exr, write_exr
@@ -116,20 +117,31 @@ def test_model_naming_the_recorded_choice_is_the_same_setting(tmp_path, live_ser
     assert "--model auto (oidn-history-cleanaux) -> auto (oidn-frame)" in capsys.readouterr().err
 
 
-def test_a_cut_starts_a_shot_with_a_model_of_its_own_kept_across_chunks(tmp_path, live_server):
-    """Shot two starts at the cut at frame 4. Its second chunk ran while frame 4 was not
-    rendered (decided from frame 5, at more samples); frame 4, rendered later at fewer, is
-    denoised with shot two's recorded model, not with what it alone would choose."""
+def test_a_cut_starts_a_shot_with_a_model_of_its_own_kept_across_chunks(tmp_path, live_server,
+                                                                        capsys):
+    """Shot two starts at the cut at frame 4. Its second chunk runs while frame 4 is not
+    rendered: it never decides from frame 5 (at more samples: another model) but exits 75, or
+    waits for frame 4 with --wait-for-shot-start; the shot is decided from frame 4 and named by
+    it in the progress, and the other chunk keeps that model."""
     src, out = tmp_path / "in", tmp_path / "out"
     render(src, {1: NOISY, 2: NOISY, 3: NOISY, 5: CLEAN, 6: CLEAN})
-    assert main(denoise(live_server, src, out, "--frames", "5-6", "--cut", "4", "--quiet")) == 0
-    render(src, {4: NOISY})
+    chunk = denoise(live_server, src, out, "--frames", "5-6", "--cut", "4", "--json")
+    assert main(chunk) == 75
+    assert "the first frame of the shot from frame 4 is not rendered yet" in \
+        capsys.readouterr().err
+    assert not list(out.glob("*.exr"))
+    later = threading.Timer(1.0, render, (src, {4: NOISY}))
+    later.start()
+    assert main([*chunk, "--wait-for-shot-start", "30"]) == 0
+    later.join()
+    (shot,) = [e for e in events(capsys.readouterr().out) if e["event"] == "shot"]
+    assert (shot["shot_start"], shot["frame"]) == (4, 5), shot  # named by its cut, not frame 5
     assert main(denoise(live_server, src, out, "--frames", "1-4", "--cut", "4", "--quiet")) == 0
     made = models_in(out)
     assert {made[n] for n in (1, 2, 3)} == {"oidn-history-cleanaux"}, made
-    assert {made[n] for n in (4, 5, 6)} == {"oidn-frame"}, made
+    assert {made[n] for n in (4, 5, 6)} == {"oidn-history-cleanaux"}, made  # frame 4's choice
     folder = out / records.RECORD_DIR
-    assert json.loads((folder / ".shot.cut4.json").read_text())["decided_from"] == "shot.0005.exr"
+    assert json.loads((folder / ".shot.cut4.json").read_text())["decided_from"] == "shot.0004.exr"
 
 
 def test_a_cut_in_a_frame_header_is_found_by_the_chunks_after_it(tmp_path, live_server):
