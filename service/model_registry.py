@@ -55,6 +55,16 @@ class ModelRegistry:
                                    f"{self.loaded.unavailable[name]}")
         raise UnknownModel(f"unknown model {name!r}; installed: {self.names} or 'auto'")
 
+    def shot_model(self, name: str) -> str:
+        """A frame's `shot_model` (the model another chunk's auto chose for the shot): one of
+        the models auto chooses from, never 'auto' itself nor an internal stage (UnknownModel:
+        a record that names one was not written by auto)."""
+        found = None if name == AUTO else self.loaded.find(name)
+        if found is None or found not in self.loaded.offered:
+            raise UnknownModel(f"shot_model {name!r} is not a model auto chooses from; those "
+                               f"are {self.names}")
+        return found
+
     def check_options(self, model: str, options: Mapping[str, float | int]) -> None:
         """InvalidModelOptions unless the session's model (a name `requested` returned) takes
         every option. For 'auto' each option must be declared by some installed model, with a

@@ -165,7 +165,7 @@ class SessionRegistry(DurableSessions):
         frames.check_windows(header, spec.width, spec.height)
         auto = spec.model == AUTO
         # UnknownModel before the lock; a fixed model's session has no choice to keep
-        keep = self.models.resolve(shot_model) if auto and shot_model else None
+        keep = self.models.shot_model(shot_model) if auto and shot_model else None
         # model=auto: every buffer the frame carries (the choice's input, from the header); the
         # chosen model's own check follows once the plan says which model this frame uses.
         installed = self.models.buffers()

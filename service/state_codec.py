@@ -272,7 +272,11 @@ def decode(layout: Mapping, planes: Sequence[np.ndarray],
         if tuple(tensor["shape"]) != shapes.get(name):
             raise ValueError(f"state {name} has shape {tuple(tensor['shape'])}; the session's "
                              f"model expects {shapes.get(name, 'no such state')}")
-    values = [_decode_plane(d, p) for d, p in zip(descriptors, planes, strict=True)]
+    # A plane holds channels of one tensor: never more values than the largest the session's
+    # model keeps. The bound comes from the session, not the record (a record is untrusted: a
+    # shape of [-1] once made the inflate unbounded, a zlib bomb).
+    limit = max((int(np.prod(shape)) for shape in shapes.values()), default=0)
+    values = [_decode_plane(d, p, limit) for d, p in zip(descriptors, planes, strict=True)]
     state = {}
     for name, tensor in layout["tensors"].items():
         shape = tuple(int(n) for n in tensor["shape"])
@@ -291,11 +295,18 @@ def decode(layout: Mapping, planes: Sequence[np.ndarray],
     return state
 
 
-def _decode_plane(descriptor: Mapping, blob: np.ndarray) -> np.ndarray:
+def _decode_plane(descriptor: Mapping, blob: np.ndarray, limit: int) -> np.ndarray:
+    """One stored plane, of at most `limit` values (ValueError beyond: checked before a byte
+    is inflated)."""
     dtype = np.dtype(KINDS[descriptor["kind"]])
     shape = tuple(int(n) for n in descriptor["shape"])
-    count = int(np.prod(shape))
+    count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    if any(n <= 0 for n in shape) or count > limit:
+        raise ValueError(f"a stored plane of shape {list(shape)}: the session's state holds "
+                         f"at most {limit} values a plane")
     size, patches = int(descriptor["bytes"]), int(descriptor["patches"])
+    if size < 0 or patches < 0:
+        raise ValueError("a stored plane's length does not match its layout")
     if blob.dtype != np.uint8 or blob.ndim != 1 or blob.size != size + 8 * patches:
         raise ValueError("a stored plane's length does not match its layout")
     body = blob[:size]

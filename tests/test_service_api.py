@@ -270,6 +270,19 @@ def test_rejected_frames_never_change_state(client):
     np.testing.assert_array_equal(pixels(good), pixels(send(client, ref, 2, frames[2])))
 
 
+def test_shot_model_is_one_auto_chooses_from(client):
+    """Audit R4-1: `shot_model` names a model auto may choose; an internal stage
+    (accumulation: not listed) or 'auto' itself is refused and changes nothing."""
+    sid = new_session(client)  # auto
+    frame = frame_bytes()
+    for name in ("accumulation", "auto", "no-such-model"):
+        assert "auto chooses from" in assert_error(send(client, sid, 0, frame, shot_model=name),
+                                                   422, "unknown_model")
+    assert client.get(f"/v1/sessions/{sid}").json()["frames_done"] == 0
+    kept = send(client, sid, 0, frame, shot_model="nbg-2l-3g")
+    assert kept.status_code == 200 and kept.headers["x-quietframe-model"].startswith("nbg-2l-3g")
+
+
 def test_bad_bodies(client):
     sid = new_session(client)
     assert "magic" in assert_error(send(client, sid, 0, b"GIF89a" + bytes(64)), 400, "bad_exr")

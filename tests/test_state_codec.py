@@ -166,6 +166,31 @@ def test_a_patch_out_of_range_or_a_foreign_shape_is_refused():
         state_codec.decode(encoded.layout, encoded.planes, other)
 
 
+@pytest.mark.parametrize("shape", [[-1], [0], [-1, -1], [10**6, 10**6]])
+def test_a_zlib_bomb_is_refused_before_it_inflates(shape):
+    """Audit R4-5: a plane whose descriptor claims a shape beyond the session's (or none,
+    [-1]) must not inflate without bound: 64 MiB of zeros in 64 KiB of zlib, refused before a
+    byte of it is inflated (tracemalloc sees no allocation near its size)."""
+    import tracemalloc
+    import zlib
+
+    state = two_stages()
+    encoded = state_codec.encode(state)
+    bomb = np.frombuffer(zlib.compress(bytes(64 << 20), 9), np.uint8)
+    layout = json.loads(json.dumps(encoded.layout))
+    layout["planes"][0] = {**layout["planes"][0], "kind": "u8", "shape": shape, "zlib": True,
+                           "bytes": int(bomb.size), "patches": 0}
+    planes = [bomb, *encoded.planes[1:]]
+    tracemalloc.start()
+    try:
+        with pytest.raises(ValueError, match="at most"):
+            state_codec.decode(layout, planes, shapes_of(state))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20, peak
+
+
 def test_the_writer_continues_from_the_stored_values(tmp_path):
     state = two_stages()
     original = {k: v.copy() for k, v in state.items()}
