@@ -8,6 +8,7 @@ under the `quietframe.commands` entry point (`serve`, from quietframe.service.cl
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import sys
@@ -56,6 +57,9 @@ def _layers(job, layer: str | None, options: dict) -> tuple[str | None, ...]:
             "leave it out (each view layer's passes are found by name) or run one --layer each"
         )
     return file_view_layers(job.files[job.first_written]) or (None,)
+
+
+_NOT_WRITABLE = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EISDIR})
 
 
 class _Stop(Exception):
@@ -318,6 +322,9 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
             raise _Stop(outcome.INPUT, str(exc), "fix that frame, then run the same command "
                         "again to resume") from exc
         except OSError as exc:
+            if exc.errno in _NOT_WRITABLE:  # the folder, not the run: running again cannot help
+                raise _Stop(outcome.CONFIG, f"cannot write into --out: {exc}", "make --out a "
+                            "folder this user can write, then run the same command") from exc
             raise _Stop(outcome.FAILURE, f"{exc}", "run the same command again to resume") from exc
     return written["count"]
 

@@ -27,11 +27,17 @@ def frame_number(path: Path) -> int | None:
     return int(match.group(1)) if match else None
 
 
+# The most frames one --frames range may span: ~70 minutes at 24 fps, far beyond a shot or a
+# farm chunk; a bound keeps a typo from allocating a billion numbers (audit R4-25).
+MAX_RANGE_FRAMES = 100_000
+
+
 def parse_frame_range(text: str) -> tuple[int, ...]:
     """`1001-1100` (or Blender's `1001..1100`), `1001` or a comma list of these, ascending and
     without repeats; ValueError with the accepted forms otherwise. No step: a temporal denoiser
     needs every frame (a skipped number is a gap, where the history starts afresh)."""
     numbers: set[int] = set()
+    spans: list[tuple[int, int]] = []
     for part in (p.strip() for p in text.split(",")):
         match = re.fullmatch(r"(\d+)(?:(?:-|\.\.)(\d+))?", part)
         if not match:
@@ -43,6 +49,13 @@ def parse_frame_range(text: str) -> tuple[int, ...]:
         last = int(match.group(2)) if match.group(2) is not None else first
         if last < first:
             raise ValueError(f"frame range {part!r}: LAST is below FIRST")
+        spans.append((first, last))
+    # counted before a number is made: `1-1000000000` would not fit in memory
+    count = sum(last - first + 1 for first, last in spans)
+    if count > MAX_RANGE_FRAMES:
+        raise ValueError(f"frame range {text!r} spans {count} frames; at most "
+                         f"{MAX_RANGE_FRAMES} a run (split the shot into chunks)")
+    for first, last in spans:
         numbers.update(range(first, last + 1))
     return tuple(sorted(numbers))
 

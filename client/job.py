@@ -6,6 +6,7 @@ sends the frames)."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import warnings
 from collections.abc import Callable
@@ -90,6 +91,9 @@ class Job:
         files = [*pre_roll_files, *chosen.files]
         indices = [*(frame_number(f) for f in pre_roll_files), *indices]  # type: ignore[misc]
         all_cuts = frozenset(flagged | ({start} if start is not None else set()))
+        problem = out_dir_problem(out)
+        if problem is not None:
+            raise ValueError(problem)
         if create_out:  # a dry run leaves no trace
             out.mkdir(parents=True, exist_ok=True)
         width, height = frame_size(chosen.files[0])
@@ -269,6 +273,19 @@ def job_file_problem(stored: object) -> str | None:
 def warn(text: str) -> None:
     """A damaged file worked around, where the caller did not ask to be told (RuntimeWarning)."""
     warnings.warn(text, RuntimeWarning, stacklevel=3)
+
+
+def out_dir_problem(out: Path) -> str | None:
+    """Why outputs cannot be written into `out` (a file where a folder must be, a folder this
+    user cannot write), found before anything is sent (audit R4-24); None when they can."""
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"--out {out}: {existing} is a file, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"--out {out}: {existing} is not writable by this user"
+    return None
 
 
 def _shot_of(index: int, cuts: frozenset[int]) -> int | None:

@@ -56,6 +56,8 @@ def test_a_dry_run_leaves_no_trace(tmp_path, live_server, capsys):
     (("--model", "nbg-2l-3g", "--quality", "best"), "--quality"),
     (("--model", "nbg-2l-3g", "--latency-ms", "100"), "--latency-ms"),
     (("--pre-roll", "-1"), "--pre-roll"),
+    (("--frames", "1-1000000000"), "at most 100000"),  # audit R4-25: refused, not built
+    (("--wait-for-shot-start", "-1"), "--wait-for-shot-start"),
 ])
 def test_flags_that_cannot_work_are_configuration_errors(tmp_path, capsys, flags, words):
     """Exit 2 before the server is asked (none listens at port 9: a flag checked later would
@@ -67,3 +69,17 @@ def test_flags_that_cannot_work_are_configuration_errors(tmp_path, capsys, flags
         assert main([*args, *dry]) == 2
         assert words in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_out_folder_that_cannot_be_written_is_a_configuration_error(tmp_path, live_server,
+                                                                       capsys):
+    """Audit R4-24: --out under a file was a traceback (exit 1); now exit 2 with the reason,
+    before a session is opened, dry run or not."""
+    write_shot(tmp_path / "in", 1)
+    (tmp_path / "afile").write_text("x")
+    before = open_sessions(live_server)
+    for dry in ((), ("--dry-run",)):
+        assert main([*denoise(live_server.url, tmp_path / "in", tmp_path / "afile" / "out"),
+                     *dry]) == 2
+        assert "is a file, not a folder" in capsys.readouterr().err
+    assert open_sessions(live_server) == before
