@@ -42,6 +42,7 @@ import numpy as np
 
 from quietframe.service import state_codec
 from quietframe.service.state_codec import ReplyRecipe
+from quietframe.service.stored_record import parse_meta
 
 SESSION_ID = re.compile(r"[A-Za-z0-9_-]{22}")  # secrets.token_urlsafe(16): 128 random bits
 
@@ -211,10 +212,9 @@ class SessionStore:
     def read_spec(self, session_id: str) -> dict | None:
         """The settings written at creation, or None (absent, unreadable, another id)."""
         try:
-            meta = json.loads(self.spec_path(session_id).read_text())
+            return parse_meta(self.spec_path(session_id).read_text(), session_id, progress=False)
         except (OSError, ValueError):
             return None
-        return meta if isinstance(meta, dict) and meta.get("id") == session_id else None
 
     def spec_ids(self) -> list[str]:
         return sorted(p.stem for p in self.folder.glob("*.json") if is_session_id(p.stem))
@@ -251,7 +251,7 @@ class SessionStore:
         try:
             with np.load(self.path(session_id)) as z:
                 arrays = {name: z[name] for name in z.files}  # whole reads check each CRC-32
-            meta = json.loads(arrays.pop("meta").tobytes())
+            meta = parse_meta(arrays.pop("meta").tobytes(), session_id)
             state, reply = unpack(meta, arrays, session_id, shapes)
         except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
             raise StateDamaged(f"{type(exc).__name__}: {exc}") from exc
@@ -279,9 +279,7 @@ class SessionStore:
                 continue
             try:
                 with np.load(path) as z:
-                    meta = json.loads(z["meta"].tobytes())
-                if meta.get("id") != path.stem:
-                    raise StateDamaged(f"the file holds session {meta.get('id')!r}")
+                    meta = parse_meta(z["meta"].tobytes(), path.stem)
                 yield path, meta
             except Exception as exc:  # unreadable file
                 yield path, {"error": f"{type(exc).__name__}: {exc}"}

@@ -59,6 +59,7 @@ from quietframe.service.session_store import (
     record,
     unpack,
 )
+from quietframe.service.stored_record import parse_meta
 
 QUARANTINE_S = 7 * 86400  # a damaged record is kept this long for a look
 
@@ -167,7 +168,7 @@ class RedisStore:
         spec, _, _ = self.keys(session_id)
         with self._answering():
             raw = self.redis.get(spec)
-        return _json_record(raw, session_id)
+        return _json_record(raw, session_id, progress=False)
 
     def find(self, session_id: str) -> tuple[dict, bool] | None:
         """(meta, state lost) of a session this replica does not hold, or None (no such one):
@@ -180,10 +181,10 @@ class RedisStore:
             )
         if version is None:
             return None
-        found = _json_record(meta, session_id)
+        found = _json_record(meta, session_id, progress=True)
         if found is not None:
             return found, False
-        settings = _json_record(settings, session_id)
+        settings = _json_record(settings, session_id, progress=False)
         return (settings, True) if settings is not None else None
 
     # ---- state -------------------------------------------------------------------------------
@@ -256,7 +257,7 @@ class RedisStore:
         if not fields:
             return Loaded(None, None, None, version.decode(), "no stored state")
         try:
-            meta = json.loads(fields.pop(b"meta"))
+            meta = parse_meta(fields.pop(b"meta"), session_id)
             arrays = _arrays(meta, fields)
             state, reply = unpack(meta, arrays, session_id, shapes_of(meta))
         except (ValueError, KeyError, TypeError) as exc:
@@ -329,12 +330,13 @@ def _unavailable(what: str) -> StoreUnavailable:
     )
 
 
-def _json_record(raw: bytes | None, session_id: str) -> dict | None:
+def _json_record(raw: bytes | None, session_id: str, progress: bool) -> dict | None:
+    """A stored meta (stored_record.parse_meta), or None where there is none or it is not
+    one."""
     try:
-        meta = json.loads(raw) if raw is not None else None
+        return parse_meta(raw, session_id, progress) if raw is not None else None
     except ValueError:
         return None
-    return meta if isinstance(meta, dict) and meta.get("id") == session_id else None
 
 
 def _arrays(meta: dict, fields: dict[bytes, bytes]) -> dict[str, np.ndarray]:

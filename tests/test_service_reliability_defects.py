@@ -104,6 +104,46 @@ def test_state_of_another_dtype_is_quarantined(tmp_path, dtype, caplog):
         no_internal_errors(c)
 
 
+def _meta_text(change):
+    def edit(meta: dict) -> bytes:
+        changed = change(meta)
+        return (changed if isinstance(changed, bytes) else json.dumps(meta).encode())
+    return edit
+
+
+@pytest.mark.parametrize("change", [
+    lambda m: m.update(reply="x"),
+    lambda m: m.update(last_index="2"),
+    lambda m: m.pop("last_index"),
+    lambda m: m.update(frames_done=-1),
+    lambda m: m.update(choice={"reason": "no model"}),
+    lambda m: m.update(width="64"),
+    lambda m: b"[]",
+    lambda m: b"[" * 200_000,
+], ids=["reply-str", "last_index-str", "no-last_index", "negative-count", "choice-without-model",
+        "width-str", "meta-list", "deep-nesting"])
+def test_a_wrongly_shaped_record_is_quarantined_not_a_500(tmp_path, change, caplog):
+    """Audit R4-4: the stored meta is untrusted input. Each of these gave a 500 on every frame
+    (and some on GET); now the record is quarantined and the session goes on afresh."""
+    with app_client(state_dir=str(tmp_path)) as c:
+        sid = new_session(c, model="nbg-2l-3g")
+        assert send(c, sid, 0, frame_bytes()).status_code == 200
+    path = tmp_path / f"{sid}.npz"
+    with np.load(path) as z:
+        arrays = {name: z[name] for name in z.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    arrays["meta"] = np.frombuffer(_meta_text(change)(meta), np.uint8)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    with caplog.at_level(logging.INFO), app_client(state_dir=str(tmp_path)) as c:
+        assert c.get(f"/v1/sessions/{sid}").status_code == 200
+        r = send(c, sid, 1, frame_bytes(seed=1))
+        assert r.status_code == 200, r.text
+        assert r.headers["x-quietframe-reset"] == "state-lost"
+        no_internal_errors(c)
+    assert list((tmp_path / "quarantine").iterdir())
+
+
 def test_state_file_cannot_change_the_sessions_settings(tmp_path, caplog):
     """Another session's file rewritten under this id: the settings file (<id>.json) says what
     the session is; the state file is quarantined and the session continues afresh."""

@@ -24,6 +24,9 @@ from quietframe.service.session_store import (
 
 H, W = 24, 32
 SID = "A" * 22
+# a stored record's meta as a session writes it (the stores check it: service/stored_record.py)
+META = {"id": SID, "width": W, "height": H, "model": "nbg-2l-3g", "created_at": 0.0,
+        "last_index": 0, "frames_done": 1, "resets": 1}
 EXR = {"content-type": "image/x-exr"}
 
 
@@ -195,7 +198,7 @@ def test_the_writer_continues_from_the_stored_values(tmp_path):
     state = two_stages()
     original = {k: v.copy() for k, v in state.items()}
     store = SessionStore(tmp_path, fsync=False)
-    store.write({"id": SID}, state, None)
+    store.write(META, state, None)
     loaded, _ = store.read(SID, shapes_of(state))
     for name in state:
         assert np.array_equal(state[name], loaded[name])  # replaced in place by write
@@ -206,7 +209,7 @@ def legacy_file(path, state, reply: Reply) -> None:
     """A session file as written before the compact form: float32 tensors, the reply's bytes."""
     arrays = {f"state.{k}": v for k, v in state.items()}
     arrays["reply"] = np.frombuffer(reply.body, np.uint8)
-    meta = {"id": SID, "reply": {"index": reply.index, "headers": reply.headers,
+    meta = {**META, "reply": {"index": reply.index, "headers": reply.headers,
                                  "digest": reply.request_digest, "crc": None,
                                  "len": reply.request_len},
             "manifest": {k: list(v.shape) for k, v in arrays.items()}}
@@ -240,7 +243,7 @@ def test_a_compact_record_read_as_the_earlier_form_is_refused():
     """What a replica that predates the compact form does with one: its check of the state
     members' shapes and types refuses it (a fresh history), it never reads it as empty."""
     state = two_stages()
-    meta, arrays = record({"id": SID}, state, None)
+    meta, arrays = record(META, state, None)
     shapes = shapes_of(state)
     assert all(name.startswith("state.") for name in arrays)
     assert not any(arrays[n].shape == shapes.get(n[6:]) for n in arrays)
@@ -249,7 +252,7 @@ def test_a_compact_record_read_as_the_earlier_form_is_refused():
 def test_a_damaged_compact_file_is_state_damaged(tmp_path):
     state = two_stages()
     store = SessionStore(tmp_path, fsync=False)
-    store.write({"id": SID}, state, None)
+    store.write(META, state, None)
     path = tmp_path / f"{SID}.npz"
     with np.load(path) as z:
         arrays = {name: z[name] for name in z.files}
