@@ -33,7 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench.harness import planes_from_hwc
 from quietframe.runtime.motion_evidence import PROBE_SCALE, _box, probe
+from quietframe.scenes import cycles_io
+from quietframe.scenes.layout import DATA_DIR
+from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
 
 # --- flow: pyramidal Lucas–Kanade on the probe ---------------------------------------------
 
@@ -321,9 +325,6 @@ def _epe(estimate: np.ndarray, truth: np.ndarray, where: np.ndarray) -> float:
 
 def score_shot(folder: Path, spp: int, frames: int) -> list[dict]:
     """Per frame t >= 1: median EPE of each estimator over all pixels and its trusted ones."""
-    from quietframe.bench.harness import planes_from_hwc
-    from quietframe.scenes import cycles_io
-
     rows, previous = [], None
     for t in range(frames):
         planes = planes_from_hwc(cycles_io.load_inputs(folder, t, spp))
@@ -351,9 +352,6 @@ def score_shot(folder: Path, spp: int, frames: int) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from quietframe.scenes.layout import DATA_DIR
-    from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--zoo", default="zoo2", choices=ZOO_ROUNDS)
     p.add_argument("--split", default="validation")

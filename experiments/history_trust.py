@@ -39,17 +39,24 @@ from quietframe.scenes import cycles_io
 from quietframe.scenes.layout import DATA_DIR
 from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
 
-# name -> changes to the shipped config
+# name -> changes to the shipped config (version 3: edge_depth 0.05, edge_motion 0.25,
+# exact_edge_motion 0.25)
+OFF = {"edge_depth": 0.0, "edge_motion": 0.0, "exact_edge_motion": 0.0}
+U_SPP = {"untrusted_weight": 0.5, "untrusted_weight_per_doubling": 0.25}
 CANDIDATES: dict[str, dict] = {
     "shipped": {},
-    "depth-edge": {"edge_depth": 0.1},
-    "motion-edge": {"edge_motion": 0.5},
+    "version 2": OFF,  # no per-pixel trust
+    "depth-edge": {**OFF, "edge_depth": 0.1},
+    "motion-edge": {**OFF, "edge_motion": 0.5},
     "depth+motion": {"edge_depth": 0.1, "edge_motion": 0.5},
-    "tight": {"edge_depth": 0.05, "edge_motion": 0.25},
-    "d+m u(spp)": {"edge_depth": 0.1, "edge_motion": 0.5, "untrusted_weight": 0.5,
-                   "untrusted_weight_per_doubling": 0.25},
-    "m u(spp)": {"edge_motion": 0.5, "untrusted_weight": 0.5,
-                 "untrusted_weight_per_doubling": 0.25},
+    "tight u(spp)": U_SPP,  # an untrusted pixel keeps some history at low spp
+    "d+m u(spp)": {"edge_depth": 0.1, "edge_motion": 0.5, **U_SPP},
+    # the motion test at exactly fetched pixels too
+    "tight (v3 without the exact pixels' test)": {"exact_edge_motion": 0.0},
+    "exact-motion 0.5": {"exact_edge_motion": 0.5},
+    # a resampled history weighs less as the spp rise: the stage alone from 16 / 64 spp
+    "w16": {"resampled_weight_per_doubling": 0.1625, "resampled_weight_max": 1.0},
+    "w64": {"resampled_weight_per_doubling": 0.11, "resampled_weight_max": 1.0},
 }
 
 

@@ -69,13 +69,25 @@ class OutputHistoryConfig:
     default_spp: float = 4.0  # w = 0.5 there: the constant the tier shipped with before
     # Per-pixel trust of a resampled history (`trusted_resample`): the bicubic fetch is used
     # only where its footprint lies on one surface moving as one, now and in the previous
-    # frame; elsewhere the pixel is its per-frame stage. 0 turns a test off (the tier's
-    # version 2 behaviour: every pixel that passes the nearest pixel's surface test).
-    edge_depth: float = 0.0  # max relative 3x3 depth range (current, and previous at p + m)
-    edge_motion: float = 0.0  # max 3x3 range of either motion component, pixels
+    # frame; elsewhere the pixel is its per-frame stage. 0 turns a test off (the tiers' version
+    # 2: every pixel that passes the nearest pixel's surface test). Chosen on zoo round 2's
+    # validation shots (experiments/history_trust, docs/zoo.md "Per-pixel trust"; with
+    # exact_edge_motion below): against the stage, fence-truck's -0.22/-0.24/-0.21 dB at
+    # 4/16/64 spp became +0.12/+0.12/+0.09 and studio-spin's -0.80/-1.68/-1.84 became
+    # +0.01/-0.07/-0.16; looser bounds (0.1, 0.5) kept more of the history's loss on the
+    # turning wireframe. The price: 1 spp gains less (fence-truck +0.13 where it was +0.45).
+    edge_depth: float = 0.05  # max relative 3x3 depth range (current, and previous at p + m)
+    edge_motion: float = 0.25  # max 3x3 range of either motion component, pixels
+    # The motion test at pixels fetched exactly (whole-pixel motion: a locked-off camera, the
+    # sky): one next to pixels that move otherwise (the sky beside a moving branch, a still wall
+    # beside a turning object) holds, in its history, what passed over it (mixed pixels of the
+    # thin object; the surface test reads only the nearest surface). 0: off. A locked-off shot
+    # without moving objects has no motion anywhere and keeps every pixel's history.
+    exact_edge_motion: float = 0.25  # max 3x3 range of either motion component, pixels
     # An untrusted pixel's current-frame weight is at least u(spp) = clamp(untrusted_weight +
-    # untrusted_weight_per_doubling · log2 spp, MIN_CURRENT_WEIGHT, 1): 1 makes it its stage;
-    # below 1 at low spp, where a doubtful history still beats the stage's noise.
+    # untrusted_weight_per_doubling · log2 spp, MIN_CURRENT_WEIGHT, 1); 1 makes it its stage.
+    # u = 0.5 + 0.25 log2 spp gained +0.3 dB at 1 spp on fence-truck and shelf-whip but cost
+    # studio-spin's worst frame 0.24 dB: never below the stage comes first.
     untrusted_weight: float = 1.0
     untrusted_weight_per_doubling: float = 0.0
 
@@ -181,12 +193,15 @@ class OutputHistory(nn.Module):
         if spp is None:
             spp = torch.full((1,), self.config.default_spp)
         alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_floor(spp))
-        if self.config.edge_depth > 0 or self.config.edge_motion > 0:
-            # a resampled pixel whose footprint cannot be right weighs at least u(spp); at 1
-            # it is its stage, and its history starts afresh (length 1)
-            doubt = (1 - exact) * (1 - trusted_resample(self.config, motion, depth,
-                                                        state[:, 3:4]))
-            floor = self.config.untrusted_floor(spp)
+        config = self.config
+        if config.edge_depth > 0 or config.edge_motion > 0 or config.exact_edge_motion > 0:
+            # a pixel whose fetch cannot be right weighs at least u(spp); at 1 it is its
+            # stage, and its history starts afresh (length 1)
+            doubt = (1 - exact) * (1 - trusted_resample(config, motion, depth, state[:, 3:4]))
+            if config.exact_edge_motion > 0:
+                spread = _range3(motion).amax(dim=1, keepdim=True)
+                doubt = doubt + exact * (spread > config.exact_edge_motion).to(oidn.dtype)
+            floor = config.untrusted_floor(spp)
             alpha = torch.maximum(alpha, doubt * floor)
             count = count - doubt * floor * (count - 1)
         return previous, alpha, count, exact

@@ -134,7 +134,8 @@ def test_a_cleaner_frame_keeps_less_resampled_history():
     assert centre(1.0, 0.5) < centre(4.0, 0.5) < centre(64.0, 0.5)
 
 
-TRUSTING = oh.OutputHistoryConfig(edge_depth=0.1, edge_motion=0.5)
+TRUSTING = oh.OutputHistoryConfig()  # the shipped per-pixel trust (version 3)
+VERSION2 = oh.OutputHistoryConfig(edge_depth=0, edge_motion=0, exact_edge_motion=0)  # none
 
 
 def _constant_history_then(frames: list[dict], last: torch.Tensor) -> list[dict]:
@@ -154,16 +155,16 @@ def test_a_resampled_history_is_not_trusted_across_a_depth_edge():
         for f in frames:  # a thin post 2 px wide at columns 12-13, far wall elsewhere
             f["depth"][..., 12:14] = 1.0
         out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
-        shipped = run_stage(oh.OutputHistory(), frames)[-1]
+        untrusted = run_stage(oh.OutputHistory(VERSION2), frames)[-1]
         edge = out[0, 0, H // 2, 14]  # beside the post: its 3x3 depth range spans both
         flat = out[0, 0, H // 2, 20]  # an even column on the wall, 6 px from the post
         frame = frames[-1]["oidn"]
         if trusted_at_edge:
-            torch.testing.assert_close(edge, shipped[0, 0, H // 2, 14])
+            torch.testing.assert_close(edge, untrusted[0, 0, H // 2, 14])
         else:
             torch.testing.assert_close(edge, frame[0, 0, H // 2, 14])
-            assert not torch.isclose(shipped[0, 0, H // 2, 14], frame[0, 0, H // 2, 14])
-        torch.testing.assert_close(flat, shipped[0, 0, H // 2, 20])
+            assert not torch.isclose(untrusted[0, 0, H // 2, 14], frame[0, 0, H // 2, 14])
+        torch.testing.assert_close(flat, untrusted[0, 0, H // 2, 20])
         assert not torch.isclose(flat, frame[0, 0, H // 2, 20])
 
 
@@ -179,7 +180,8 @@ def test_the_previous_frames_edge_at_the_fetch_is_tested_too():
     # p + 0.4 is nearest p: columns 11 and 14 pass the surface test at their own pixel, but
     # their target's 3x3 touches the post (12-13 fail it: the post was there)
     torch.testing.assert_close(out[..., 11:15], frame[..., 11:15])
-    assert not torch.allclose(run_stage(oh.OutputHistory(), frames)[-1][..., 11], frame[..., 11])
+    before = run_stage(oh.OutputHistory(VERSION2), frames)[-1]
+    assert not torch.allclose(before[..., 11], frame[..., 11])
     assert not torch.allclose(out[..., 18:22], frame[..., 18:22])
 
 
@@ -195,6 +197,25 @@ def test_a_resampled_history_is_not_trusted_where_neighbours_move_differently():
     torch.testing.assert_close(out[..., W // 2 - 1:W // 2 + 1], frame[..., W // 2 - 1:W // 2 + 1])
     assert not torch.allclose(out[..., 4:8], frame[..., 4:8])
     assert not torch.allclose(out[..., W - 8:W - 4], frame[..., W - 8:W - 4])
+
+
+def test_an_exact_fetch_beside_pixels_that_move_otherwise_is_not_trusted():
+    """A still wall (zero motion: exact fetches) beside a turning object (the right half moves
+    2 px a frame): the wall's pixels at the seam held what passed over them and take the frame;
+    the wall away from it keeps its history, and a locked-off frame keeps it everywhere."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    frames = _constant_history_then(surface(4, (0.0, 0.0)), stripes)
+    for f in frames[1:]:
+        f["motion"][:, 0, :, W // 2:] = 2.0
+    out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
+    frame = frames[-1]["oidn"]
+    torch.testing.assert_close(out[..., W // 2 - 1], frame[..., W // 2 - 1])  # the wall's seam
+    assert not torch.allclose(out[..., 4:8], frame[..., 4:8])
+    before = run_stage(oh.OutputHistory(VERSION2), frames)[-1]
+    assert not torch.allclose(before[..., W // 2 - 1], frame[..., W // 2 - 1])
+    still = _constant_history_then(surface(4, (0.0, 0.0)), stripes)
+    torch.testing.assert_close(run_stage(oh.OutputHistory(TRUSTING), still)[-1],
+                               run_stage(oh.OutputHistory(VERSION2), still)[-1])
 
 
 class _Given:
