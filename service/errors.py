@@ -65,6 +65,13 @@ class InvalidRequest(ServiceError):
     status, code = 422, "invalid_request"
 
 
+class StoreUnavailable(ServiceError):
+    """The session store (Redis, or the state folder: full, read-only) did not answer or
+    refused the write for now: nothing is committed (nor lost); retry."""
+
+    status, code = 503, "state_store_unavailable"
+
+
 class UnknownModel(ServiceError):
     status, code = 422, "unknown_model"
 

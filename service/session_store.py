@@ -41,6 +41,7 @@ from typing import Protocol
 import numpy as np
 
 from quietframe.service import state_codec
+from quietframe.service.errors import StoreUnavailable
 from quietframe.service.state_codec import ReplyRecipe
 from quietframe.service.stored_record import parse_meta
 
@@ -206,8 +207,12 @@ class SessionStore:
         """The session's settings, once, at creation (temp file + rename)."""
         path = self.spec_path(meta["id"])
         temp = path.with_name(f".{path.name}.tmp")
-        temp.write_text(json.dumps(dict(meta)))
-        os.replace(temp, path)
+        try:
+            temp.write_text(json.dumps(dict(meta)))
+            os.replace(temp, path)
+        except OSError as exc:
+            temp.unlink(missing_ok=True)
+            raise _refused(exc) from exc
 
     def read_spec(self, session_id: str) -> dict | None:
         """The settings written at creation, or None (absent, unreadable, another id)."""
@@ -239,8 +244,10 @@ class SessionStore:
                 if self.fsync:
                     os.fsync(f.fileno())
             os.replace(temp, path)
-        except BaseException:
+        except BaseException as exc:
             temp.unlink(missing_ok=True)  # the previous state file stays as it was
+            if isinstance(exc, OSError):
+                raise _refused(exc) from exc
             raise
 
     def read(
@@ -287,6 +294,15 @@ class SessionStore:
     def delete(self, session_id: str) -> None:
         self.path(session_id).unlink(missing_ok=True)
         self.spec_path(session_id).unlink(missing_ok=True)
+
+
+def _refused(exc: OSError) -> StoreUnavailable:
+    """A write the state folder refused (full, read-only, gone): 503 with Retry-After, as a
+    store that does not answer (audit R4-20: it was a 500 without one)."""
+    return StoreUnavailable(
+        f"the state folder refused the write ({exc.strerror or exc}); nothing was stored: "
+        "retry after Retry-After (the server's QUIETFRAME_STATE_DIR needs space or write "
+        "access)", headers={"Retry-After": "5"})
 
 
 def _verify(

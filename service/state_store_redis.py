@@ -51,7 +51,7 @@ from redis.exceptions import (
     TryAgainError,
 )
 
-from quietframe.service.errors import ServiceError
+from quietframe.service.errors import ServiceError, StoreUnavailable
 from quietframe.service.session_store import (
     Reply,
     StateDamaged,
@@ -86,13 +86,6 @@ CLUSTER_SCHEMES = {"redis+cluster": "redis", "rediss+cluster": "rediss"}
 # redis-py runs a cluster pipeline as MULTI/EXEC, WATCH included, from 6.1 on; before, it
 # refused transaction=True in cluster mode: every frame would be a 500.
 CLUSTER_TRANSACTIONS = (6, 1)
-
-
-class StoreUnavailable(ServiceError):
-    """Redis did not answer, or refused the write for now: nothing is committed (nor lost);
-    retry."""
-
-    status, code = 503, "state_store_unavailable"
 
 
 class SessionMoved(ServiceError):

@@ -144,6 +144,36 @@ def test_a_wrongly_shaped_record_is_quarantined_not_a_500(tmp_path, change, capl
     assert list((tmp_path / "quarantine").iterdir())
 
 
+def test_a_full_state_folder_is_503_with_retry_after_and_leaves_nothing(tmp_path, monkeypatch):
+    """Audit R4-20: ENOSPC on the state folder answered 500 without Retry-After, and a refused
+    creation left `.<id>.json.tmp`. Now 503 + Retry-After, no temp file, no session, and the
+    session that existed goes on once there is space."""
+    import errno
+
+    import quietframe.service.session_store as store_module
+
+    real_replace = store_module.os.replace
+
+    def full(*_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with app_client(state_dir=str(tmp_path)) as c:
+        sid = new_session(c, model="nbg-2l-3g")
+        assert send(c, sid, 0, frame_bytes()).status_code == 200
+        monkeypatch.setattr(store_module.os, "replace", full)
+        r = c.post("/v1/sessions", json={**SIZE, "model": "nbg-2l-3g"})
+        assert r.status_code == 503 and r.headers["retry-after"], r.text
+        assert "No space left" in r.json()["detail"]
+        r = send(c, sid, 1, frame_bytes(seed=1))
+        assert r.status_code == 503 and r.headers["retry-after"], r.text
+        assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+        assert {p.stem for p in tmp_path.glob("*.json")} == {sid}  # the refused one is gone
+        monkeypatch.setattr(store_module.os, "replace", real_replace)
+        r = send(c, sid, 1, frame_bytes(seed=1))
+        assert r.status_code == 200 and r.headers["x-quietframe-reset"] == "none", r.text
+        no_internal_errors(c)
+
+
 def test_state_file_cannot_change_the_sessions_settings(tmp_path, caplog):
     """Another session's file rewritten under this id: the settings file (<id>.json) says what
     the session is; the state file is quarantined and the session continues afresh."""
