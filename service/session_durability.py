@@ -58,11 +58,14 @@ class DurableSessions(SessionTable):
             raise
         session.store_version = version
 
-    def _adopt(self, session_id: str) -> Session | None:
+    async def _adopt(self, session_id: str) -> Session | None:
         """A session this replica does not hold, registered from the shared store (its state is
-        loaded with its next frame). Runs on the event loop: one small read."""
+        loaded with its next frame). The read runs on the worker pool: a store that hangs
+        holds this request (until the store's timeout: 503), never the event loop."""
         assert self.store is not None
-        found = self.store.find(session_id)  # type: ignore[attr-defined]
+        found = await self._on_pool(self.store.find, session_id)  # type: ignore[attr-defined]
+        if session_id in self.sessions:  # another request adopted it while this one waited
+            return self.sessions[session_id]
         if found is None:
             return None
         meta, lost = found

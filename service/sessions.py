@@ -58,15 +58,17 @@ class SessionRegistry(DurableSessions):
             self._load_durable()
         self._update_gauges()
 
-    def get(self, session_id: str, touch: bool = True) -> Session:
+    async def get(self, session_id: str, touch: bool = True) -> Session:
         """The session; `touch` counts as use (LRU order, TTL), status reads do not. Every
         route finds its session here: an id of another form is unknown (404) before any store
-        is asked (a store refuses to build a key or a file name from it)."""
+        is asked (a store refuses to build a key or a file name from it). A session another
+        replica holds is adopted from the shared store on the worker pool: a hung store must not
+        freeze the event loop (audit R4-10; /healthz goes on answering)."""
         if not is_session_id(session_id):
             raise self._not_found(session_id)
         session = self.sessions.get(session_id)
         if session is None and self.store is not None and self.store.shared:
-            session = self._adopt(session_id)
+            session = await self._adopt(session_id)
         if session is None:
             raise self._not_found(session_id)
         if touch:
@@ -80,7 +82,7 @@ class SessionRegistry(DurableSessions):
         store's record (its small meta; the state stays where it is)."""
         shared = self.store is not None and self.store.shared
         held = session_id in self.sessions  # else `get` adopts it from the record just read
-        session = self.get(session_id, touch=False)
+        session = await self.get(session_id, touch=False)
         ttl = self.settings.session_ttl_s
         if not (shared and held):
             return session.public(ttl)
@@ -115,7 +117,7 @@ class SessionRegistry(DurableSessions):
         return session
 
     async def delete(self, session_id: str) -> None:
-        session = self.get(session_id)
+        session = await self.get(session_id)
         async with session.lock:  # let a frame in flight finish (and write its state) first
             if not session.closed:
                 self._remove(session, "deleted")
@@ -155,7 +157,7 @@ class SessionRegistry(DurableSessions):
         the body's, when the caller parsed it already. `shot_model` (model=auto): the model
         already chosen for the shot this frame belongs to (another chunk of the same shot chose
         it); a frame that starts the shot's history takes it instead of choosing."""
-        session = self.get(session_id)
+        session = await self.get(session_id)
         spec = session.spec
         settings = self.settings
         if header is None:

@@ -67,7 +67,7 @@ def test_an_auto_session_reserves_for_the_model_it_chose():
     with app_client() as c:
         sid = new_session(c, model="auto", width=width, height=height)
         registry = c.app.state.sessions
-        session = registry.get(sid)
+        session = registry.sessions[sid]
         header = frames.read_header(body, width, height, len(body))
         every = admission.frame_need(header, len(body),
                                      [registry.models.denoiser(n) for n in registry.models.names])

@@ -291,3 +291,50 @@ def test_an_auto_sessions_spp_reaches_the_model_choice(server, header_spp):
     assert (choice["spp"], choice["noise_source"]) == (4096, "model_options.spp")
     assert models[choice["model"]]["state"] == [], choice
     assert 'noise_source="session"' in server.get("/metrics").text  # not "header"
+
+
+# ---- a hung store (audit R4-10) ----------------------------------------------------------------
+
+
+@needs_redis
+def test_a_hung_store_holds_the_request_not_the_event_loop(tmp_path):
+    """Redis stopped (SIGSTOP) while a replica adopts a session another replica created: the
+    adoption waits on the worker pool and ends in 503 with Retry-After after the store's
+    timeout, while /healthz on the same replica answers at once (HAProxy keeps it up)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    import httpx
+    import redis
+    from conftest import LiveServer, redis_server
+
+    with redis_server(tmp_path) as url:
+        pid = redis.Redis.from_url(url).info("server")["process_id"]
+        writer = replica("a", store_url=url)
+        try:
+            sid = new_session(writer)
+        finally:
+            writer.__exit__(None, None, None)
+        with LiveServer(store_url=url, store_timeout_s=2.0, replica_id="b") as server:
+            answers: dict = {}
+            os.kill(pid, signal.SIGSTOP)
+            try:
+                def adopt() -> None:
+                    answers["get"] = httpx.get(f"{server.url}/v1/sessions/{sid}", timeout=30)
+
+                waiting = threading.Thread(target=adopt)
+                waiting.start()
+                time.sleep(0.3)  # the adoption is waiting on Redis now
+                started = time.monotonic()
+                health = httpx.get(f"{server.url}/healthz", timeout=5)
+                answered_in = time.monotonic() - started
+                waiting.join(timeout=20)
+            finally:
+                os.kill(pid, signal.SIGCONT)
+    assert health.status_code == 200 and answered_in < 1.0, answered_in
+    assert not waiting.is_alive()
+    got = answers["get"]
+    assert got.status_code == 503 and got.headers["retry-after"], got.text
+    assert got.json()["error"] == "state_store_unavailable"

@@ -143,7 +143,7 @@ async def post_frame(
 ) -> Response:
     """Reads the body and answers with the outcome; `SessionRegistry.denoise_frame` owns the
     frame's journey."""
-    session = sessions.get(session_id)  # 404 before reading a body for nothing
+    session = await sessions.get(session_id)  # 404 before reading a body for nothing
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type not in ACCEPTED_FRAME_TYPES:
         raise UnsupportedMediaType(f"send the EXR as {EXR_MEDIA_TYPE} (got {media_type})")
