@@ -11,6 +11,13 @@ cards' architecture metadata, so two models that differ only in a setting say wh
 from __future__ import annotations
 
 SPP_COLUMNS = (1, 4, 8)  # PSNR shown at these samples per pixel (the validation levels)
+# Blender's denoise (Accurate prefilter + high) in CPU time per 720p frame, as a multiple of
+# plain per-frame OIDN-high (oidn-frame), measured in one run (experiments/oidn_floor,
+# docs/evaluation/oidn-floor): the cards time quietframe's models, not Blender.
+BLENDER_DENOISE_COST = 6.88
+# A model is for final frames where its table is within this of Blender's denoise at every spp
+# shown (and measured); else a preview: quicker, or cheaper passes, at a visible loss.
+FINAL_FRAMES_SLACK_DB = 0.1
 CARD_DEFAULT_RENDERER = "mitsuba"  # the table at the top level of `metrics` (runtime/card.py)
 RENDERER_NAMES = {"cycles": "Cycles", "mitsuba": "Mitsuba"}
 
@@ -103,6 +110,18 @@ def _versus_denoise(table: dict) -> str:
     return "/".join(f"{g:+.1f}" if g is not None else "-" for g in gaps)
 
 
+def use_of(table: dict) -> str:
+    """`final` or `preview` from the table's gap to Blender's denoise (FINAL_FRAMES_SLACK_DB),
+    `-` where it was not measured."""
+    rows = _rows_by_spp(table)
+    gaps = [rows[float(spp)]["psnr"] - rows[float(spp)]["renderer_denoise"] for spp in SPP_COLUMNS
+            if all(isinstance(rows.get(float(spp), {}).get(k), int | float)
+                   for k in ("psnr", "renderer_denoise"))]
+    if not gaps:
+        return "-"
+    return "final" if min(gaps) >= -FINAL_FRAMES_SLACK_DB else "preview"
+
+
 def renderer_denoise(models: list[dict], renderer: str) -> list[float | None]:
     """PSNR of the renderer's own denoise at SPP_COLUMNS, from the first card that measured it
     (every card measured it on the same validation frames)."""
@@ -150,14 +169,15 @@ def model_table(models: list[dict], default: str, renderer: str = "cycles") -> s
     theirs = renderer_denoise(models, renderer)
     versus = any(v is not None for v in theirs)
     header = ["MODEL", "NEEDS", "720p", "PSNR dB @1/4/8spp"]
-    header += [*(["vs BLENDER dB"] if versus else []), "WHAT"]
-    rows = [["auto  [session default]", "color", "-", "-", *(["-"] if versus else []),
+    header += [*(["vs BLENDER dB", "FOR"] if versus else []), "WHAT"]
+    rows = [["auto  [session default]", "color", "-", "-", *(["-", "either"] if versus else []),
              "chooses per shot from the passes, noise and these tables; `quietframe denoise` "
              "prints each shot's choice"]]
     if versus:
-        rows.append(["Blender's denoise", "-", "-", _figures(theirs), "-",
-                     "Blender's own denoise (OIDN) of the same frames, for comparison: what the "
-                     "farm has without quietframe"])
+        rows.append(["Blender's denoise", "-", f"{BLENDER_DENOISE_COST:.1f}x oidn-frame",
+                     _figures(theirs), "-", "final",
+                     "Blender's own denoise (OIDN, Accurate prefilter) of the same frames, for "
+                     "comparison: what the farm has without quietframe"])
     for m in models:
         table, own = renderer_table(m, renderer)
         mark = "  [auto's fallback]" if m["name"] == default else ""
@@ -168,7 +188,7 @@ def model_table(models: list[dict], default: str, renderer: str = "cycles") -> s
             what += f"; options: {_options(m)} (--model-option NAME=VALUE)"
         row = [f"{m['name']} {m['version']}{mark}", ",".join(m["required_buffers"]), _ms(table),
                _psnr(table)]
-        rows.append([*row, *([_versus_denoise(table)] if versus else []), what])
+        rows.append([*row, *([_versus_denoise(table), use_of(table)] if versus else []), what])
     columns = len(header) - 1  # the last, WHAT, runs on unpadded
     widths = [max(len(r[i]) for r in (header, *rows)) for i in range(columns)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r[:columns], widths, strict=True)) + "  "
@@ -180,8 +200,13 @@ def model_table(models: list[dict], default: str, renderer: str = "cycles") -> s
                  + "; --renderer " + " or ".join(r for r in RENDERER_NAMES if r != renderer)
                  + " for the others).")
     lines.append("PSNR: validation frames with every pass present (docs/benchmarks.md)"
-                 + ("; vs BLENDER: the model's PSNR less Blender's denoise of the same frames"
-                    if versus else "") + ".")
+                 + ("; vs BLENDER: the model's PSNR less Blender's denoise of the same frames; "
+                    f"FOR: final frames where within {FINAL_FRAMES_SLACK_DB:g} dB of Blender's "
+                    "denoise at every spp shown, else preview" if versus else "") + ".")
+    if versus:
+        lines.append(f"Blender's denoise costs {BLENDER_DENOISE_COST:g}x plain per-frame "
+                     "OIDN-high (oidn-frame) in CPU time per 720p frame, measured in one run "
+                     "(docs/evaluation/oidn-floor).")
     lines.append(f"720p: ms per 1280x720 frame scaled from timings of {_timed_on(models, renderer)}"
                  ": a table figure, not this server's time (`quietframe denoise` prints that "
                  "per frame and in its summary).")

@@ -164,6 +164,10 @@ def test_models_shows_the_renderers_tables_beside_blenders_denoise(live_server, 
     blender = re.search(r"(\d+\.\d)/", table_row(text, "Blender's denoise")).group(1)
     assert abs(float(blender) - cycles[1]["renderer_denoise"]) < 0.06
     assert "not this server's time" in text
+    # final frames or preview, from the same gaps: the learned preview tiers trail by > 1 dB
+    gaps = [cycles[n]["psnr"] - cycles[n]["renderer_denoise"] for n in (1, 4, 8)]
+    assert (" final " in row) == (min(gaps) >= -0.1) and " preview " in table_row(text, "nbg-2l-3g")
+    assert "x oidn-frame" in table_row(text, "Blender's denoise")  # its cost, measured
     assert main(["models", "--server", live_server.url, "--renderer", "mitsuba"]) == 0
     mitsuba = {r["spp"]: r for r in models["oidn-history"]["metrics"]["by_spp"]}
     assert f"{mitsuba[1]['psnr']:.1f}/" in table_row(capsys.readouterr().out, "oidn-history")
