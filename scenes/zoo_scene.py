@@ -266,7 +266,8 @@ def camera_poses(shot: Shot, anchor: Anchor, rng, frames: range) -> list[tuple[V
     base = (target - eye).to_track_quat("-Z", "Y")
     forward = (target - eye).normalized()
     per_px = _pixel_angle(fov, shot.size[0])
-    shake = rng.normal(0.0, shot.speed * per_px, (len(frames) + 1, 3))
+    # drawn for every shot (the same stream whatever the camera); a truck's speed has a sign
+    shake = rng.normal(0.0, abs(shot.speed) * per_px, (len(frames) + 1, 3))
     poses = []
     for i, t in enumerate(frames):
         loc, rot = eye.copy(), base.copy()
