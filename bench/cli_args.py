@@ -15,6 +15,7 @@ from pathlib import Path
 
 from quietframe.runtime.card import DEFAULT_RENDERER
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS, RENDERERS
+from quietframe.scenes.zoo_shots import ZOO_ROUNDS, ZOO_SPLITS, ZOO_VERSION
 
 # Model selection's split: every choice and table is made on it, and a run that reports a
 # figure for the test split names it.
@@ -58,6 +59,17 @@ def add_split(parser: argparse.ArgumentParser, choices: Sequence[str] | None = N
     """`--split`: train, validation, test or a locked-off `*-static` split (or `choices`)."""
     parser.add_argument("--split", choices=choices, default=DEFAULT_SPLIT,
                         help=help or f"the split read (default {DEFAULT_SPLIT})")
+
+
+def add_zoo_shots(parser: argparse.ArgumentParser, zoo: str = ZOO_VERSION) -> None:
+    """`--split` (validation or test), `--zoo` (the round, default `zoo`), `--shots` (a comma
+    list of shot names, default every one) and `--data`: which zoo shots a run reads."""
+    add_split(parser, choices=ZOO_SPLITS)
+    parser.add_argument("--zoo", default=zoo, choices=ZOO_ROUNDS,
+                        help=f"the round (default {zoo})")
+    parser.add_argument("--shots", type=lambda text: tuple(text.split(",")) if text else (),
+                        default=(), help="comma list of shot names (default: every one)")
+    add_data(parser)
 
 
 def spp_levels(text: str) -> tuple[int, ...]:

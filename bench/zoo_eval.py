@@ -35,7 +35,7 @@ from quietframe.bench.evaluate import (
 from quietframe.bench.harness import planar_frames
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes import cycles_io
-from quietframe.scenes.zoo_shots import ZOO_ROUNDS, ZOO_SPLITS, ZOO_VERSION, zoo_dir
+from quietframe.scenes.zoo_shots import ZOO_VERSION, zoo_dir
 
 HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")
 LEARNED = ("nbg-2l-3g", "affinity-h16-k5gc")
@@ -172,11 +172,8 @@ def report(rows: list[dict], meta: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    cli_args.add_split(p, choices=ZOO_SPLITS)
-    p.add_argument("--zoo", default=ZOO_VERSION, choices=ZOO_ROUNDS, help="the round")
-    cli_args.add_data(p)
-    p.add_argument("--spp", default="1,2,4,8,16,64")
-    p.add_argument("--shots", default="", help="comma list (default: every finished shot)")
+    cli_args.add_zoo_shots(p)
+    p.add_argument("--spp", type=cli_args.spp_levels, default="1,2,4,8,16,64")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--flag-cuts", action="store_true")
     cli_args.add_threads(p)
@@ -188,9 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.merge:
         return write(args.out, *merge([json.loads(f.read_text()) for f in args.merge]))
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    spp_levels = tuple(int(s) for s in args.spp.split(","))
+    spp_levels = args.spp
     folders = [f for f in shot_folders(args.data, args.split, spp_levels, args.zoo)
-               if not args.shots or f.name in args.shots.split(",")]
+               if not args.shots or f.name in args.shots]
     if not folders:
         raise SystemExit(f"no finished zoo {args.split} shots under {args.data} "
                          "(render them: scenes/render_zoo.sh)")

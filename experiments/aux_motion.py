@@ -33,11 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
+from quietframe.bench import cli_args
 from quietframe.bench.harness import planes_from_hwc
 from quietframe.runtime.motion_evidence import PROBE_SCALE, _box, probe
 from quietframe.scenes import cycles_io
-from quietframe.scenes.layout import DATA_DIR
-from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
+from quietframe.scenes.zoo_shots import shots, zoo_dir
 
 # --- flow: pyramidal Lucas–Kanade on the probe ---------------------------------------------
 
@@ -353,16 +353,13 @@ def score_shot(folder: Path, spp: int, frames: int) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--zoo", default="zoo2", choices=ZOO_ROUNDS)
-    p.add_argument("--split", default="validation")
-    p.add_argument("--shots", default="")
+    cli_args.add_zoo_shots(p, zoo="zoo2")
     p.add_argument("--spp", type=int, default=4)
     p.add_argument("--frames", type=int, default=6)
-    p.add_argument("--data", type=Path, default=DATA_DIR)
     args = p.parse_args(argv)
     root = zoo_dir(args.data, args.split, args.zoo)
     for shot in shots(args.split, args.zoo):
-        if args.shots and shot.name not in args.shots.split(","):
+        if args.shots and shot.name not in args.shots:
             continue
         if shot.camera == "locked" or shot.motion_blur or not (root / shot.name).exists():
             continue  # no motion, or no rendered motion to score against

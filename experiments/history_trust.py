@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from quietframe.bench import cli_args
 from quietframe.bench.evaluate import AUX, STORED_BLENDER
 from quietframe.bench.harness import planar_frames
 from quietframe.model import metrics
@@ -36,8 +37,7 @@ from quietframe.runtime.model_options import options_for
 from quietframe.runtime.motion_evidence import has_motion
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass
 from quietframe.scenes import cycles_io
-from quietframe.scenes.layout import DATA_DIR
-from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
+from quietframe.scenes.zoo_shots import shots, zoo_dir
 
 # name -> changes to the shipped config (version 3: edge_depth 0.05, edge_motion 0.25,
 # exact_edge_motion 0.25)
@@ -164,27 +164,23 @@ def run_shot(folder: Path, model: str, spps: list[int], aux_quality: str = "") -
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--zoo", default="zoo2", choices=ZOO_ROUNDS)
-    p.add_argument("--split", default="validation")
-    p.add_argument("--shots", default="")
-    p.add_argument("--spp", default="1,4,16,64")
+    cli_args.add_zoo_shots(p, zoo="zoo2")
+    p.add_argument("--spp", type=cli_args.spp_levels, default="1,4,16,64")
     p.add_argument("--model", default="oidn-history-cleanaux", choices=sorted(VARIANTS))
-    p.add_argument("--data", type=Path, default=DATA_DIR)
     p.add_argument("--aux-quality", default="", choices=("", "fast", "balanced", "high"),
                    help="prefilter the aux at this quality instead of the model's")
-    p.add_argument("--json", type=Path)
+    cli_args.add_json(p)
     args = p.parse_args(argv)
     root = zoo_dir(args.data, args.split, args.zoo)
     names = [s.name for s in shots(args.split, args.zoo)
-             if not args.shots or s.name in args.shots.split(",")]
+             if not args.shots or s.name in args.shots]
     rows = []
     for name in names:
         folder = root / name
         if not (folder / "manifest.json").exists():
             print(f"{name}: not rendered", file=sys.stderr)
             continue
-        rows += run_shot(folder, args.model, [int(s) for s in args.spp.split(",")],
-                         args.aux_quality)
+        rows += run_shot(folder, args.model, list(args.spp), args.aux_quality)
     if args.json:
         args.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
     return 0

@@ -185,13 +185,20 @@ def test_the_previous_frames_edge_at_the_fetch_is_tested_too():
     assert not torch.allclose(out[..., 18:22], frame[..., 18:22])
 
 
+def _halves_moving(left: float, right: float) -> list[dict]:
+    """A constant history, then stripes; the left half moves `left` px a frame, the right half
+    `right` (from the second frame on)."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    frames = _constant_history_then(surface(4, (left, 0.0)), stripes)
+    for f in frames[1:]:
+        f["motion"][:, 0, :, W // 2:] = right
+    return frames
+
+
 def test_a_resampled_history_is_not_trusted_where_neighbours_move_differently():
     """Parallax: the left half moves 0.3 px a frame, the right half 1.3 px: the pixels at the
     seam take the frame, each half keeps its history."""
-    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
-    frames = _constant_history_then(surface(4, (0.3, 0.0)), stripes)
-    for f in frames[1:]:
-        f["motion"][:, 0, :, W // 2:] = 1.3
+    frames = _halves_moving(0.3, 1.3)
     out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
     frame = frames[-1]["oidn"]
     torch.testing.assert_close(out[..., W // 2 - 1:W // 2 + 1], frame[..., W // 2 - 1:W // 2 + 1])
@@ -203,17 +210,14 @@ def test_an_exact_fetch_beside_pixels_that_move_otherwise_is_not_trusted():
     """A still wall (zero motion: exact fetches) beside a turning object (the right half moves
     2 px a frame): the wall's pixels at the seam held what passed over them and take the frame;
     the wall away from it keeps its history, and a locked-off frame keeps it everywhere."""
-    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
-    frames = _constant_history_then(surface(4, (0.0, 0.0)), stripes)
-    for f in frames[1:]:
-        f["motion"][:, 0, :, W // 2:] = 2.0
+    frames = _halves_moving(0.0, 2.0)
     out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
     frame = frames[-1]["oidn"]
     torch.testing.assert_close(out[..., W // 2 - 1], frame[..., W // 2 - 1])  # the wall's seam
     assert not torch.allclose(out[..., 4:8], frame[..., 4:8])
     before = run_stage(oh.OutputHistory(VERSION2), frames)[-1]
     assert not torch.allclose(before[..., W // 2 - 1], frame[..., W // 2 - 1])
-    still = _constant_history_then(surface(4, (0.0, 0.0)), stripes)
+    still = _halves_moving(0.0, 0.0)  # locked off: no motion anywhere
     torch.testing.assert_close(run_stage(oh.OutputHistory(TRUSTING), still)[-1],
                                run_stage(oh.OutputHistory(VERSION2), still)[-1])
 
