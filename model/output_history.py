@@ -126,14 +126,20 @@ def _range3(x: Tensor) -> Tensor:
     return F.max_pool2d(x, 3, 1, 1) + F.max_pool2d(-x, 3, 1, 1)
 
 
+def motion_spread(motion: Tensor) -> Tensor:
+    """(N, 1, H, W) the larger 3×3 range of the two motion components, pixels."""
+    return _range3(motion).amax(dim=1, keepdim=True)
+
+
 def trusted_resample(config: OutputHistoryConfig, motion: Tensor, depth: Tensor,
-                     previous_depth: Tensor) -> Tensor:
+                     previous_depth: Tensor, spread: Tensor | None = None) -> Tensor:
     """(N, 1, H, W) 1 where a bicubic fetch of the history can be right, else 0. It cannot
     where its 4×4 footprint straddles surfaces: a depth edge around p now or around p + m in
     the previous frame (mixed pixels of thin geometry against a far background, silhouettes,
     disocclusions), or where neighbouring pixels move differently (parallax, a turning object:
     the footprint's pixels came from different places). Clipping to the 3×3 range of OIDN's
-    output does not catch these: there the range spans both surfaces."""
+    output does not catch these: there the range spans both surfaces. `spread`:
+    motion_spread(motion), where the caller has it already."""
     smooth = torch.ones_like(depth)
     if config.edge_depth > 0:
         scale = config.edge_depth * depth.clamp_min(1e-6)
@@ -144,7 +150,7 @@ def trusted_resample(config: OutputHistoryConfig, motion: Tensor, depth: Tensor,
         before = ((there[:, 0:1] - there[:, 1:2]) <= scale).to(depth.dtype)
         smooth = smooth * here * before
     if config.edge_motion > 0:
-        spread = _range3(motion).amax(dim=1, keepdim=True)
+        spread = motion_spread(motion) if spread is None else spread
         smooth = smooth * (spread <= config.edge_motion).to(depth.dtype)
     return smooth
 
@@ -197,9 +203,12 @@ class OutputHistory(nn.Module):
         if config.edge_depth > 0 or config.edge_motion > 0 or config.exact_edge_motion > 0:
             # a pixel whose fetch cannot be right weighs at least u(spp); at 1 it is its
             # stage, and its history starts afresh (length 1)
-            doubt = (1 - exact) * (1 - trusted_resample(config, motion, depth, state[:, 3:4]))
+            # one 3×3 motion range for both tests (it is on the service's per-frame path)
+            spread = (motion_spread(motion)
+                      if config.edge_motion > 0 or config.exact_edge_motion > 0 else None)
+            doubt = (1 - exact) * (1 - trusted_resample(config, motion, depth, state[:, 3:4],
+                                                        spread))
             if config.exact_edge_motion > 0:
-                spread = _range3(motion).amax(dim=1, keepdim=True)
                 doubt = doubt + exact * (spread > config.exact_edge_motion).to(oidn.dtype)
             floor = config.untrusted_floor(spp)
             alpha = torch.maximum(alpha, doubt * floor)
