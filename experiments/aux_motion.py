@@ -1,4 +1,4 @@
-"""Experiment (issue 52): can backward motion be estimated from the aux buffers well enough for
+"""Experiment: can backward motion be estimated from the aux buffers well enough for
 a temporal tier to use it where the renderer wrote none (Cycles with motion blur on writes an
 all-zero `Vector`; Arnold without a motion AOV)?
 
@@ -21,7 +21,7 @@ Two estimators:
   cannot do at a thin post in front of a far wall.
 
 Result (docs/zoo.md, "Motion from the aux"): neither is good enough to ship; the service keeps
-the per-frame stage on frames without motion (issue 52 stays open).
+the per-frame stage on frames without motion (motion-blurred shots gain nothing yet).
 """
 
 from __future__ import annotations

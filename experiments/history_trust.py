@@ -1,4 +1,4 @@
-"""Experiment (issue 51): which pixels may an `oidn-history` tier's history be trusted at? Each
+"""Experiment: which pixels may an `oidn-history` tier's history be trusted at? Each
 candidate rule is scored against the tier's own per-frame stage (OIDN on the frame alone) per
 shot, spp and frame index, on the zoo (scenes/zoo_shots.py; round 2 holds the shots the
 history finds hard).

@@ -1,4 +1,4 @@
-"""Farm round 3 (issue 53): `--dry-run` refuses every flag the run refuses, with the run's exit
+"""Farm round 3: `--dry-run` refuses every flag the run refuses, with the run's exit
 code and words, and leaves no trace (no --out folder, no open session); flags that cannot work
 or would be ignored are configuration errors (exit 2) before anything is sent."""
 

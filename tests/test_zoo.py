@@ -20,7 +20,7 @@ from quietframe.service.model_choice import ModelProfile, NoiseLevel, choose
 COVERED = ("locked-off", "slow dolly", "fast pan", "hand-held shake", "daylight exterior",
            "motion blur", "depth of field", "first frame zero motion", "camera cut")
 FINE = ("foliage", "fabric", "printed text", "fine brick")
-# Round 2 (issue 51): what a reprojected history finds hard, in every split
+# Round 2: what a reprojected history finds hard, in every split
 HARD = ("thin geometry", "parallax", "rotating wireframe", "defocused foreground",
         "wide motion range", "caustic fireflies", "locked-off")
 
