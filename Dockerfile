@@ -22,6 +22,7 @@ COPY export export
 COPY runtime runtime
 COPY service service
 COPY client client
+COPY wire wire
 COPY bench bench
 COPY experiments experiments
 COPY models models

@@ -43,7 +43,7 @@ $(SERVE_VENV)/.base:
 # serve venv is reinstalled only when one of these changed, so an unchanged start takes seconds.
 # A deleted file is not seen: `rm $(SERVE_VENV)/.installed` forces a reinstall.
 PACKAGE_SOURCES := pyproject.toml README.md $(shell find model scenes export runtime service \
-	client bench experiments models -path models/training -prune -o -name __pycache__ -prune \
+	client wire bench experiments models -path models/training -prune -o -name __pycache__ -prune \
 	-o -type f ! -name '*.pyc' -print)
 
 $(SERVE_VENV)/.installed: $(SERVE_VENV)/.base $(PACKAGE_SOURCES)

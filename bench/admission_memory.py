@@ -31,7 +31,6 @@ import numpy as np
 
 from quietframe.bench import cli_args
 from quietframe.bench.large_frames import SIZES, buffers
-from quietframe.client.protocol import Reset
 from quietframe.runtime import Denoiser, find_model, installed_models
 from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.service import admission
@@ -40,6 +39,7 @@ from quietframe.service.frame_context import frame_context
 from quietframe.service.frame_path import process_frame
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.settings import Settings
+from quietframe.wire.protocol import Reset
 
 TARGET_RATIO = 1.1
 MIB = 2**20

@@ -17,7 +17,8 @@ from typing import Any, Protocol
 
 import httpx
 
-from quietframe.client.protocol import (
+from quietframe.client.session_fields import SessionFields
+from quietframe.wire.protocol import (
     CUT_QUERY,
     EXR_MEDIA_TYPE,
     SHOT_MODEL_QUERY,
@@ -26,7 +27,6 @@ from quietframe.client.protocol import (
     parse_timings,
     split_list,
 )
-from quietframe.client.session_fields import SessionFields
 
 _RETRY_STATUS = frozenset({429, 500, 502, 503, 504})
 _RETRY_STATUS_CREATE = frozenset({429, 502, 503, 504})

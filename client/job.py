@@ -19,8 +19,8 @@ from quietframe.client import output_records as records
 from quietframe.client import shots
 from quietframe.client.frame_source import SequenceError, frame_number, select_frames
 from quietframe.client.interrupt import signals_deferred
-from quietframe.client.protocol import view_layers
 from quietframe.client.session_fields import AUTO
+from quietframe.wire.protocol import view_layers
 
 JOB_FILE = ".quietframe-job.json"
 def file_view_layers(path: Path) -> tuple[str, ...]:

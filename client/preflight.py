@@ -22,7 +22,7 @@ import OpenEXR
 
 from quietframe.client.exr_check import incomplete
 from quietframe.client.outcome import Failure, server_failure
-from quietframe.client.protocol import view_layers
+from quietframe.wire.protocol import view_layers
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from typing import TextIO
 from tqdm import tqdm
 
 from quietframe.client.preflight import format_numbers
-from quietframe.client.protocol import Reset
+from quietframe.wire.protocol import Reset
 
 # What each sanitised buffer's count means, said once per run in the summary.
 SANITIZED_WORDS = {

@@ -1,9 +1,9 @@
 """A session's settings, as created: the one list of its fields, with their types, defaults and
 meanings. The server's create request and public view (service/schemas.py), the session it
 stores (service/session_spec.py) and this client's request (client/core.py) all derive from
-`SessionFields`. It lives in the client package, beside the wire protocol, because the server
-imports the client's protocol and never the other way round: a farm node installs only the
-client extra.
+`SessionFields`. It lives in the client package, not in the wire leaf (quietframe.wire, standard
+library only), because it needs pydantic, which the client extra installs; the server imports it
+from the client and never the other way round: a farm node installs only the client extra.
 """
 
 from __future__ import annotations

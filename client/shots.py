@@ -36,8 +36,8 @@ import OpenEXR
 from quietframe.client import output_records as records
 from quietframe.client.core import AsyncClient
 from quietframe.client.output_records import OutputConflict
-from quietframe.client.protocol import CUT_ATTRIBUTE
 from quietframe.client.session_fields import AUTO
+from quietframe.wire.protocol import CUT_ATTRIBUTE
 
 SHOT_VERSION = 1
 # The flags that steer auto's choice (besides the view layer, which has its own record)

@@ -12,9 +12,9 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
-from quietframe.client.protocol import view_layers
 from quietframe.runtime.buffers import BUFFER_CHANNELS, MissingBuffers, check_buffers
 from quietframe.runtime.frame_errors import AmbiguousChannels, MissingChannels
+from quietframe.wire.protocol import view_layers
 
 # Component spellings tried for each buffer, in order (matched case-insensitively).
 COMPONENTS: dict[str, tuple[str, ...]] = {

@@ -17,7 +17,6 @@ from typing import NamedTuple
 
 import OpenEXR
 
-from quietframe.client.protocol import CUT_ATTRIBUTE
 from quietframe.runtime.frame_errors import (
     BadExr,
     ExrHeaderTooLarge,
@@ -25,6 +24,7 @@ from quietframe.runtime.frame_errors import (
     SizeMismatch,
     UnsupportedExr,
 )
+from quietframe.wire.protocol import CUT_ATTRIBUTE
 
 _MAGIC = b"\x76\x2f\x31\x01"
 _TILED, _LONG_NAMES, _NON_IMAGE, _MULTIPART = 0x200, 0x400, 0x800, 0x1000

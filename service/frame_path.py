@@ -7,7 +7,6 @@ import time
 
 import numpy as np
 
-from quietframe.client.protocol import Header, Reset, format_counts, format_timings, join_list
 from quietframe.runtime import Denoiser
 from quietframe.runtime.model_options import options_for
 from quietframe.runtime.motion_evidence import HistoryGate, gate_history, keep_probe
@@ -18,6 +17,7 @@ from quietframe.service.session import ProcessedFrame
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply, request_digest
 from quietframe.service.shot_choice import choice_header
+from quietframe.wire.protocol import Header, Reset, format_counts, format_timings, join_list
 
 
 def process_frame(

@@ -11,7 +11,6 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from quietframe.client.protocol import Reset
 from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
@@ -20,6 +19,7 @@ from quietframe.service.model_choice import Choice
 from quietframe.service.schemas import ChoicePublic, ModelRef, SessionPublic, StageTimings
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply
+from quietframe.wire.protocol import Reset
 
 STAGES = ("decode", "denoise", "encode", "total")
 REPLY_MARGIN_BYTES = 2**16  # headers and EXR framing around the pixels

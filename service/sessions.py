@@ -20,7 +20,6 @@ import secrets
 import time
 from concurrent.futures import Executor
 
-from quietframe.client.protocol import Reset
 from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
@@ -37,6 +36,7 @@ from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply, is_session_id
 from quietframe.service.settings import Settings
 from quietframe.service.shot_choice import CHOICE_RESETS, choose_for_shot, noise_kind
+from quietframe.wire.protocol import Reset
 
 log = logging.getLogger("quietframe.service")
 

@@ -5,12 +5,12 @@ and how the choice is said (X-Quietframe-Choice, the choices metric)."""
 
 from __future__ import annotations
 
-from quietframe.client.protocol import Reset
 from quietframe.service import model_choice
 from quietframe.service.frame_context import FrameContext
 from quietframe.service.model_choice import Choice
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.session_spec import SessionSpec
+from quietframe.wire.protocol import Reset
 
 # A choice is revisited only where the history starts afresh for a new shot anyway: switching
 # models inside a shot would change its look from one frame to the next (flicker). A gap keeps

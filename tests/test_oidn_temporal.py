@@ -485,9 +485,9 @@ def test_service_serves_the_accumulated_tier_and_restores_its_state(accumulated_
     from conftest import LAYOUTS, make_buffers, write_exr
     from fastapi.testclient import TestClient
 
-    from quietframe.client.protocol import Header, Reset
     from quietframe.service.main import create_app
     from quietframe.service.settings import Settings
+    from quietframe.wire.protocol import Header, Reset
 
     folder = tmp_path / "models"
     folder.mkdir()

@@ -13,7 +13,7 @@ import json
 import pytest
 from conftest import LAYOUTS, make_buffers, write_exr
 
-from quietframe.client.protocol import Header
+from quietframe.wire.protocol import Header
 
 SIZE = {"width": 64, "height": 48}
 EXR = {"content-type": "image/x-exr"}
@@ -28,7 +28,7 @@ def _crafted(folder, name: str, ms: float, table: list[tuple[int, float]]) -> No
     props = {p.key: p.value for p in model.metadata_props}
     props["quietframe.name"] = name
     # Held on every zoo shot, like the installed models it competes with (an unmeasured one is
-    # left out where others held: model_choice.holding_on_every_shot).
+    # left out where others held: choice_policy.holding_on_every_shot).
     zoo = [{"spp": s, "gap_db": 0.0, "worst_gap_db": 0.0, "shortfall_db": 0.0,
             "worst_vs_denoise_db": 0.0} for s, _ in table]
     props["quietframe.metrics"] = json.dumps(

@@ -5,7 +5,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = [
-    "model", "scenes", "export", "runtime", "service", "client", "bench", "experiments", "models",
+    "model", "scenes", "export", "runtime", "service", "client", "wire", "bench", "experiments",
+    "models",
 ]
 
 target = Path(site.getsitepackages()[0]) / "quietframe"

@@ -7,7 +7,11 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response, status
 
-from quietframe.client.protocol import (
+from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
+from quietframe.service.errors import ERROR_EXAMPLES, InvalidRequest, UnsupportedMediaType
+from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
+from quietframe.service.upload import read_frame
+from quietframe.wire.protocol import (
     ACCEPTED_FRAME_TYPES,
     CUT_ATTRIBUTE,
     CUT_QUERY,
@@ -15,10 +19,6 @@ from quietframe.client.protocol import (
     Header,
     Reset,
 )
-from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
-from quietframe.service.errors import ERROR_EXAMPLES, InvalidRequest, UnsupportedMediaType
-from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
-from quietframe.service.upload import read_frame
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 log = logging.getLogger("quietframe.service")
