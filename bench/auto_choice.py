@@ -9,7 +9,7 @@ of the split's sequences (finished or still rendering: the frames on disk), thei
 (the stored 1–8 and any added by `quietframe-render topup`, e.g. 16), and BUFFER_SETS. Every
 installed model that accepts a sequence's buffers denoises it through the runtime (absent
 optional buffers fed as zeros, as the service does); `auto` makes the service's choice
-(service/model_choice.choose) at the sequence's first frame, once with the spp a Cycles header
+(service/choice_policy.choose) at the sequence's first frame, once with the spp a Cycles header
 would state and once with the reference-free estimate, and its figures are those of the model it
 chose on that sequence (plus the estimate's own time). Per sequence: PSNR and ms/frame of each;
 the target is auto within 0.3 dB of the best fixed model on every sequence, at ≤ 60 % of the
@@ -54,15 +54,14 @@ from quietframe.bench.harness import (
 from quietframe.runtime import Denoiser, default_model_path, installed_models
 from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
 from quietframe.scenes.stored_sequence import TOPUP_KEY
-from quietframe.service.model_choice import (
-    ModelProfile,
+from quietframe.service.choice_policy import choose
+from quietframe.service.model_profiles import ModelProfile, profile_of
+from quietframe.service.noise_estimate import (
     NoiseLevel,
-    choose,
     estimate_spp,
     load_calibration,
     log2_statistic,
     noise_statistic,
-    profile_of,
 )
 
 BUFFER_SETS: dict[str, tuple[str, ...]] = {

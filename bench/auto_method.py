@@ -1,7 +1,7 @@
 """`model=auto` as a method of quietframe-eval: the service's choice, made the service's way.
 
 At a sequence's first frame and at every cut (the harness resets the method there), the choice
-(service/model_choice.choose) is made from that frame among the installed models the service
+(service/choice_policy.choose) is made from that frame among the installed models the service
 offers (not the internal stages other models compose: runtime/loaded_models.py), with their
 tables for the evaluated renderer and the default quality; the chosen model then denoises the
 shot through the runtime. The frame's spp is what its header would state where the renderer
@@ -21,13 +21,9 @@ import numpy as np
 from quietframe.bench.harness import Planes, RuntimeMethod
 from quietframe.runtime import Denoiser, default_model_path
 from quietframe.runtime.loaded_models import composed_stages
-from quietframe.service.model_choice import (
-    NoiseLevel,
-    choose,
-    estimate_spp,
-    load_calibration,
-    profile_of,
-)
+from quietframe.service.choice_policy import choose
+from quietframe.service.model_profiles import profile_of
+from quietframe.service.noise_estimate import NoiseLevel, estimate_spp, load_calibration
 
 
 class AutoMethod:

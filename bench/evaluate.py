@@ -52,7 +52,7 @@ from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes import cycles_io
 from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
 from quietframe.scenes.layout import split_dir
-from quietframe.service.model_choice import RENDERERS_STATING_SPP as HEADER_STATES_SPP
+from quietframe.service.frame_evidence import RENDERERS_STATING_SPP as HEADER_STATES_SPP
 
 AUX = ("albedo", "normal", "depth", "motion")
 STORED_BLENDER = "blender_denoise"  # a stored output in a Cycles frame's buffers, not an input

@@ -10,7 +10,7 @@ command and machine as `measured`; `--absent` adds `absent_db` (mean PSNR change
 buffer) and `absent_db_worst` (the largest loss over the run's sequences) from
 bench/auto_choice.py's buffer-absence rows; `--noise-points` adds `by_noise` from a validation
 run of bench/auto_choice.py (rows with every buffer: the first frame's log2 noise statistic,
-demodulated and not, and the model's PSNR on the sequence; service/model_choice.py).
+demodulated and not, and the model's PSNR on the sequence; service/model_profiles.py).
 `--static-evaluation` adds each spp row's `flicker` from a run on locked-off shots (a
 `*-static` split: the temporal std of τ(output), which no reference noise limits), and
 `--timing` takes `ms_720p` from another run (a quiet one, e.g. with the renders paused) instead

@@ -3,7 +3,7 @@
     python -m quietframe.bench.noise_calibration [--data ~/.cache/quietframe/data] [--synthetic]
 
 Every rendered frame under <data>/*/validation/*/frame_*.exr (finished sequences or not)
-at each of its spp levels gives a point (log2 σ, log2 spp), σ = model_choice.noise_statistic
+at each of its spp levels gives a point (log2 σ, log2 spp), σ = noise_estimate.noise_statistic
 (a relative variance) of the noisy colour with its albedo; a least-squares line through them
 is the mapping. Without rendered frames (or with --synthetic) the points come from synthetic
 frames whose per-pixel noise has variance ∝ 1/spp: that proves the fit, not the figures (the
@@ -20,7 +20,7 @@ import numpy as np
 
 from quietframe.bench import cli_args
 from quietframe.scenes.exr_io import color_layer, frame_layers, load_frame
-from quietframe.service.model_choice import CALIBRATION_FILE, noise_statistic
+from quietframe.service.noise_estimate import CALIBRATION_FILE, noise_statistic
 
 SPLITS = ("validation",)  # model selection data; the test split only reports
 

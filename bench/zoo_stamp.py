@@ -9,10 +9,10 @@ shots and the worst shot), and the shortfall against the model's own table, whic
 on the scene generator's validation split: min(0, zoo gap − table gap), where the table gap is
 the model's Cycles PSNR less per-frame OIDN-high's (`oidn-frame`, the same filter as the
 evaluation's `oidn-high`). `auto` takes the shortfall off the model's expected PSNR
-(service/model_choice.ModelProfile.expected_psnr), so a learned tier whose lead came from the
+(service/model_profiles.ModelProfile.expected_psnr), so a learned tier whose lead came from the
 generator's look, and not from the shots, is not chosen for it. Also the worst shot's gap to
 Blender's own denoise, which `auto` reads to prefer models that held on every shot
-(model_choice.holding_on_every_shot). Writes the cards' Cycles table
+(service/choice_policy.holding_on_every_shot). Writes the cards' Cycles table
 (`zoo`) in place; models without zoo rows are left as they are.
 """
 
@@ -26,7 +26,7 @@ import numpy as np
 
 from quietframe.bench.model_metrics import RunProblem, card_of, stamp
 from quietframe.runtime.card import ModelCard, ZooRow
-from quietframe.service.model_choice import at_spp
+from quietframe.service.model_profiles import at_spp
 
 BASELINE_METHOD = "oidn-high"  # per-frame OIDN-high, plain aux: the evaluation's row
 RENDERER_DENOISE = "blender-denoise"  # Blender's own denoise of the same frames

@@ -17,8 +17,10 @@ from dataclasses import dataclass, replace
 from quietframe.client.session_fields import AUTO
 from quietframe.runtime import BUFFER_NAMES, ModelInfo
 from quietframe.runtime.usable_buffers import unusable_buffers
-from quietframe.service import frames, model_choice
-from quietframe.service.model_choice import Choice, NoiseLevel
+from quietframe.service import frames
+from quietframe.service.choice_policy import Choice
+from quietframe.service.frame_evidence import renderer_from_header, stated_samples
+from quietframe.service.noise_estimate import NoiseLevel
 from quietframe.service.session_spec import SessionSpec
 
 Installed = Mapping[str, tuple[Sequence[str], Sequence[str]]]  # model -> required, optional
@@ -93,7 +95,7 @@ def frame_context(header: frames.ExrHeader, spec: SessionSpec, info: ModelInfo |
     attributes = header.attributes
     return FrameContext(
         header,
-        model_choice.stated_samples(attributes, spec.layer, spec.model_options),
-        model_choice.renderer_from_header(attributes),
+        stated_samples(attributes, spec.layer, spec.model_options),
+        renderer_from_header(attributes),
         sources,
     )

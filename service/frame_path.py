@@ -11,8 +11,8 @@ from quietframe.runtime import Denoiser
 from quietframe.runtime.model_options import options_for
 from quietframe.runtime.motion_evidence import HistoryGate, gate_history, keep_probe
 from quietframe.service import frames, state_codec
+from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
-from quietframe.service.model_choice import Choice
 from quietframe.service.session import ProcessedFrame
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply, request_digest

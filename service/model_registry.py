@@ -13,7 +13,8 @@ from quietframe.runtime.denoiser import check_options
 from quietframe.runtime.loaded_models import LoadedModels
 from quietframe.runtime.model_options import options_for
 from quietframe.service.errors import InvalidModelOptions, ModelUnavailable, UnknownModel
-from quietframe.service.model_choice import ModelProfile, load_calibration, profile_of
+from quietframe.service.model_profiles import ModelProfile, profile_of
+from quietframe.service.noise_estimate import load_calibration
 from quietframe.service.schemas import ModelPublic
 from quietframe.service.settings import Settings
 
@@ -25,7 +26,7 @@ class ModelRegistry:
         wanted = settings.default_model
         self.default = self.resolve(wanted) if wanted else self.loaded.runtime_default
         self.profiles = self.profiles_for(None)
-        self.calibration = load_calibration()  # spp from a frame's noise (model_choice.py)
+        self.calibration = load_calibration()  # spp from a frame's noise (noise_estimate.py)
         self.ready = False
 
     def profiles_for(self, renderer: str | None) -> list[ModelProfile]:

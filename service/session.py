@@ -14,8 +14,8 @@ import numpy as np
 from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
+from quietframe.service.choice_policy import Choice
 from quietframe.service.errors import FrameConflict, FrameOutOfOrder
-from quietframe.service.model_choice import Choice
 from quietframe.service.schemas import ChoicePublic, ModelRef, SessionPublic, StageTimings
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply

@@ -11,8 +11,8 @@ import logging
 
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_shapes
+from quietframe.service.choice_policy import Choice
 from quietframe.service.errors import ServiceError, SessionNotFound
-from quietframe.service.model_choice import Choice
 from quietframe.service.session import ProcessedFrame, Session
 from quietframe.service.session_spec import SessionSpec, spec_difference
 from quietframe.service.session_store import StateDamaged

@@ -13,9 +13,9 @@ from collections import OrderedDict
 from concurrent.futures import Executor
 
 from quietframe.service.admission import MemoryBudget
+from quietframe.service.choice_policy import Choice
 from quietframe.service.errors import MemoryBudgetExceeded, SessionNotFound
 from quietframe.service.metrics import Metrics
-from quietframe.service.model_choice import Choice
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.session import Session, reserve_bytes
 from quietframe.service.session_spec import SessionSpec

@@ -1,14 +1,16 @@
 """`model=auto` for a shot, as a session makes it: at the shot's first frame (a session's first
-frame, a cut) the frame is decoded, its noise measured and a model chosen (service/model_choice.py)
+frame, a cut) the frame is decoded, its noise measured and a model chosen (service/choice_policy.py)
 or, where the shot's model was chosen before (`shot_model`: another farm chunk of the shot), kept;
 and how the choice is said (X-Quietframe-Choice, the choices metric)."""
 
 from __future__ import annotations
 
-from quietframe.service import model_choice
+from quietframe.service.choice_policy import Choice, choose
 from quietframe.service.frame_context import FrameContext
-from quietframe.service.model_choice import Choice
+from quietframe.service.frame_evidence import SESSION_SAMPLES
+from quietframe.service.model_profiles import ModelProfile
 from quietframe.service.model_registry import ModelRegistry
+from quietframe.service.noise_estimate import NoiseLevel, estimate_spp
 from quietframe.service.session_spec import SessionSpec
 from quietframe.wire.protocol import Reset
 
@@ -29,18 +31,18 @@ def choose_for_shot(context: FrameContext, body: bytes | bytearray, spec: Sessio
                     models: ModelRegistry, keep: str | None) -> tuple[FrameContext, Choice]:
     """(the frame decoded, the shot's model) on the worker pool: the spp the session or the
     header states, else estimated from the decoded colour (and albedo), which also measures how
-    noisy the frame looks (model_choice.noise_statistic); the tables of the frame's renderer.
+    noisy the frame looks (noise_estimate.noise_statistic); the tables of the frame's renderer.
     `keep`: the model already chosen for this shot, described with what the frame shows."""
     context = context.decode(body)
     assert context.decoded is not None
     planes = context.decoded.buffers
-    noise = model_choice.estimate_spp(planes["color"], planes.get("albedo"), models.calibration,
-                                      header=context.stated)
+    noise = estimate_spp(planes["color"], planes.get("albedo"), models.calibration,
+                         header=context.stated)
     profiles = models.profiles_for(context.renderer)
     pixels = spec.width * spec.height
     if keep is not None:
         return context, kept_choice(keep, context.present, noise, profiles, pixels)
-    return context, model_choice.choose(
+    return context, choose(
         context.present,
         noise,
         profiles,
@@ -51,8 +53,8 @@ def choose_for_shot(context: FrameContext, body: bytes | bytearray, spec: Sessio
     )
 
 
-def kept_choice(name: str, present: list[str], noise: model_choice.NoiseLevel,
-                profiles: list[model_choice.ModelProfile], pixels: int) -> Choice:
+def kept_choice(name: str, present: list[str], noise: NoiseLevel,
+                profiles: list[ModelProfile], pixels: int) -> Choice:
     """A shot's choice made earlier, as the session reports it: that model, with what this
     frame carries and how noisy it is, and what the model's table expects there."""
     have = tuple(sorted(set(present)))
@@ -77,6 +79,6 @@ def choice_header(choice: Choice) -> str:
 def noise_kind(choice: Choice) -> str:
     """Where the choice's spp came from, as the choices metric counts it: a header attribute
     is `header`, the session's model_options `session`, else `estimate` or `unknown`."""
-    if choice.noise_source == model_choice.SESSION_SAMPLES:
+    if choice.noise_source == SESSION_SAMPLES:
         return "session"
     return choice.noise_source if choice.noise_source in ("estimate", "unknown") else "header"

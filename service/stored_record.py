@@ -35,7 +35,7 @@ class StoredReply(BaseModel):
 
 
 class StoredChoice(BaseModel):
-    """Enough of `auto`'s recorded choice to be used (service/model_choice.Choice reads it)."""
+    """Enough of `auto`'s recorded choice to be used (service/choice_policy.Choice reads it)."""
 
     model_config = ConfigDict(extra="allow")
     model: str

@@ -24,7 +24,7 @@ from quietframe.runtime.card import (
     prepass_stage,
 )
 from quietframe.runtime.receptive import Tiling
-from quietframe.service.model_choice import ModelProfile
+from quietframe.service.model_profiles import ModelProfile
 
 
 def shipped_props(path) -> dict[str, str]:

@@ -51,7 +51,7 @@ def test_auto_on_motion_blur_frames_keeps_one_model_and_drops_history_while_aux_
 
 
 def test_choice_header_is_ascii_and_spells_symbols_out():
-    from quietframe.service.model_choice import Choice
+    from quietframe.service.choice_policy import Choice
     from quietframe.service.shot_choice import choice_header
 
     choice = Choice("m", "looks like log2 σ 3.82, 1.1× the steadiest", 4.0, "estimate", ())

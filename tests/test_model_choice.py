@@ -1,5 +1,6 @@
 """model=auto's pure parts: the renderer's sample count, the reference-free noise estimate, the
-choice from measured tables (service/model_choice.py)."""
+choice from measured tables (service/frame_evidence.py, noise_estimate.py, model_profiles.py,
+choice_policy.py)."""
 
 from __future__ import annotations
 
@@ -10,14 +11,13 @@ import numpy as np
 import pytest
 
 from quietframe.bench.noise_calibration import fit, synthetic_points
-from quietframe.service.model_choice import (
-    ModelProfile,
+from quietframe.service.choice_policy import choose
+from quietframe.service.frame_evidence import renderer_from_header, samples_from_header
+from quietframe.service.model_profiles import ModelProfile
+from quietframe.service.noise_estimate import (
     NoiseLevel,
-    choose,
     estimate_spp,
     noise_statistic,
-    renderer_from_header,
-    samples_from_header,
     spp_from_sigma,
 )
 
@@ -326,7 +326,7 @@ def test_the_per_frame_baseline_is_recognised_from_the_shipped_cards():
 
     from quietframe.runtime import installed_models
     from quietframe.runtime.card import ModelCard
-    from quietframe.service.model_choice import is_per_frame_oidn
+    from quietframe.service.model_profiles import is_per_frame_oidn
 
     def card(path):
         model = onnx.load(str(path), load_external_data=False)

@@ -15,7 +15,9 @@ from quietframe.bench import model_card, zoo_stamp
 from quietframe.bench.zoo_eval import report
 from quietframe.runtime.registry import installed_models
 from quietframe.scenes.zoo_shots import SHOTS, shots
-from quietframe.service.model_choice import ModelProfile, NoiseLevel, choose
+from quietframe.service.choice_policy import choose
+from quietframe.service.model_profiles import ModelProfile
+from quietframe.service.noise_estimate import NoiseLevel
 
 COVERED = ("locked-off", "slow dolly", "fast pan", "hand-held shake", "daylight exterior",
            "motion blur", "depth of field", "first frame zero motion", "camera cut")
