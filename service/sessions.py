@@ -4,11 +4,16 @@
 frame's context (service/frame_context.py) → lock → plan (retry / reset reason; for `model=auto`
 at a shot's first frame, the model choice: service/shot_choice.py) → decode → denoise → encode
 (service/frame_path.py) → persist (service/session_durability.py) → commit. The service keeps
-each session's state tensors without knowing what they mean. Registry bookkeeping runs on the
-event loop thread; the heavy part of a frame (decode, denoise, encode, disk writes) runs on the
-worker pool while the session's lock is held, so the frames of one session run in order and
-sessions run in parallel. A frame changes its session only in `_commit`, after everything
-succeeded: a rejected frame never changes the state.
+each session's state tensors without knowing what they mean.
+
+The registry composes three parts: the table of sessions in memory with their history budget
+and expiry (`table`: service/session_table.py), the store behind them (`durability`:
+service/session_durability.py; None when sessions live in memory only) and the worker pool
+(`pool`: service/worker_pool.py). Registry bookkeeping runs on the event loop thread; the heavy
+part of a frame (decode, denoise, encode, store I/O) runs on the worker pool while the session's
+lock is held, so the frames of one session run in order and sessions run in parallel. A frame
+changes its session only in `_commit`, after everything succeeded: a rejected frame never
+changes the state.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import dataclasses
 import logging
 import mmap
 import secrets
-import time
+from collections.abc import Mapping
 from concurrent.futures import Executor
 
 from quietframe.client.session_fields import AUTO
@@ -26,16 +31,18 @@ from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.service import admission, frames
 from quietframe.service.errors import SessionNotFound, TooManySessions
 from quietframe.service.frame_context import frame_context
-from quietframe.service.frame_path import process_frame
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.schemas import SessionCreate, SessionPublic
 from quietframe.service.session import REPLY_MARGIN_BYTES, ProcessedFrame, Session
-from quietframe.service.session_durability import DurableSessions
+from quietframe.service.session_durability import SessionDurability
 from quietframe.service.session_spec import SessionSpec
-from quietframe.service.session_store import Reply, is_session_id
+from quietframe.service.session_store import Reply, Store, is_session_id
+from quietframe.service.session_table import SessionTable
 from quietframe.service.settings import Settings
-from quietframe.service.shot_choice import CHOICE_RESETS, choose_for_shot, noise_kind
+from quietframe.service.shot_choice import CHOICE_RESETS, noise_kind
+from quietframe.service.stores import open_store
+from quietframe.service.worker_pool import WorkerPool
 from quietframe.wire.protocol import Reset
 
 log = logging.getLogger("quietframe.service")
@@ -49,14 +56,41 @@ class FrameOutcome:
     replayed: bool
 
 
-class SessionRegistry(DurableSessions):
+class SessionRegistry:
     def __init__(
-        self, settings: Settings, models: ModelRegistry, metrics: Metrics, pool: Executor
+        self, settings: Settings, models: ModelRegistry, metrics: Metrics, executor: Executor
     ) -> None:
-        super().__init__(settings, models, metrics, pool)
-        if self.store is not None and not self.store.shared:  # a shared one: sessions on demand
-            self._load_durable()
-        self._update_gauges()
+        self.settings, self.models, self.metrics = settings, models, metrics
+        self.pool = WorkerPool(executor)
+        # frames in flight (admission.py), beside the history budget of what sessions keep
+        self.admission = admission.MemoryBudget(
+            settings.memory_budget_bytes, settings.admission_wait_s, settings.max_uploads
+        )
+        store = open_store(settings)
+        self.table = SessionTable(settings, models, metrics, durable=store is not None)
+        self.durability = (
+            SessionDurability(store, models, self.table, self.pool) if store is not None else None
+        )
+        if self.durability is not None and not self.durability.shared:  # shared: on demand
+            self.durability.restore_all()
+        self.table.update_gauges()
+
+    @property
+    def sessions(self) -> Mapping[str, Session]:
+        """The sessions held in memory, least recently used first (read only)."""
+        return self.table.sessions
+
+    @property
+    def store(self) -> Store | None:
+        return self.durability.store if self.durability is not None else None
+
+    def expire(self) -> list[str]:
+        """Delete sessions idle for longer than the TTL (not those with a frame in flight); a
+        local store's files of them are deleted on the worker pool, not waited for."""
+        expired = self.table.expire()
+        if self.durability is not None:
+            self.durability.forget(expired)
+        return [s.id for s in expired]
 
     async def get(self, session_id: str, touch: bool = True) -> Session:
         """The session; `touch` counts as use (LRU order, TTL), status reads do not. Every
@@ -65,64 +99,59 @@ class SessionRegistry(DurableSessions):
         replica holds is adopted from the shared store on the worker pool: a hung store must not
         freeze the event loop (audit R4-10; /healthz goes on answering)."""
         if not is_session_id(session_id):
-            raise self._not_found(session_id)
-        session = self.sessions.get(session_id)
-        if session is None and self.store is not None and self.store.shared:
-            session = await self._adopt(session_id)
+            raise self.table.not_found(session_id)
+        session = self.table.find(session_id)
+        if session is None and self.durability is not None and self.durability.shared:
+            session = await self.durability.adopt(session_id)
         if session is None:
-            raise self._not_found(session_id)
+            raise self.table.not_found(session_id)
         if touch:
-            session.last_used = time.monotonic()
-            self.sessions.move_to_end(session_id)
+            self.table.touch(session)
         return session
 
     async def status(self, session_id: str) -> SessionPublic:
         """The session's status (not counted as use). With a shared store, another replica may
         have advanced the session since this one's copy was loaded: the progress shown is the
         store's record (its small meta; the state stays where it is)."""
-        shared = self.store is not None and self.store.shared
-        held = session_id in self.sessions  # else `get` adopts it from the record just read
+        held = self.table.find(session_id) is not None  # else `get` adopts it from the record
         session = await self.get(session_id, touch=False)
         ttl = self.settings.session_ttl_s
-        if not (shared and held):
+        if self.durability is None or not (self.durability.shared and held):
             return session.public(ttl)
-        found = await self._on_pool(self.store.find, session_id)  # type: ignore[union-attr]
-        if found is None:  # expired in the store, or deleted through another replica
-            raise SessionNotFound(f"session {session_id!r} is gone (expired or deleted)")
-        meta, lost = found
-        if lost:  # only its settings survive: this copy's progress is all there is
+        progress = await self.durability.committed_progress(session_id)
+        if not progress:  # only its settings survive: this copy's progress is all there is
             return session.public(ttl)
-        return dataclasses.replace(session, **self._stored_progress(meta)).public(ttl)
+        return dataclasses.replace(session, **progress).public(ttl)
 
     # ---- create / delete ----------------------------------------------------------------------
 
     async def create(self, request: SessionCreate) -> Session:
         self.expire()
-        if len(self.sessions) >= self.settings.max_sessions:
+        if len(self.table) >= self.settings.max_sessions:
             raise TooManySessions(
-                f"{len(self.sessions)} sessions are open (the maximum); retry after the "
+                f"{len(self.table)} sessions are open (the maximum); retry after the "
                 "Retry-After seconds, or delete finished sessions",
-                headers={"Retry-After": self._retry_after()},
+                headers={"Retry-After": self.table.retry_after()},
             )
         spec = SessionSpec.model_validate(
             {**request.model_dump(), "model": self.models.requested(request.model)})
         self.models.check_options(spec.model, spec.model_options)  # before anything is kept
-        session = self._session(secrets.token_urlsafe(16), spec)
-        self._make_room(session.reserve_bytes)
-        if self.store is not None:
-            await self._store_new(session)
-        self.sessions[session.id] = session
+        session = self.table.build(secrets.token_urlsafe(16), spec)
+        self.table.make_room(session.reserve_bytes)
+        if self.durability is not None:
+            await self.durability.store_new(session)
+        self.table.add(session)
         self.metrics.sessions_created.inc()
-        self._update_gauges()
+        self.table.update_gauges()
         return session
 
     async def delete(self, session_id: str) -> None:
         session = await self.get(session_id)
         async with session.lock:  # let a frame in flight finish (and write its state) first
             if not session.closed:
-                self._remove(session, "deleted")
-                if self.store is not None:  # gone from disk when DELETE answers
-                    await self._on_pool(self.store.delete, session.id)
+                self.table.remove(session, "deleted")
+                if self.durability is not None:  # gone from the store when DELETE answers
+                    await self.durability.delete(session.id)
 
     # ---- frames -------------------------------------------------------------------------------
 
@@ -175,9 +204,9 @@ class SessionRegistry(DurableSessions):
         async with session.lock:
             if session.closed:
                 raise SessionNotFound(f"session {session_id!r} was closed while this frame waited")
-            await self._ensure_resident(session)  # a retry needs the stored reply
-            # On the pool: a retry hashes its whole body (up to ~2 s at 2 GiB), never on the loop
-            plan = await self._on_pool(session.plan, index, body, cut or header.cut)
+            if self.durability is not None:  # a retry needs the stored reply
+                await self.durability.ensure_resident(session)
+            plan = await self.pool.plan_frame(session, index, body, cut or header.cut)
             if isinstance(plan, Reply):
                 self.metrics.replays.inc()
                 return FrameOutcome(plan, replayed=True)
@@ -187,8 +216,8 @@ class SessionRegistry(DurableSessions):
                 starts_shot = plan in CHOICE_RESETS or session.choice is None
                 chose = starts_shot and keep is None
                 if starts_shot:  # decoded once: the choice measures its noise, the model runs
-                    context, choice = await self._on_pool(
-                        choose_for_shot, context, body, spec, self.models, keep)
+                    context, choice = await self.pool.choose_for_shot(
+                        context, body, spec, self.models, keep)
                 else:
                     choice = session.choice
                 assert choice is not None
@@ -197,12 +226,12 @@ class SessionRegistry(DurableSessions):
                 if info.name != session.info.name:  # another model's state means nothing here
                     history = None
             denoiser = self.models.denoiser(info.name)
-            frame = await self._on_pool(
-                process_frame, denoiser, spec, index, body, context, plan, history, choice
+            frame = await self.pool.process_frame(
+                denoiser, spec, index, body, context, plan, history, choice
             )
             self._reserve_reply(session, len(frame.reply.body), info)
-            if self.store is not None:
-                await self._persist(session, frame)
+            if self.durability is not None:
+                await self.durability.persist(session, frame)
             self._commit(session, frame)
             if chose and choice is not None:
                 self.metrics.choices.labels(
@@ -235,15 +264,15 @@ class SessionRegistry(DurableSessions):
         need = history_nbytes(info.state_specs, session.spec.height, session.spec.width)
         need += reply_bytes + REPLY_MARGIN_BYTES
         if need > session.reserve_bytes:
-            self._make_room(need - session.reserve_bytes, keep=session)
+            self.table.make_room(need - session.reserve_bytes, keep=session)
             session.reserve_bytes = need
 
     def _commit(self, session: Session, frame: ProcessedFrame) -> None:
         session.commit(frame)
-        self.sessions.move_to_end(session.id)
+        self.table.touch(session)
         self.metrics.frames.labels(frame.info.name, frame.reset.value).inc()
         for stage, ms in frame.timings_ms.items():
             self.metrics.latency.labels(stage).observe(ms / 1e3)
         for buffer, count in frame.sanitized.items():
             self.metrics.sanitized.labels(buffer).inc(count)
-        self._update_gauges()
+        self.table.update_gauges()
