@@ -40,7 +40,7 @@ def model_working_set(denoiser: Denoiser, height: int, width: int) -> int:
 
 # Memory one EXR part holds beyond its pixels while the frame is decoded and its reply written
 # (OpenEXR's part structures and offset tables, the part's attribute and channel dicts): the
-# round-4 audit's 20 000 one-channel parts grew RSS by 4.7 GiB, ~240 KiB a part.
+# 2026-12-06 audit's 20 000 one-channel parts grew RSS by 4.7 GiB, ~240 KiB a part.
 PART_OVERHEAD_BYTES = 256 << 10
 
 

@@ -58,7 +58,7 @@ def test_an_auto_session_reserves_for_the_model_it_chose():
     from test_service_reliability import app_client, new_session
 
     from quietframe.service import admission, frames
-    from quietframe.service.choice_policy import Choice
+    from quietframe.service.model_choice import Choice
 
     width, height = 3840, 2160
     plane = np.zeros((height, width), np.float16)
@@ -81,7 +81,7 @@ def test_an_auto_session_reserves_for_the_model_it_chose():
 
 
 def _multipart_exr(parts: int) -> bytes:
-    """A valid EXR of `parts` parts, each one 64x48 half channel (audit round 4, R4-14)."""
+    """A valid EXR of `parts` parts, each one 64x48 half channel (the 2026-12-06 audit's R4-14)."""
     import tempfile
 
     import OpenEXR

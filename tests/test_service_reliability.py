@@ -1,6 +1,6 @@
-"""The first audit: the defects found from outside, each with the case that showed it, and the
-malformed-EXR corpus (tests/exr_corpus.py) with the status each case must get. Real runtime and
-installed model; 64x48 frames; sockets only on 127.0.0.1."""
+"""The audit of 2026-12-01: the defects found from outside, each with the case that showed it,
+and the malformed-EXR corpus (tests/exr_corpus.py) with the status each case must get. Real
+runtime and installed model; 64x48 frames; sockets only on 127.0.0.1."""
 
 from __future__ import annotations
 

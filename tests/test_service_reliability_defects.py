@@ -1,4 +1,4 @@
-"""The second audit: the defects it found (D4-D6, L1, L2, nits), each with the case that
+"""The audit of 2026-12-02: the defects it found (D4-D6, L1, L2, nits), each with the case that
 showed it. In-process app with the installed models; 64x48 frames."""
 
 from __future__ import annotations
