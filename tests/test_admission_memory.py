@@ -58,7 +58,7 @@ def test_an_auto_session_reserves_for_the_model_it_chose():
     from test_service_reliability import app_client, new_session
 
     from quietframe.service import admission, frames
-    from quietframe.service.model_choice import Choice
+    from quietframe.service.choice_policy import Choice
 
     width, height = 3840, 2160
     plane = np.zeros((height, width), np.float16)
