@@ -2,13 +2,13 @@
 # Train the affinity tier: two queues side by side (one thread each, one per core), each run
 # resumable from its run directory (re-running continues where it stopped).
 #   nohup nice -n 10 model/train_affinity.sh k5 > ~/.cache/quietframe/logs/train_affinity.log 2>&1 &
-# `k5`: the round the shipped affinity-h16-k5gc comes from (runs in $RUNS/s6; docs/affinity.md,
-# "K = 5 kernels, the guide and the τ loss"), kernel size 5, τ loss:
+# `k5`: the runs the shipped affinity-h16-k5gc comes from (runs in $RUNS/s6; docs/affinity.md,
+# "K = 5 kernels, the guide, coarse-first, the τ loss"), kernel size 5, τ loss:
 #   queue 1: affinity-h16-k5g (1200 steps), then affinity-h16-k5gc (coarse-first), 1200 steps
 #            resumed to 3200: the shipped run (its best.pt, then fine-tuned on the mix by
 #            model/finetune_cycles.sh);
 #   queue 2: affinity-h16-k6gc, 3500 steps (K = 6: the support doubled; behind K = 5).
-# No argument: the first round, superseded by k5 (its runs are in docs/affinity.md's history):
+# No argument: the paper-structure runs, superseded by k5 (its runs are in docs/affinity.md's history):
 #   queue 1: affinity-h24, 128² crops, 4 frames, batch 4, the kernel size drawn per step from
 #            5, 9, 13 (one model for the run-time knob); not installed;
 #   queue 2: the width sweep, affinity-h8/h16/h24/h32 with equal short schedules at kernel
