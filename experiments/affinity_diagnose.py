@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from quietframe.bench import cli_args
-from quietframe.model import affinity, metrics
+from quietframe.model import affinity, families, metrics
 from quietframe.model import train as qt
 from quietframe.model.nbg import demodulation_divisor, luminance
 from quietframe.runtime import Denoiser
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="exported .onnx models to measure on the same batches")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    model, checkpoint = affinity.load_checkpoint(str(args.checkpoint))
+    model, checkpoint = families.load_checkpoint(str(args.checkpoint))
     model.eval()
     fields = {f.name for f in dataclasses.fields(qt.TrainConfig)}
     cfg = qt.TrainConfig(**{k: v for k, v in checkpoint["training"].items() if k in fields})

@@ -6,7 +6,6 @@ on bench)."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 from pathlib import Path
 
@@ -14,8 +13,8 @@ import torch
 
 from quietframe.export.affinity_export import export_affinity
 from quietframe.export.onnx_export import export_nbg, export_oidn_only
-from quietframe.model import affinity, oidn_temporal, output_history
-from quietframe.model.nbg import VARIANTS, AccumulationDenoiser, NBGDenoiser, load_checkpoint
+from quietframe.model import affinity, families, oidn_temporal, output_history
+from quietframe.model.nbg import AccumulationDenoiser
 
 
 def carried_metrics(old: Path, training: dict) -> tuple[dict, dict]:
@@ -63,31 +62,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.metrics_from:
             training, metrics = carried_metrics(args.metrics_from, training)
     elif args.checkpoint:
-        saved = torch.load(args.checkpoint, map_location="cpu", weights_only=True)["config"]
-        if affinity.is_affinity_config(saved):
-            load = affinity.load_checkpoint
-        elif "quality" in saved:
-            load = oidn_temporal.load_checkpoint
-        else:
-            load = load_checkpoint
-        model, checkpoint = load(str(args.checkpoint))
+        model, checkpoint = families.load_checkpoint(args.checkpoint)
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
-    elif args.variant in oidn_temporal.VARIANTS:
-        torch.manual_seed(args.seed)
-        config = oidn_temporal.VARIANTS[args.variant]
-        if args.width:
-            config = dataclasses.replace(config, width=args.width)
-        model = oidn_temporal.OIDNTemporal(config)
-        training, metrics = {"trained": False, "seed": args.seed}, {}
     else:
+        family = families.family_of_variant(args.variant)
         torch.manual_seed(args.seed)
-        if args.variant in affinity.VARIANTS:
-            model = affinity.AffinityDenoiser(affinity.VARIANTS[args.variant])
-        else:
-            config = VARIANTS[args.variant]
-            if args.width:
-                config = dataclasses.replace(config, width=args.width)
-            model = NBGDenoiser(config)
+        model = family.variant(args.variant, **({"width": args.width} if args.width else {}))
         training, metrics = {"trained": False, "seed": args.seed}, {}
     export = export_affinity if isinstance(model, affinity.AffinityDenoiser) else export_nbg
     path = export(model, args.out, version=args.version, training=training, metrics=metrics)

@@ -74,7 +74,7 @@ class AffinityConfig:
     """Everything needed to rebuild a model; stored in checkpoints and ONNX metadata."""
 
     name: str = "affinity-h16"
-    family: str = "affinity"  # tells checkpoints of this model from NBG's
+    family: str = "affinity"  # tells checkpoints of this model from NBG's (model/families.py)
     widths: tuple[int, ...] = (16, 24, 32)  # U-Net channels per level, multiples of 8
     unet_scale: int = 2  # 1: U-Net at full resolution; 2: at half resolution
     temporal: bool = True  # False: the single-frame variant (no eq. 3, 5, 7-8 history)
@@ -410,15 +410,3 @@ VARIANTS: dict[str, AffinityConfig] = {
         _variant("affinity-h16-k6gc", (16, 24, 32), 2, kernels=6, guide=True, coarse_first=True),
     )
 }
-
-
-def is_affinity_config(config: dict) -> bool:
-    return config.get("family") == "affinity"
-
-
-def load_checkpoint(path: str) -> tuple[AffinityDenoiser, dict]:
-    """Rebuild a model from a training checkpoint: {"config", "model", "training", "metrics"}."""
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    model = AffinityDenoiser(AffinityConfig(**checkpoint["config"]))
-    model.load_state_dict(checkpoint["model"])
-    return model, checkpoint

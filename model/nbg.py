@@ -257,11 +257,3 @@ VARIANTS: dict[str, NBGConfig] = {
     "nbg-2l-3g": NBGConfig(name="nbg-2l-3g", layers=2, grids=3),
     "nbg-7l-3g": NBGConfig(name="nbg-7l-3g", layers=7, grids=3),
 }
-
-
-def load_checkpoint(path: str) -> tuple[NBGDenoiser, dict]:
-    """Rebuild a model from a training checkpoint: {"config", "model", "training", "metrics"}."""
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    model = NBGDenoiser(NBGConfig(**checkpoint["config"]))
-    model.load_state_dict(checkpoint["model"])
-    return model, checkpoint

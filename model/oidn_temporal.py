@@ -244,11 +244,3 @@ class OIDNTemporal(nn.Module):
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)
-
-
-def load_checkpoint(path: str) -> tuple[OIDNTemporal, dict]:
-    """Rebuild a model from a training checkpoint: {"config", "model", "training", "metrics"}."""
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    model = OIDNTemporal(OIDNTemporalConfig(**checkpoint["config"]))
-    model.load_state_dict(checkpoint["model"])
-    return model, checkpoint

@@ -27,8 +27,8 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import default_collate
 
-from quietframe.model import affinity
 from quietframe.model.data import CropDataset, SequenceDataset
+from quietframe.model.families import family_of_checkpoint, family_of_variant
 from quietframe.model.losses import (
     l1_tonemapped_loss,
     relmse_unbiased_loss,
@@ -39,9 +39,7 @@ from quietframe.model.losses import (
     temporal_tau_mse_loss,
 )
 from quietframe.model.metrics import psnr
-from quietframe.model.nbg import VARIANTS, NBGConfig, NBGDenoiser
 from quietframe.model.oidn_temporal import VARIANTS as OIDN_VARIANTS
-from quietframe.model.oidn_temporal import OIDNTemporal, OIDNTemporalConfig
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.oidn_prepass import OIDNSettings
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS, RENDERERS, RUNS_DIR, split_dir
@@ -146,27 +144,16 @@ def drop_buffers(cfg: TrainConfig, batch: dict[str, Tensor], step: int) -> dict[
 
 
 def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
-    """The model of a run: the checkpoint's architecture (`saved`) when resuming, else the
-    variant's with --width (0 keeps the variant's own) and, for affinity, --kernel-size."""
+    """The model of a run: the checkpoint's architecture (`saved`) when resuming or
+    fine-tuning (the firefly clamp may still change), else the variant's with the flags its
+    family takes (model/families.py): --width and --net-scale (0 keeps the variant's own),
+    --kernel-size (affinity: also the exported graph's default, the size the model knows best)
+    and the clamp."""
     if saved is not None:
-        if cfg.variant in OIDN_VARIANTS or "quality" in saved:
-            return OIDNTemporal(OIDNTemporalConfig(**saved))
-        saved = {**saved, **clamp_flags(cfg)}  # a fine-tune may switch the clamp on or off
-        if affinity.is_affinity_config(saved):
-            return affinity.AffinityDenoiser(affinity.AffinityConfig(**saved))
-        return NBGDenoiser(NBGConfig(**saved))
-    if cfg.variant in affinity.VARIANTS:
-        config = affinity.VARIANTS[cfg.variant]
-        if cfg.kernel_size:  # also the exported graph's default: the size the model knows best
-            config = dataclasses.replace(config, kernel_size=cfg.kernel_size)
-        return affinity.AffinityDenoiser(dataclasses.replace(config, **clamp_flags(cfg)))
-    if cfg.variant in OIDN_VARIANTS:
-        base = OIDN_VARIANTS[cfg.variant]
-        return OIDNTemporal(dataclasses.replace(base, width=cfg.width or base.width,
-                                                net_scale=cfg.net_scale or base.net_scale))
-    base = VARIANTS[cfg.variant]
-    return NBGDenoiser(dataclasses.replace(base, width=cfg.width or base.width,
-                                           **clamp_flags(cfg)))
+        return family_of_checkpoint(saved).from_saved(saved, **clamp_flags(cfg))
+    sizes = {"width": cfg.width, "net_scale": cfg.net_scale, "kernel_size": cfg.kernel_size}
+    overrides = {k: v for k, v in sizes.items() if v} | clamp_flags(cfg)
+    return family_of_variant(cfg.variant).variant(cfg.variant, **overrides)
 
 
 def clamp_flags(cfg: TrainConfig) -> dict[str, float]:

@@ -18,7 +18,7 @@ torch = pytest.importorskip("torch")
 
 from quietframe.export.affinity_export import export_affinity  # noqa: E402
 from quietframe.export.onnx_export import example_inputs  # noqa: E402
-from quietframe.model import affinity  # noqa: E402
+from quietframe.model import affinity, families  # noqa: E402
 from quietframe.model import train as qt  # noqa: E402
 from quietframe.model.losses import bandwidth_regulariser  # noqa: E402
 from quietframe.runtime import Denoiser, find_model, installed_models  # noqa: E402
@@ -188,7 +188,7 @@ def test_resumed_run_equals_uninterrupted_run(data, tmp_path, sizes):
     for name, value in a["model"].items():
         assert torch.equal(value, b["model"][name]), name
     assert not torch.equal(a["model"]["unet.out.weight"], paused["model"]["unet.out.weight"])
-    model, _ = affinity.load_checkpoint(str(tmp_path / "straight" / "best.pt"))
+    model, _ = families.load_checkpoint(str(tmp_path / "straight" / "best.pt"))
     assert model.config == dataclasses.replace(affinity.VARIANTS["affinity-h8"], kernel_size=5)
     for flag in ({"variant": "affinity-h16"}, {"kernel_size": 9}):
         with pytest.raises(ValueError, match="cannot change a checkpoint's model"):
@@ -238,7 +238,7 @@ def test_shipped_model_is_the_export_of_its_shipped_checkpoint(name):
     """models/<name>.onnx is what quietframe-export makes of models/training/<name>/best.pt with
     today's model code (a stale export fails), at its default and another kernel size."""
     checkpoint_path = Path(__file__).resolve().parents[1] / "models" / "training" / name / "best.pt"
-    model, checkpoint = affinity.load_checkpoint(str(checkpoint_path))
+    model, checkpoint = families.load_checkpoint(str(checkpoint_path))
     runtime = Denoiser(find_model(name), threads=2)
     assert runtime.info.training["steps_done"] == checkpoint["training"]["steps_done"]
     default = next(i.default for i in runtime.info.inputs if i.name == "kernel_size")

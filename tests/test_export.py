@@ -12,7 +12,8 @@ from sequence_support import moving_frame
 torch = pytest.importorskip("torch")
 
 from quietframe.export.onnx_export import example_inputs, export_nbg  # noqa: E402
-from quietframe.model.nbg import VARIANTS, NBGDenoiser, load_checkpoint  # noqa: E402
+from quietframe.model.families import load_checkpoint  # noqa: E402
+from quietframe.model.nbg import VARIANTS, NBGDenoiser  # noqa: E402
 from quietframe.runtime import Denoiser, find_model, installed_models  # noqa: E402
 from quietframe.runtime.card import json_safe  # noqa: E402
 

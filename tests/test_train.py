@@ -16,7 +16,7 @@ from dataset_support import write_sequence
 torch = pytest.importorskip("torch", reason="training needs torch")
 
 from quietframe.model import train as qt  # noqa: E402
-from quietframe.model.nbg import load_checkpoint  # noqa: E402
+from quietframe.model.families import load_checkpoint  # noqa: E402
 from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
 
 
