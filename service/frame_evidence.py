@@ -7,8 +7,8 @@ import math
 from collections.abc import Mapping
 
 from quietframe.runtime.card import SAMPLES_INPUT
-from quietframe.runtime.exr_header import attribute_number
 from quietframe.service.noise_estimate import NoiseLevel
+from quietframe.wire.exr_layout import attribute_number
 
 # Header attributes that state a frame's samples per pixel, by renderer. Only Cycles is known to
 # write one (`cycles.<view layer>.samples`, a string, tests/fixtures/blender/README.md). Arnold,

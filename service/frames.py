@@ -2,8 +2,9 @@
 before any pixel is decoded (the names the service and the tests use, from their modules in
 runtime/, below the service, because the scene readers decode Cycles frames with them too):
 
-1. `read_header` (runtime/exr_header.py) parses the EXR header bytes in pure Python (size
-   limits, channel list, windows, flags; the one attribute reader);
+1. `read_header` (runtime/exr_header.py) checks the EXR header (size limits, channel list,
+   windows, flags), whose bytes the one EXR header reader walks in pure Python
+   (wire/exr_layout.py, shared with the client's pre-flight; the one attribute reader);
 2. `resolve` (runtime/exr_channels.py) maps the header's channel names onto the canonical
    buffers (the one renderer alias table, ALIASES, or the session's own mapping), naming what
    was found and what was expected when something is missing;
@@ -38,12 +39,10 @@ from quietframe.runtime.exr_header import (
     ExrHeader,
     HeaderScan,
     TruncatedExr,
-    attribute,
-    attribute_number,
-    attribute_value,
     check_windows,
     read_header,
 )
+from quietframe.wire.exr_layout import attribute, attribute_number, attribute_value
 
 __all__ = [
     "ALIASES",
