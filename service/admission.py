@@ -7,7 +7,7 @@ decoder returns, the canonical float32 buffers, the model's working set and new 
 reply being encoded. A frame that does not fit waits a little (QUIETFRAME_ADMISSION_WAIT_S) for
 others to finish, then gets 429 with Retry-After; a frame larger than the whole budget gets 413
 as soon as its header is read (no retry can help). The history budget
-(sessions.py) counts what sessions keep between frames; together they bound the server's
+(session_table.py) counts what sessions keep between frames; together they bound the server's
 memory above its base (models, interpreter).
 
 Everything here runs on the event loop thread: no locks.
