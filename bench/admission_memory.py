@@ -33,6 +33,7 @@ from quietframe.bench import cli_args
 from quietframe.bench.large_frames import SIZES, buffers
 from quietframe.runtime import Denoiser, find_model, installed_models
 from quietframe.runtime.motion_evidence import history_nbytes
+from quietframe.runtime.stream import Stream
 from quietframe.service import admission
 from quietframe.service import frames as frame_io
 from quietframe.service.frame_context import frame_context
@@ -85,6 +86,7 @@ def measure(model: str, width: int, height: int, frames: int, threads: int) -> d
     spec = SessionSpec(model=model, width=width, height=height, precision="input",
                        compression="input", channels=None, motion_scale=(1.0, 1.0))
     info = denoiser.info
+    stream = Stream(denoiser)  # the session's: its OIDN filters are kept between frames
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         files = [Path(tmp) / f"frame_{i}.exr" for i in range(frames)]
@@ -92,7 +94,9 @@ def measure(model: str, width: int, height: int, frames: int, threads: int) -> d
             write_frame(path, width, height, seed=i)
         state = None
         for i, path in enumerate(files):
-            held = 0 if state is None else sum(v.nbytes for v in state.values())
+            # what the session holds between frames (the history budget): state, kept filters
+            held = stream.kept_bytes + (0 if state is None
+                                        else sum(v.nbytes for v in state.values()))
             with open("/proc/self/clear_refs", "w") as f:
                 f.write("5")  # VmHWM := VmRSS
             base = _status_bytes("VmRSS")
@@ -102,14 +106,15 @@ def measure(model: str, width: int, height: int, frames: int, threads: int) -> d
             need = admission.frame_need(header, len(body), [denoiser])
             context = frame_context(header, spec, info, None)
             start = time.perf_counter()
-            done = process_frame(denoiser, spec, i, body, context,
+            done = process_frame(stream, spec, i, body, context,
                                  Reset.FIRST_FRAME if state is None else Reset.NONE, state)
             seconds = time.perf_counter() - start
             peak = _status_bytes("VmHWM") - base
             state = done.state
             del body, done
             # What the frame left behind beyond the state it returned (allocator and arenas)
-            kept = _status_bytes("VmRSS") - base - sum(v.nbytes for v in state.values()) + held
+            kept = (_status_bytes("VmRSS") - base - sum(v.nbytes for v in state.values())
+                    - stream.kept_bytes + held)
             rows.append({"frame": i, "seconds": round(seconds, 2), "peak_growth_mib":
                          round(peak / MIB), "kept_mib": round(kept / MIB),
                          "reserved_mib": round(need / MIB),

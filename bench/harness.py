@@ -24,8 +24,7 @@ import numpy as np
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser
 from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
-from quietframe.runtime.model_options import options_for
-from quietframe.runtime.motion_evidence import gate_history, keep_probe
+from quietframe.runtime.stream import Stream
 
 Planes = dict[str, np.ndarray]  # canonical name -> (C, H, W) float32
 Frames = list[tuple[Planes, np.ndarray, bool]]  # (planes, reference (H, W, 3), reset)
@@ -46,23 +45,22 @@ def planar_frames(frames: Iterable[tuple[Mapping[str, np.ndarray], np.ndarray, b
 
 
 class RuntimeMethod:
-    """A shipped model through the runtime: keeps the state between frames, unless
-    `single_frame` (every frame starts from an empty history, as after a cut). `options`: the
-    model's run-time inputs (kernel_size); `zeros_for_required`: absent required buffers are
-    fed as zeros (what the model would see without them: the absence table). `header_spp`:
-    the spp the frame header states (set by the evaluation where the renderer writes one),
-    given as the service gives it to a model that takes the frame's spp (SAMPLES_INPUT).
-    `renderer`: the frames' renderer, given to the runtime as the service gives it the one its
-    header names (an OIDN stage's row order follows it)."""
+    """A shipped model through the runtime's per-sequence step (runtime/stream.py), as the
+    service runs it: keeps the state between frames, unless `single_frame` (every frame starts
+    from an empty history, as after a cut). `options`: the model's run-time inputs
+    (kernel_size); `zeros_for_required`: absent required buffers are fed as zeros (what the
+    model would see without them: the absence table). `header_spp`: the spp the frame header
+    states (set by the evaluation where the renderer writes one). `renderer`: the frames'
+    renderer, as the service takes it from the header (an OIDN stage's row order follows it).
+    `camera`: the session's (`auto` or `locked`)."""
 
     def __init__(self, path: Path | Denoiser, threads: int = 2, options: dict | None = None,
                  single_frame: bool = False, zeros_for_required: bool = False,
                  renderer: str | None = None, camera: str = "auto") -> None:
-        self.camera = camera  # the session's `camera` (runtime/motion_evidence.gate_history)
         self.denoiser = path if isinstance(path, Denoiser) else Denoiser(
             path, threads=threads, options=options)
+        self.stream = Stream(self.denoiser, camera=camera, renderer=renderer)
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
-        self.renderer = renderer
         self.state: dict | None = None
         self.header_spp: float | None = None
         self.dropped = 0  # frames whose history was not used: moved without motion vectors
@@ -78,15 +76,10 @@ class RuntimeMethod:
             planes = {**planes, **{name: np.zeros((BUFFER_CHANNELS[name], h, w), np.float32)
                                    for name in self.denoiser.info.required_buffers
                                    if name not in planes}}
-        options = options_for(self.denoiser.info, {}, self.header_spp)  # the service's rule
-        gate = None
-        if self.denoiser.info.state_specs:  # the service's rule for history without vectors
-            gate = gate_history(planes, self.state, self.camera)
-            self.dropped += gate.dropped
-        result = self.denoiser.denoise(planes, gate.state if gate else self.state, options,
-                                       self.renderer)
-        self.state = keep_probe(result.state, gate.probe) if gate else result.state
-        return result.color
+        step = self.stream.step(planes, self.state, self.header_spp)
+        self.dropped += step.gate is not None and step.gate.dropped
+        self.state = step.state
+        return step.color
 
 
 class ImageMethod:

@@ -46,7 +46,7 @@ from quietframe.bench.zoo_eval import evaluate, shot_folders
 from quietframe.model.temporal import DEPTH_REL_TOLERANCE, MIN_CURRENT_WEIGHT
 from quietframe.runtime.card import OIDNStage
 from quietframe.runtime.denoiser import Denoiser
-from quietframe.runtime.oidn_prepass import OIDNPrepass
+from quietframe.runtime.oidn_prepass import OIDNFilters, OIDNPrepass
 from quietframe.runtime.registry import find_model
 from quietframe.scenes.zoo_shots import ZOO_SPLITS
 
@@ -233,15 +233,17 @@ class PolicyPrepass:
         self.index = 0
         self.shares: list[float] = []
 
-    def __call__(self, planes: Mapping[str, np.ndarray], renderer: str | None = None
-                 ) -> np.ndarray:
+    def __call__(self, planes: Mapping[str, np.ndarray], renderer: str | None = None,
+                 filters: OIDNFilters | None = None) -> np.ndarray:
         self.index = 0 if self.state is None else self.index + 1
         result = step(self.policy, planes, self.frame["motion"], self.frame["depth"][0],
-                      self.state, self.index, lambda aux: self.prepass.prefilter(aux, renderer))
+                      self.state, self.index,
+                      # crops of any size: built per call (kept filters hold one frame size)
+                      lambda aux: self.prepass.prefilter(aux, renderer))
         self.state = result.state
         self.shares.append(result.prefiltered)
         return self.prepass({"color": planes["color"], **result.clean}, renderer,
-                            clean_aux=True)
+                            clean_aux=True, filters=filters)
 
 
 class PolicyMethod(RuntimeMethod):

@@ -198,7 +198,7 @@ class SppRow:
     # reference needed); None where no locked-off shot was measured.
     flicker: float | None = None
     # PSNR of the renderer's own denoise of the same validation frames (Blender's, on Cycles),
-    # measured in the same run: auto's floor where the renderer has one (service/model_choice).
+    # measured in the same run: auto's floor where the renderer has one (service/choice_policy).
     renderer_denoise: float | None = None
 
     def to_dict(self) -> dict:

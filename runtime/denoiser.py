@@ -28,7 +28,12 @@ from quietframe.runtime.card import (
     OIDNStage,
     StateSpec,
 )
-from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass, PrepassUnavailable
+from quietframe.runtime.oidn_prepass import (
+    PREPASS_BUFFERS,
+    OIDNFilters,
+    OIDNPrepass,
+    PrepassUnavailable,
+)
 from quietframe.runtime.ops_library import ops_library_path
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 from quietframe.runtime.scalar_inputs import InputSpec
@@ -388,12 +393,14 @@ class Denoiser:
     def denoise(
         self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
         options: Mapping[str, float | int] | None = None, renderer: str | None = None,
+        oidn: OIDNFilters | None = None,
     ) -> DenoiseResult:
         """Denoise one frame of (C, H, W) float32 planes. `state` is the previous frame's
         `DenoiseResult.state`, or None to start from a fresh history (first frame, camera cut).
         `options` overrides the Denoiser's options for this call. `renderer`: the frame's,
         where known (an OIDN stage gives OIDN the rows in that renderer's order:
-        runtime/oidn_prepass.py)."""
+        runtime/oidn_prepass.py). `oidn`: the sequence's kept OIDN filters (runtime/stream.py);
+        None builds them for this call."""
         feeds, sanitized, missing, (height, width) = self._feeds(planes)
         feeds |= self._options(self._option_feeds, options) if options else self._option_feeds
         new_state: dict[str, np.ndarray] = {}
@@ -404,7 +411,8 @@ class Denoiser:
                 # aux buffer is left out (OIDN then runs without it), not given as zeros.
                 oidn_planes = {name: feeds[name][0] for name in PREPASS_BUFFERS[1:]
                                if name not in missing}
-                feeds[stage.input] = self.prepass({"color": color[0], **oidn_planes}, renderer)
+                feeds[stage.input] = self.prepass({"color": color[0], **oidn_planes}, renderer,
+                                                  filters=oidn)
                 continue
             output, stage_state = stage.run(feeds, state, height, width)
             clean, bad = sanitize_output(output[0])

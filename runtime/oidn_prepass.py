@@ -16,17 +16,19 @@ on those aux (`clean_aux=True`), equal to the one call (experiments/aux_history.
 to give the colour filter aux prefiltered for an earlier frame). pyoidn is optional: without it
 `OIDNPrepass` raises `PrepassUnavailable`, and the service leaves such models out.
 
-Resources: one OIDN device per worker thread (OIDN devices are not meant to be shared between
-threads that execute concurrently), kept, so a sequence pays for device creation once. Filters
-live for one frame: a committed RT filter holds its scratch memory (up to its `maxMemoryMB`)
-until it is released, so filters kept between frames would hold that memory per thread, per
-model and per frame size beyond anything the service's admission reserves. Building them per
-frame costs ~14% of OIDN's CPU time at 720p (fresh scratch pages); `working_set_bytes` is what
-a frame holds while OIDN runs. Memory: OIDN tiles large images itself (its own alignment and
-overlap) to fit its `maxMemoryMB`, which the runtime sets from its one memory bound. pyoidn
-binds numpy memory zero-copy without keeping it alive: every bound array is held by the filter
-set that binds it, frames are copied into those arrays, and filters are released before their
-arrays.
+Resources: a sequence's frames run through one `OIDNFilters` (runtime/stream.py owns it): its
+own OIDN device and the committed filters of its frame size, kept between frames. Rebuilding
+them per frame cost ~14% of OIDN's CPU time at 720p (a new filter's first execution allocates and
+touches its scratch afresh). A kept RT filter holds its scratch (up to `maxMemoryMB`) until it is
+released, so the owner counts what it keeps (`working_set_bytes`) and releases it when told
+(`OIDNFilters.release`: the service does so when the history budget needs the room, or the
+session ends). A call without filters (a single frame, a tool) builds them for that call on the
+calling thread's device and releases them after it. OIDN serialises the calls on one device, so
+one sequence's frames may run on any worker thread, one at a time. Memory: OIDN tiles large
+images itself (its own alignment and overlap) to fit its `maxMemoryMB`, which the runtime sets
+from its one memory bound (`scratch_mb`). pyoidn binds numpy memory zero-copy without keeping it
+alive: every bound array is held by the filter set that binds it, frames are copied into those
+arrays, and filters are released before their arrays.
 
 Row order: OIDN's network is not flip-equivariant, so the same frame denoised top-down and
 bottom-up differs (up to ~0.3 dB a shot). Cycles hands OIDN its buffers bottom-up (Blender's
@@ -51,6 +53,10 @@ QUALITIES = {"fast": "OIDN_QUALITY_FAST", "balanced": "OIDN_QUALITY_BALANCED",
 PREPASS_KEY = PREFIX + "prepass"
 PREPASS_BUFFERS = ("color", "albedo", "normal")  # what OIDN reads, as (3, H, W) planes
 OIDN_DEFAULT_MAX_MEMORY_MB = 3000  # OIDN 2's CPU default for maxMemoryMB
+# OIDN 2.5's scratch for one RT filter on the CPU, bytes a pixel, when it does not tile: RSS
+# growth over the first execution, 552-573 B/px at high and balanced quality and 306-309 at
+# fast, from 640x360 to 2560x1440 (numThreads 2); rounded up. Below maxMemoryMB it holds this.
+SCRATCH_BYTES_PER_PIXEL = {"high": 600, "balanced": 600, "fast": 340}
 BOTTOM_UP_RENDERERS = frozenset({"cycles"})  # renderers whose own OIDN call sees rows bottom-up
 
 OIDNSettings = OIDNStage  # the prepass settings are the card's OIDN stage (runtime/card.py)
@@ -200,30 +206,42 @@ class OIDNPrepass:
         return device
 
     def working_set_bytes(self, height: int, width: int) -> int:
-        """What one frame's filters hold while they run: the bound (H, W, 3) float32 arrays
-        (colour, aux, output, prefiltered aux) and OIDN's scratch, which it keeps within
-        maxMemoryMB by tiling (the filters of one device share it)."""
+        """What one frame's filters hold while they run (and an `OIDNFilters` keeps between
+        frames): the bound (H, W, 3) float32 arrays (colour, aux, output, prefiltered aux) and
+        OIDN's scratch: what the frame needs untiled, or maxMemoryMB where OIDN tiles to fit
+        (the filters of one device share it)."""
         aux = len(self.settings.aux)
         arrays = 2 + aux + (aux if self.settings.prefilter_aux else 0)
-        scratch = self.max_memory_mb if self.max_memory_mb else OIDN_DEFAULT_MAX_MEMORY_MB
-        return arrays * 12 * height * width + int(scratch * 2**20)
+        return arrays * 12 * height * width + self.scratch_bytes(height, width)
+
+    def scratch_bytes(self, height: int, width: int) -> int:
+        """OIDN's scratch for an H×W frame: its untiled need, capped by maxMemoryMB."""
+        cap = self.max_memory_mb if self.max_memory_mb else OIDN_DEFAULT_MAX_MEMORY_MB
+        qualities = {self.settings.quality, self.settings.aux_quality or self.settings.quality}
+        need = max(SCRATCH_BYTES_PER_PIXEL[q] for q in qualities) * height * width
+        return min(need, int(cap * 2**20))
+
+    def filters(self) -> OIDNFilters:
+        """A sequence's own filters (runtime/stream.py): kept between its frames."""
+        return OIDNFilters(self)
 
     def __call__(self, planes: Mapping[str, np.ndarray], renderer: str | None = None,
-                 clean_aux: bool = False) -> np.ndarray:
+                 clean_aux: bool = False, filters: OIDNFilters | None = None) -> np.ndarray:
         """OIDN's output (1, 3, H, W) float32 for sanitised (3, H, W) planes: the colour, and
         the settings' aux images the frame has (absent ones are not given to OIDN: it filters
         the colour alone, or with the albedo alone, rather than read zeros as a black albedo).
         `renderer` (the frame's, where known) sets the row order OIDN sees (rows_bottom_up).
         `clean_aux`: the aux planes are already prefiltered (`prefilter`), so the stage's aux
-        filters do not run again."""
+        filters do not run again. `filters`: a sequence's kept filters (else built for this
+        call)."""
         _, height, width = planes["color"].shape
         aux = usable_aux(self.settings.aux, planes)
-        out = self._run(planes, (height, width), aux, renderer, ("output",),
+        out = self._run(planes, (height, width), aux, renderer, ("output",), filters,
                         prefilters=not clean_aux)
         return out["output"][None]
 
-    def prefilter(self, planes: Mapping[str, np.ndarray],
-                  renderer: str | None = None) -> dict[str, np.ndarray]:
+    def prefilter(self, planes: Mapping[str, np.ndarray], renderer: str | None = None,
+                  filters: OIDNFilters | None = None) -> dict[str, np.ndarray]:
         """The stage's aux filters alone on (3, H, W) aux planes (any size: a crop of a frame
         too): {name: prefiltered (3, H, W)} for the settings' aux the planes hold."""
         aux = usable_aux(self.settings.aux, planes)
@@ -232,21 +250,28 @@ class OIDNPrepass:
                              "planes hold no albedo; give an albedo, and a normal if wanted")
         _, height, width = planes[aux[0]].shape
         out = self._run(planes, (height, width), aux, renderer,
-                        tuple(f"clean_{name}" for name in aux), main=False)
+                        tuple(f"clean_{name}" for name in aux), filters, main=False)
         return {name: out[f"clean_{name}"] for name in aux}
 
     def _run(self, planes: Mapping[str, np.ndarray], shape: tuple[int, int],
              aux: tuple[str, ...], renderer: str | None, outputs: tuple[str, ...],
-             **roles: bool) -> dict[str, np.ndarray]:
-        filter_set = _FilterSet(self._oidn, self._device().device, self.settings, shape, aux,
-                                self.max_memory_mb, **roles)
+             filters: OIDNFilters | None, **roles: bool) -> dict[str, np.ndarray]:
+        if filters is not None:
+            return filters.get(shape, aux, **roles).run(planes, rows_bottom_up(renderer), outputs)
+        filter_set = self.build(self._device().device, shape, aux, **roles)
         try:
-            out = filter_set.run(planes, rows_bottom_up(renderer), outputs)
+            return filter_set.run(planes, rows_bottom_up(renderer), outputs)
         finally:
             filter_set.close()  # its scratch and bound arrays go with it (module docstring)
+
+    def build(self, device, shape: tuple[int, int], aux: tuple[str, ...],
+              **roles: bool) -> _FilterSet:
+        """Committed filters for `shape` and `aux` on `device` (counted for tests and logs)."""
+        filter_set = _FilterSet(self._oidn, device, self.settings, shape, aux,
+                                self.max_memory_mb, **roles)
         with self._lock:
             self.filter_sets_built += 1
-        return out
+        return filter_set
 
     def close(self) -> None:
         """Release every thread's device (no thread may be running a frame)."""
@@ -255,3 +280,52 @@ class OIDNPrepass:
                 device.close()
             self._all.clear()
         self._local = threading.local()
+
+
+class OIDNFilters:
+    """One sequence's OIDN filters, kept between its frames: its own device (OIDN serialises the
+    calls on a device, so the frames may run on any thread, one at a time) and the committed
+    filter sets of its current frame size, one per aux set and role. A frame of another size
+    releases the kept ones first, so it holds at most one size's (`working_set_bytes`)."""
+
+    def __init__(self, prepass: OIDNPrepass) -> None:
+        self.prepass = prepass
+        self._device: _ThreadDevice | None = None
+        self._sets: dict[tuple, _FilterSet] = {}
+        self.shape: tuple[int, int] | None = None
+
+    def get(self, shape: tuple[int, int], aux: tuple[str, ...], **roles: bool) -> _FilterSet:
+        if shape != self.shape:
+            self.release()
+            self.shape = shape
+        key = (aux, tuple(sorted(roles.items())))
+        filter_set = self._sets.get(key)
+        if filter_set is None:
+            if self._device is None:
+                self._device = _ThreadDevice(self.prepass._oidn, self.prepass.num_threads)
+                with self.prepass._lock:
+                    self.prepass.devices_created += 1
+            filter_set = self.prepass.build(self._device.device, shape, aux, **roles)
+            self._sets[key] = filter_set
+        return filter_set
+
+    @property
+    def kept_bytes(self) -> int:
+        """What the kept filters hold (0 after `release`)."""
+        if self.shape is None or not self._sets:
+            return 0
+        return self.prepass.working_set_bytes(*self.shape)
+
+    def release(self) -> None:
+        """Release the kept filters (their scratch and arrays); the device stays for the next
+        frame. Nothing of this sequence may be running."""
+        for filter_set in self._sets.values():
+            filter_set.close()
+        self._sets.clear()
+        self.shape = None
+
+    def close(self) -> None:
+        self.release()
+        if self._device is not None:
+            self._device.close()
+            self._device = None

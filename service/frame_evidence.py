@@ -47,7 +47,7 @@ def stated_samples(
 ) -> NoiseLevel | None:
     """The spp stated for a frame, or None (estimate it): the session's `model_options.spp`
     where set, else the renderer's header. The session's wins as it does for the model's input
-    (runtime/model_options.options_for), so the choice plans for the spp the chosen model is
+    (runtime/stream.samples_for), so the choice plans for the spp the chosen model is
     given."""
     if SAMPLES_INPUT in model_options:
         return NoiseLevel(float(model_options[SAMPLES_INPUT]), SESSION_SAMPLES)

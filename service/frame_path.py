@@ -7,9 +7,8 @@ import time
 
 import numpy as np
 
-from quietframe.runtime import Denoiser
-from quietframe.runtime.model_options import options_for
-from quietframe.runtime.motion_evidence import HistoryGate, gate_history, keep_probe
+from quietframe.runtime.motion_evidence import HistoryGate
+from quietframe.runtime.stream import Stream
 from quietframe.service import frames, state_codec
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
@@ -21,7 +20,7 @@ from quietframe.wire.protocol import Header, Reset, format_counts, format_timing
 
 
 def process_frame(
-    denoiser: Denoiser,
+    stream: Stream,
     spec: SessionSpec,
     index: int,
     body: bytes | bytearray,
@@ -30,32 +29,30 @@ def process_frame(
     state: dict[str, np.ndarray] | None,
     choice: Choice | None = None,
 ) -> ProcessedFrame:
-    """Decode, denoise, encode one frame. `context`: the frame as found for `denoiser`'s model
-    (FrameContext.for_model), its pixels too where the choice decoded them; `state` is None
-    when the history starts afresh; `choice` (model=auto) is said in a header. A model that
-    takes the frame's spp is given it; OIDN sees the rows in the renderer's order."""
+    """Decode, denoise, encode one frame. `stream`: the session's sequence on the model that
+    runs (runtime/stream.py: options, spp, the motion-evidence gate, the history, OIDN's
+    filters); `context`: the frame as found for that model (FrameContext.for_model), its pixels
+    too where the choice decoded them; `state` is None when the history starts afresh;
+    `choice` (model=auto) is said in a header."""
     if context.decoded is None:
         context = context.decode(body)
     frame, sources = context.decoded, context.sources
     assert frame is not None
     decoded = time.perf_counter()
-    options = options_for(denoiser.info, spec.model_options, context.samples(choice))
+    stated = context.stated.spp if context.stated is not None else None
+    step = stream.step(frame.buffers, state, stated, choice.spp if choice else None,
+                       context.renderer)
     # A temporal model reads its history only where the motion is evidence (motion_evidence):
     # a frame without vectors whose aux moved starts afresh, as after a cut.
-    gate = (gate_history(frame.buffers, state, spec.camera) if denoiser.info.state_specs
-            else None)
-    if gate is not None and gate.dropped:
-        assert gate.evidence is not None
-        reset = Reset.DETECTED_CUT if gate.evidence.verdict == "cut" else Reset.NO_MOTION
-    result = denoiser.denoise(frame.buffers, gate.state if gate else state, options,
-                              context.renderer)
-    new_state = keep_probe(result.state, gate.probe) if gate else result.state
+    verdict = step.history_verdict
+    if verdict is not None:
+        reset = Reset.DETECTED_CUT if verdict == "cut" else Reset.NO_MOTION
     denoised = time.perf_counter()
-    info = denoiser.info
+    info = stream.info
     model = f"{info.name} {info.version}"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     body_out, clamped = frames.encode_denoised(
-        result.color,
+        step.color,
         frame,
         sources["color"].channels,
         spec.precision,
@@ -71,7 +68,7 @@ def process_frame(
         "encode": 1e3 * (done - denoised),
         "total": decode_ms + 1e3 * (done - decoded),
     }
-    sanitized = {k: v for k, v in result.sanitized.items() if v}
+    sanitized = {k: v for k, v in step.sanitized.items() if v}
     if clamped:
         sanitized["denoised"] = sanitized.get("denoised", 0) + clamped
     headers = {
@@ -83,22 +80,22 @@ def process_frame(
     }
     if sanitized:
         headers[Header.SANITIZED_BUFFERS] = format_counts(sanitized)
-    if result.missing:
-        headers[Header.MISSING] = join_list(result.missing)
-    if gate is not None and gate.evidence is not None:
-        headers[Header.MOTION] = motion_header(gate)
+    if step.missing:
+        headers[Header.MISSING] = join_list(step.missing)
+    if step.gate is not None and step.gate.evidence is not None:
+        headers[Header.MOTION] = motion_header(step.gate)
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
     # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
     dtypes = frames.output_dtypes(frame, spec.precision)
-    recipe = state_codec.reply_recipe(result.color, new_state, dtypes, sources["color"].channels,
+    recipe = state_codec.reply_recipe(step.color, step.state, dtypes, sources["color"].channels,
                                       spec.precision, spec.compression, spec.denoised_layer, extra)
     return ProcessedFrame(
         reply=Reply(index, body_out, headers, len(body), request_digest(body), recipe=recipe),
-        state=new_state,
+        state=step.state,
         reset=reset,
         sources={b: list(s.channels) for b, s in sources.items()},
-        missing=list(result.missing),
+        missing=list(step.missing),
         sanitized=sanitized,
         timings_ms=timings,
         info=info,

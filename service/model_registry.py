@@ -11,7 +11,7 @@ from quietframe.client.session_fields import AUTO
 from quietframe.runtime import BUFFER_CHANNELS, Denoiser
 from quietframe.runtime.denoiser import check_options
 from quietframe.runtime.loaded_models import LoadedModels
-from quietframe.runtime.model_options import options_for
+from quietframe.runtime.stream import options_for
 from quietframe.service.errors import InvalidModelOptions, ModelUnavailable, UnknownModel
 from quietframe.service.model_profiles import ModelProfile, profile_of
 from quietframe.service.noise_estimate import load_calibration

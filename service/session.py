@@ -14,6 +14,7 @@ import numpy as np
 from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
+from quietframe.runtime.stream import Stream
 from quietframe.service.choice_policy import Choice
 from quietframe.service.errors import FrameConflict, FrameOutOfOrder
 from quietframe.service.schemas import ChoicePublic, ModelRef, SessionPublic, StageTimings
@@ -66,6 +67,21 @@ class Session:
     timing_sum: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     timing_last: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     lock: asyncio.Lock = field(default_factory=asyncio.Lock, repr=False)
+    # The sequence on the model in use (runtime/stream.py): built by the first frame, again
+    # when auto's choice changes the model; what it keeps between frames (OIDN's filters)
+    # counts in the history budget and is let go when the budget needs the room.
+    stream: Stream | None = field(default=None, repr=False)
+
+    @property
+    def kept_bytes(self) -> int:
+        """Bytes the session's stream keeps between frames beside the state (OIDN's filters)."""
+        return self.stream.kept_bytes if self.stream is not None else 0
+
+    def close_stream(self) -> None:
+        """Let go of the stream (no frame of this session may be running)."""
+        if self.stream is not None:
+            self.stream.close()
+            self.stream = None
 
     def memory_bytes(self) -> int:
         state = sum(a.nbytes for a in self.state.values()) if self.state else 0

@@ -12,7 +12,7 @@ from quietframe.client.session_fields import SessionFields
 
 class SessionSpec(SessionFields):
     # Run-time options (e.g. kernel_size) are checked at creation; each model that runs gets
-    # those it declares (runtime/model_options.py).
+    # those it declares (runtime/stream.options_for).
     model_config = ConfigDict(frozen=True)
 
     @classmethod

@@ -71,7 +71,10 @@ class SessionTable:
         )
 
     def reserved_bytes(self) -> int:
-        return sum(s.reserve_bytes for s in self.sessions.values() if s.resident)
+        """The history budget in use: resident sessions' state and reply reservations, and
+        what every session's stream keeps between frames (OIDN's filters)."""
+        return sum((s.reserve_bytes if s.resident else 0) + s.kept_bytes
+                   for s in self.sessions.values())
 
     def retry_after(self) -> str:
         """Seconds until the first idle session expires (a Retry-After header)."""
@@ -89,10 +92,31 @@ class SessionTable:
             self.remove(session, "expired")
         return expired
 
-    def make_room(self, need: int, keep: Session | None = None) -> None:
-        """Fit `need` more bytes in the history budget; durable sessions can be evicted to disk
-        (LRU first), in-memory ones cannot."""
+    def _release_kept(self, need: int, keep: Session | None) -> None:
+        """Let idle sessions' streams go of what they keep (LRU first) until `need` more bytes
+        fit: it costs their next frame a rebuild, nothing else."""
         budget = self._settings.history_budget_bytes
+        for other in list(self.sessions.values()):
+            if self.reserved_bytes() + need <= budget:
+                return
+            if other is not keep and other.kept_bytes and not other.lock.locked():
+                assert other.stream is not None
+                other.stream.release()
+
+    def fit_kept(self, session: Session) -> None:
+        """After `session`'s frame: what its stream now keeps must fit in the history budget
+        beside the others'; other idle streams let go first, then its own."""
+        if self.reserved_bytes() > self._settings.history_budget_bytes:
+            self._release_kept(0, session)
+        if self.reserved_bytes() > self._settings.history_budget_bytes and session.stream:
+            session.stream.release()
+
+    def make_room(self, need: int, keep: Session | None = None) -> None:
+        """Fit `need` more bytes in the history budget: idle streams let go of their OIDN
+        filters first, then durable sessions' state is evicted to disk (LRU first); in-memory
+        sessions' state cannot be."""
+        budget = self._settings.history_budget_bytes
+        self._release_kept(need, keep)
         for other in list(self.sessions.values()):
             if self.reserved_bytes() + need <= budget:
                 return
@@ -111,6 +135,7 @@ class SessionTable:
         """Forget the session now (its stored files are the registry's to delete)."""
         session.closed = True
         session.state, session.reply = None, None
+        session.close_stream()
         self.sessions.pop(session.id, None)
         self._metrics.sessions_closed.labels(reason).inc()
         self.update_gauges()

@@ -28,6 +28,7 @@ from concurrent.futures import Executor
 from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
+from quietframe.runtime.stream import Stream
 from quietframe.service import admission, frames
 from quietframe.service.errors import SessionNotFound, TooManySessions
 from quietframe.service.frame_context import frame_context
@@ -225,14 +226,15 @@ class SessionRegistry:
                 context = context.for_model(info, installed)
                 if info.name != session.info.name:  # another model's state means nothing here
                     history = None
-            denoiser = self.models.denoiser(info.name)
             frame = await self.pool.process_frame(
-                denoiser, spec, index, body, context, plan, history, choice
+                self._stream(session, info.name), spec, index, body, context, plan, history,
+                choice
             )
             self._reserve_reply(session, len(frame.reply.body), info)
             if self.durability is not None:
                 await self.durability.persist(session, frame)
             self._commit(session, frame)
+            self.table.fit_kept(session)
             if chose and choice is not None:
                 self.metrics.choices.labels(
                     choice.model, spec.quality or "balanced", noise_kind(choice)
@@ -255,6 +257,17 @@ class SessionRegistry:
             },
         )
         return FrameOutcome(frame.reply, replayed=False)
+
+    def _stream(self, session: Session, model: str) -> Stream:
+        """The session's sequence on `model`: kept from frame to frame, built anew when the
+        shot's model changes (the old one's filters let go)."""
+        stream, denoiser = session.stream, self.models.denoiser(model)
+        if stream is None or stream.denoiser is not denoiser:
+            session.close_stream()
+            spec = session.spec
+            stream = Stream(denoiser, camera=spec.camera, options=spec.model_options)
+            session.stream = stream
+        return stream
 
     def _reserve_reply(self, session: Session, reply_bytes: int, info: ModelInfo) -> None:
         """The reply is the whole input file with the denoised colour in it, larger than the

@@ -14,7 +14,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from quietframe.runtime import Denoiser
+from quietframe.runtime.stream import Stream
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
 from quietframe.service.frame_path import process_frame
@@ -51,13 +51,13 @@ class WorkerPool:
         """model=auto at a shot's first frame: decode, measure the noise, choose."""
         return await self._run(choose_for_shot, context, body, spec, models, keep)
 
-    async def process_frame(self, denoiser: Denoiser, spec: SessionSpec, index: int, body: Body,
+    async def process_frame(self, stream: Stream, spec: SessionSpec, index: int, body: Body,
                             context: FrameContext, reset: Reset,
                             state: dict[str, np.ndarray] | None, choice: Choice | None
                             ) -> ProcessedFrame:
         """Decode, denoise, encode (service/frame_path.py)."""
         return await self._run(
-            process_frame, denoiser, spec, index, body, context, reset, state, choice)
+            process_frame, stream, spec, index, body, context, reset, state, choice)
 
     # ---- the session store ------------------------------------------------------------------
     # `store.<method>` is looked up at each call, not bound once: a test may replace one.

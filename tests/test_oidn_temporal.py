@@ -25,6 +25,7 @@ from quietframe.runtime.oidn_prepass import (  # noqa: E402
     PrepassUnavailable,
     read_prepass,
 )
+from quietframe.runtime.stream import Stream  # noqa: E402
 
 HEIGHT, WIDTH, FRAMES = 40, 56, 3
 
@@ -156,9 +157,9 @@ def test_runtime_runs_oidn_first_with_a_device_per_thread_and_filters_per_frame(
     class Spy:
         settings = prepass.settings
 
-        def __call__(self, planes, renderer=None):
+        def __call__(self, planes, renderer=None, filters=None):
             seen.append(sorted(planes))
-            out = original(planes, renderer)
+            out = original(planes, renderer, filters=filters)
             seen.append(out)
             return out
 
@@ -185,6 +186,37 @@ def test_runtime_runs_oidn_first_with_a_device_per_thread_and_filters_per_frame(
     runtime.denoise(moving_frames(0), None)
     assert prepass.devices_created == 2 and prepass.filter_sets_built == FRAMES + 2
     prepass.close()
+
+
+@needs_pyoidn
+def test_a_stream_keeps_its_filters_between_frames_and_lets_them_go(exported):
+    """A sequence's frames share one device and one committed filter set (built once), with
+    the same output as filters built per frame; a frame of another size rebuilds them, and a
+    released stream keeps nothing until its next frame."""
+    _, path = exported
+    runtime = Denoiser(path, threads=1)
+    stream = Stream(runtime)
+    prepass = runtime.prepass
+    state, per_call = None, None
+    for index in range(FRAMES):
+        frame = moving_frames(index)
+        step = stream.step(frame, state)
+        if index == 0:
+            per_call = runtime.denoise(frame, None).color  # filters built for the call
+            np.testing.assert_array_equal(step.color, per_call)
+        state = step.state
+    assert prepass.filter_sets_built == 1 + 1  # the stream's, and the one per-call run
+    assert stream.kept_bytes == prepass.working_set_bytes(HEIGHT, WIDTH) > 0
+    small = {k: np.ascontiguousarray(v[:, : HEIGHT // 2, : WIDTH // 2]) for k, v in frame.items()}
+    stream.step(small, None)
+    assert prepass.filter_sets_built == 3
+    assert stream.kept_bytes == prepass.working_set_bytes(HEIGHT // 2, WIDTH // 2)
+    stream.release()
+    assert stream.kept_bytes == 0
+    stream.step(small, None)
+    assert prepass.filter_sets_built == 4
+    stream.close()
+    assert stream.kept_bytes == 0
 
 
 @needs_pyoidn
@@ -408,9 +440,9 @@ def test_color_from_runs_that_model_first_and_carries_its_state(accumulated_tier
     class Spy:
         settings = runtime.prepass.settings
 
-        def __call__(self, planes, renderer=None):
+        def __call__(self, planes, renderer=None, filters=None):
             seen.append(planes["color"].copy())
-            return original(planes, renderer)
+            return original(planes, renderer, filters=filters)
 
     runtime.prepass = Spy()
     def noisy(index: int) -> dict[str, np.ndarray]:  # noise of its own in every frame

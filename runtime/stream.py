@@ -1,0 +1,118 @@
+"""One camera sequence through one model: the frame's step, the one the service and the
+evaluation both run, so a reported figure is a figure of the shipped path.
+
+A `Stream` owns what lives as long as a shot on one model: the run-time options it is given and
+which spp wins (`samples_for`), the motion-evidence gate and its probe (motion_evidence.py: a
+history is read only where the motion is evidence), the history's per-pixel trust (inside the
+model's graphs) and the OIDN filters, kept between frames (oidn_prepass.OIDNFilters). The caller
+keeps the state between frames: the service stores it per session (on disk or in Redis, so a
+replica can take the session over), the evaluation in memory; `step` takes the previous state
+and returns the next. A stream's frames run one at a time (the service's session lock), on any
+thread.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from quietframe.runtime.card import SAMPLES_INPUT
+from quietframe.runtime.denoiser import Denoiser, ModelInfo
+from quietframe.runtime.motion_evidence import HistoryGate, gate_history, keep_probe
+
+
+def samples_for(options: Mapping[str, float | int], stated: float | None,
+                estimate: float | None = None) -> float | None:
+    """The one rule for a frame's spp as a model is given it: the session's `spp` option, else
+    the count the renderer's header states, else `auto`'s estimate of the shot's noise, else
+    None (the model's default). At least 1."""
+    for value in (options.get(SAMPLES_INPUT), stated, estimate):
+        if value is not None and math.isfinite(float(value)):
+            return max(1.0, float(value))
+    return None
+
+
+def options_for(info: ModelInfo, options: Mapping[str, float | int],
+                samples: float | None = None) -> dict[str, float | int]:
+    """The options `info`'s model takes: those of `options` it declares (model=auto switches
+    between models, and one without an option ignores it), and `samples` (samples_for) for a
+    model that takes the frame's spp (SAMPLES_INPUT) where `options` do not set it."""
+    names = {spec.name for spec in info.inputs}
+    chosen = {name: value for name, value in options.items() if name in names}
+    if SAMPLES_INPUT in names and SAMPLES_INPUT not in chosen and samples is not None:
+        chosen[SAMPLES_INPUT] = samples
+    return chosen
+
+
+@dataclass(frozen=True)
+class Step:
+    """One frame through a stream. `gate`: a temporal model's reading of the aux (None for a
+    model without history): `gate.dropped` says the history existed and was not used, and
+    `gate.evidence` why (a cut the aux show, or a move without motion vectors)."""
+
+    color: np.ndarray  # (3, H, W) float32, finite
+    state: dict[str, np.ndarray]  # to give the next step (the gate's probe with the model's)
+    sanitized: dict[str, int] = field(default_factory=dict)  # buffer -> values replaced
+    missing: tuple[str, ...] = ()  # optional buffers the frame lacked
+    gate: HistoryGate | None = None
+
+    @property
+    def history_verdict(self) -> str | None:
+        """`cut` or `moving` where the gate dropped an existing history, else None."""
+        if self.gate is None or not self.gate.dropped or self.gate.evidence is None:
+            return None
+        return self.gate.evidence.verdict
+
+
+class Stream:
+    """A camera sequence on `denoiser`'s model. `camera`: the session's (`auto`: judged frame
+    by frame; `locked`: zero motion trusted, motion_evidence.gate_history); `options`: the
+    session's run-time options (those the model declares are given); `renderer`: the frames'
+    (an OIDN stage gives OIDN the rows in its order)."""
+
+    def __init__(self, denoiser: Denoiser, camera: str = "auto",
+                 options: Mapping[str, float | int] | None = None,
+                 renderer: str | None = None) -> None:
+        self.denoiser, self.camera = denoiser, camera
+        self.options = dict(options or {})
+        self.renderer = renderer
+        prepass = denoiser.prepass
+        self.oidn = prepass.filters() if prepass is not None else None
+
+    @property
+    def info(self) -> ModelInfo:
+        return self.denoiser.info
+
+    def step(self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
+             stated_spp: float | None = None, estimated_spp: float | None = None,
+             renderer: str | None = None) -> Step:
+        """Denoise one frame of (C, H, W) float32 planes from the previous step's `state`
+        (None: a fresh history: first frame, a cut, a gap). `stated_spp`: the renderer's
+        header's count; `estimated_spp`: auto's estimate for the shot (samples_for);
+        `renderer`: this frame's, where it differs from the stream's."""
+        info = self.denoiser.info
+        options = options_for(info, self.options,
+                              samples_for(self.options, stated_spp, estimated_spp))
+        gate = gate_history(planes, state, self.camera) if info.state_specs else None
+        result = self.denoiser.denoise(planes, gate.state if gate else state, options,
+                                       renderer or self.renderer, oidn=self.oidn)
+        new_state = keep_probe(result.state, gate.probe) if gate else result.state
+        return Step(result.color, new_state, result.sanitized, tuple(result.missing), gate)
+
+    @property
+    def kept_bytes(self) -> int:
+        """What the stream holds between frames beside the state: its OIDN filters."""
+        return self.oidn.kept_bytes if self.oidn is not None else 0
+
+    def release(self) -> None:
+        """Let go of what is kept between frames (rebuilt on the next frame): for a memory
+        budget that needs the room. No frame of this stream may be running."""
+        if self.oidn is not None:
+            self.oidn.release()
+
+    def close(self) -> None:
+        if self.oidn is not None:
+            self.oidn.close()
