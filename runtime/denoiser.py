@@ -258,8 +258,10 @@ class Denoiser:
 
     Memory: each graph runs in overlapping tiles (tiling.py) whose working set fits in
     `max_memory_mb` (default QUIETFRAME_MAX_MEMORY_MB or tiling.DEFAULT_MAX_MEMORY_MB). With an
-    OIDN stage, OIDN gets half as its maxMemoryMB (its scratch; its images are whole-frame,
-    like the frame's buffers) and the graphs' tiles the other half. `working_set_bytes` is what
+    OIDN stage, OIDN's scratch is capped at `oidn_memory_mb` (its maxMemoryMB; its images are
+    whole-frame, like the frame's buffers; past the cap OIDN tiles) and the graphs' tiles get
+    half of `max_memory_mb`; without `oidn_memory_mb` OIDN gets the other half. The service
+    sizes OIDN's cap from its memory budget (service/settings.py). `working_set_bytes` is what
     the service's admission reserves for the model. `tile_pixels` overrides the tile size
     (padded pixels); None runs every frame whole.
 
@@ -273,6 +275,7 @@ class Denoiser:
         tile_pixels: int | None | str = BY_MEMORY,
         options: Mapping[str, float | int] | None = None,
         max_memory_mb: float | None = None,
+        oidn_memory_mb: float | None = None,
     ) -> None:
         path = Path(model_path)
         if not path.is_file():
@@ -286,7 +289,7 @@ class Denoiser:
         self._graph_memory_mb = self.max_memory_mb / 2 if prepass else self.max_memory_mb
         try:
             self.prepass = (OIDNPrepass(prepass, num_threads=threads,
-                                        max_memory_mb=self.max_memory_mb / 2)
+                                        max_memory_mb=oidn_memory_mb or self.max_memory_mb / 2)
                             if prepass else None)
         except PrepassUnavailable as exc:
             exc.model = self.card.name  # for the service's log line and error

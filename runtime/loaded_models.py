@@ -33,8 +33,10 @@ class LoadedModels:
     runtime_default: str  # the default model where no setting names one
 
     @classmethod
-    def load(cls, folder: Path | None = None, threads: int = 1) -> LoadedModels:
-        """Every installed model and those in `folder`; LookupError where there are none."""
+    def load(cls, folder: Path | None = None, threads: int = 1,
+             oidn_memory_mb: float | None = None) -> LoadedModels:
+        """Every installed model and those in `folder`; LookupError where there are none.
+        `oidn_memory_mb`: OIDN stages' scratch cap (Denoiser)."""
         paths = list(installed_models())
         if folder is not None:
             paths += sorted(Path(folder).glob("*.onnx"))
@@ -45,7 +47,7 @@ class LoadedModels:
         unavailable: dict[str, str] = {}
         for path in paths:
             try:
-                denoiser = Denoiser(path, threads=threads)
+                denoiser = Denoiser(path, threads=threads, oidn_memory_mb=oidn_memory_mb)
             except PrepassUnavailable as exc:
                 log.warning("model %s at %s not offered: %s", exc.model or path.stem, path, exc)
                 unavailable.update({path.stem: str(exc), (exc.model or path.stem): str(exc)})

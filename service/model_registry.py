@@ -21,7 +21,8 @@ from quietframe.service.settings import Settings
 
 class ModelRegistry:
     def __init__(self, settings: Settings) -> None:
-        self.loaded = LoadedModels.load(settings.models_dir, settings.model_threads)
+        self.loaded = LoadedModels.load(settings.models_dir, settings.model_threads,
+                                        settings.oidn_memory_mb)
         self._denoisers = self.loaded.denoisers
         wanted = settings.default_model
         self.default = self.resolve(wanted) if wanted else self.loaded.runtime_default

@@ -117,6 +117,14 @@ class Settings(BaseSettings):
         return int(self.memory_budget_mb * 2**20)
 
     @property
+    def oidn_memory_mb(self) -> float:
+        """OIDN's scratch cap for one frame (its maxMemoryMB; past it OIDN tiles, at ~25% more
+        CPU at 1080p): an eighth of a frame's share of the memory budget, at least 768 MiB.
+        At the defaults (12 GiB, one frame at a time) 1536 MiB: a 1080p frame at quality high
+        (~1.2 GiB, ~600 B a pixel: runtime/oidn_prepass.py) runs whole."""
+        return max(768.0, self.memory_budget_mb / self.worker_count / 8)
+
+    @property
     def min_body_rate_bytes_s(self) -> float:
         return self.min_body_rate_kib_s * 1024
 
