@@ -5,14 +5,16 @@
 
 Each size runs in its own process (peak RSS = that process's VmHWM): synthetic render-like
 buffers (float32, built without float64 temporaries), `frames` frames with the history carried,
-through `Denoiser.denoise` with its tiles sized by the memory bound (runtime/tiling.py;
-`--tile-pixels N` fixes them, 0 runs untiled). Prints a Markdown table:
-ms per frame (median), CPU seconds per frame (every thread's: what the frame costs when other
-jobs share the cores) with the load average, peak RSS, the inputs' and state's share of it,
-and the tile count. `--model` takes a comma list, each run at every size in the same run;
-`blender-oidn` is per-frame OIDN as Blender's denoise runs it (RT filter, quality high, aux
-prefiltered at high quality, `cleanAux`, OIDN's own memory default, rows bottom-up) on the same
-buffers: the cost a farm compares with. Frames are given as Cycles' (OIDN sees them bottom-up).
+through the runtime's per-sequence step (runtime/stream.py: OIDN's filters kept, its scratch
+capped as the service caps it at its default memory budget) with the graphs' tiles sized by the
+memory bound (runtime/tiling.py; `--tile-pixels N` fixes them, 0 runs untiled). Prints a
+Markdown table: ms per frame (median), CPU seconds per frame (every thread's: what the frame
+costs when other jobs share the cores) with the load average, peak RSS, the inputs' and state's
+share of it, and the tile count. `--model` takes a comma list, each run at every size in the
+same run; `blender-oidn` is per-frame OIDN as Blender's denoise runs it (RT filter, quality
+high, aux prefiltered at high quality, `cleanAux`, OIDN's own memory default, rows bottom-up)
+on the same buffers: the cost a farm compares with. Frames are given as Cycles' (OIDN sees
+them bottom-up).
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ from quietframe.bench.loopback import rss_mib
 from quietframe.runtime import Denoiser, default_model_path, find_model
 from quietframe.runtime.denoiser import BY_MEMORY as RUNTIME_BY_MEMORY
 from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings
+from quietframe.runtime.stream import Stream
 from quietframe.runtime.tiling import overlap_for, plan_tiles
+from quietframe.service.settings import Settings
 
 BY_MEMORY = -1  # --tile-pixels: tiles sized by the runtime's max_memory_mb
 BLENDER_OIDN = "blender-oidn"  # --model: OIDN as Blender's denoise runs it (module docstring)
@@ -69,7 +73,9 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
         path = find_model(model) if model else default_model_path()
         tiles_by = RUNTIME_BY_MEMORY if tile_pixels == BY_MEMORY else tile_pixels
         denoiser = Denoiser(path, threads=threads, tile_pixels=tiles_by,
-                            max_memory_mb=max_memory_mb)
+                            max_memory_mb=max_memory_mb,
+                            oidn_memory_mb=Settings().oidn_memory_mb)  # as the service sizes it
+        stream = Stream(denoiser)  # as a session runs it: OIDN's filters kept between frames
         tile_pixels = denoiser.tile_pixels
     base = rss_mib(os.getpid(), "VmHWM")
     times, cpu, state = [], [], {}
@@ -77,8 +83,8 @@ def one(width: int, height: int, frames: int, threads: int, tile_pixels: int | N
         planes = buffers(width, height, i)
         start, start_cpu = time.perf_counter(), time.process_time()
         if isinstance(denoiser, Denoiser):
-            result = denoiser.denoise(planes, state or None, renderer="cycles")
-            color, state = result.color, result.state
+            step = stream.step(planes, state or None, renderer="cycles")
+            color, state = step.color, step.state
         else:
             color = denoiser(planes, "cycles")
         times.append(1e3 * (time.perf_counter() - start))
