@@ -18,13 +18,29 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "quietframe"
 MAX_LINES = 600
 
-# Room -> the rooms it never imports: what two rooms share moves down to the lower one.
+ROOMS = {p.parent.name for p in ROOT.glob("*/__init__.py")}
+# Room -> the rooms it never imports: what two rooms share moves down to the lower one. These
+# are docs/architecture.md's "may not" column: model/ is not imported by serving code (runtime,
+# service, client, wire), experiments/ by no product room.
 FORBIDDEN = {
-    "client": {"service"},  # a client install has no server
-    "scenes": {"service"},
-    "runtime": {"service", "client"},  # the client and the service build on the runtime
+    # a client install has no server, runtime or PyTorch (its one runtime import, for the
+    # `serve` command's model listing, is in a function: OPTIONAL)
+    "client": {"service", "model", "experiments"},
+    "scenes": {"service", "experiments"},
+    "runtime": {"service", "client", "model", "experiments"},  # both build on the runtime
+    "service": {"model", "experiments"},
+    **{room: {"experiments"} for room in ("model", "export", "bench", "models")},
     # The wire protocol and the EXR header's byte layout: a leaf every room may import
-    "wire": {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"wire"},
+    "wire": ROOMS - {"wire"},
+}
+# Room -> third-party packages it never imports at module level (docs/architecture.md: the
+# runtime and the service run without torch; the client installs without a compiler,
+# onnxruntime or torch). A function-level import is an optional dependency (OPTIONAL's rule).
+FORBIDDEN_PACKAGES = {
+    "runtime": {"torch"},
+    "service": {"torch"},
+    "client": {"torch", "onnxruntime", "onnx"},
+    "wire": {"torch", "onnxruntime", "onnx", "numpy"},
 }
 # Function-level quietframe imports that are there for an optional dependency of the imported
 # module, which the importer's install may lack: (importer, imported) -> why.
@@ -98,6 +114,21 @@ def _absolute(node: ast.ImportFrom, module: str, is_package: bool) -> str:
     base = module.split(".")[: None if is_package else -1]
     base = base[: len(base) - (node.level - 1)]
     return ".".join(base + ([node.module] if node.module else []))
+
+
+def packages_imported(path: Path) -> Iterator[tuple[str, int]]:
+    """(third-party top-level package, line) of every module-level import in `path`."""
+    def walk(node: ast.AST) -> Iterator[tuple[str, int]]:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                continue
+            if isinstance(child, ast.Import):
+                yield from ((alias.name.split(".")[0], child.lineno) for alias in child.names)
+            elif isinstance(child, ast.ImportFrom) and child.level == 0 and child.module:
+                yield child.module.split(".")[0], child.lineno
+            yield from walk(child)
+
+    yield from walk(ast.parse(path.read_text(), str(path)))
 
 
 def _imports_of(module: str, path: Path) -> Iterator[Import]:
@@ -182,6 +213,42 @@ def test_no_room_imports_a_room_above_it():
     wrong = sorted(f"{i.importer} -> {i.imported} (line {i.line})" for i in imports()
                    if room_of(i.imported) in FORBIDDEN.get(room_of(i.importer), ()))
     assert not wrong, "imports of a room above: " + "; ".join(wrong)
+
+
+def test_forbidden_packages_are_not_imported_at_module_level():
+    wrong = sorted(f"{module} imports {package} (line {line})"
+                   for module, path in modules().items()
+                   for package, line in packages_imported(path)
+                   if package in FORBIDDEN_PACKAGES.get(room_of(module), ()))
+    assert not wrong, "; ".join(wrong)
+
+
+def test_the_client_reaches_no_onnxruntime_or_torch_through_the_rooms_it_imports():
+    """What a client module imports at module level, and so on down, never imports torch,
+    onnxruntime or onnx at module level: `pip install quietframe[client]` has none of them."""
+    top = {}
+    for i in imports():
+        if not i.in_function:
+            top.setdefault(i.importer, set()).add(i.imported)
+    seen, todo = set(), [m for m in modules() if room_of(m) == "client"]
+    while todo:
+        module = todo.pop()
+        if module not in seen:
+            seen.add(module)
+            todo.extend(top.get(module, ()))
+    heavy = {"torch", "onnxruntime", "onnx"}
+    wrong = sorted(f"{module} imports {package}" for module in seen
+                   for package, _ in packages_imported(modules()[module]) if package in heavy)
+    assert not wrong, "; ".join(wrong)
+
+
+def test_the_rules_see_what_they_forbid():
+    """A check of the check: the package reader finds a module-level torch import in model/,
+    and a function-level import is not module-level."""
+    assert "torch" in dict(packages_imported(ROOT / "model" / "nbg.py"))
+    speedup = ROOT / "bench" / "oidn_speedup.py"  # pyoidn, imported in plain_oidn() only
+    assert "import pyoidn" in speedup.read_text()
+    assert "pyoidn" not in dict(packages_imported(speedup))
 
 
 def test_quietframe_imports_inside_functions_only_for_optional_dependencies():
