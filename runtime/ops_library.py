@@ -6,9 +6,10 @@ Part of the runtime because serving loads it; the exporter only needs the domain
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
+
+from quietframe.runtime.settings import OPS_LIBRARY, runtime_settings
 
 OPS_DOMAIN = "ai.quietframe"
 _LIBRARY_NAMES = {"linux": "libquietframe_ops.so", "darwin": "libquietframe_ops.dylib"}
@@ -20,12 +21,12 @@ def ops_library_path() -> Path:
 
     QUIETFRAME_OPS_LIBRARY overrides the installed copy (e.g. a debug build of export/ops).
     """
-    override = os.environ.get("QUIETFRAME_OPS_LIBRARY")
+    override = runtime_settings().ops_library
     if override:
-        path = Path(override)
-        if not path.is_file():
-            raise FileNotFoundError(f"QUIETFRAME_OPS_LIBRARY={override} is not a file")
-        return path
+        if not override.is_file():
+            raise FileNotFoundError(f"{OPS_LIBRARY}={override} is not a file: expected the "
+                                    "path of a built custom-op library")
+        return override
     name = _LIBRARY_NAMES.get(sys.platform, "quietframe_ops.dll")
     # Installed wheels put the library next to this package's files; editable installs keep
     # package sources and built files in different folders, so look at every package path.

@@ -31,7 +31,6 @@ tests/test_tiling.py compares tiled and untiled runs of every shipped model.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -40,18 +39,19 @@ import numpy as np
 from quietframe.runtime.card import StateSpec
 from quietframe.runtime.receptive import Tiling
 
-# The working set one tile may hold, in MiB (OIDN's maxMemoryMB); QUIETFRAME_MAX_MEMORY_MB
-# overrides. At 1536 MiB 1080p still runs whole through NBG's 2-layer models (tiles cost their
-# overlap) and a 4K frame through affinity-h16-k5gc adds 2.5 GiB of peak RSS (the frame's own
-# buffers, state and output come on top of the tile: ~0.15 KiB/px for it).
-DEFAULT_MAX_MEMORY_MB = 1536
+# Re-exported: the Denoiser's docs and tests know the default as tiling.DEFAULT_MAX_MEMORY_MB.
+from quietframe.runtime.settings import DEFAULT_MAX_MEMORY_MB as DEFAULT_MAX_MEMORY_MB
+from quietframe.runtime.settings import runtime_settings
+
 # A graph without tiling in its card runs whole: its working set is budgeted like the largest
 # tiled ones per pixel (the affinity model, ~1 KiB/px untiled; docs/reliability.md).
 UNTILED_BYTES_PER_PIXEL = 1024
 
 
 def max_memory_mb_default() -> float:
-    return float(os.environ.get("QUIETFRAME_MAX_MEMORY_MB", DEFAULT_MAX_MEMORY_MB))
+    """The working set one tile may hold, in MiB: QUIETFRAME_MAX_MEMORY_MB, else
+    DEFAULT_MAX_MEMORY_MB (runtime/settings.py, where the default is argued)."""
+    return runtime_settings().max_memory_mb
 
 
 def tile_bytes_per_pixel(tiling: Tiling, state: Sequence[StateSpec]) -> int:

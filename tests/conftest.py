@@ -147,6 +147,27 @@ def shot(n: int, layout="plain-normal", **kw) -> list[bytes]:
     return frames
 
 
+# ---- runtime settings -----------------------------------------------------------------------
+
+
+@pytest.fixture
+def runtime_env(monkeypatch):
+    """set(name, value) sets a variable the runtime reads (None: unsets it) and has the runtime's
+    settings read again: runtime/settings.py reads them once per process. After the test they
+    are read again from the restored environment."""
+    from quietframe.runtime.settings import runtime_settings
+
+    def set_variable(name: str, value: str | None) -> None:
+        if value is None:
+            monkeypatch.delenv(name, raising=False)
+        else:
+            monkeypatch.setenv(name, value)
+        runtime_settings.cache_clear()
+
+    yield set_variable
+    runtime_settings.cache_clear()
+
+
 # ---- service fixtures -----------------------------------------------------------------------
 
 

@@ -86,11 +86,11 @@ def test_client_install_denoises_against_a_server(client_venv, live_server, tmp_
         assert channels
 
 
-def test_missing_ops_library_names_the_fix(monkeypatch, tmp_path):
+def test_missing_ops_library_names_the_fix(monkeypatch, runtime_env, tmp_path):
     from quietframe import runtime
     from quietframe.runtime.ops_library import ops_library_path
 
-    monkeypatch.delenv("QUIETFRAME_OPS_LIBRARY", raising=False)
+    runtime_env("QUIETFRAME_OPS_LIBRARY", None)
     monkeypatch.setattr(runtime, "__path__", [str(tmp_path)])
     with pytest.raises(FileNotFoundError, match=r"QUIETFRAME_BUILD_OPS=1 pip install"):
         ops_library_path()

@@ -93,10 +93,11 @@ def settings_in(env: dict[str, str], monkeypatch):
 def bound_mib(env: dict[str, str], monkeypatch) -> float:
     """base + history budget + memory budget + overhead: the slack, and the arena an idle model
     keeps of its largest tile (a tile holds at most QUIETFRAME_MAX_MEMORY_MB)."""
-    from quietframe.runtime.tiling import max_memory_mb_default
+    from quietframe.runtime.settings import RuntimeSettings
 
     settings = settings_in(env, monkeypatch)
-    arena = max_memory_mb_default()  # reads QUIETFRAME_MAX_MEMORY_MB, as set just above
+    # the container's QUIETFRAME_MAX_MEMORY_MB, set just above (read afresh: not the cached one)
+    arena = RuntimeSettings.from_environ().max_memory_mb
     return BASE_MIB + settings.history_budget_mb + settings.memory_budget_mb + SLACK_MIB + arena
 
 

@@ -191,8 +191,8 @@ def test_not_a_library_fails_loudly(tmp_path):
         ort.SessionOptions().register_custom_ops_library(str(fake))
 
 
-def test_override_pointing_nowhere_raises(monkeypatch, tmp_path):
-    monkeypatch.setenv("QUIETFRAME_OPS_LIBRARY", str(tmp_path / "missing.so"))
+def test_override_pointing_nowhere_raises(runtime_env, tmp_path):
+    runtime_env("QUIETFRAME_OPS_LIBRARY", str(tmp_path / "missing.so"))
     with pytest.raises(FileNotFoundError, match="QUIETFRAME_OPS_LIBRARY"):
         ops_library_path()
 
