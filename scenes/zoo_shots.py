@@ -21,6 +21,9 @@ larger (320x180): thin geometry in front of a distant background under a camera 
 (parallax), rotating wireframe objects, a defocused foreground crossing the frame, a wide range
 of screen motion in one frame, caustic fireflies, and a locked-off shot of that content for
 the still/moving verdict at low spp. Its sets are in scenes/zoo_sets2.py.
+
+Round 3 (`zoo3`) holds motion-blur twins: a shot rendered with motion blur (Cycles then writes an
+all-zero `Vector`) and the same shot without, whose vectors score motion estimated from the aux.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 ZOO_VERSION = "zoo1"  # round 1; bump a round when a shot's content changes (new folder)
-ZOO_ROUNDS = ("zoo1", "zoo2")
+ZOO_ROUNDS = ("zoo1", "zoo2", "zoo3")
 ZOO_SPLITS = ("validation", "test")
 ROUND1_SPP = (1, 2, 4, 8, 16, 64)
 ROUND2_SPP = (1, 4, 16, 64)
@@ -74,6 +77,19 @@ def _round2(name: str, split: str, set_: str, camera: str, tags: tuple[str, ...]
     kw.setdefault("size", (320, 180))
     return Shot(name, split, set_, camera, tags, seed, frames=24, zoo="zoo2",
                 spp_levels=ROUND2_SPP, reference_spp=256, **kw)
+
+
+def _blur_twins(name: str, split: str, set_: str, camera: str, tags: tuple[str, ...],
+                seed: int, **kw) -> tuple[Shot, Shot]:
+    """A round-3 pair: a shot with motion blur (Cycles then writes no vectors) and its twin
+    without, the same scene and camera (the same seed), whose vectors are the ground truth for
+    motion estimated from the aux. 12 frames at 256x144, inputs at 1/4/16 spp, references of
+    256 spp: ~0.2 CPU-hours a shot."""
+    kw = {"size": (256, 144), "frames": 12, "zoo": "zoo3", "spp_levels": (1, 4, 16),
+          "reference_spp": 256, **kw}
+    return (Shot(f"{name}-blur", split, set_, camera, (*tags, "motion blur"), seed,
+                 motion_blur=True, **kw),
+            Shot(name, split, set_, camera, (*tags, "motion-blur twin"), seed, **kw))
 
 
 SHOTS: tuple[Shot, ...] = (
@@ -144,6 +160,9 @@ SHOTS: tuple[Shot, ...] = (
     _round2("yard-locked", "test", "yard", "locked",
             ("locked-off", "thin geometry", "bare branches", "daylight exterior"),
             seed=8_300_004, variant={"sun_elevation": 8.0}),
+    # --- round 3, validation: motion estimated from the aux ------------------------------------
+    *_blur_twins("study-dolly", "validation", "study", "dolly", ("slow dolly", "printed text",
+                 "fabric"), seed=8_400_001, speed=0.06),
 )
 
 
