@@ -14,7 +14,6 @@ import os
 import sys
 import time
 from importlib.metadata import PackageNotFoundError, entry_points, version
-from pathlib import Path
 
 from quietframe.client import outcome
 from quietframe.client.api import Client, QuietframeError, RetryPolicy
@@ -37,6 +36,7 @@ from quietframe.client.preflight import (
 from quietframe.client.report import Reporter
 from quietframe.client.sequence import job_settings, refuse_conflicts, run_sequence
 from quietframe.client.session_fields import AUTO
+from quietframe.client.settings import client_settings
 
 COMMANDS_GROUP = "quietframe.commands"
 RENDERERS = ("cycles", "mitsuba")  # the renderers the model cards hold tables for
@@ -241,7 +241,7 @@ def _client(args, server, reporter):
     def on_retry(r) -> None:
         reporter.warn_retry(f"server {server}: {r.describe()}")
 
-    token = args.token or os.environ.get("QUIETFRAME_TOKEN")
+    token = args.token or client_settings().token
     return Client(server, token=token, timeout_s=args.timeout,
                   retry=RetryPolicy(retries=args.retries), on_retry=on_retry)
 
@@ -376,7 +376,7 @@ class _ShotWatcher:
 
 def _models(args: argparse.Namespace) -> int:
     if args.server:
-        token = args.token or os.environ.get("QUIETFRAME_TOKEN")
+        token = args.token or client_settings().token
         try:
             server = base_url(args.server)
             with Client(server, token=token, retry=_quick_retry()) as client:
@@ -412,9 +412,9 @@ def _local_listing() -> dict:
     # onnxruntime and the ops library: the serve extra, which a client install lacks
     from quietframe.runtime.loaded_models import LoadedModels
 
-    folder = os.environ.get("QUIETFRAME_MODELS_DIR")
-    models = LoadedModels.load(Path(folder) if folder else None, threads=1)
-    wanted = os.environ.get("QUIETFRAME_DEFAULT_MODEL")
+    settings = client_settings()
+    models = LoadedModels.load(settings.models_dir, threads=1)
+    wanted = settings.default_model
     return models.listing(models.find(wanted) if wanted else None)
 
 
@@ -440,7 +440,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     models = sub.add_parser("models", help="list models (installed here, or on --server)",
                             allow_abbrev=False)
-    models.add_argument("--server", default=os.environ.get("QUIETFRAME_SERVER"))
+    models.add_argument("--server", default=client_settings().server)
     models.add_argument("--token")
     models.add_argument(
         "--renderer",

@@ -6,10 +6,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 from pathlib import Path
 
 from quietframe.client.session_fields import AUTO, SessionFields
+from quietframe.client.settings import client_settings
 
 # Session fields a run sets itself: the frames' size, one session per view layer, and the
 # settings it passes apart (sequence.job_settings, run_sequence)
@@ -142,7 +142,7 @@ def add_denoise_arguments(denoise: argparse.ArgumentParser) -> None:
     )
     denoise.add_argument(
         "--server",
-        default=os.environ.get("QUIETFRAME_SERVER"),
+        default=client_settings().server,
         help="server URL (env QUIETFRAME_SERVER)",
     )
     denoise.add_argument("--model", default="auto", help="installed model name, or auto")
