@@ -2,7 +2,7 @@
 #   build   – compiles the onnxruntime custom-op library and the wheel (C++ toolchain, CMake)
 #   runtime – slim Python with onnxruntime and the wheel (models baked in); no torch, no compiler
 # Build: docker build -t quietframe .        Run: docker run -p 8000:8000 quietframe
-# Configure with QUIETFRAME_* environment variables (docs/service.md), e.g.
+# Configure with QUIETFRAME_* environment variables (docs/configuration.md), e.g.
 #   docker run -p 8000:8000 -e QUIETFRAME_AUTH_TOKEN=… -e QUIETFRAME_STATE_DIR=/state -v qf:/state quietframe
 # tests/test_docker.py runs this file's pip commands, CMD and HEALTHCHECK in a fresh virtualenv.
 
