@@ -139,9 +139,9 @@ def tiny_attribute_header(size: int, width: int = 64, height: int = 48) -> bytes
 
 
 def test_health_answers_while_a_huge_header_is_parsed(server):
-    """A frame whose header is 16 MiB of tiny attributes over ~240 parts (QUIETFRAME_MAX_HEADER_
-    BYTES, seconds of parsing): /healthz answers within 1 s all along, and the frame gets its
-    422 (a 64x48 frame to a 32x32 session) once the header is read."""
+    """A frame whose header is 16 MiB of tiny attributes over ~240 parts
+    (QUIETFRAME_MAX_HEADER_BYTES, seconds of parsing): /healthz answers within 1 s all along,
+    and the frame gets its 422 (a 64x48 frame to a 32x32 session) once the header is read."""
     sid = session(server, 32, 32)
     data = tiny_attribute_header(16 << 20) + bytes(64 << 10)  # and the start of the pixels
     with health_probes(server.url) as latencies, server.connect() as s:
