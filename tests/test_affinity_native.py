@@ -333,7 +333,7 @@ def training_run(data, kernel_size: int, steps: int = 4) -> tuple[list[float], t
     return losses, first_grad
 
 
-@pytest.mark.parametrize("kernel_size", [5, 13])
+@pytest.mark.parametrize("kernel_size", [5, pytest.param(13, marks=pytest.mark.slow)])  # 13: ~100 s
 def test_training_steps_match_the_reference(data, monkeypatch, kernel_size):
     """The first step's loss and parameter gradient equal the reference's to float rounding;
     the next steps stay close (Adam amplifies rounding differences step by step, so the later

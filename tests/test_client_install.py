@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 from conftest import read_exr, shot
 
+pytestmark = pytest.mark.slow  # builds a virtualenv and installs the client from source
+
 ROOT = Path(__file__).resolve().parents[1]
 TOOLS = ("cc", "c++", "gcc", "g++", "cmake", "ninja")
 
