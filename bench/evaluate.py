@@ -67,10 +67,13 @@ def give_header_spp(method, renderer: str, spp: float) -> None:
 
 def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
                    single_frame: bool, renderer: str | None = None,
-                   ) -> dict[str, Callable[[], object]]:
+                   rendered_only: bool = False) -> dict[str, Callable[[], object]]:
     """Extra methods of one model: `<name>@k<size>` per requested kernel size the model accepts
-    other than its default (models without a kernel_size input get none), and `<name>/frame`
-    (history cleared every frame) when `single_frame` and the model keeps state."""
+    other than its default (models without a kernel_size input get none), and for a model
+    that keeps state `<name>/frame` (history cleared every frame) when `single_frame` and
+    `<name>/rendered-only` (no motion estimated from the aux: a moving frame without vectors
+    starts the history afresh, the session field `motion: rendered-only`) when
+    `rendered_only`."""
     info = Denoiser(path, threads=1).info
     spec = next((i for i in info.inputs if i.name == "kernel_size"), None)
     methods: dict[str, Callable[[], object]] = {}
@@ -82,6 +85,9 @@ def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
     if single_frame and info.state_specs:
         methods[f"{path.stem}/frame"] = lambda: RuntimeMethod(path, threads, single_frame=True,
                                                               renderer=renderer)
+    if rendered_only and info.state_specs:
+        methods[f"{path.stem}/rendered-only"] = lambda: RuntimeMethod(
+            path, threads, renderer=renderer, motion="rendered-only")
     return methods
 
 
@@ -111,11 +117,12 @@ class BlenderDenoise:
 
 def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int, ...] = (),
                   single_frame: tuple[str, ...] = (), renderer: str = "mitsuba",
-                  ) -> dict[str, Callable[[], object]]:
+                  rendered_only: tuple[str, ...] = ()) -> dict[str, Callable[[], object]]:
     """Method name -> factory (each sequence gets fresh state through reset()). `extra`: more
-    .onnx files (e.g. fresh training runs), named by file stem. `kernel_sizes` and
-    `single_frame` (model names) add model_variants. Cycles data adds Blender's denoise. Every
-    OIDN call sees the rows in `renderer`'s order, as the service's does for its frames."""
+    .onnx files (e.g. fresh training runs), named by file stem. `kernel_sizes`,
+    `single_frame` and `rendered_only` (model names) add model_variants. Cycles data adds
+    Blender's denoise. Every OIDN call sees the rows in `renderer`'s order, as the service's
+    does for its frames."""
     models = {p.stem: p for p in (*installed_models(), *extra)}
     methods: dict[str, Callable[[], object]] = {"noisy": Noisy}
     if renderer == "cycles":
@@ -144,9 +151,9 @@ def build_methods(threads: int, extra: list[Path] = (), kernel_sizes: tuple[int,
     for name, path in models.items():
         if name != "accumulation":
             methods[name] = lambda p=path: RuntimeMethod(p, threads, renderer=renderer)
-        if kernel_sizes or name in single_frame:
+        if kernel_sizes or name in single_frame or name in rendered_only:
             methods |= model_variants(path, threads, kernel_sizes, name in single_frame,
-                                      renderer)
+                                      renderer, name in rendered_only)
     return methods
 
 

@@ -52,18 +52,20 @@ class RuntimeMethod:
     model would see without them: the absence table). `header_spp`: the spp the frame header
     states (set by the evaluation where the renderer writes one). `renderer`: the frames'
     renderer, as the service takes it from the header (an OIDN stage's row order follows it).
-    `camera`: the session's (`auto` or `locked`)."""
+    `camera`, `motion`: the session's (`auto` or `locked`; `estimated` or `rendered-only`)."""
 
     def __init__(self, path: Path | Denoiser, threads: int = 2, options: dict | None = None,
                  single_frame: bool = False, zeros_for_required: bool = False,
-                 renderer: str | None = None, camera: str = "auto") -> None:
+                 renderer: str | None = None, camera: str = "auto",
+                 motion: str = "estimated") -> None:
         self.denoiser = path if isinstance(path, Denoiser) else Denoiser(
             path, threads=threads, options=options)
-        self.stream = Stream(self.denoiser, camera=camera, renderer=renderer)
+        self.stream = Stream(self.denoiser, camera=camera, renderer=renderer, motion=motion)
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
         self.state: dict | None = None
         self.header_spp: float | None = None
         self.dropped = 0  # frames whose history was not used: moved without motion vectors
+        self.estimated = 0  # frames that followed motion estimated from the aux
 
     def reset(self) -> None:
         self.state = None
@@ -78,6 +80,7 @@ class RuntimeMethod:
                                    if name not in planes}}
         step = self.stream.step(planes, self.state, self.header_spp)
         self.dropped += step.gate is not None and step.gate.dropped
+        self.estimated += step.estimated is not None
         self.state = step.state
         return step.color
 

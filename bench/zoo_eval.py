@@ -86,6 +86,7 @@ def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
                 current = getattr(method, "current", method)
                 if hasattr(current, "dropped"):
                     row["history_dropped"] = current.dropped
+                    row["motion_estimated"] = current.estimated
                 rows.append(row)
                 log(json.dumps(row))
     return rows
@@ -192,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"no finished zoo {args.split} shots under {args.data} "
                          "(render them: scenes/render_zoo.sh)")
     wanted = args.methods.split(",")
-    everything = build_methods(args.threads, single_frame=HISTORY_TIERS, renderer="cycles")
+    everything = build_methods(args.threads, single_frame=HISTORY_TIERS, renderer="cycles",
+                               rendered_only=HISTORY_TIERS)
     methods = {m: everything[m] for m in wanted if m in everything}
     rows = evaluate(folders, spp_levels, methods, args.flag_cuts)
     meta = {"split": args.split, "zoo": args.zoo, "threads": args.threads,

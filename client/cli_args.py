@@ -194,6 +194,14 @@ def add_denoise_arguments(denoise: argparse.ArgumentParser) -> None:
         "like motion); a cut the aux show still resets it",
     )
     denoise.add_argument(
+        "--motion",
+        choices=("estimated", "rendered-only"),
+        default=None,  # unset: the server's default (estimated)
+        help="frames of a moving shot without motion vectors (motion blur on): follow motion "
+        "estimated from the aux, trusted per pixel (estimated, the default), or start the "
+        "history afresh on each (rendered-only)",
+    )
+    denoise.add_argument(
         "--denoised-layer",
         metavar="NAME",
         help="write the denoised colour as a new layer <view layer>.NAME and keep the noisy "

@@ -17,7 +17,7 @@ from typing import TextIO
 from tqdm import tqdm
 
 from quietframe.client.preflight import format_numbers
-from quietframe.wire.protocol import Reset
+from quietframe.wire.protocol import Reset, parse_estimated_motion
 
 # What each sanitised buffer's count means, said once per run in the summary.
 SANITIZED_WORDS = {
@@ -41,6 +41,8 @@ class Reporter:
         self.sanitized: dict[str, list[int]] = defaultdict(list)  # buffer -> count per frame
         self.warnings: list[str] = []
         self.no_motion: list[int] = []  # frames whose history was not used (no usable motion)
+        # frames whose history followed motion estimated from the aux -> share of the frame
+        self.estimated: dict[int, float] = {}
         # Server-Timing totals of this run's frames per model name: the time measured on this
         # server, which is what a farm plans with (the tables' figures come from elsewhere)
         self.server_ms: dict[str, list[float]] = defaultdict(list)
@@ -101,6 +103,9 @@ class Reporter:
             self.sanitized[buffer].append(count)
         if result.reset == Reset.NO_MOTION.value:
             self.no_motion.append(index)
+        share = parse_estimated_motion(result.motion or "")
+        if share is not None:
+            self.estimated[index] = share
         self.done += 1
         ms = result.timings_ms.get("total")
         if ms is not None:
@@ -148,6 +153,16 @@ class Reporter:
                       f"ghosting): frames {format_numbers(self.no_motion)}; if the camera "
                       f"is locked off and nothing moves, --locked-off keeps the history "
                       f"(docs/service.md, 'Motion evidence')")
+        if self.estimated:
+            shares = sorted(self.estimated.values())
+            line = (f"{len(self.estimated)} frame(s) moved without motion vectors: their "
+                    f"history followed motion estimated from the aux, on {100 * shares[0]:.0f}"
+                    f"-{100 * shares[-1]:.0f}% of each frame (the rest denoised frame by "
+                    f"frame): frames {format_numbers(sorted(self.estimated))}; --motion "
+                    f"rendered-only turns it off")
+            self.event("motion", f"quietframe: {line}", message=line,
+                       frames=sorted(self.estimated),
+                       shares=[round(self.estimated[i], 3) for i in sorted(self.estimated)])
         text = f"{written} frame(s) written to {out_dir}"
         measured = self.measured_ms()
         if measured is not None:

@@ -71,6 +71,13 @@ class SessionFields(BaseModel):
         "at 1-4 spp can look like motion); a cut the aux show still resets it. 'auto' judges "
         "every such frame (docs/service.md, 'Motion evidence')",
     )
+    motion: Literal["estimated", "rendered-only"] = Field(
+        "estimated",
+        description="'estimated': where a moving frame has no motion vectors (Cycles with "
+        "motion blur on writes none), a temporal model follows motion estimated from the aux "
+        "buffers, trusted per pixel; 'rendered-only': such frames start the history afresh "
+        "(docs/service.md, 'Motion evidence')",
+    )
     layer: str | None = Field(
         None,
         description="view layer to denoise in a multilayer file (`<layer>.<pass>.<channel>`): "

@@ -33,9 +33,9 @@ from quietframe.model import metrics
 from quietframe.model.output_history import VARIANTS, OutputHistory, OutputHistoryConfig
 from quietframe.runtime import Denoiser, find_model
 from quietframe.runtime.card import OIDNStage
-from quietframe.runtime.stream import options_for
 from quietframe.runtime.motion_evidence import has_motion
 from quietframe.runtime.oidn_prepass import PREPASS_BUFFERS, OIDNPrepass
+from quietframe.runtime.stream import options_for
 from quietframe.scenes import cycles_io
 from quietframe.scenes.zoo_shots import shots, zoo_dir
 

@@ -48,7 +48,7 @@ _MAX_CHANNELS = 4096
 # Nor more parts: a renderer writes one per AOV at most (tens; Arnold and RenderMan a few
 # hundred at the very most). Each part costs the decoder and the reply's writer memory of its
 # own beyond its pixels (admission.PART_OVERHEAD_BYTES): 20 000 one-channel parts grew RSS by
-# 4.7 GiB (audit round 4, R4-14), so the count is refused while the header streams in.
+# 4.7 GiB (the 2026-12-06 audit, R4-14), so the count is refused while the header streams in.
 MAX_PARTS = 256
 _MAX_ATTRIBUTE_BYTES = 64 << 20  # a preview image or ICC profile is far smaller
 # Attribute values up to this size are copied into ExrHeader.attributes (what the service reads:

@@ -19,9 +19,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from quietframe.runtime import aux_motion
+from quietframe.runtime.aux_motion import EstimatedMotion
 from quietframe.runtime.card import SAMPLES_INPUT
 from quietframe.runtime.denoiser import Denoiser, ModelInfo
-from quietframe.runtime.motion_evidence import HistoryGate, gate_history, keep_probe
+from quietframe.runtime.motion_evidence import (
+    PROBE_STATE,
+    HistoryGate,
+    gate_history,
+    keep_probe,
+)
+
+MOTIONS = ("estimated", "rendered-only")  # a session's `motion`
 
 
 def samples_for(options: Mapping[str, float | int], stated: float | None,
@@ -58,6 +67,7 @@ class Step:
     sanitized: dict[str, int] = field(default_factory=dict)  # buffer -> values replaced
     missing: tuple[str, ...] = ()  # optional buffers the frame lacked
     gate: HistoryGate | None = None
+    estimated: EstimatedMotion | None = None  # motion estimated from the aux, where it was
 
     @property
     def history_verdict(self) -> str | None:
@@ -75,8 +85,10 @@ class Stream:
 
     def __init__(self, denoiser: Denoiser, camera: str = "auto",
                  options: Mapping[str, float | int] | None = None,
-                 renderer: str | None = None) -> None:
-        self.denoiser, self.camera = denoiser, camera
+                 renderer: str | None = None, motion: str = "estimated") -> None:
+        if motion not in MOTIONS:
+            raise ValueError(f"motion must be one of {MOTIONS}, got {motion!r}")
+        self.denoiser, self.camera, self.motion = denoiser, camera, motion
         self.options = dict(options or {})
         self.renderer = renderer
         prepass = denoiser.prepass
@@ -97,10 +109,29 @@ class Stream:
         options = options_for(info, self.options,
                               samples_for(self.options, stated_spp, estimated_spp))
         gate = gate_history(planes, state, self.camera) if info.state_specs else None
+        estimated = None
+        if gate is not None and self._estimates(gate, state):
+            assert state is not None
+            # A moving frame without vectors: follow the motion the aux show where it is
+            # trusted, the per-frame stage elsewhere (aux_motion), instead of a fresh history.
+            h, w = planes["color"].shape[-2:]
+            estimated = aux_motion.estimate(state[PROBE_STATE], gate.probe, h, w)
+            planes = {**planes, "motion": estimated.motion}
+            history = {k: v for k, v in state.items() if k != PROBE_STATE}
+            gate = HistoryGate(history, gate.probe, gate.evidence, False)
         result = self.denoiser.denoise(planes, gate.state if gate else state, options,
                                        renderer or self.renderer, oidn=self.oidn)
         new_state = keep_probe(result.state, gate.probe) if gate else result.state
-        return Step(result.color, new_state, result.sanitized, tuple(result.missing), gate)
+        return Step(result.color, new_state, result.sanitized, tuple(result.missing), gate,
+                    estimated)
+
+    def _estimates(self, gate: HistoryGate, state: Mapping[str, np.ndarray] | None) -> bool:
+        """Whether motion is estimated for this frame: the gate dropped a history because the
+        frame moved without vectors (not at a cut), and the session allows it."""
+        return (self.motion == "estimated" and gate.dropped and gate.evidence is not None
+                and gate.evidence.verdict == "moving" and state is not None
+                and state.get(PROBE_STATE) is not None
+                and state[PROBE_STATE].shape == gate.probe.shape)
 
     @property
     def kept_bytes(self) -> int:

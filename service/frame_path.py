@@ -7,8 +7,7 @@ import time
 
 import numpy as np
 
-from quietframe.runtime.motion_evidence import HistoryGate
-from quietframe.runtime.stream import Stream
+from quietframe.runtime.stream import Step, Stream
 from quietframe.service import frames, state_codec
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
@@ -16,7 +15,14 @@ from quietframe.service.session import ProcessedFrame
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply, request_digest
 from quietframe.service.shot_choice import choice_header
-from quietframe.wire.protocol import Header, Reset, format_counts, format_timings, join_list
+from quietframe.wire.protocol import (
+    Header,
+    Reset,
+    format_counts,
+    format_estimated_motion,
+    format_timings,
+    join_list,
+)
 
 
 def process_frame(
@@ -83,7 +89,7 @@ def process_frame(
     if step.missing:
         headers[Header.MISSING] = join_list(step.missing)
     if step.gate is not None and step.gate.evidence is not None:
-        headers[Header.MOTION] = motion_header(step.gate)
+        headers[Header.MOTION] = motion_header(step)
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
     # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
@@ -103,9 +109,13 @@ def process_frame(
     )
 
 
-def motion_header(gate: HistoryGate) -> str:
+def motion_header(step: Step) -> str:
     """X-Quietframe-Motion of a temporal model's frame without motion vectors: what its aux
-    showed and whether the history was used."""
-    assert gate.evidence is not None
+    showed, whether motion was estimated from them, and whether (or where) the history was
+    used."""
+    gate = step.gate
+    assert gate is not None and gate.evidence is not None
+    if step.estimated is not None:
+        return format_estimated_motion(gate.evidence.describe(), step.estimated.share)
     used = "history not used" if gate.state is None else "history used"
     return f"{gate.evidence.describe()}; {used}"

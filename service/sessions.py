@@ -265,7 +265,8 @@ class SessionRegistry:
         if stream is None or stream.denoiser is not denoiser:
             session.close_stream()
             spec = session.spec
-            stream = Stream(denoiser, camera=spec.camera, options=spec.model_options)
+            stream = Stream(denoiser, camera=spec.camera, options=spec.model_options,
+                            motion=spec.motion)
             session.stream = stream
         return stream
 

@@ -119,13 +119,14 @@ def test_gate_keeps_history_with_vectors_or_static_aux_and_drops_it_on_moving_au
     assert with_vectors.evidence is None and with_vectors.state is not None
 
 
-def _sequence_scores(model: Path, name: str, single_frame: bool, vectors: bool = True):
-    method = RuntimeMethod(model, threads=2, single_frame=single_frame)
+def _sequence_scores(model: Path, name: str, single_frame: bool, vectors: bool = True,
+                     motion: str = "rendered-only"):
+    method = RuntimeMethod(model, threads=2, single_frame=single_frame, motion=motion)
     method.header_spp = SPP
     outs = [method(planes(name, t, vectors)).transpose(1, 2, 0) for t in range(1, FRAMES + 1)]
     refs = [reference(name, t if name == "motion_blur" else 1) for t in range(1, FRAMES + 1)]
     psnr = float(np.mean([metrics.psnr(o, r) for o, r in zip(outs, refs, strict=True)]))
-    return psnr, metrics.flicker(np.stack(outs)), method.dropped
+    return psnr, metrics.flicker(np.stack(outs)), method.dropped, method.estimated
 
 
 @pytest.fixture(scope="module")
@@ -141,18 +142,31 @@ def test_history_tiers_score_as_their_per_frame_stage_on_a_motion_blur_pan(histo
     """Before the gate, with the zero Vector reprojected as no motion, these tiers ghosted
     (5.6-6.0 dB below their per-frame stage on this pan); the gate makes them that stage."""
     for name, path in history_tiers.items():
-        history, _, dropped = _sequence_scores(path, "motion_blur", single_frame=False)
-        per_frame, _, _ = _sequence_scores(path, "motion_blur", single_frame=True)
+        history, _, dropped, _ = _sequence_scores(path, "motion_blur", single_frame=False)
+        per_frame, _, _, _ = _sequence_scores(path, "motion_blur", single_frame=True)
         assert history >= per_frame - 0.1, (name, history, per_frame)
         assert dropped == FRAMES - 1, name
+
+
+def test_history_tiers_follow_motion_estimated_from_the_aux_on_a_motion_blur_pan(
+        history_tiers):
+    """With motion estimated from the aux (the default), the pan's frames after the first keep
+    their history along the estimate and score no lower than the per-frame stage."""
+    for name, path in history_tiers.items():
+        history, _, dropped, estimated = _sequence_scores(path, "motion_blur", False,
+                                                          motion="estimated")
+        per_frame, _, _, _ = _sequence_scores(path, "motion_blur", single_frame=True)
+        assert history >= per_frame - 0.02, (name, history, per_frame)
+        assert dropped == 0 and estimated == FRAMES - 1, name
 
 
 def test_history_tiers_keep_their_history_on_a_locked_off_shot(history_tiers):
     """Zero motion without vectors on a locked-off shot is exact: the history stays, and the
     tier flickers well under half of its per-frame stage (0.4x measured) and scores higher."""
     for name, path in history_tiers.items():
-        history, steady, dropped = _sequence_scores(path, "locked_off", False, vectors=False)
-        per_frame, flicker, _ = _sequence_scores(path, "locked_off", True, vectors=False)
+        history, steady, dropped, _ = _sequence_scores(path, "locked_off", False,
+                                                       vectors=False)
+        per_frame, flicker, _, _ = _sequence_scores(path, "locked_off", True, vectors=False)
         assert dropped == 0, name
         assert steady <= 0.5 * flicker, (name, steady, flicker)
         assert history > per_frame, (name, history, per_frame)
@@ -172,15 +186,19 @@ def _write_without_vector(data: bytes) -> bytes:
 
 def test_server_says_when_a_fixed_temporal_model_drops_its_history(live_server, history_tiers):
     """Over a real socket, a fixed temporal model: the motion-blurred pan's frames after the
-    first come back as their per-frame stage with reset `no-usable-motion` and the evidence in
-    X-Quietframe-Motion; the locked-off shot without a Vector keeps its history."""
+    first follow motion estimated from the aux (reset `none`, the evidence and the estimate's
+    share in X-Quietframe-Motion), or with `motion: rendered-only` come back as their per-frame
+    stage with reset `no-usable-motion`; the locked-off shot without a Vector keeps its
+    history."""
     from quietframe.client import Client
 
     model = next(iter(history_tiers))
     with Client(live_server.url) as client:
-        for name, strip, resets, said in (("motion_blur", False, "no-usable-motion", "moving"),
-                                          ("locked_off", True, "none", "static")):
-            session = client.create_session(128, 72, model=model)
+        for name, strip, resets, said, fields in (
+                ("motion_blur", False, "no-usable-motion", "moving", {"motion": "rendered-only"}),
+                ("motion_blur", False, "none", "moving", {}),
+                ("locked_off", True, "none", "static", {})):
+            session = client.create_session(128, 72, model=model, **fields)
             try:
                 for t in range(1, 4):
                     data = (SEQUENCES / f"{name}.{t:04d}.exr").read_bytes()
@@ -190,6 +208,8 @@ def test_server_says_when_a_fixed_temporal_model_drops_its_history(live_server, 
                     if t > 1:
                         assert result.reset == resets, (name, t, result.reset)
                         assert motion.startswith(said), (name, t, motion)
+                        estimated = "motion estimated from the aux; history used on" in motion
+                        assert estimated == (said == "moving" and not fields), motion
                     else:
                         assert result.reset == "first-frame" and motion.startswith("unknown")
             finally:
@@ -237,7 +257,9 @@ def test_auto_after_a_first_frame_without_motion_keeps_its_temporal_choice(live_
 def test_cli_summary_names_the_frames_denoised_without_history(tmp_path, live_server, capsys,
                                                              history_tiers):
     """`quietframe denoise` with a fixed temporal model on the motion-blurred pan: every frame
-    is written, and the summary says which frames ran without their history and why."""
+    is written, and the summary says which frames ran without their history and why (with
+    --motion rendered-only), or which followed motion estimated from the aux, on how much of
+    each frame (the default)."""
     import shutil
 
     from quietframe.client.cli import main
@@ -246,8 +268,9 @@ def test_cli_summary_names_the_frames_denoised_without_history(tmp_path, live_se
     src.mkdir()
     for t in range(1, 4):
         shutil.copy(SEQUENCES / f"motion_blur.{t:04d}.exr", src / f"pan.{t:04d}.exr")
+    model = next(iter(history_tiers))
     code = main(["denoise", "--server", live_server.url, str(src), "--out", str(tmp_path / "out"),
-                 "--model", next(iter(history_tiers)), "--json"])
+                 "--model", model, "--json", "--motion", "rendered-only"])
     assert code == 0
     events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     frames = [e for e in events if e["event"] == "frame"]
@@ -255,6 +278,16 @@ def test_cli_summary_names_the_frames_denoised_without_history(tmp_path, live_se
     warnings = [e["message"] for e in events if e["event"] == "warning"]
     assert any("2 frame(s) moved without usable motion vectors" in w and "frames 2-3" in w
                for w in warnings), warnings
+    # by default the history follows motion estimated from the aux, and the summary says where
+    code = main(["denoise", "--server", live_server.url, str(src), "--out", str(tmp_path / "est"),
+                 "--model", model, "--json"])
+    assert code == 0
+    events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [e["reset"] for e in events if e["event"] == "frame"] == ["first-frame", "none",
+                                                                     "none"]
+    (motion,) = [e for e in events if e["event"] == "motion"]
+    assert motion["frames"] == [2, 3] and all(0.5 < s <= 1 for s in motion["shares"]), motion
+    assert not [e for e in events if e["event"] == "warning"]
 
 
 def test_a_cut_the_vectors_do_not_show_drops_the_history():

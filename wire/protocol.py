@@ -92,3 +92,25 @@ def parse_timings(value: str) -> dict[str, float]:
         if stage and dur:
             timings[stage] = float(dur)
     return timings
+
+
+# X-Quietframe-Motion of a frame that followed motion estimated from the aux (no vectors)
+_ESTIMATED = "motion estimated from the aux; history used on {:.0f}% of the frame"
+
+
+def format_estimated_motion(evidence: str, share: float) -> str:
+    """The Motion header where the history followed estimated motion on `share` of the frame."""
+    return f"{evidence}; " + _ESTIMATED.format(100 * share)
+
+
+def parse_estimated_motion(value: str) -> float | None:
+    """The share of the frame whose history followed estimated motion, or None (not said)."""
+    head, _, tail = _ESTIMATED.partition("{:.0f}")
+    start = value.find(head)
+    if start < 0:
+        return None
+    number = value[start + len(head):].split(tail, 1)[0]
+    try:
+        return float(number) / 100
+    except ValueError:
+        return None
