@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from conftest import shot
 
-DOC = (Path(__file__).resolve().parents[1] / "docs" / "farm.md").read_text()
+DOC = (Path(__file__).resolve().parents[2] / "docs" / "farm.md").read_text()
 CLI = [sys.executable, "-m", "quietframe.client.cli"]
 
 FLAMENCO_STUBS = """

@@ -269,7 +269,8 @@ np.save(sys.argv[1], session.run(None, feeds)[0])
 def _run_child(tmp_path, name, **env):
     script = tmp_path / "child.py"
     script.write_text(_CHILD)
-    tests = str(Path(__file__).parent)
+    # this module's folder (the child imports it) and tests/ (ops_support)
+    tests = os.pathsep.join(str(p) for p in (Path(__file__).parent, Path(__file__).parents[1]))
     path = os.pathsep.join(p for p in (tests, os.environ.get("PYTHONPATH")) if p)
     out = tmp_path / f"{name}.npy"
     subprocess.run([sys.executable, str(script), str(out)], check=True,

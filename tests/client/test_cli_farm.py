@@ -16,7 +16,7 @@ from conftest import LAYOUTS, make_buffers, read_exr, shot, write_exr
 
 from quietframe.client.cli import main
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures" / "blender"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "blender"
 CLI = [sys.executable, "-m", "quietframe.client.cli"]
 
 

@@ -22,7 +22,7 @@ from ops_support import attrs_for, make_session, op_model, spatial_cells
 
 from quietframe.runtime.ops_library import ops_library_path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 API_VERSION = 16
 
 
@@ -228,7 +228,8 @@ def test_scalar_references_match_the_default_build(tmp_path):
     outputs = {}
     for simd in ("1", "0"):
         out = tmp_path / f"simd{simd}.npz"
-        tests = str(Path(__file__).parent)
+        # this module's folder (test_ops_warp) and tests/ (ops_support)
+        tests = os.pathsep.join(str(p) for p in (Path(__file__).parent, Path(__file__).parents[1]))
         path = os.pathsep.join(p for p in (tests, os.environ.get("PYTHONPATH")) if p)
         env = {**os.environ, "QUIETFRAME_OPS_SIMD": simd, "PYTHONPATH": path}
         subprocess.run([sys.executable, str(script), str(out)], check=True, env=env)

@@ -19,7 +19,7 @@ from conftest import shot
 
 from quietframe.client.cli import main
 
-FARM = Path(__file__).resolve().parents[1] / "deploy" / "farm"
+FARM = Path(__file__).resolve().parents[2] / "deploy" / "farm"
 FLAMENCO_SCRIPT = FARM / "flamenco" / "quietframe_render_denoise.js"
 DEADLINE_SCRIPT = FARM / "deadline" / "submit_render_denoise.py"
 

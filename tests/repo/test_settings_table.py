@@ -11,7 +11,7 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "configuration.md"
 # A name, not a prefix: `QUIETFRAME_` followed by words, never ending in `_` (a prefix such as
 # f"QUIETFRAME_{field}" or startswith("QUIETFRAME_") is no name).

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from conftest import hard_timeout, write_exr
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 HARD_TIMEOUT_S = 150
 W, H = 64, 48
 FRAMES = 10  # per sequence: 4 before the kill, 4 after it, 2 after the rejoin

@@ -16,7 +16,7 @@ from conftest import read_exr, shot
 
 pytestmark = pytest.mark.slow  # builds a virtualenv and installs the client from source
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TOOLS = ("cc", "c++", "gcc", "g++", "cmake", "ninja")
 
 

@@ -14,7 +14,7 @@ import pytest
 from quietframe.client import Client, QuietframeError
 from quietframe.client.cli import main
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures" / "blender"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "blender"
 SIZE = (64, 36)
 LAYERS = ("ViewLayer", "Objects")
 
@@ -134,7 +134,7 @@ def test_noisy_image_is_denoised_into_combined_over_http(live_server):
 
 def test_all_zero_vector_is_missing_and_sky_depth_is_sanitized(live_server):
     # a model that reads motion reports it missing (auto chooses one that does not: the
-    # usable-buffer rule, tests/test_cli_choice.py)
+    # usable-buffer rule, tests/service/test_cli_choice.py)
     _, blurred = frame(live_server, "motion_blur.0002.exr", model="nbg-2l-3g")
     assert blurred.missing == ("motion",)
     _, moving = frame(live_server, "passes_float_zip.0002.exr")

@@ -237,7 +237,7 @@ SHIPPED = [p.stem for p in installed_models() if p.stem.startswith("affinity")]
 def test_shipped_model_is_the_export_of_its_shipped_checkpoint(name):
     """models/<name>.onnx is what quietframe-export makes of models/training/<name>/best.pt with
     today's model code (a stale export fails), at its default and another kernel size."""
-    checkpoint_path = Path(__file__).resolve().parents[1] / "models" / "training" / name / "best.pt"
+    checkpoint_path = Path(__file__).resolve().parents[2] / "models" / "training" / name / "best.pt"
     model, checkpoint = families.load_checkpoint(str(checkpoint_path))
     runtime = Denoiser(find_model(name), threads=2)
     assert runtime.info.training["steps_done"] == checkpoint["training"]["steps_done"]

@@ -18,7 +18,7 @@ from quietframe.runtime import motion_evidence as me
 from quietframe.runtime.registry import installed_models
 from quietframe.scenes.cycles_io import _decode
 
-SEQUENCES = Path(__file__).resolve().parent / "fixtures" / "blender_sequences"
+SEQUENCES = Path(__file__).resolve().parents[1] / "fixtures" / "blender_sequences"
 FRAMES = json.loads((SEQUENCES / "manifest.json").read_text())["frames"]
 SPP = json.loads((SEQUENCES / "manifest.json").read_text())["spp"]
 HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")

@@ -15,7 +15,7 @@ import pytest
 
 yaml = pytest.importorskip("yaml")
 
-DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 # `quietframe serve` after start-up (all 13 installed models loaded and warmed up): 354-361 MiB
 # RSS measured with 2 and 8 threads; 1 GiB leaves room for another image's libraries.
 BASE_MIB = 1024

@@ -108,8 +108,9 @@ def test_results_do_not_depend_on_the_band_cut(tmp_path):
     rows in 1 band or in 12 gives the same bits."""
     script = tmp_path / "child.py"
     script.write_text(_CHILD)
-    path = os.pathsep.join(p for p in (str(Path(__file__).parent), os.environ.get("PYTHONPATH"))
-                           if p)
+    # this module's folder (the child imports it) and tests/ (ops_support)
+    tests = os.pathsep.join(str(p) for p in (Path(__file__).parent, Path(__file__).parents[1]))
+    path = os.pathsep.join(p for p in (tests, os.environ.get("PYTHONPATH")) if p)
     results = []
     for cpus in ("1", "7"):
         out = tmp_path / f"{cpus}.npy"

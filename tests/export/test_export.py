@@ -86,7 +86,7 @@ def test_sequence_matches_pytorch_with_state_carried(exported):
 
 
 SHIPPED_NBG = [p.stem for p in installed_models() if p.stem.startswith("nbg")]
-TRAINING_RUNS = Path(__file__).resolve().parents[1] / "models" / "training"
+TRAINING_RUNS = Path(__file__).resolve().parents[2] / "models" / "training"
 
 
 @pytest.mark.parametrize("name", SHIPPED_NBG)

@@ -15,7 +15,7 @@ from farm_cli_support import denoise, error_lines, events, run_and_dry_run, writ
 
 from quietframe.client.cli import main
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures" / "blender"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "blender"
 
 
 def sessions_created(server) -> float:

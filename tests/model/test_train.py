@@ -122,7 +122,7 @@ def test_training_report_summarises_the_log(data, tmp_path, capsys, monkeypatch)
     pytest.importorskip("matplotlib")
     # a repository tool, not part of the package: loaded from its file (registered first, as
     # its dataclasses look their module up)
-    path = Path(__file__).resolve().parents[1] / "tools" / "training_report.py"
+    path = Path(__file__).resolve().parents[2] / "tools" / "training_report.py"
     spec = importlib.util.spec_from_file_location("training_report", path)
     training_report = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "training_report", training_report)

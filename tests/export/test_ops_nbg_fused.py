@@ -20,7 +20,7 @@ torch = pytest.importorskip("torch")
 fused = pytest.importorskip("quietframe.model.nbg_fused")
 temporal = pytest.importorskip("quietframe.model.temporal")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 OPS = {
     "NBGAccumulate": (["radiance", "warped", "inside", "depth", "normal", "reset"],
                       ["accumulated", "state"],
@@ -178,7 +178,7 @@ def test_fused_forward_is_the_model() -> None:
 
 
 def test_shipped_nbg_2l_3g_uses_the_fused_ops() -> None:
-    """(tests/test_export.py holds the shipped file to its checkpoint's PyTorch model.)"""
+    """(tests/export/test_export.py holds the shipped file to its checkpoint's PyTorch model.)"""
     path = REPO / "models" / "nbg-2l-3g.onnx"
     if not path.is_file():
         pytest.skip("nbg-2l-3g is not in this checkout")

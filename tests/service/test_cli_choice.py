@@ -11,7 +11,7 @@ import pytest
 from quietframe.client import Client
 from quietframe.runtime.usable_buffers import unusable_buffers
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures" / "blender"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "blender"
 
 
 def test_unusable_buffers_all_zero_motion_and_constant_depth():

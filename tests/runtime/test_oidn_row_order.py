@@ -16,8 +16,8 @@ from quietframe.runtime.oidn_prepass import OIDNPrepass, OIDNSettings, rows_bott
 pytest.importorskip("pyoidn")
 OpenEXR = pytest.importorskip("OpenEXR")
 
-FIXTURE = Path(__file__).resolve().parent / "fixtures" / "blender" / "blender_denoised.0002.exr"
-MODELS = Path(__file__).resolve().parents[1] / "models"
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "blender" / "blender_denoised.0002.exr"
+MODELS = Path(__file__).resolve().parents[2] / "models"
 LAYER = "ViewLayer."
 
 

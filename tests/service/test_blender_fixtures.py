@@ -22,7 +22,7 @@ from cycles_support import blender_json, require_cycles
 from quietframe.runtime.frame_errors import AmbiguousChannels, MissingChannels
 from quietframe.service import frames
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures" / "blender"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "blender"
 MANIFEST = json.loads((FIXTURES / "manifest.json").read_text())
 VARIANTS = MANIFEST["variants"]
 FILES = [(name, file) for name, v in VARIANTS.items() for file in v["files"]]
