@@ -27,6 +27,7 @@ from quietframe.runtime.motion_evidence import PROBE_SCALE, _box
 
 WINDOW_RADIUS = 3  # probe pixels: a 7×7 window (14×14 frame pixels)
 ITERATIONS = 5  # per level
+FINEST_ITERATIONS = 1  # at the probe's own resolution, below a coarser level
 MIN_LEVEL_SIZE = 24  # probe pixels: the pyramid stops before a side gets shorter
 MAX_STEP = 1.0  # probe pixels an iteration may move an estimate (the linearisation's reach)
 RIDGE = 1e-5  # added to the normal equations' diagonal, per window pixel and channel
@@ -41,12 +42,15 @@ class EstimatedMotion:
 
 
 def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
-    """(H, W) -> the sum over each pixel's (2r+1)² window (edges: the part inside the frame)."""
-    p = np.pad(x, r, mode="constant")
-    c = np.cumsum(np.cumsum(p, 0, dtype=np.float64), 1)
-    c = np.pad(c, ((1, 0), (1, 0)))
+    """(..., H, W) -> the sum over each pixel's (2r+1)² window (edges: the part inside the
+    frame). Running sums along one axis at a time, in float64 (float32 ones lose the small
+    differences of large sums)."""
     k = 2 * r + 1
-    return (c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]).astype(np.float32)
+    pad = [(0, 0)] * (x.ndim - 2)
+    c = np.cumsum(np.pad(x, [*pad, (r + 1, r), (0, 0)]), axis=-2, dtype=np.float64)
+    rows = c[..., k:, :] - c[..., :-k, :]
+    c = np.cumsum(np.pad(rows, [*pad, (0, 0), (r + 1, r)]), axis=-1)
+    return (c[..., k:] - c[..., :-k]).astype(np.float32)
 
 
 def warp(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
@@ -64,19 +68,19 @@ def warp(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
     return (top * (1 - fy) + bottom * fy).astype(np.float32)
 
 
-def _refine(previous: np.ndarray, current: np.ndarray, flow: np.ndarray) -> np.ndarray:
-    """ITERATIONS Lucas–Kanade steps of `flow` (2, h, w) at one level."""
+def _refine(previous: np.ndarray, current: np.ndarray, flow: np.ndarray,
+            iterations: int) -> np.ndarray:
+    """Lucas–Kanade steps of `flow` (2, h, w) at one level."""
     area = (2 * WINDOW_RADIUS + 1) ** 2 * previous.shape[0]
-    for _ in range(ITERATIONS):
+    for _ in range(iterations):
         warped = warp(previous, flow)
         mean = (warped + current) / 2
         gy, gx = np.gradient(mean, axis=(1, 2))
         d = warped - current  # want warped + G·Δ ≈ current: G·Δ = −d
-        sxx = _box_sum((gx * gx).sum(0), WINDOW_RADIUS) + RIDGE * area
-        syy = _box_sum((gy * gy).sum(0), WINDOW_RADIUS) + RIDGE * area
-        sxy = _box_sum((gx * gy).sum(0), WINDOW_RADIUS)
-        sxd = _box_sum((gx * d).sum(0), WINDOW_RADIUS)
-        syd = _box_sum((gy * d).sum(0), WINDOW_RADIUS)
+        products = np.stack([(a * b).sum(0) for a, b in
+                             ((gx, gx), (gy, gy), (gx, gy), (gx, d), (gy, d))])
+        sxx, syy, sxy, sxd, syd = _box_sum(products, WINDOW_RADIUS)
+        sxx, syy = sxx + RIDGE * area, syy + RIDGE * area
         det = sxx * syy - sxy * sxy
         du = -(syy * sxd - sxy * syd) / det
         dv = -(sxx * syd - sxy * sxd) / det
@@ -95,7 +99,10 @@ def probe_flow(previous: np.ndarray, current: np.ndarray) -> np.ndarray:
         if level:  # up from the coarser level: twice the vectors, on twice the pixels
             h, w = c.shape[1:]
             flow = 2 * np.repeat(np.repeat(flow, 2, axis=1), 2, axis=2)[:, :h, :w]
-        flow = _refine(p, c, flow)
+        # the probe's own level (a quarter of the pyramid's cost each) gets one step where a
+        # coarser level found the motion already
+        finest = level == len(pyramid) - 1 and len(pyramid) > 1
+        flow = _refine(p, c, flow, FINEST_ITERATIONS if finest else ITERATIONS)
     return flow
 
 

@@ -1,0 +1,66 @@
+"""What motion estimated from the aux costs beside the quality tier's frame, at 1080p, timed
+interleaved in one run.
+
+    python -m quietframe.bench.aux_motion_cost [--model oidn-history-cleanaux] [--rounds 3]
+
+Each round times one frame of the model through the runtime's per-sequence step (its history
+carried, OIDN's filters kept: a session's frame) and the estimate of that frame's motion from
+its aux and the previous frame's (runtime/aux_motion.estimate on the probes the gate keeps), on
+synthetic 1920×1080 buffers (bench/synthetic.py). The figure is the median over rounds of the
+estimate's time over the frame's in the same round (wall and CPU); on a shared machine read the
+ratios, not the milliseconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+
+from quietframe.bench import cli_args
+from quietframe.bench.synthetic import frame_buffers
+from quietframe.bench.timing import time_ms
+from quietframe.runtime import Denoiser, aux_motion, find_model
+from quietframe.runtime.motion_evidence import probe
+from quietframe.runtime.stream import Stream
+
+HEIGHT, WIDTH = 1080, 1920
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="quietframe-aux-motion-cost",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--model", default="oidn-history-cleanaux",
+                        help="the quality tier (default oidn-history-cleanaux)")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=2, help="timed calls per round")
+    cli_args.add_threads(parser)
+    args = parser.parse_args(argv)
+    previous, current = (frame_buffers(HEIGHT, WIDTH, seed=s) for s in (0, 1))
+    stream = Stream(Denoiser(find_model(args.model), threads=args.threads))
+    state = stream.step(previous, None).state
+    probes = probe(previous), probe(current)
+    runs = {"frame": lambda: stream.step(current, state),
+            "estimate": lambda: aux_motion.estimate(*probes, HEIGHT, WIDTH)}
+    wall: dict[str, list[float]] = {k: [] for k in runs}
+    cpu: dict[str, list[float]] = {k: [] for k in runs}
+    for r in range(args.rounds):
+        for name, run in runs.items():
+            timing = time_ms(run, warmup=1, repeats=args.repeats)
+            wall[name].append(timing.median_ms)
+            cpu[name].append(timing.cpu_ms)
+        print(f"round {r + 1}: " + ", ".join(f"{k} {v[-1]:.0f} ms" for k, v in wall.items()),
+              flush=True)
+    share = [e / f for e, f in zip(wall["estimate"], wall["frame"], strict=True)]
+    share_cpu = [e / f for e, f in zip(cpu["estimate"], cpu["frame"], strict=True)]
+    print(f"\n{WIDTH}×{HEIGHT}, {args.threads} threads, {args.rounds} interleaved rounds")
+    print("| | median ms | median CPU ms |\n|---|---:|---:|")
+    for name in runs:
+        print(f"| {name} | {statistics.median(wall[name]):.0f} | "
+              f"{statistics.median(cpu[name]):.0f} |")
+    print(f"\nestimate / {args.model} frame: {statistics.median(share):.3f} wall "
+          f"({min(share):.3f}–{max(share):.3f}), {statistics.median(share_cpu):.3f} CPU")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
