@@ -39,6 +39,7 @@ class EstimatedMotion:
     motion: np.ndarray  # (2, H, W) float32 backward motion in frame pixels; untrusted: outside
     trusted: np.ndarray  # (H, W) bool
     share: float  # of the frame's pixels, those trusted
+    estimate: np.ndarray  # (2, H, W) the estimate everywhere, trusted or not
 
 
 def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
@@ -116,7 +117,8 @@ def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int
     trusted_probe = error <= TRUST_ERROR
     up = np.repeat(np.repeat(flow, PROBE_SCALE, axis=1), PROBE_SCALE, axis=2)[:, :height, :width]
     trusted = np.repeat(np.repeat(trusted_probe, PROBE_SCALE, 0), PROBE_SCALE, 1)[:height, :width]
-    motion = (PROBE_SCALE * up).astype(np.float32)
+    everywhere = (PROBE_SCALE * up).astype(np.float32)
+    motion = everywhere.copy()
     motion[0][~trusted] = 4.0 * (height + width)  # outside the frame: no history here
     motion[1][~trusted] = 0.0
-    return EstimatedMotion(motion, trusted, float(trusted.mean()))
+    return EstimatedMotion(motion, trusted, float(trusted.mean()), everywhere)

@@ -27,6 +27,7 @@ from quietframe.runtime.motion_evidence import (
     PROBE_STATE,
     HistoryGate,
     gate_history,
+    judge_cut,
     keep_probe,
 )
 
@@ -116,9 +117,14 @@ class Stream:
             # trusted, the per-frame stage elsewhere (aux_motion), instead of a fresh history.
             h, w = planes["color"].shape[-2:]
             estimated = aux_motion.estimate(state[PROBE_STATE], gate.probe, h, w)
-            planes = {**planes, "motion": estimated.motion}
-            history = {k: v for k, v in state.items() if k != PROBE_STATE}
-            gate = HistoryGate(history, gate.probe, gate.evidence, False)
+            # a camera switch moves "everything": the aux along the estimate show it as a cut
+            cut = judge_cut(state[PROBE_STATE], gate.probe, estimated.estimate)
+            if cut is not None:
+                gate, estimated = HistoryGate(None, gate.probe, cut, True), None
+            else:
+                planes = {**planes, "motion": estimated.motion}
+                history = {k: v for k, v in state.items() if k != PROBE_STATE}
+                gate = HistoryGate(history, gate.probe, gate.evidence, False)
         result = self.denoiser.denoise(planes, gate.state if gate else state, options,
                                        renderer or self.renderer, oidn=self.oidn)
         new_state = keep_probe(result.state, gate.probe) if gate else result.state
