@@ -4,7 +4,8 @@
 # Build: docker build -t quietframe .        Run: docker run -p 8000:8000 quietframe
 # Configure with QUIETFRAME_* environment variables (docs/configuration.md), e.g.
 #   docker run -p 8000:8000 -e QUIETFRAME_AUTH_TOKEN=… -e QUIETFRAME_STATE_DIR=/state -v qf:/state quietframe
-# tests/test_docker.py runs this file's pip commands, CMD and HEALTHCHECK in a fresh virtualenv.
+# tests/deploy/test_docker.py runs this file's pip commands, CMD and HEALTHCHECK in a fresh
+# virtualenv.
 
 ARG PYTHON_VERSION=3.11
 

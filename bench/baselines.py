@@ -8,7 +8,7 @@ missing motion is a static camera).
 
 The temporal rule (`nearest_warp`, `history_valid`, the accumulation weights, demodulation) is
 a numpy twin of the NBG pre-stage in `model/temporal.py` and `model/nbg.py`: same names, same
-constants, same formulas (tests/test_baselines.py holds them equal), without torch.
+constants, same formulas (tests/bench/test_baselines.py holds them equal), without torch.
 
 The evaluation times the ones it runs (svgf, oidn-*) per 1280×720 frame in `quietframe-eval`'s
 `ms/frame 720p` column, so this module has no command of its own.

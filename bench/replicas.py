@@ -10,7 +10,7 @@ frames/s and the p50/p99 of a frame request; `--no-store` runs one replica alone
 memory, as the baseline the store's cost is read against. `store` times what the store adds to
 a frame (the write of state + reply, the version check) for Redis and for a folder (the shared
 volume's case), at the size given, with the default model's real state shapes. `estimate`
-is the paper estimate for a farm. `Cluster` is what tests/test_replicas_failover.py starts.
+is the paper estimate for a farm. `Cluster` is what tests/deploy/test_replicas_failover.py starts.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ through the shipped runtime pieces, once per frame), then the output history
 (model/output_history.OutputHistory). Only the last step differs between candidates, so it runs
 in PyTorch on the cached OIDN outputs: each candidate is an OutputHistoryConfig (the shipped
 one, and the per-pixel trust tests `edge_depth`, `edge_motion`). The exported graph computes the
-same (tests/test_output_history.py); the zoo figures of the shipped models come from
+same (tests/experiments/test_output_history.py); the zoo figures of the shipped models come from
 bench/zoo_eval, not from here.
 """
 

@@ -1,9 +1,9 @@
 """Kernel filtering of the affinity denoiser (Işık et al. 2021, §3.4–3.5): the PyTorch reference.
 
 The C++ onnxruntime ops ai.quietframe::AffinityFilter / AffinityTemporalFilter (export/ops)
-compute exactly this and are held to it by tests/test_ops_affinity.py; docs/affinity-math.md is
-the contract of both. Tensors are NCHW: radiance (N, C, H, W), features (N, D, H, W), bandwidth
-and centre (N, 1, H, W), temporal_on (N,).
+compute exactly this and are held to it by tests/export/test_ops_affinity.py;
+docs/affinity-math.md is the contract of both. Tensors are NCHW: radiance (N, C, H, W), features
+(N, D, H, W), bandwidth and centre (N, 1, H, W), temporal_on (N,).
 
 Memory: the k×k window is a loop over offsets with shifted views of one padded copy, accumulating
 numerator and denominator, never an unfold of D·k² channels. The public functions are torch

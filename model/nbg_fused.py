@@ -7,8 +7,8 @@ that glue was ~60 element-wise nodes, a pass over full-frame tensors each, about
 nbg-2l-3g's time at 720p; each fused op is one pass.
 
 Each op's implementation below is its reference, built from the functions NBGDenoiser calls, so
-the fused graph computes what the model computes (tests/test_ops_nbg_fused.py holds the C++ ops
-to these). No autograd: nothing trains through them.
+the fused graph computes what the model computes (tests/export/test_ops_nbg_fused.py holds the
+C++ ops to these). No autograd: nothing trains through them.
 """
 
 from __future__ import annotations

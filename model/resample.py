@@ -3,7 +3,7 @@ maps it onto ai.quietframe::UpsampleBilinear (export/ops/upsample_bilinear.cc) i
 onnxruntime's generic Resize, which cost about 12% of the affinity model's time at 720p.
 
 The math is F.interpolate(mode="bilinear", align_corners=False) itself, so training and the
-exported graph agree (tests/test_ops_upsample.py holds the C++ op to it)."""
+exported graph agree (tests/export/test_ops_upsample.py holds the C++ op to it)."""
 
 from __future__ import annotations
 

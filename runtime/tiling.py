@@ -25,7 +25,7 @@ The affinity model's U-Net resamples by the ratio of its level sizes, which tile
 share only along sides that are multiples of `align` (card: `size_ratios`): a side that is not
 is not cut (strips across it); a frame with neither side a multiple tiles with a small
 parameter shift (~1.5% of the peak at 322×390). A first frame's zero state is made per tile.
-tests/test_tiling.py compares tiled and untiled runs of every shipped model.
+tests/runtime/test_tiling.py compares tiled and untiled runs of every shipped model.
 """
 
 from __future__ import annotations

@@ -3,9 +3,10 @@
 // The onnxruntime wheel ships no C headers, so by default this file declares the few types and
 // function-table slots we need itself, from the facts written down in docs/ort-abi.md (which
 // slot, which signature, how each was checked; the ABI is append-only: slots and struct offsets
-// never move); tests/test_ops_abi.py exercises every slot listed in Slot below. Configure with
-// -DORT_INCLUDE_DIR=<dir> to compile against the official onnxruntime_c_api.h instead; the
-// static_asserts below then check our slot numbers and the OrtCustomOp layout against it.
+// never move); tests/export/test_ops_abi.py exercises every slot listed in Slot below.
+// Configure with -DORT_INCLUDE_DIR=<dir> to compile against the official onnxruntime_c_api.h
+// instead; the static_asserts below then check our slot numbers and the OrtCustomOp layout
+// against it.
 #pragma once
 
 #include <cstddef>
