@@ -27,27 +27,31 @@ def test_unusable_buffers_all_zero_motion_and_constant_depth():
     assert unusable_buffers({"depth": np.zeros((1, 4, 4), np.float32)}) == ("depth",)
 
 
-def test_auto_on_motion_blur_frames_keeps_one_model_and_drops_history_while_aux_move(
-        live_server):
+def test_auto_on_motion_blur_frames_keeps_one_model_and_follows_the_aux(live_server):
     """Cycles writes an all-zero Vector with motion blur on. That is no evidence either way (a
     locked-off shot writes the same), so auto decides as if the pass were there, and the
-    chosen model reads its history only where the aux stay put: on this moving camera, frame 3
-    comes back with a fresh history (`no-usable-motion`) and the same model, so nothing pops."""
-    with Client(live_server.url) as client:
-        temporal = {m["name"] for m in client.models()["models"] if m["state"]}
-        session = client.create_session(64, 36)
-        try:
-            results = [client.send_frame(session["id"], t,
-                                         (FIXTURES / f"motion_blur.{t:04d}.exr").read_bytes())
-                       for t in (2, 3)]
-            choice = client.session(session["id"])["choice"]
-        finally:
-            client.delete_session(session["id"])
-    assert "motion" in choice["buffers"]  # counted as present: the history follows the aux
-    assert results[0].model == results[1].model  # one model for the shot
-    if choice["model"] in temporal:
-        assert results[1].reset == "no-usable-motion", results[1]
-        assert results[1].motion.startswith("moving"), results[1].motion
+    chosen model reads its history along motion estimated from the aux where the aux moved:
+    on this moving camera frame 3 keeps its history (reset `none`, the estimate's share in
+    X-Quietframe-Motion) and the same model, so nothing pops; with `motion: rendered-only` it
+    comes back with a fresh history (`no-usable-motion`) instead."""
+    for fields, reset, said in (({}, "none", "motion estimated from the aux"),
+                                ({"motion": "rendered-only"}, "no-usable-motion",
+                                 "history not used")):
+        with Client(live_server.url) as client:
+            temporal = {m["name"] for m in client.models()["models"] if m["state"]}
+            session = client.create_session(64, 36, **fields)
+            try:
+                results = [client.send_frame(session["id"], t, (
+                    FIXTURES / f"motion_blur.{t:04d}.exr").read_bytes()) for t in (2, 3)]
+                choice = client.session(session["id"])["choice"]
+            finally:
+                client.delete_session(session["id"])
+        assert "motion" in choice["buffers"]  # counted as present: the history follows the aux
+        assert results[0].model == results[1].model  # one model for the shot
+        if choice["model"] in temporal:
+            assert results[1].reset == reset, results[1]
+            assert results[1].motion.startswith("moving") and said in results[1].motion, \
+                results[1].motion
 
 
 def test_choice_header_is_ascii_and_spells_symbols_out():
