@@ -57,6 +57,9 @@ OIDN_DEFAULT_MAX_MEMORY_MB = 3000  # OIDN 2's CPU default for maxMemoryMB
 # growth over the first execution, 552-573 B/px at high and balanced quality and 306-309 at
 # fast, from 640x360 to 2560x1440 (numThreads 2); rounded up. Below maxMemoryMB it holds this.
 SCRATCH_BYTES_PER_PIXEL = {"high": 600, "balanced": 600, "fast": 340}
+# At high quality with clean aux (and an aux filter at high) OIDN runs its large network:
+# 680-687 B/px at 720p and 1080p, and ~2.4x the CPU of high with noisy aux.
+LARGE_SCRATCH_BYTES_PER_PIXEL = 700
 BOTTOM_UP_RENDERERS = frozenset({"cycles"})  # renderers whose own OIDN call sees rows bottom-up
 
 OIDNSettings = OIDNStage  # the prepass settings are the card's OIDN stage (runtime/card.py)
@@ -217,8 +220,12 @@ class OIDNPrepass:
     def scratch_bytes(self, height: int, width: int) -> int:
         """OIDN's scratch for an H×W frame: its untiled need, capped by maxMemoryMB."""
         cap = self.max_memory_mb if self.max_memory_mb else OIDN_DEFAULT_MAX_MEMORY_MB
-        qualities = {self.settings.quality, self.settings.aux_quality or self.settings.quality}
-        need = max(SCRATCH_BYTES_PER_PIXEL[q] for q in qualities) * height * width
+        settings = self.settings
+        qualities = {settings.quality, settings.aux_quality or settings.quality}
+        per_pixel = max(SCRATCH_BYTES_PER_PIXEL[q] for q in qualities)
+        if settings.prefilter_aux and "high" in qualities:
+            per_pixel = LARGE_SCRATCH_BYTES_PER_PIXEL
+        need = per_pixel * height * width
         return min(need, int(cap * 2**20))
 
     def filters(self) -> OIDNFilters:

@@ -120,8 +120,9 @@ class Settings(BaseSettings):
     def oidn_memory_mb(self) -> float:
         """OIDN's scratch cap for one frame (its maxMemoryMB; past it OIDN tiles, at ~25% more
         CPU at 1080p): an eighth of a frame's share of the memory budget, at least 768 MiB.
-        At the defaults (12 GiB, one frame at a time) 1536 MiB: a 1080p frame at quality high
-        (~1.2 GiB, ~600 B a pixel: runtime/oidn_prepass.py) runs whole."""
+        At the defaults (12 GiB, one frame at a time) 1536 MiB: a 1080p frame runs whole, even
+        through OIDN's large network (quality high with clean aux: ~1.4 GiB, ~700 B a pixel,
+        runtime/oidn_prepass.py)."""
         return max(768.0, self.memory_budget_mb / self.worker_count / 8)
 
     @property
