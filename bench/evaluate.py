@@ -72,8 +72,9 @@ def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
     other than its default (models without a kernel_size input get none), and for a model
     that keeps state `<name>/frame` (history cleared every frame) when `single_frame` and
     `<name>/rendered-only` (no motion estimated from the aux: a moving frame without vectors
-    starts the history afresh, the session field `motion: rendered-only`) when
-    `rendered_only`."""
+    starts the history afresh, the session field `motion: rendered-only`) and
+    `<name>/estimated` (the shot's vectors withheld: its history follows motion estimated from
+    the aux, as on a motion-blurred shot) when `rendered_only`."""
     info = Denoiser(path, threads=1).info
     spec = next((i for i in info.inputs if i.name == "kernel_size"), None)
     methods: dict[str, Callable[[], object]] = {}
@@ -88,6 +89,8 @@ def model_variants(path: Path, threads: int, kernel_sizes: tuple[int, ...],
     if rendered_only and info.state_specs:
         methods[f"{path.stem}/rendered-only"] = lambda: RuntimeMethod(
             path, threads, renderer=renderer, motion="rendered-only")
+        methods[f"{path.stem}/estimated"] = lambda: RuntimeMethod(
+            path, threads, renderer=renderer, withhold_vectors=True)
     return methods
 
 

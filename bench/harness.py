@@ -52,16 +52,19 @@ class RuntimeMethod:
     model would see without them: the absence table). `header_spp`: the spp the frame header
     states (set by the evaluation where the renderer writes one). `renderer`: the frames'
     renderer, as the service takes it from the header (an OIDN stage's row order follows it).
-    `camera`, `motion`: the session's (`auto` or `locked`; `estimated` or `rendered-only`)."""
+    `camera`, `motion`: the session's (`auto` or `locked`; `estimated` or `rendered-only`).
+    `withhold_vectors`: the frames' motion vectors are not given (as a renderer with motion blur
+    on writes none), so a moving frame follows motion estimated from the aux."""
 
     def __init__(self, path: Path | Denoiser, threads: int = 2, options: dict | None = None,
                  single_frame: bool = False, zeros_for_required: bool = False,
                  renderer: str | None = None, camera: str = "auto",
-                 motion: str = "estimated") -> None:
+                 motion: str = "estimated", withhold_vectors: bool = False) -> None:
         self.denoiser = path if isinstance(path, Denoiser) else Denoiser(
             path, threads=threads, options=options)
         self.stream = Stream(self.denoiser, camera=camera, renderer=renderer, motion=motion)
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
+        self.withhold_vectors = withhold_vectors  # the frames' motion is not given (estimated)
         self.state: dict | None = None
         self.header_spp: float | None = None
         self.dropped = 0  # frames whose history was not used: moved without motion vectors
@@ -78,6 +81,8 @@ class RuntimeMethod:
             planes = {**planes, **{name: np.zeros((BUFFER_CHANNELS[name], h, w), np.float32)
                                    for name in self.denoiser.info.required_buffers
                                    if name not in planes}}
+        if self.withhold_vectors:
+            planes = {name: plane for name, plane in planes.items() if name != "motion"}
         step = self.stream.step(planes, self.state, self.header_spp)
         self.dropped += step.gate is not None and step.gate.dropped
         self.estimated += step.estimated is not None
