@@ -12,17 +12,16 @@ over those each estimator trusts, with the trusted share. A temporal tier could 
 estimate only where its trusted EPE is well under a pixel (a bicubic history fetch half a pixel
 off already blurs the fine detail the zoo's round 2 is made of).
 
-Three estimators (the third, `shipped`, is the one the service runs: runtime/aux_motion.py):
+Two estimators:
 - `flow`: a pyramidal Lucas–Kanade flow (Lucas & Kanade 1981, Bouguet's pyramid) on the probe,
   with a forward-backward and an aux-reprojection check per pixel;
-- `camera`: a rigid camera fitted to the probe by direct alignment (Gauss–Newton on the probe's
-  photometric error over a pyramid, Huber-weighted, as in direct visual odometry: Kerl, Sturm &
-  Cremers 2013), the field then following from each pixel's own depth, which a free flow
-  cannot do at a thin post in front of a far wall.
+- `camera`: the one the service runs (runtime/aux_motion.py), a rigid camera fitted to the
+  probe by direct alignment, the field then following from each pixel's own depth, which a
+  free flow cannot do at a thin post in front of a far wall.
 
-Result (docs/zoo.md, "Motion from the aux"): neither of the first two was good enough to ship.
-The shipped one is the first made cheaper and stricter (no median filter or forward-backward
-pass; trusted only where the warped probe matches), and the history follows it only there.
+Result (docs/zoo.md, "Motion from the aux"): the flow's window-to-window noise (0.5–1.8 px) rules
+it out; the camera is 0.1–0.25 px off Cycles' vectors on a slow dolly and ships, trusted per
+pixel. It cannot follow an object of its own (such pixels take their per-frame stage).
 """
 
 from __future__ import annotations
@@ -37,7 +36,7 @@ import numpy as np
 from quietframe.bench import cli_args
 from quietframe.bench.harness import planes_from_hwc
 from quietframe.runtime import aux_motion
-from quietframe.runtime.motion_evidence import PROBE_SCALE, _box, probe
+from quietframe.runtime.motion_evidence import PROBE_SCALE, probe
 from quietframe.scenes import cycles_io
 from quietframe.scenes.zoo_shots import shots, zoo_dir
 
@@ -185,141 +184,6 @@ def estimate_flow(previous_probe: np.ndarray, current_probe: np.ndarray,
                           np.ascontiguousarray(doubt_full[:, :height, :width], np.float32))
 
 
-# --- camera: a rigid camera fitted to the probe --------------------------------------------
-
-CAMERA_LEVELS = 4  # pyramid levels of the probe (the coarsest at 1/8 of its size)
-CAMERA_ITERATIONS = (3, 4, 6, 8)  # Gauss–Newton steps, finest level first
-HUBER = 0.005  # probe units: residuals beyond this weigh less (moving objects, mixed pixels)
-DAMPING = 1e-4  # Levenberg–Marquardt, relative to the normal matrix's diagonal
-# The focal length is not fitted: at first order the field sees only focal × rotation and
-# focal × translation / depth, and a free focal length ran off (to 140 000 px on a truck).
-DEFAULT_FOV_DEG = 60.0
-FITTED = 6  # rotation and translation
-CAMERA_RESIDUAL_TOLERANCE = 0.05  # mean |aux difference| after the fit: above it, doubtful
-DOUBT_WINDOW = 2  # probe pixels: the residual is averaged over (2r + 1)² before the test
-
-
-@dataclass(frozen=True)
-class CameraMotion:  # the rigid camera's fit
-    rotation: np.ndarray  # (3,) axis-angle, radians: previous camera = R · current + t
-    translation: np.ndarray  # (3,) in depth units
-    focal_px: float  # focal length in frame pixels
-    motion: np.ndarray  # (2, H, W) float32 backward motion, frame pixels
-    doubt: np.ndarray  # (1, H, W) float32, 1 where the field is not the pixel's motion
-
-    @property
-    def trusted_share(self) -> float:
-        return float(1.0 - self.doubt.mean())
-
-
-def _rotation(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotation matrix of axis-angle w."""
-    angle = float(np.linalg.norm(w))
-    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]], np.float64)
-    if angle < 1e-12:
-        return np.eye(3) + k
-    k /= angle
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
-
-
-def motion_field(params: np.ndarray, depth: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """(2, h, w) backward motion of an image whose pixel is `scale` frame pixels, for
-    params = (rotation 3, translation 3, log focal in frame pixels) and ray depth (h, w)."""
-    h, w = depth.shape
-    f = np.exp(params[6]) / scale
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    x, y = (xs + 0.5 - w / 2) / f, (ys + 0.5 - h / 2) / f
-    norm = np.sqrt(x * x + y * y + 1)
-    z = depth / norm  # along the axis
-    points = np.stack((x * z, y * z, z))
-    moved = np.tensordot(_rotation(params[:3]), points, 1) + params[3:6, None, None]
-    zp = np.maximum(moved[2], 1e-6)
-    return np.stack((f * moved[0] / zp + w / 2 - (xs + 0.5),
-                     f * moved[1] / zp + h / 2 - (ys + 0.5))).astype(np.float32)
-
-
-def _warp(previous: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The previous probe at p + m, and where p + m lies inside it."""
-    _, h, w = previous.shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
-    x, y = xs + motion[0], ys + motion[1]
-    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-    return _sample(previous, x, y), inside
-
-
-def _camera_step(params, previous, current, depth, scale) -> np.ndarray:
-    """One Levenberg–Marquardt update of the 7 parameters at one pyramid level."""
-    motion = motion_field(params, depth, scale)
-    warped, inside = _warp(previous, motion)
-    residual = warped - current  # (C, h, w)
-    gx, gy = _gradients(warped)
-    # d motion / d param by central differences (the field is smooth in the parameters)
-    jac = []
-    for k in range(FITTED):
-        e = np.zeros(7)
-        e[k] = 1e-4 if k < 6 else 1e-3
-        dm = (motion_field(params + e, depth, scale) - motion_field(params - e, depth, scale))
-        dm /= 2 * e[k]
-        jac.append(gx * dm[0] + gy * dm[1])  # (C, h, w): d residual / d param
-    j = np.stack(jac, -1)[:, inside]  # (C, n, FITTED)
-    r = residual[:, inside]  # (C, n)
-    a = np.abs(r)
-    weight = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))  # Huber
-    jw = j * weight[..., None]
-    normal = np.einsum("cnk,cnl->kl", jw, j)
-    rhs = np.einsum("cnk,cn->k", jw, r)
-    normal += DAMPING * np.diag(np.diag(normal)) + 1e-12 * np.eye(FITTED)
-    update = np.zeros(7)
-    update[:FITTED] = np.linalg.solve(normal, rhs)
-    return params - update
-
-
-def _pyramid(x: np.ndarray, levels: int) -> list[np.ndarray]:
-    out = [x]
-    for _ in range(levels - 1):
-        if min(out[-1].shape[1:]) < 16:
-            break
-        out.append(_box(out[-1], 2))
-    return out
-
-
-def estimate_camera(previous_probe: np.ndarray, current_probe: np.ndarray,
-                    depth: np.ndarray, fov_deg: float = DEFAULT_FOV_DEG) -> CameraMotion:
-    """The camera motion that carries the previous frame's probe onto this one's, and the
-    backward motion field of this (H, W) frame from its ray depth (1, H, W) or (H, W)."""
-    depth = np.asarray(depth, np.float32).reshape(depth.shape[-2:])
-    height, width = depth.shape
-    finite = np.isfinite(depth) & (depth > 0)
-    far = float(np.percentile(depth[finite], 99)) if finite.any() else 1.0
-    depth = np.where(finite, np.minimum(depth, 1e3 * max(far, 1e-3)), far).astype(np.float32)
-    # Averaged as inverse depth: motion goes with 1/depth, so a probe pixel of a thin post
-    # and the sky behind it moves as the mean of their motions (a plain mean of 4 m and
-    # 1e10 m would put it at infinity)
-    probe_depth = 1 / _box(1 / depth[None], PROBE_SCALE)[0]
-    depths = [1 / d for d in _pyramid(1 / probe_depth[None], CAMERA_LEVELS)]
-    previous = _pyramid(previous_probe.astype(np.float32), CAMERA_LEVELS)
-    current = _pyramid(current_probe.astype(np.float32), CAMERA_LEVELS)
-    params = np.zeros(7)
-    params[6] = np.log(width / (2 * np.tan(np.radians(fov_deg) / 2)))
-    for level in reversed(range(min(len(previous), len(depths)))):
-        scale = PROBE_SCALE * 2**level
-        for _ in range(CAMERA_ITERATIONS[min(level, len(CAMERA_ITERATIONS) - 1)]):
-            params = _camera_step(params, previous[level], current[level], depths[level][0], scale)
-    motion = motion_field(params, depth, 1.0)
-    # doubt: where the fitted field does not carry the aux over (objects, disocclusions)
-    probe_motion = motion_field(params, probe_depth, PROBE_SCALE)
-    warped, inside = _warp(previous[0], probe_motion)
-    residual = np.abs(warped - current[0]).mean(0)[None]
-    size = 2 * DOUBT_WINDOW + 1
-    pad = np.pad(residual, ((0, 0), (DOUBT_WINDOW,) * 2, (DOUBT_WINDOW,) * 2), mode="edge")
-    local = sum(pad[:, i:i + residual.shape[1], j:j + residual.shape[2]]
-                for i in range(size) for j in range(size)) / size**2
-    bad = (local[0] > CAMERA_RESIDUAL_TOLERANCE) | ~inside
-    doubt = np.repeat(np.repeat(bad, PROBE_SCALE, 0), PROBE_SCALE, 1)[:height, :width]
-    return CameraMotion(params[:3].copy(), params[3:6].copy(), float(np.exp(params[6])),
-                        motion, doubt[None].astype(np.float32))
-
-
 def _epe(estimate: np.ndarray, truth: np.ndarray, where: np.ndarray) -> float:
     error = np.hypot(*(estimate - truth))[where]
     return float(np.median(error)) if error.size else float("nan")
@@ -336,23 +200,22 @@ def score_shot(folder: Path, spp: int, frames: int) -> list[dict]:
             _, height, width = truth.shape
             everywhere = np.ones((height, width), bool)
             flow = estimate_flow(previous, current, height, width)
-            camera = estimate_camera(previous, current, planes["depth"])
-            shipped = aux_motion.estimate(previous, current, height, width)
+            camera = aux_motion.estimate(previous, current, height, width, planes["depth"])
             row = {"shot": folder.name, "spp": spp, "frame": t,
                    "motion_px": float(np.median(np.hypot(*truth)))}
-            for name, est in (("flow", flow), ("camera", camera)):
-                trusted = est.doubt[0] < 0.5
-                row[name] = {"epe": _epe(est.motion, truth, everywhere),
-                             "epe_trusted": _epe(est.motion, truth, trusted),
-                             "trusted_share": est.trusted_share}
-            row["shipped"] = {"epe": _epe(shipped.estimate, truth, everywhere),
-                              "epe_trusted": _epe(shipped.estimate, truth, shipped.trusted),
-                              "trusted_share": shipped.share}
+            trusted = flow.doubt[0] < 0.5
+            row["flow"] = {"epe": _epe(flow.motion, truth, everywhere),
+                           "epe_trusted": _epe(flow.motion, truth, trusted),
+                           "trusted_share": flow.trusted_share}
+            if camera is not None:
+                row["camera"] = {"epe": _epe(camera.estimate, truth, everywhere),
+                                 "epe_trusted": _epe(camera.estimate, truth, camera.trusted),
+                                 "trusted_share": camera.share}
             rows.append(row)
             print(f"{folder.name} {spp} spp frame {t}: median motion {row['motion_px']:.2f} px; "
                   + "; ".join(f"{n} EPE {row[n]['epe']:.2f} px, {row[n]['epe_trusted']:.2f} on "
                               f"the {row[n]['trusted_share']:.0%} it trusts"
-                              for n in ("flow", "camera", "shipped")), flush=True)
+                              for n in ("flow", "camera") if n in row), flush=True)
         previous = current
     return rows
 

@@ -2,19 +2,20 @@
 motion blur on writes an all-zero `Vector`): a temporal model can then follow the picture
 instead of starting its history afresh on every frame of a moving shot.
 
-The estimate works on the motion probes the history gate already keeps (motion_evidence.probe:
-albedo luminance and the normal, 2×2 box-averaged; no lighting noise). It is a coarse-to-fine
-Lucas–Kanade flow (Lucas & Kanade 1981; Bouguet's pyramid): at each level of a box pyramid the
-previous probe is warped by the current estimate, and per pixel the increment that best explains
-the remaining difference over a (2r+1)² window is solved in closed form from the summed
-products of the mean image's gradients (the normal equations of D ≈ −G·Δv), with a small ridge
-so that flat windows stay where they are.
+The estimate is a rigid camera fitted by direct alignment (Gauss–Newton on the photometric
+error of the aux over a pyramid, Huber-weighted, as in direct visual odometry: Kerl, Sturm &
+Cremers 2013) to the motion probes the history gate already keeps (motion_evidence.probe:
+albedo luminance and the normal, 2×2 box-averaged; no lighting noise), the field then following
+from each pixel's own depth. A camera has six parameters, so the fit is not carried by noise
+from window to window the way a free optical flow is (a Lucas–Kanade flow on the same probes
+was 0.5–1.1 px off Cycles' vectors on a slow dolly, this fit 0.08–0.19 px: docs/zoo.md, "Motion
+from the aux"), and a history fetched half a pixel off costs more than it gains.
 
-Confidence per pixel: the previous probe warped by the final estimate must match the current
-probe within `TRUST_ERROR` (summed over the probe's channels, a 3×3 mean): a wrong vector fetches
-another surface's albedo or normal and fails it, as do disocclusions and a window that spans two
-motions. An untrusted pixel gets a vector that points outside the frame, which every temporal
-model reads as "no history here" (its per-frame stage).
+Confidence per pixel: the previous probe warped by the camera's field must match the current
+probe within TRUST_ERROR (mean |difference| over the probe's channels and a (2r+1)² window):
+an object that moves on its own, a disocclusion or a frame edge fails it. An untrusted pixel
+gets a vector that points outside the frame, which every temporal model reads as "no history
+here" (its per-frame stage). A frame without a depth buffer gets no estimate.
 """
 
 from __future__ import annotations
@@ -25,13 +26,17 @@ import numpy as np
 
 from quietframe.runtime.motion_evidence import PROBE_SCALE, _box
 
-WINDOW_RADIUS = 3  # probe pixels: a 7×7 window (14×14 frame pixels)
-ITERATIONS = 5  # per level
-FINEST_ITERATIONS = 1  # at the probe's own resolution, below a coarser level
-MIN_LEVEL_SIZE = 24  # probe pixels: the pyramid stops before a side gets shorter
-MAX_STEP = 1.0  # probe pixels an iteration may move an estimate (the linearisation's reach)
-RIDGE = 1e-5  # added to the normal equations' diagonal, per window pixel and channel
-TRUST_ERROR = 0.12  # summed |probe difference| after warping, 3×3 mean: above it, untrusted
+LEVELS = 4  # pyramid levels of the probe (the coarsest at 1/8 of its size)
+# Gauss–Newton steps per level, finest (the probe's own size) first: the camera is known well
+# at half the probe's size, and the finest level costs four times the next.
+ITERATIONS = (0, 4, 6, 8)
+HUBER = 0.005  # probe units: residuals beyond this weigh less (moving objects, mixed pixels)
+DAMPING = 1e-4  # Levenberg–Marquardt, relative to the normal matrix's diagonal
+# The focal length is not fitted: at first order the field sees only focal × rotation and
+# focal × translation / depth, and a free focal length runs off (to 140 000 px on a truck).
+FOV_DEG = 60.0
+TRUST_ERROR = 0.05  # mean |aux difference| after the fit over the window: above it, untrusted
+TRUST_RADIUS = 2  # probe pixels: the window's radius
 
 
 @dataclass(frozen=True)
@@ -39,86 +44,120 @@ class EstimatedMotion:
     motion: np.ndarray  # (2, H, W) float32 backward motion in frame pixels; untrusted: outside
     trusted: np.ndarray  # (H, W) bool
     share: float  # of the frame's pixels, those trusted
-    estimate: np.ndarray  # (2, H, W) the estimate everywhere, trusted or not
+    estimate: np.ndarray  # (2, H, W) the camera's field everywhere, trusted or not
 
 
-def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
-    """(..., H, W) -> the sum over each pixel's (2r+1)² window (edges: the part inside the
-    frame). Running sums along one axis at a time, in float64 (float32 ones lose the small
-    differences of large sums)."""
-    k = 2 * r + 1
-    pad = [(0, 0)] * (x.ndim - 2)
-    c = np.cumsum(np.pad(x, [*pad, (r + 1, r), (0, 0)]), axis=-2, dtype=np.float64)
-    rows = c[..., k:, :] - c[..., :-k, :]
-    c = np.cumsum(np.pad(rows, [*pad, (0, 0), (r + 1, r)]), axis=-1)
-    return (c[..., k:] - c[..., :-k]).astype(np.float32)
+def _rotation(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotation matrix of axis-angle w."""
+    angle = float(np.linalg.norm(w))
+    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]], np.float64)
+    if angle < 1e-12:
+        return np.eye(3) + k
+    k /= angle
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
-def warp(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
-    """(C, H, W) image fetched at p + flow(p), bilinear, coordinates clamped to the frame."""
+def motion_field(params: np.ndarray, depth: np.ndarray, focal: float) -> np.ndarray:
+    """(2, h, w) backward motion of an image with focal length `focal` (its pixels), for
+    params = (rotation 3, translation 3: previous camera = R · current + t) and ray depth."""
+    h, w = depth.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = (xs + 0.5 - w / 2) / focal, (ys + 0.5 - h / 2) / focal
+    z = depth / np.sqrt(x * x + y * y + 1)  # along the axis
+    moved = np.tensordot(_rotation(params[:3]), np.stack((x * z, y * z, z)), 1)
+    moved += params[3:6, None, None]
+    zp = np.maximum(moved[2], 1e-6)
+    return np.stack((focal * moved[0] / zp + w / 2 - (xs + 0.5),
+                     focal * moved[1] / zp + h / 2 - (ys + 0.5))).astype(np.float32)
+
+
+def warp(image: np.ndarray, flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(C, H, W) image fetched at p + flow(p), bilinear, coordinates clamped to the frame; and
+    where p + flow lies inside it."""
     _, h, w = image.shape
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
-    x = np.clip(xs + flow[0], 0, w - 1)
-    y = np.clip(ys + flow[1], 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(np.intp), w - 2) if w > 1 else np.zeros_like(x, np.intp)
-    y0 = np.minimum(np.floor(y).astype(np.intp), h - 2) if h > 1 else np.zeros_like(y, np.intp)
+    x, y = xs + flow[0], ys + flow[1]
+    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
+    x0 = np.minimum(np.floor(x).astype(np.intp), max(w - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.intp), max(h - 2, 0))
     fx, fy = x - x0, y - y0
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     top = image[:, y0, x0] * (1 - fx) + image[:, y0, x1] * fx
     bottom = image[:, y1, x0] * (1 - fx) + image[:, y1, x1] * fx
-    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+    return (top * (1 - fy) + bottom * fy).astype(np.float32), inside
 
 
-def _refine(previous: np.ndarray, current: np.ndarray, flow: np.ndarray,
-            iterations: int) -> np.ndarray:
-    """Lucas–Kanade steps of `flow` (2, h, w) at one level."""
-    area = (2 * WINDOW_RADIUS + 1) ** 2 * previous.shape[0]
-    for _ in range(iterations):
-        warped = warp(previous, flow)
-        mean = (warped + current) / 2
-        gy, gx = np.gradient(mean, axis=(1, 2))
-        d = warped - current  # want warped + G·Δ ≈ current: G·Δ = −d
-        products = np.stack([(a * b).sum(0) for a, b in
-                             ((gx, gx), (gy, gy), (gx, gy), (gx, d), (gy, d))])
-        sxx, syy, sxy, sxd, syd = _box_sum(products, WINDOW_RADIUS)
-        sxx, syy = sxx + RIDGE * area, syy + RIDGE * area
-        det = sxx * syy - sxy * sxy
-        du = -(syy * sxd - sxy * syd) / det
-        dv = -(sxx * syd - sxy * sxd) / det
-        flow = flow + np.clip(np.stack((du, dv)), -MAX_STEP, MAX_STEP)
-    return flow
+def _step(params: np.ndarray, previous: np.ndarray, current: np.ndarray, depth: np.ndarray,
+          focal: float) -> np.ndarray:
+    """One Levenberg–Marquardt update of the six parameters at one pyramid level."""
+    motion = motion_field(params, depth, focal)
+    warped, inside = warp(previous, motion)
+    residual = warped - current  # (C, h, w)
+    gy, gx = np.gradient(warped, axis=(1, 2))
+    jac = []
+    for k in range(6):  # d motion / d param by central differences (smooth in the params)
+        e = np.zeros(6)
+        e[k] = 1e-4
+        dm = (motion_field(params + e, depth, focal) - motion_field(params - e, depth, focal))
+        dm /= 2e-4
+        jac.append(gx * dm[0] + gy * dm[1])  # (C, h, w): d residual / d param
+    j = np.stack(jac, -1)[:, inside]  # (C, n, 6)
+    r = residual[:, inside]  # (C, n)
+    a = np.abs(r)
+    weight = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+    jw = j * weight[..., None]
+    normal = np.einsum("cnk,cnl->kl", jw, j)
+    normal += DAMPING * np.diag(np.diag(normal)) + 1e-12 * np.eye(6)
+    return params - np.linalg.solve(normal, np.einsum("cnk,cn->k", jw, r))
 
 
-def probe_flow(previous: np.ndarray, current: np.ndarray) -> np.ndarray:
-    """Backward flow (2, h, w) between two probes of one size, in probe pixels."""
-    pyramid = [(previous, current)]
-    while min(pyramid[-1][1].shape[1:]) >= 2 * MIN_LEVEL_SIZE:
-        p, c = pyramid[-1]
-        pyramid.append((_box(p, 2), _box(c, 2)))
-    flow = np.zeros((2, *pyramid[-1][1].shape[1:]), np.float32)
-    for level, (p, c) in enumerate(reversed(pyramid)):
-        if level:  # up from the coarser level: twice the vectors, on twice the pixels
-            h, w = c.shape[1:]
-            flow = 2 * np.repeat(np.repeat(flow, 2, axis=1), 2, axis=2)[:, :h, :w]
-        # the probe's own level (a quarter of the pyramid's cost each) gets one step where a
-        # coarser level found the motion already
-        finest = level == len(pyramid) - 1 and len(pyramid) > 1
-        flow = _refine(p, c, flow, FINEST_ITERATIONS if finest else ITERATIONS)
-    return flow
+def _pyramid(x: np.ndarray) -> list[np.ndarray]:
+    out = [x]
+    while len(out) < LEVELS and min(out[-1].shape[1:]) >= 16:
+        out.append(_box(out[-1], 2))
+    return out
 
 
-def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int
-             ) -> EstimatedMotion:
+def _ray_depth(depth: np.ndarray) -> np.ndarray | None:
+    """(H, W) depth with the sky and missing values put far away; None without finite depth."""
+    depth = np.asarray(depth, np.float32).reshape(depth.shape[-2:])
+    finite = np.isfinite(depth) & (depth > 0)
+    if not finite.any():
+        return None
+    far = float(np.percentile(depth[finite], 99))
+    return np.where(finite, np.minimum(depth, 1e3 * max(far, 1e-3)), far).astype(np.float32)
+
+
+def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
+             depth: np.ndarray | None) -> EstimatedMotion | None:
     """Backward motion of an H×W frame from the previous frame's probe and its own (probes of
-    one shape: motion_evidence.probe), with its per-pixel trust (module docstring)."""
-    flow = probe_flow(previous, current)
-    error = np.abs(warp(previous, flow) - current).sum(0)
-    error = _box_sum(error, 1) / _box_sum(np.ones_like(error), 1)
-    trusted_probe = error <= TRUST_ERROR
-    up = np.repeat(np.repeat(flow, PROBE_SCALE, axis=1), PROBE_SCALE, axis=2)[:, :height, :width]
-    trusted = np.repeat(np.repeat(trusted_probe, PROBE_SCALE, 0), PROBE_SCALE, 1)[:height, :width]
-    everywhere = (PROBE_SCALE * up).astype(np.float32)
-    motion = everywhere.copy()
+    one shape: motion_evidence.probe) and its ray depth (1, H, W); None without a usable depth.
+    Per-pixel trust: module docstring."""
+    depth = _ray_depth(depth) if depth is not None else None
+    if depth is None:
+        return None
+    # Averaged as inverse depth: motion goes with 1/depth, so a probe pixel of a thin post and
+    # the sky behind it moves as the mean of their motions (a plain mean would put it far off)
+    probe_depth = 1 / _box(1 / depth[None], PROBE_SCALE)[0]
+    depths = [1 / d[0] for d in _pyramid(1 / probe_depth[None])]
+    previous_levels, current_levels = _pyramid(previous), _pyramid(current)
+    focal = width / (2 * np.tan(np.radians(FOV_DEG) / 2))  # frame pixels
+    params = np.zeros(6)
+    for level in reversed(range(min(len(previous_levels), len(depths)))):
+        for _ in range(ITERATIONS[min(level, len(ITERATIONS) - 1)]):
+            params = _step(params, previous_levels[level], current_levels[level],
+                           depths[level], focal / (PROBE_SCALE * 2**level))
+    field = motion_field(params, depth, focal)
+    warped, inside = warp(previous, motion_field(params, probe_depth, focal / PROBE_SCALE))
+    error = np.abs(warped - current).mean(0)
+    k = 2 * TRUST_RADIUS + 1
+    padded = np.pad(error, TRUST_RADIUS, mode="edge")
+    local = sum(padded[i:i + error.shape[0], j:j + error.shape[1]]
+                for i in range(k) for j in range(k)) / k**2
+    good = (local <= TRUST_ERROR) & inside
+    trusted = np.repeat(np.repeat(good, PROBE_SCALE, 0), PROBE_SCALE, 1)[:height, :width]
+    motion = field.copy()
     motion[0][~trusted] = 4.0 * (height + width)  # outside the frame: no history here
     motion[1][~trusted] = 0.0
-    return EstimatedMotion(motion, trusted, float(trusted.mean()), everywhere)
+    return EstimatedMotion(motion, trusted, float(trusted.mean()), field)

@@ -116,12 +116,15 @@ class Stream:
             # A moving frame without vectors: follow the motion the aux show where it is
             # trusted, the per-frame stage elsewhere (aux_motion), instead of a fresh history.
             h, w = planes["color"].shape[-2:]
-            estimated = aux_motion.estimate(state[PROBE_STATE], gate.probe, h, w)
-            # a camera switch moves "everything": the aux along the estimate show it as a cut
-            cut = judge_cut(state[PROBE_STATE], gate.probe, estimated.estimate)
+            estimated = aux_motion.estimate(state[PROBE_STATE], gate.probe, h, w,
+                                            planes.get("depth"))
+            # A camera switch moves "everything": the aux along the estimate show it as a cut.
+            # Without a depth there is no estimate: a fresh history, as with rendered-only.
+            cut = (judge_cut(state[PROBE_STATE], gate.probe, estimated.estimate)
+                   if estimated is not None else None)
             if cut is not None:
                 gate, estimated = HistoryGate(None, gate.probe, cut, True), None
-            else:
+            elif estimated is not None:
                 planes = {**planes, "motion": estimated.motion}
                 history = {k: v for k, v in state.items() if k != PROBE_STATE}
                 gate = HistoryGate(history, gate.probe, gate.evidence, False)

@@ -1,7 +1,7 @@
-"""Motion estimated from the aux (runtime/aux_motion.py): it finds known shifts of real Cycles
-aux, the motion of a real motion-blurred pan whose renderer wrote no vectors, zero on a
+"""Motion estimated from the aux (runtime/aux_motion.py): it finds a known camera move of real
+Cycles aux, the motion of a real motion-blurred pan whose renderer wrote no vectors, zero on a
 locked-off shot, and marks what it cannot trust so that no history is read there; a camera
-switch along the estimate is a cut."""
+switch along the estimate is a cut, and a frame without depth gets no estimate."""
 
 from __future__ import annotations
 
@@ -30,33 +30,46 @@ def aux(name: str, t: int) -> dict[str, np.ndarray]:
 
         normal = np.stack([np.asarray(channels[f"ViewLayer.Denoising Normal.{c}"].pixels,
                                       np.float32) for c in "XYZ"])
+        depth = np.asarray(channels["ViewLayer.Denoising Depth.Z"].pixels, np.float32)[None]
         return {"color": plane("Combined"), "albedo": plane("Denoising Albedo"),
-                "normal": normal}
+                "normal": normal, "depth": depth}
 
 
-@pytest.mark.parametrize("shift", [(0.5, 0.0), (1.5, 0.3), (-2.2, 1.0)])
-def test_a_known_shift_of_real_aux_is_found_to_a_tenth_of_a_pixel(shift):
-    previous = probe(aux("locked_off", 3))
-    flow = np.zeros((2, *previous.shape[1:]), np.float32)
-    flow[0], flow[1] = shift
-    current = am.warp(previous, flow)  # current(p) = previous(p + shift): backward motion
-    found = am.probe_flow(previous, current)[:, 4:-4, 4:-4]  # away from the clamped border
-    np.testing.assert_allclose(np.median(found, axis=(1, 2)), shift, atol=0.1)
+@pytest.mark.parametrize("params", [(0.0, 0.004, 0.0, 0.0, 0.0, 0.0),
+                                    (0.0, 0.0, 0.0, 0.02, 0.0, -0.05),
+                                    (0.002, -0.003, 0.001, 0.0, 0.01, 0.03)])
+def test_a_known_camera_move_of_real_aux_is_found_to_a_tenth_of_a_pixel(params):
+    """The previous frame's probe carried by a known rotation and translation (its own depth)
+    is the current one: the fitted field matches the true one where it is trusted."""
+    planes = aux("locked_off", 3)
+    previous = probe(planes)
+    _, h, w = planes["color"].shape
+    focal = w / (2 * np.tan(np.radians(am.FOV_DEG) / 2))
+    depth = am._ray_depth(planes["depth"])
+    probe_depth = 1 / am._box(1 / depth[None], 2)[0]
+    truth = am.motion_field(np.array(params), probe_depth, focal / 2)
+    current, _ = am.warp(previous, truth)  # current(p) = previous(p + m): backward motion m
+    estimated = am.estimate(previous, current, h, w, planes["depth"])
+    full_truth = am.motion_field(np.array(params), depth, focal)
+    error = np.hypot(*(estimated.estimate - full_truth))[estimated.trusted]
+    assert estimated.share > 0.8 and np.median(error) < 0.1, (estimated.share, np.median(error))
 
 
 def test_a_motion_blurred_pan_without_vectors_moves_three_pixels_a_frame():
     for t in range(2, 7):
         previous, current = probe(aux("motion_blur", t - 1)), probe(aux("motion_blur", t))
-        estimated = am.estimate(previous, current, 72, 128)
+        estimated = am.estimate(previous, current, 72, 128, aux("motion_blur", t)["depth"])
         assert estimated.share > 0.75, (t, estimated.share)
         vx, vy = np.median(estimated.motion[:, estimated.trusted], axis=1)
-        assert abs(abs(vx) - PAN_PX) < 0.2 and abs(vy) < 0.2, (t, vx, vy)
+        # a pan about the vertical axis, keyed at 3 px a frame: sideways, ~0 vertically (no
+        # vectors to compare with under motion blur: the zoo's twin shots measure the error)
+        assert abs(abs(vx) - PAN_PX) < 0.5 and abs(vy) < 0.25, (t, vx, vy)
 
 
 def test_a_locked_off_shot_stays_put():
     for t in range(2, 7):
         estimated = am.estimate(probe(aux("locked_off", t - 1)), probe(aux("locked_off", t)),
-                                72, 128)
+                                72, 128, aux("locked_off", t)["depth"])
         assert estimated.share > 0.9
         assert np.abs(np.median(estimated.motion[:, estimated.trusted], axis=1)).max() < 0.1
 
@@ -64,7 +77,7 @@ def test_a_locked_off_shot_stays_put():
 def test_untrusted_pixels_point_outside_the_frame_and_trusted_ones_inside():
     previous, current = probe(aux("motion_blur", 2)), probe(aux("motion_blur", 3))
     current[:, 10:20, 20:40] = 0.5  # a patch the previous frame never showed
-    estimated = am.estimate(previous, current, 72, 128)
+    estimated = am.estimate(previous, current, 72, 128, aux("motion_blur", 3)["depth"])
     assert not estimated.trusted[22:38, 42:78].any()
     outside = estimated.motion[0][~estimated.trusted] + np.arange(128)[None].repeat(72, 0)[
         ~estimated.trusted]
@@ -108,3 +121,7 @@ def test_the_stream_follows_the_estimate_and_starts_afresh_at_a_switch_of_camera
     off = Stream(model, motion="rendered-only")  # type: ignore[arg-type]
     dropped = off.step(aux("motion_blur", 2), first.state)
     assert dropped.history_verdict == "moving" and dropped.estimated is None
+    no_depth = {k: v for k, v in aux("motion_blur", 2).items() if k != "depth"}
+    assert am.estimate(first.state[PROBE_STATE], probe(no_depth), 72, 128, None) is None
+    without = stream.step(no_depth, first.state)  # nothing to estimate with: a fresh history
+    assert without.history_verdict == "moving" and without.estimated is None
