@@ -5,7 +5,8 @@ interleaved in one run.
 
 Each round times one frame of the model through the runtime's per-sequence step (its history
 carried, OIDN's filters kept: a session's frame) and the estimate of that frame's motion from
-its aux and the previous frame's (runtime/aux_motion.estimate on the probes the gate keeps), on
+its aux and depth and the previous frame's (runtime/aux_motion.estimate on the probes the gate
+keeps: a fixed number of fitting steps, so its cost does not depend on the content), on
 synthetic 1920×1080 buffers (bench/synthetic.py). The figure is the median over rounds of the
 estimate's time over the frame's in the same round (wall and CPU); on a shared machine read the
 ratios, not the milliseconds.
@@ -40,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     state = stream.step(previous, None).state
     probes = probe(previous), probe(current)
     runs = {"frame": lambda: stream.step(current, state),
-            "estimate": lambda: aux_motion.estimate(*probes, HEIGHT, WIDTH)}
+            "estimate": lambda: aux_motion.estimate(*probes, HEIGHT, WIDTH, current["depth"])}
     wall: dict[str, list[float]] = {k: [] for k in runs}
     cpu: dict[str, list[float]] = {k: [] for k in runs}
     for r in range(args.rounds):
