@@ -37,6 +37,12 @@ DAMPING = 1e-4  # Levenberg–Marquardt, relative to the normal matrix's diagona
 FOV_DEG = 60.0
 TRUST_ERROR = 0.05  # mean |aux difference| after the fit over the window: above it, untrusted
 TRUST_RADIUS = 2  # probe pixels: the window's radius
+# Memory: the fit runs only on levels of at most FIT_PIXELS (a camera has six parameters), the
+# trust check on the first level of at most TRUST_PIXELS (a 4K frame's probe), and the frame's
+# field in bands of BAND_ROWS rows, so an 8K frame holds tens of MB here, not gigabytes.
+FIT_PIXELS = 300_000
+TRUST_PIXELS = 1920 * 1080
+BAND_ROWS = 64
 
 
 @dataclass(frozen=True)
@@ -45,6 +51,16 @@ class EstimatedMotion:
     trusted: np.ndarray  # (H, W) bool
     share: float  # of the frame's pixels, those trusted
     estimate: np.ndarray  # (2, H, W) the camera's field everywhere, trusted or not
+
+
+def working_set_bytes(height: int, width: int) -> int:
+    """About the most an estimate holds for an H×W frame: its two fields and trust mask
+    (17 B a pixel), the probe pyramid's depths, one band's float64 temporaries, and a fitting
+    step's Jacobian and weights (~400 B a pixel of the largest level it fits on)."""
+    probe_pixels = -(-height // PROBE_SCALE) * -(-width // PROBE_SCALE)
+    band = 16 * 8 * min(BAND_ROWS, height) * width
+    return (17 * height * width + 12 * probe_pixels + band
+            + 400 * min(probe_pixels // 4, FIT_PIXELS))
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
@@ -59,16 +75,28 @@ def _rotation(w: np.ndarray) -> np.ndarray:
 
 def motion_field(params: np.ndarray, depth: np.ndarray, focal: float) -> np.ndarray:
     """(2, h, w) backward motion of an image with focal length `focal` (its pixels), for
-    params = (rotation 3, translation 3: previous camera = R · current + t) and ray depth."""
+    params = (rotation 3, translation 3: previous camera = R · current + t) and ray depth;
+    computed in bands of BAND_ROWS rows (float64 temporaries of one band at a time)."""
     h, w = depth.shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    x, y = (xs + 0.5 - w / 2) / focal, (ys + 0.5 - h / 2) / focal
+    out = np.empty((2, h, w), np.float32)
+    for top in range(0, h, BAND_ROWS):
+        rows = slice(top, min(top + BAND_ROWS, h))
+        out[:, rows] = _field_rows(params, depth[rows], focal, top, h)
+    return out
+
+
+def _field_rows(params: np.ndarray, depth: np.ndarray, focal: float, top: int,
+                height: int) -> np.ndarray:
+    """motion_field's rows top … top + len(depth) of an image `height` rows tall."""
+    h, w = depth.shape
+    ys, xs = np.mgrid[top:top + h, 0:w].astype(np.float64)
+    x, y = (xs + 0.5 - w / 2) / focal, (ys + 0.5 - height / 2) / focal
     z = depth / np.sqrt(x * x + y * y + 1)  # along the axis
     moved = np.tensordot(_rotation(params[:3]), np.stack((x * z, y * z, z)), 1)
     moved += params[3:6, None, None]
     zp = np.maximum(moved[2], 1e-6)
     return np.stack((focal * moved[0] / zp + w / 2 - (xs + 0.5),
-                     focal * moved[1] / zp + h / 2 - (ys + 0.5))).astype(np.float32)
+                     focal * moved[1] / zp + height / 2 - (ys + 0.5))).astype(np.float32)
 
 
 def warp(image: np.ndarray, flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,19 +172,26 @@ def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
     previous_levels, current_levels = _pyramid(previous), _pyramid(current)
     focal = width / (2 * np.tan(np.radians(FOV_DEG) / 2))  # frame pixels
     params = np.zeros(6)
-    for level in reversed(range(min(len(previous_levels), len(depths)))):
+    levels = min(len(previous_levels), len(depths))
+    for level in reversed(range(levels)):
+        if depths[level].size > FIT_PIXELS:
+            continue  # the camera is known from the coarser levels
         for _ in range(ITERATIONS[min(level, len(ITERATIONS) - 1)]):
             params = _step(params, previous_levels[level], current_levels[level],
                            depths[level], focal / (PROBE_SCALE * 2**level))
     field = motion_field(params, depth, focal)
-    warped, inside = warp(previous, motion_field(params, probe_depth, focal / PROBE_SCALE))
-    error = np.abs(warped - current).mean(0)
+    # the trust check on the probe (or, for frames beyond 4K, the first level that fits)
+    level = next((i for i in range(levels) if depths[i].size <= TRUST_PIXELS), levels - 1)
+    scale = PROBE_SCALE * 2**level
+    warped, inside = warp(previous_levels[level],
+                          motion_field(params, depths[level], focal / scale))
+    error = np.abs(warped - current_levels[level]).mean(0)
     k = 2 * TRUST_RADIUS + 1
     padded = np.pad(error, TRUST_RADIUS, mode="edge")
     local = sum(padded[i:i + error.shape[0], j:j + error.shape[1]]
                 for i in range(k) for j in range(k)) / k**2
     good = (local <= TRUST_ERROR) & inside
-    trusted = np.repeat(np.repeat(good, PROBE_SCALE, 0), PROBE_SCALE, 1)[:height, :width]
+    trusted = np.repeat(np.repeat(good, scale, 0), scale, 1)[:height, :width]
     motion = field.copy()
     motion[0][~trusted] = 4.0 * (height + width)  # outside the frame: no history here
     motion[1][~trusted] = 0.0

@@ -20,7 +20,7 @@ import contextlib
 import time
 from collections.abc import Iterable, Iterator
 
-from quietframe.runtime import Denoiser
+from quietframe.runtime import Denoiser, aux_motion
 from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.service.errors import FrameOverMemoryBudget, MemoryBusy, TooManyUploads
 from quietframe.service.frames import ExrHeader
@@ -32,10 +32,13 @@ _SLACK_BYTES = 1 << 20  # decoder chunk buffers, Python objects, response framin
 
 def model_working_set(denoiser: Denoiser, height: int, width: int) -> int:
     """Bytes a model holds while denoising one height x width frame, beside the frame's
-    buffers: its working set (the runtime's estimate: graph tiles, OIDN's filters and scratch)
-    and its new state (the old one is in the history budget)."""
+    buffers: its working set (the runtime's estimate: graph tiles, OIDN's filters and scratch),
+    its new state (the old one is in the history budget) and, for a temporal model, motion
+    estimated from the aux (runtime/aux_motion.py)."""
+    temporal = bool(denoiser.info.state_specs)  # may estimate motion from the aux
     return (denoiser.working_set_bytes(height, width)
-            + history_nbytes(denoiser.info.state_specs, height, width))
+            + history_nbytes(denoiser.info.state_specs, height, width)
+            + (aux_motion.working_set_bytes(height, width) if temporal else 0))
 
 
 # Memory one EXR part holds beyond its pixels while the frame is decoded and its reply written
