@@ -26,7 +26,7 @@ session ends). A call without filters (a single frame, a tool) builds them for t
 calling thread's device and releases them after it. OIDN serialises the calls on one device, so
 one sequence's frames may run on any worker thread, one at a time. Memory: OIDN tiles large
 images itself (its own alignment and overlap) to fit its `maxMemoryMB`, which the runtime sets
-from its one memory bound (`scratch_mb`). pyoidn binds numpy memory zero-copy without keeping it
+from its one memory bound (`scratch_bytes`). pyoidn binds numpy memory zero-copy without keeping it
 alive: every bound array is held by the filter set that binds it, frames are copied into those
 arrays, and filters are released before their arrays.
 

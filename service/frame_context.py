@@ -18,7 +18,6 @@ from quietframe.client.session_fields import AUTO
 from quietframe.runtime import BUFFER_NAMES, ModelInfo
 from quietframe.runtime.usable_buffers import unusable_buffers
 from quietframe.service import frames
-from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_evidence import renderer_from_header, stated_samples
 from quietframe.service.noise_estimate import NoiseLevel
 from quietframe.service.session_spec import SessionSpec
@@ -43,13 +42,6 @@ class FrameContext:
         first frame), and the chosen model's history follows the aux's evidence frame by frame
         (runtime/motion_evidence.py)."""
         return [b for b in self.sources if b not in self.unusable or b == "motion"]
-
-    def samples(self, choice: Choice | None) -> float | None:
-        """The frame's spp for a model that takes it: the stated count, else (model=auto) the
-        shot's estimate, else None (the model's default)."""
-        if self.stated is not None:
-            return self.stated.spp
-        return choice.spp if choice is not None else None
 
     def decode(self, body: bytes | bytearray) -> FrameContext:
         """With its pixels (worker pool): every buffer of `sources`; those that hold nothing
