@@ -1,6 +1,7 @@
 """The farm examples in docs/farm.md run as written: the Flamenco job type (compiled with node,
 Flamenco's `author` and `frameChunker` stubbed) and the Deadline CommandLine plugin files (cut
-into chunks as Deadline does), each task's command line against a real server."""
+into chunks as Deadline does), each task's command run as the farm runs it (retry_on_75.py around
+the client, the node's paths mapped to this checkout's) against a real server."""
 
 from __future__ import annotations
 
@@ -15,8 +16,13 @@ from pathlib import Path
 import pytest
 from conftest import shot
 
-DOC = (Path(__file__).resolve().parents[2] / "docs" / "farm.md").read_text()
-CLI = [sys.executable, "-m", "quietframe.client.cli"]
+ROOT = Path(__file__).resolve().parents[2]
+DOC = (ROOT / "docs" / "farm.md").read_text()
+# The docs' paths on a farm node -> this checkout's: Python, the wrapper, the installed client.
+CLIENT = str(Path(sys.executable).with_name("quietframe"))
+NODE_PATHS = {"python3": sys.executable, "/usr/bin/python3": sys.executable,
+              "/opt/quietframe/bin/retry_on_75.py": str(ROOT / "deploy/farm/retry_on_75.py"),
+              "quietframe": CLIENT, "/opt/quietframe/bin/quietframe": CLIENT}
 
 FLAMENCO_STUBS = """
 function frameChunker(frames, size) {  // Flamenco's: "1001-1006", 4 -> ["1001-1004", ...]
@@ -49,8 +55,14 @@ def write_shot(folder: Path, n: int) -> None:
 
 
 def run(args: list[str]) -> subprocess.CompletedProcess:
-    assert args[0].endswith("quietframe"), args[0]
-    return subprocess.run([*CLI, *args[1:]], capture_output=True, text=True, timeout=120)
+    """A task's command as the farm runs it: `python3 retry_on_75.py -- quietframe denoise ...`
+    (every example puts the wrapper around the client), the node's paths mapped to this
+    checkout's."""
+    assert args[:2] == ["python3", "/opt/quietframe/bin/retry_on_75.py"] or args[:2] == [
+        "/usr/bin/python3", "/opt/quietframe/bin/retry_on_75.py"], args[:3]
+    assert args[2] == "--" and args[3].endswith("quietframe") and args[4] == "denoise", args
+    command = [NODE_PATHS.get(arg, arg) if i < 4 else arg for i, arg in enumerate(args)]
+    return subprocess.run(command, capture_output=True, text=True, timeout=120)
 
 
 def test_flamenco_job_type_compiles_and_its_tasks_run(tmp_path, live_server):
@@ -71,6 +83,7 @@ def test_flamenco_job_type_compiles_and_its_tasks_run(tmp_path, live_server):
     assert [t["name"] for t in tasks] == ["denoise-1001-1003", "denoise-1004-1006"]
     for task in tasks:
         (command,) = task["commands"]
+        assert command["kind"] == "exec"
         result = run([command["exe"], *command["args"]])
         assert result.returncode == 0, result.stderr
     assert len(list((tmp_path / "denoised").glob("*.exr"))) == 6
@@ -82,6 +95,9 @@ def test_deadline_command_line_runs_per_chunk(tmp_path, live_server):
     plugin = dict(line.split("=", 1)
                   for line in block("ini", "# quietframe_plugin.txt").splitlines() if "=" in line)
     assert job["Plugin"] == "CommandLine"
+    # a task failing 2/3 (ended at once by the wrapper) fails after a few errors
+    assert job["OverrideTaskFailureDetection"] == "true"
+    assert int(job["FailureDetectionTaskErrors"]) > 0
     write_shot(tmp_path / "render", 6)
     first, size = 1001, 3  # the doc's Frames/ChunkSize, scaled down to a 6-frame test shot
     arguments = plugin["Arguments"].replace("http://denoise:8000", live_server.url)

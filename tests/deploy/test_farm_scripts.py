@@ -1,9 +1,11 @@
 """The render-and-denoise farm submissions in deploy/farm/: the Flamenco job type compiled with
-node against a stand-in for Flamenco's job-author API (written from its public documentation:
-`author.Task`, `author.Command`, `task.addCommand`, `task.addDependency`, `job.addTask`,
-`frameChunker`), its denoise commands run against a real server once their renders are done;
-and the Deadline submission script's job files, written (--write-only) and submitted through a
-stand-in deadlinecommand."""
+node against a stand-in for Flamenco's job-author API (written from its documentation and its
+3.8+ sources: `author.Task`, `author.Command(name, parameters, totalStepCount)`,
+`task.addCommand`, `task.addDependency`, `job.addTask`, `frameChunker`, `frameCount`), its
+denoise commands run as the Worker runs them (retry_on_75.py around the client) against a real
+server once their renders are done; and the Deadline submission script's job files, written
+(--write-only) and submitted through a stand-in deadlinecommand, their command line run per
+chunk as the CommandLine plugin runs it."""
 
 from __future__ import annotations
 
@@ -16,8 +18,6 @@ from pathlib import Path
 
 import pytest
 from conftest import shot
-
-from quietframe.client.cli import main
 
 FARM = Path(__file__).resolve().parents[2] / "deploy" / "farm"
 FLAMENCO_SCRIPT = FARM / "flamenco" / "quietframe_render_denoise.js"
@@ -60,16 +60,32 @@ const author = {
     addCommand(command) { this.commands.push(command); },
     addDependency(task) { this.dependencies.push(task.name); },
   }),
-  Command: (name, parameters) => ({ name, parameters }),
+  // A Manager before 3.8 ignores the third argument (its JavaScript engine drops extra ones).
+  Command: (name, parameters, totalStepCount) => ({ name, parameters,
+                                                    steps: totalStepCount || 0 }),
 };
 """
+# Flamenco 3.8's frameCount: the frames of a chunk as frameChunker writes it.
+FRAME_COUNT = """
+function frameCount(chunk) {
+  let count = 0;
+  for (const part of chunk.split(",")) {
+    const [a, b] = part.includes("..") ? part.split("..") : part.split("-");
+    count += b === undefined ? 1 : Number(b) - Number(a) + 1;
+  }
+  return count;
+}
+"""
+RETRY_WRAPPER = FARM / "retry_on_75.py"
+QUIETFRAME = Path(sys.executable).with_name("quietframe")  # the client, as installed
 
 
-def compile_flamenco_job(settings: dict) -> list[dict]:
+def compile_flamenco_job(settings: dict, manager_3_8: bool = True) -> list[dict]:
     node = shutil.which("node")
     if node is None:
         pytest.skip("node is not installed")
-    script = (FLAMENCO_STAND_IN + FLAMENCO_SCRIPT.read_text()
+    script = (FLAMENCO_STAND_IN + (FRAME_COUNT if manager_3_8 else "")
+              + FLAMENCO_SCRIPT.read_text()
               + f"\nconst job = {{ settings: {json.dumps(settings)}, tasks: [],"
               " addTask(t) { this.tasks.push(t); } };\n"
               "compileJob(job); console.log(JSON.stringify(job.tasks));")
@@ -82,7 +98,9 @@ def flamenco_settings(tmp_path: Path, server_url: str, **overrides) -> dict:
     return {"frames": "1001-1010", "chunk_size": 4, "pre_roll": 2, "model": "nbg-2l-3g",
             "render_output": str(tmp_path / "render" / "sh010.####.exr"),
             "denoised_output": str(tmp_path / "denoised"), "server": server_url,
-            "quietframe": "quietframe", "blendfile": "/shots/sh010/sh010.blend", **overrides}
+            "quietframe": "quietframe", "retry_wrapper": "/opt/quietframe/bin/retry_on_75.py",
+            "python": "python3", "blendfile": "/shots/sh010/sh010.blend", "scene": "sh010_lit",
+            **overrides}
 
 
 def test_flamenco_denoise_tasks_wait_for_their_renders_and_run_strict(tmp_path):
@@ -100,22 +118,67 @@ def test_flamenco_denoise_tasks_wait_for_their_renders_and_run_strict(tmp_path):
     (render,) = by_name["render-1005-1008"]["commands"]
     assert render["name"] == "blender-render" and by_name["render-1005-1008"]["type"] == "blender"
     assert render["parameters"]["args"][-2:] == ["--render-frame", "1005..1008"]
-    assert render["parameters"]["args"][1].endswith("sh010.####")  # Blender adds .exr
     for task in tasks:
         if task["name"].startswith("denoise-"):
             (command,) = task["commands"]
-            assert command["name"] == "exec" and "--strict" in command["parameters"]["args"]
+            assert command["name"] == "exec" and command["steps"] == 0  # one step: the command
+            # python3 retry_on_75.py -- quietframe denoise ...: 75 retried in place, 2/3 at once
+            assert command["parameters"]["exe"] == "python3"
+            wrapper, separator, client, *args = command["parameters"]["args"]
+            assert (wrapper, separator, client) == ("/opt/quietframe/bin/retry_on_75.py", "--",
+                                                    "quietframe")
+            assert args[0] == "denoise" and "--strict" in args
             chunk = task["name"].removeprefix("denoise-")
-            args = command["parameters"]["args"]
             assert args[args.index("--frames") + 1] == chunk
             assert args[args.index("--cut") + 1] == "1001"  # the job's first frame: no pre-roll
 
 
+def test_flamenco_render_tasks_set_what_flamencos_own_job_type_sets(tmp_path):
+    """The scene evaluated at submission, the file extension forced on (the output pattern has
+    none), no placeholders; frames as the render command's steps on a 3.8+ Manager."""
+    tasks = compile_flamenco_job(flamenco_settings(tmp_path, "http://denoise:8000"))
+    renders = [t for t in tasks if t["type"] == "blender"]
+    for task in renders:
+        (render,) = task["commands"]
+        args = render["parameters"]["args"]
+        assert args[:2] == ["--scene", "sh010_lit"]  # before anything it applies to
+        settings = args[args.index("--python-expr") + 1]
+        assert "render.use_file_extension = True" in settings
+        assert "render.use_placeholder = False" in settings
+        assert args.index("--python-expr") < args.index("--render-frame")
+        assert args[args.index("--render-output") + 1].endswith("sh010.####")  # Blender adds .exr
+    assert [t["commands"][0]["steps"] for t in renders] == [4, 4, 2]  # 1001-1004, ..., 1009,1010
+    older = compile_flamenco_job(flamenco_settings(tmp_path, "http://denoise:8000"),
+                                 manager_3_8=False)  # no frameCount: compiles, without steps
+    assert [t["commands"][0]["steps"] for t in older if t["type"] == "blender"] == [0, 0, 0]
+
+
+def test_flamenco_job_type_states_the_version_it_needs():
+    header = FLAMENCO_SCRIPT.read_text().split("const JOB_TYPE")[0]
+    assert "Needs Flamenco 3.3 or newer (the `exec` command" in header
+    assert "restart" in header and "3.7" in header  # when the Manager reads scripts/ again
+
+
+def test_flamenco_without_a_retry_wrapper_runs_the_client_directly(tmp_path):
+    tasks = compile_flamenco_job(flamenco_settings(tmp_path, "http://denoise:8000",
+                                                   retry_wrapper=""))
+    (command,) = next(t for t in tasks if t["type"] == "misc")["commands"]
+    assert command["parameters"]["exe"] == "quietframe"
+    assert command["parameters"]["args"][0] == "denoise"
+
+
+def run_exec(parameters: dict) -> subprocess.CompletedProcess:
+    """Flamenco's `exec`: the executable run directly with its arguments, no shell."""
+    return subprocess.run([parameters["exe"], *parameters["args"]], capture_output=True,
+                          text=True, timeout=120)
+
+
 def test_flamenco_tasks_run_in_dependency_order_against_a_server(tmp_path, live_server):
     """Render tasks stand in by writing their chunk's frames; each denoise task runs once its
-    dependencies are done, through the real CLI."""
-    tasks = compile_flamenco_job(flamenco_settings(tmp_path, live_server.url, frames="1001..1006",
-                                                   chunk_size=3))
+    dependencies are done, as the Worker runs it: retry_on_75.py around the installed client."""
+    tasks = compile_flamenco_job(flamenco_settings(
+        tmp_path, live_server.url, frames="1001..1006", chunk_size=3, python=sys.executable,
+        retry_wrapper=str(RETRY_WRAPPER), quietframe=str(QUIETFRAME)))
     frames = shot(6, "blender")
     (tmp_path / "render").mkdir()
     done: set[str] = set()
@@ -127,7 +190,9 @@ def test_flamenco_tasks_run_in_dependency_order_against_a_server(tmp_path, live_
             for frame in range(int(first), int(last) + 1):
                 (tmp_path / "render" / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
         else:
-            assert main([*command["parameters"]["args"], "--quiet"]) == 0, task["name"]
+            result = run_exec(command["parameters"])
+            assert result.returncode == 0, result.stderr
+            assert result.stdout.count(" done [") == 3  # the task log: one line per frame
         done.add(task["name"])
     assert len(list((tmp_path / "denoised").glob("*.exr"))) == 6
 
@@ -165,6 +230,24 @@ def test_deadline_write_only_writes_a_frame_dependent_denoise_job(tmp_path):
     assert arguments[arguments.index("--pre-roll") + 1] == "4"
     assert arguments[arguments.index("--cut") + 1] == "1001"
     assert result.stdout.count("deadlinecommand ") == 2
+    # python3 retry_on_75.py -- quietframe denoise ...: 75 retried in place, 2/3 end the task
+    assert denoise_plugin["Executable"] == "/usr/bin/python3"
+    assert arguments[:4] == ["/opt/quietframe/bin/retry_on_75.py", "--",
+                             "/opt/quietframe/bin/quietframe", "denoise"]
+    # and such a task fails after 3 errors, whatever the repository's limit
+    assert denoise_job["OverrideTaskFailureDetection"] == "true"
+    assert denoise_job["FailureDetectionTaskErrors"] == "3"
+
+
+def test_deadline_without_a_retry_wrapper_runs_the_client_directly(tmp_path):
+    result = deadline(*SUBMISSION, "--retry-wrapper", "", "--task-errors", "0",
+                      "--write-only", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    plugin, job = read_info(tmp_path / "denoise_plugin.txt"), read_info(
+        tmp_path / "denoise_job.txt")
+    assert plugin["Executable"] == "/opt/quietframe/bin/quietframe"
+    assert plugin["Arguments"].startswith("denoise ")
+    assert "OverrideTaskFailureDetection" not in job  # the repository's limit
 
 
 def test_deadline_denoise_tasks_run_against_a_server(tmp_path, live_server):
@@ -176,13 +259,16 @@ def test_deadline_denoise_tasks_run_against_a_server(tmp_path, live_server):
                       str(tmp_path / "render" / "sh010.####.exr"), "--out",
                       str(tmp_path / "denoised"), "--frames", "1001-1006", "--chunk-size", "3",
                       "--pre-roll", "2", "--server", live_server.url, "--model", "nbg-2l-3g",
-                      "--write-only", str(tmp_path / "jobs"))
+                      "--python", sys.executable, "--retry-wrapper", str(RETRY_WRAPPER),
+                      "--quietframe", str(QUIETFRAME), "--write-only", str(tmp_path / "jobs"))
     assert result.returncode == 0, result.stderr
-    arguments = read_info(tmp_path / "jobs" / "denoise_plugin.txt")["Arguments"]
-    for start in (1001, 1004):
-        line = arguments.replace("<STARTFRAME>", str(start)).replace("<ENDFRAME>",
-                                                                     str(start + 2))
-        assert main([*shlex.split(line), "--quiet"]) == 0, line
+    plugin = read_info(tmp_path / "jobs" / "denoise_plugin.txt")
+    for start in (1001, 1004):  # the CommandLine plugin: Executable + Arguments, per task
+        line = plugin["Arguments"].replace("<STARTFRAME>", str(start)).replace(
+            "<ENDFRAME>", str(start + 2))
+        task = subprocess.run([plugin["Executable"], *shlex.split(line)], capture_output=True,
+                              text=True, timeout=120)
+        assert task.returncode == 0, task.stderr
     assert len(list((tmp_path / "denoised").glob("*.exr"))) == 6
 
 

@@ -14,6 +14,14 @@ pre-roll (FrameDependencyOffsetStart=-N): a task for 1013-1024 waits for the ren
 of being denoised across; `--cut` at the job's first frame starts the history there (the
 frames before it are not this job's renders, so the first chunk has no pre-roll to wait for).
 
+Failures: Deadline fails a task on any non-zero exit and requeues it until its error limits,
+whatever the code. So each denoise task runs under deploy/farm/retry_on_75.py (`--retry-wrapper`,
+copied to the Workers): exit 75 (server unavailable or busy) is retried in place with growing
+waits (the rerun resumes), while 2 (configuration) and 3 (input) end the task at once with what
+to fix in its log; the denoise job's own task error limit (`--task-errors`, 3: Deadline's
+OverrideTaskFailureDetection / FailureDetectionTaskErrors job keys) then fails such a task after
+a few quick errors instead of the repository's limit.
+
 `--write-only DIR` writes the four job files into DIR and prints the deadlinecommand lines
 instead of submitting (the denoise job then names the render job `<render job id>`). The
 .blend must write multilayer EXR with the Denoising Data passes (docs/farm.md). Standard
@@ -64,7 +72,7 @@ def render_plugin(args: argparse.Namespace) -> dict[str, str]:
 
 def denoise_job(args: argparse.Namespace, render_id: str) -> dict[str, str]:
     """Frame dependent on the render: each task waits for its frames and its pre-roll."""
-    return {
+    job = {
         "Plugin": "CommandLine",
         "Name": f"{args.name} denoise",
         "BatchName": args.name,
@@ -77,6 +85,10 @@ def denoise_job(args: argparse.Namespace, render_id: str) -> dict[str, str]:
         "ResumeOnCompleteDependencies": "true",
         "OutputDirectory0": args.out,
     }
+    if args.task_errors:  # a task failing 2/3 fails after these errors, not the repository's
+        job.update({"OverrideTaskFailureDetection": "true",
+                    "FailureDetectionTaskErrors": str(args.task_errors)})
+    return job
 
 
 def denoise_plugin(args: argparse.Namespace) -> dict[str, str]:
@@ -85,8 +97,11 @@ def denoise_plugin(args: argparse.Namespace) -> dict[str, str]:
                  "--out", quoted(args.out), "--frames", "<STARTFRAME>-<ENDFRAME>",
                  "--pre-roll", str(args.pre_roll), "--cut", str(first), "--model", args.model,
                  "--strict"]
-    return {"Executable": args.quietframe, "Arguments": " ".join(arguments),
-            "Shell": "default"}
+    executable = args.quietframe
+    if args.retry_wrapper:  # python3 retry_on_75.py -- quietframe denoise ...
+        arguments = [quoted(args.retry_wrapper), "--", quoted(args.quietframe), *arguments]
+        executable = args.python
+    return {"Executable": executable, "Arguments": " ".join(arguments), "Shell": "default"}
 
 
 def quoted(path: str) -> str:
@@ -126,6 +141,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--name", help="job name (default: the .blend's name)")
     parser.add_argument("--quietframe", default="/opt/quietframe/bin/quietframe",
                         help="the quietframe client on the Workers")
+    parser.add_argument("--retry-wrapper", default="/opt/quietframe/bin/retry_on_75.py",
+                        help="deploy/farm/retry_on_75.py on the Workers: retries exit 75, "
+                        "ends the task at once on 2/3; '' runs quietframe directly")
+    parser.add_argument("--python", default="/usr/bin/python3",
+                        help="the Python 3 that runs --retry-wrapper on the Workers")
+    parser.add_argument("--task-errors", type=int, default=3,
+                        help="errors after which a denoise task fails (0: the repository's "
+                        "limit)")
     parser.add_argument("--deadlinecommand", default="deadlinecommand")
     parser.add_argument("--write-only", metavar="DIR", type=Path,
                         help="write the job files into DIR and print the commands; submit "
@@ -133,8 +156,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if "#" not in args.render_output:
         parser.error("--render-output needs a frame field (####)")
-    if args.chunk_size < 1 or args.pre_roll < 0:
-        parser.error("--chunk-size takes a count >= 1, --pre-roll one >= 0")
+    if args.chunk_size < 1 or args.pre_roll < 0 or args.task_errors < 0:
+        parser.error("--chunk-size takes a count >= 1, --pre-roll and --task-errors ones >= 0")
     args.name = args.name or Path(args.blend).stem
     return args
 
