@@ -55,8 +55,17 @@ class ChoicePublic(BaseModel):
     buffers: list[str] = Field(description="buffers the deciding frame carried")
     log2_sigma: float | None = Field(
         None, description="log2 of the deciding frame's measured noise statistic")
-    expected_psnr: float | None = None
-    expected_ms: float | None = None
+    expected_psnr: float | None = Field(
+        None, description="the validation shots' average PSNR for the model at this noise "
+        "(its tables), not a prediction for this shot")
+    expected_ms: float | None = Field(
+        None, description="the tables' time per frame: 720p on the machine that made them, "
+        "scaled to the session's size")
+    measured_ms: float | None = Field(
+        None, description="this server's median denoise time per frame of the model at the "
+        "session's size, over `measured_frames` recent frames; None before any")
+    measured_frames: int = Field(0, description="frames `measured_ms` is the median of")
+    measured_size: str | None = Field(None, description="the frame size measured, WxH")
 
 
 class SessionPublic(SessionFields):

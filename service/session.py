@@ -17,6 +17,7 @@ from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.runtime.stream import Stream
 from quietframe.service.choice_policy import Choice
 from quietframe.service.errors import FrameConflict, FrameOutOfOrder
+from quietframe.service.measured_speed import MeasuredSpeeds
 from quietframe.service.schemas import ChoicePublic, ModelRef, SessionPublic, StageTimings
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply
@@ -141,7 +142,9 @@ class Session:
             "resets": self.resets + (after is not None and after.reset is not Reset.NONE),
         }
 
-    def public(self, ttl_s: float) -> SessionPublic:
+    def public(self, ttl_s: float, speeds: MeasuredSpeeds | None = None) -> SessionPublic:
+        """The session as the API shows it; `speeds`: this server's measured times, said in
+        the choice beside the tables' figure."""
         done = max(self.frames_done, 1)
         return SessionPublic(
             **self.spec.model_dump(exclude={"model"}),
@@ -149,7 +152,7 @@ class Session:
             model=(None if self.spec.model == AUTO and self.choice is None  # nothing chosen yet
                    else ModelRef(name=self.info.name, version=self.info.version)),
             requested_model=self.spec.model,
-            choice=ChoicePublic(**self.choice.to_dict()) if self.choice else None,
+            choice=self.choice_public(speeds),
             required_buffers=list(self.info.required_buffers),
             optional_buffers=list(self.info.optional_buffers),
             created_at=datetime.fromtimestamp(self.created_at, timezone.utc).isoformat(),
@@ -165,6 +168,17 @@ class Session:
             expires_in_s=round(max(0.0, ttl_s - (time.monotonic() - self.last_used)), 1),
             durable=self.durable,
         )
+
+    def choice_public(self, speeds: MeasuredSpeeds | None) -> ChoicePublic | None:
+        if self.choice is None:
+            return None
+        measured = speeds.at(self.choice.model, self.spec.height, self.spec.width) if (
+            speeds is not None) else None
+        if measured is None:
+            return ChoicePublic(**self.choice.to_dict())
+        return ChoicePublic(**self.choice.to_dict(), measured_ms=measured.ms,
+                            measured_frames=measured.frames,
+                            measured_size=f"{measured.width}x{measured.height}")
 
 
 def reserve_bytes(info: ModelInfo, spec: SessionSpec) -> int:

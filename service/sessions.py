@@ -32,6 +32,7 @@ from quietframe.runtime.stream import Stream
 from quietframe.service import admission, frames
 from quietframe.service.errors import SessionNotFound, TooManySessions
 from quietframe.service.frame_context import frame_context
+from quietframe.service.measured_speed import MeasuredSpeeds
 from quietframe.service.metrics import Metrics
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.schemas import SessionCreate, SessionPublic
@@ -63,6 +64,7 @@ class SessionRegistry:
     ) -> None:
         self.settings, self.models, self.metrics = settings, models, metrics
         self.pool = WorkerPool(executor)
+        self.speeds = MeasuredSpeeds()  # each model's denoise time per frame size, here
         # frames in flight (admission.py), beside the history budget of what sessions keep
         self.admission = admission.MemoryBudget(
             settings.memory_budget_bytes, settings.admission_wait_s, settings.max_uploads
@@ -118,11 +120,11 @@ class SessionRegistry:
         session = await self.get(session_id, touch=False)
         ttl = self.settings.session_ttl_s
         if self.durability is None or not (self.durability.shared and held):
-            return session.public(ttl)
+            return session.public(ttl, self.speeds)
         progress = await self.durability.committed_progress(session_id)
         if not progress:  # only its settings survive: this copy's progress is all there is
-            return session.public(ttl)
-        return dataclasses.replace(session, **progress).public(ttl)
+            return session.public(ttl, self.speeds)
+        return dataclasses.replace(session, **progress).public(ttl, self.speeds)
 
     # ---- create / delete ----------------------------------------------------------------------
 
@@ -287,6 +289,8 @@ class SessionRegistry:
         self.metrics.frames.labels(frame.info.name, frame.reset.value).inc()
         for stage, ms in frame.timings_ms.items():
             self.metrics.latency.labels(stage).observe(ms / 1e3)
+        spec = session.spec
+        self.speeds.record(frame.info.name, spec.height, spec.width, frame.timings_ms["denoise"])
         for buffer, count in frame.sanitized.items():
             self.metrics.sanitized.labels(buffer).inc(count)
         self.table.update_gauges()
