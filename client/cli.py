@@ -8,11 +8,13 @@ under the `quietframe.commands` entry point (`serve`, from quietframe.service.cl
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from importlib.metadata import PackageNotFoundError, entry_points, version
 
 from quietframe.client import outcome
@@ -289,7 +291,8 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
         reporter.note(f"view layers {', '.join(map(str, layers))}: one session each, one file")
     written = {"count": 0}
 
-    with _client(args, server, reporter) as client:
+    with _client(args, server, reporter) as client, \
+            _sessions_deleted_on_config_stop(args, server, reporter) as opened:
         watcher = _ShotWatcher(args, client, reporter, job)
 
         def progress(p) -> None:
@@ -305,7 +308,8 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
             run_options = dict(
                 model=args.model, precision=args.precision, warmup=args.warmup,
                 compression=args.compression, on_progress=progress, layers=layers,
-                force=args.force, pre_roll=args.pre_roll, on_warning=reporter.warn, **options,
+                force=args.force, pre_roll=args.pre_roll, on_warning=reporter.warn,
+                on_session=opened.append, **options,
             )
             run_sequence(client, job, server, **run_options)
         except OutputConflict as exc:
@@ -327,6 +331,39 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
                             "folder this user can write, then run the same command") from exc
             raise _Stop(outcome.FAILURE, f"{exc}", "run the same command again to resume") from exc
     return written["count"]
+
+
+_DELETE_TIMEOUT_S = 5.0  # a delete's request; with one retry a stopped run ends within ~11 s
+
+
+@contextlib.contextmanager
+def _sessions_deleted_on_config_stop(args, server: str, reporter) -> Iterator[list[str]]:
+    """The run's sessions (the list filled as they open), deleted when the run ends on a
+    configuration failure (exit 2: --out cannot be written, flags the server refuses mid-run):
+    the rerun needs another --out or other flags, which a person fixes, so the sessions would
+    only hold the server's memory until their idle time ends. Every other stop keeps them: the
+    rerun after 75, 130/143, 1, or 3 (its frame fixed) continues a session where it stopped."""
+    opened: list[str] = []
+    try:
+        yield opened
+    except _Stop as stop:
+        if stop.code == outcome.CONFIG and opened:
+            _delete_sessions(args, server, opened, reporter)
+        raise
+
+
+def _delete_sessions(args, server: str, session_ids: list[str], reporter) -> None:
+    """Best effort, bounded: one retry, short timeouts; one that stays is a warning (the
+    server ends it after its idle time)."""
+    token = args.token or client_settings().token
+    retry = RetryPolicy(retries=1, backoff_s=0.5, max_backoff_s=1.0)
+    with Client(server, token=token, timeout_s=_DELETE_TIMEOUT_S, retry=retry) as client:
+        for session_id in dict.fromkeys(session_ids):
+            try:
+                client.delete_session(session_id)
+            except QuietframeError as exc:
+                reporter.warn(f"session {session_id} on {server} was not deleted ({exc}); the "
+                              "server ends it after its idle time")
 
 
 def _file_layers(job) -> tuple[str, ...]:

@@ -208,14 +208,17 @@ async def arun_sequence(
     force: bool = False,
     pre_roll: int | None = None,
     on_warning: Callable[[str], None] | None = None,
+    on_session: Callable[[str], None] | None = None,
     **options,
 ) -> str | None:
     """`run_sequence` for AsyncClient (one task per sequence). `layers`: view layers to denoise,
     one session each (None: the server's alias table picks the beauty); `force`: redo outputs
     that are not this job's (else OutputConflict); `pre_roll`: frames sent before the job's
     first written frame (default: all of job's pre-roll files); `on_warning`: told what the run
-    works around (a damaged job file; default: a RuntimeWarning); `options`: further session
-    fields (channels, denoised_layer, quality, motion_scale, model_options)."""
+    works around (a damaged job file; default: a RuntimeWarning); `on_session`: told the id of
+    each session the run sends its frames to, as it is created or continued (the run deletes
+    them once done; a caller whose run stops for good may delete them too); `options`:
+    further session fields (channels, denoised_layer, quality, motion_scale, model_options)."""
     settings = job_settings(model, precision, compression, layers, **options)
     if not force:
         refuse_conflicts(job, settings)
@@ -247,6 +250,8 @@ async def arun_sequence(
             session = created
             fresh.add(created["id"])
         sessions[layer] = session["id"]
+        if on_session is not None:
+            on_session(session["id"])
     shots.write_deferred(job, named)  # the server has taken the named model
     resumed = not fresh
     count = warmup if pending > job.first_written else (

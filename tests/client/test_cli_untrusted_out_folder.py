@@ -11,10 +11,12 @@ import shutil
 import threading
 from pathlib import Path
 
+import httpx
 import pytest
 from conftest import read_exr
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_cli_dry_run import sessions_created
 from test_cli_safe_runs import cli, write_shot
 
 from quietframe.client import output_records as records
@@ -94,6 +96,36 @@ def test_a_full_disk_while_recording_an_output_leaves_a_run_that_resumes(
     assert main(cli(live_server, src, out)) == 0, capsys.readouterr().err
     assert len(outputs(out)) == 3
     assert main(cli(live_server, src, out)) == 0  # and every output now counts as done
+
+
+@pytest.mark.parametrize("error, code, kept", [(errno.EACCES, 2, False), (errno.ENOSPC, 1, True)],
+                         ids=["out-not-writable", "disk-full"])
+def test_a_write_refused_after_the_session_opened_deletes_it_unless_a_rerun_resumes_it(
+    tmp_path, live_server, monkeypatch, capsys, error, code, kept
+):
+    """--out refusing writes mid-run (EACCES: exit 2, make --out writable) deletes the run's
+    server session: no rerun with this --out would continue it (it used to stay open until its
+    idle time ended). A full disk (exit 1, run again) keeps it: the rerun continues it."""
+    src, out = small_shot(tmp_path)
+    write_record = records.write_record
+
+    def refused_at_the_second_frame(output, *args, **kwargs):
+        if output.name == "shot_1002.exr":
+            raise OSError(error, os.strerror(error))
+        write_record(output, *args, **kwargs)
+
+    monkeypatch.setattr(records, "write_record", refused_at_the_second_frame)
+    assert main(cli(live_server, src, out)) == code
+    err = capsys.readouterr().err
+    assert ("cannot write into --out" in err) == (not kept) and "Traceback" not in err
+    session = json.loads((out / JOB_FILE).read_text())["sessions"][""]
+    answer = httpx.get(f"{live_server.url}/v1/sessions/{session}")
+    assert answer.status_code == (200 if kept else 404), answer.text
+    monkeypatch.undo()
+    created = sessions_created(live_server)
+    assert main(cli(live_server, src, out)) == 0, capsys.readouterr().err
+    assert sessions_created(live_server) == created + (0 if kept else 1)  # continued, or anew
+    assert len(outputs(out)) == 3
 
 
 def test_a_run_stopped_before_any_rename_resumes(tmp_path, live_server, monkeypatch, capsys):
