@@ -18,11 +18,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 
 from quietframe.runtime import Denoiser, aux_motion
 from quietframe.runtime.motion_evidence import history_nbytes
-from quietframe.service.errors import FrameOverMemoryBudget, MemoryBusy, TooManyUploads
+from quietframe.service.errors import FrameOverMemoryBudget, MemoryBusy
 from quietframe.service.frames import ExrHeader
 
 CANONICAL_CHANNELS = 12  # color 3, albedo 3, normal 3, depth 1, motion 2: float32 planes
@@ -114,10 +114,9 @@ class Reservation:
 
 
 class MemoryBudget:
-    def __init__(self, limit_bytes: int, wait_s: float, max_uploads: int) -> None:
-        self.limit_bytes, self.wait_s, self.max_uploads = limit_bytes, wait_s, max_uploads
+    def __init__(self, limit_bytes: int, wait_s: float) -> None:
+        self.limit_bytes, self.wait_s = limit_bytes, wait_s
         self.used_bytes = 0
-        self.uploads = 0
         self.peak_bytes = 0  # for the status and tests: the most ever reserved at once
         self._waiters: list[asyncio.Future] = []
 
@@ -125,21 +124,6 @@ class MemoryBudget:
         """A new reservation of `nbytes` now (MemoryBusy if they do not fit)."""
         self._take(nbytes)
         return Reservation(self, nbytes)
-
-    @contextlib.contextmanager
-    def upload(self) -> Iterator[None]:
-        """One of at most `max_uploads` frame bodies being received (TooManyUploads past it)."""
-        if self.uploads >= self.max_uploads:
-            raise TooManyUploads(
-                f"{self.uploads} frame bodies are being received (QUIETFRAME_MAX_UPLOADS); "
-                "retry after Retry-After seconds",
-                headers={"Retry-After": str(RETRY_AFTER_S), "Connection": "close"},
-            )
-        self.uploads += 1
-        try:
-            yield
-        finally:
-            self.uploads -= 1
 
     def _take(self, nbytes: int) -> None:
         if self.used_bytes + nbytes > self.limit_bytes:

@@ -47,6 +47,13 @@ class BodyReadTimeout(ServiceError):
     status, code = 408, "body_read_timeout"
 
 
+class UploadTooSlow(ServiceError):
+    """A body cut for its time: past QUIETFRAME_MAX_UPLOAD_S, or past its share of an upload
+    slot that another upload wanted (upload_slots.py)."""
+
+    status, code = 408, "upload_too_slow"
+
+
 class BodyTooLarge(ServiceError):
     status, code = 413, "body_too_large"
 

@@ -44,6 +44,7 @@ from quietframe.service.session_table import SessionTable
 from quietframe.service.settings import Settings
 from quietframe.service.shot_choice import CHOICE_RESETS, noise_kind
 from quietframe.service.stores import open_store
+from quietframe.service.upload_slots import UploadSlots
 from quietframe.service.worker_pool import WorkerPool
 from quietframe.wire.protocol import Reset
 
@@ -66,9 +67,9 @@ class SessionRegistry:
         self.pool = WorkerPool(executor)
         self.speeds = MeasuredSpeeds()  # each model's denoise time per frame size, here
         # frames in flight (admission.py), beside the history budget of what sessions keep
-        self.admission = admission.MemoryBudget(
-            settings.memory_budget_bytes, settings.admission_wait_s, settings.max_uploads
-        )
+        self.admission = admission.MemoryBudget(settings.memory_budget_bytes,
+                                                settings.admission_wait_s)
+        self.upload_slots = UploadSlots.from_settings(settings)  # bodies being received
         store = open_store(settings)
         self.table = SessionTable(settings, models, metrics, durable=store is not None)
         self.durability = (

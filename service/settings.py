@@ -51,6 +51,23 @@ class Settings(BaseSettings):
         10.0, ge=0, description="a frame waits this long for memory, then gets 429"
     )
     max_uploads: int = Field(32, ge=1, description="frame bodies received at once; more get 429")
+    max_uploads_per_session: int = Field(
+        2, ge=1, description="frame bodies of one session received at once; more get 429 (a "
+        "session's frames come one at a time: 2 leaves room for a retry beside a dropped upload "
+        "the server has not seen end yet)"
+    )
+    # Slow uploads cannot hold every slot (upload_slots.py): while all are taken, an upload that
+    # has had its share (the pause grace + its size at this rate) gives its slot to a new one.
+    # 1 MiB/s (8.4 Mbit/s): a 4K multilayer frame of 290-475 MiB (15 float channels, ZIP to
+    # uncompressed) has 5-8 min, enough from a 10 Mbit/s link (docs/reliability.md).
+    upload_share_rate_kib_s: float = Field(
+        1024.0, gt=0, description="while every upload slot is taken, an upload that has had "
+        "body_read_timeout_s plus its body's size at this rate gives its slot to a new one (408)"
+    )
+    max_upload_s: float = Field(
+        0.0, ge=0, description="the longest one frame body may take, slots wanted or not (408); "
+        "0: body_read_timeout_s + max_body_mb at upload_share_rate_kib_s"
+    )
     max_header_bytes: int = Field(
         16 << 20, ge=4096, description="EXR header (attributes of all parts) limit"
     )
@@ -128,6 +145,17 @@ class Settings(BaseSettings):
     @property
     def min_body_rate_bytes_s(self) -> float:
         return self.min_body_rate_kib_s * 1024
+
+    @property
+    def upload_share_rate_bytes_s(self) -> float:
+        return self.upload_share_rate_kib_s * 1024
+
+    @property
+    def upload_cap_s(self) -> float:
+        """max_upload_s, or (0) the largest frame's share: the grace + max_body_mb at the share
+        rate (1950 s at the defaults)."""
+        return self.max_upload_s or (
+            self.body_read_timeout_s + self.max_body_bytes / self.upload_share_rate_bytes_s)
 
     @property
     def model_threads(self) -> int:

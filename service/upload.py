@@ -16,7 +16,8 @@
 4. Once the body is complete, the rest of the frame's peak is reserved, waiting briefly when
    other frames hold the budget (429 after that).
 The request guard (guard.py) has already held the body to the frame limit, a pause limit and a
-minimum rate.
+minimum rate; the upload's slot (upload_slots.py) learns its size and progress from here, and
+may cut the reading for its time.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from quietframe.service import frames
 from quietframe.service.admission import MemoryBudget, Reservation
 from quietframe.service.errors import BodyTooLarge, InvalidRequest
 from quietframe.service.settings import Settings
+from quietframe.service.upload_slots import Upload
 
 Body = bytearray | mmap.mmap
 Need = Callable[[frames.ExrHeader, int], int]
@@ -49,13 +51,14 @@ async def read_frame(
     size: tuple[int, int],
     budget: MemoryBudget,
     need: Need,
+    upload: Upload | None = None,
 ) -> tuple[Body, frames.ExrHeader, Reservation]:
     """The body, its parsed header and the reservation it holds (the caller releases it once
     the frame is done). `size`: the session's (width, height); `need(header, body_bytes)`:
-    the frame's peak memory."""
+    the frame's peak memory; `upload`: its slot, told the body's size and progress."""
     reservation = budget.reserve(_FIRST_RESERVE)
     try:
-        body, header = await _receive(request, settings, size, reservation, need)
+        body, header = await _receive(request, settings, size, reservation, need, upload)
     except BaseException:
         reservation.release()
         raise
@@ -68,9 +71,9 @@ async def _receive(
     size: tuple[int, int],
     reservation: Reservation,
     need: Need,
+    upload: Upload | None,
 ) -> tuple[Body, frames.ExrHeader]:
-    declared = request.headers.get("content-length")
-    expected = int(declared) if declared and declared.isdigit() else None
+    expected = declared_length(request)
     scan = frames.HeaderScan(settings.max_width, settings.max_height, settings.max_header_bytes)
     head, header = bytearray(), None
     body: Body = head
@@ -81,11 +84,15 @@ async def _receive(
         if header is None:
             head += chunk
             received = len(head)
+            if upload is not None:
+                upload.received = received
             reservation.grow_to(2 * received)  # the buffer and its copy while it grows
             header = await _header_so_far(scan, head)
             if header is None:
                 continue
             bound = _check_header(header, size, expected, bound, reservation, need)
+            if upload is not None and expected is None:
+                upload.sized(bound)  # a chunked body: its share from the header's bound
             if expected is not None:
                 body = mmap.mmap(-1, expected)  # pages become memory as they are written
                 body[:received] = head
@@ -102,12 +109,22 @@ async def _receive(
             await _hold(reservation, 2 * (received + len(chunk)), header)  # and its copy
             head += chunk
         received += len(chunk)
+        if upload is not None:
+            upload.received = received
     if header is None:
         _ended_inside_header(head, settings)
     if expected is not None and received != expected:
         raise InvalidRequest(f"body ended after {received} of its {expected} declared bytes")
+    if upload is not None:
+        upload.finished()  # never cut from here on
     await _admit(reservation, need, header, received)  # the rest of the frame's peak
     return body, header
+
+
+def declared_length(request: Request) -> int | None:
+    """The body's Content-Length (the guard refused one that is no byte count); None: chunked."""
+    declared = request.headers.get("content-length")
+    return int(declared) if declared and declared.isdigit() else None
 
 
 async def _header_so_far(scan: frames.HeaderScan, head: bytearray) -> frames.ExrHeader | None:

@@ -53,9 +53,8 @@ def observe_load(metrics: Metrics, sessions: SessionRegistry) -> None:
     upload slot) and then while it holds its session's lock (waiting for a worker, denoising,
     storing): the two never overlap."""
     denoising = sum(session.lock.locked() for session in sessions.sessions.values())
-    admission = sessions.admission
     metrics.observe_load(
-        frames_in_flight=admission.uploads + denoising,
+        frames_in_flight=sessions.upload_slots.count + denoising,
         frame_slots=sessions.settings.worker_count,
-        reserved_bytes=admission.used_bytes,
+        reserved_bytes=sessions.admission.used_bytes,
     )

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Path, Query, Request, Response, status
 from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
 from quietframe.service.errors import ERROR_EXAMPLES, InvalidRequest, UnsupportedMediaType
 from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
-from quietframe.service.upload import read_frame
+from quietframe.service.upload import declared_length, read_frame
 from quietframe.wire.protocol import (
     ACCEPTED_FRAME_TYPES,
     CUT_ATTRIBUTE,
@@ -148,13 +148,17 @@ async def post_frame(
     if media_type not in ACCEPTED_FRAME_TYPES:
         raise UnsupportedMediaType(f"send the EXR as {EXR_MEDIA_TYPE} (got {media_type})")
     budget, spec = sessions.admission, session.spec
-    with budget.upload():  # 429 past QUIETFRAME_MAX_UPLOADS bodies at once
+    # 429 when no slot can be had; 408 when the body is cut for its time (upload_slots.py)
+    declared = declared_length(request)
+    expected = settings.max_body_bytes if declared is None else declared  # chunked: the limit
+    async with sessions.upload_slots.hold(session_id, expected) as upload:
         body, header, reservation = await read_frame(
             request,
             settings,
             (spec.width, spec.height),
             budget,
             lambda h, body_bytes: sessions.frame_need(session, h, body_bytes, cut),
+            upload,
         )
     try:
         metrics.bytes_in.inc(len(body))

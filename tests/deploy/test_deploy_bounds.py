@@ -190,7 +190,8 @@ def test_the_load_gauges_count_uploads_and_frames_holding_their_session():
 
     registry = SimpleNamespace(
         sessions={"a": session(True), "b": session(False), "c": session(True)},
-        admission=SimpleNamespace(uploads=2, used_bytes=3 << 20),
+        upload_slots=SimpleNamespace(count=2),
+        admission=SimpleNamespace(used_bytes=3 << 20),
         settings=SimpleNamespace(worker_count=4),
     )
     metrics = Metrics()

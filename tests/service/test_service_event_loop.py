@@ -234,7 +234,7 @@ def test_reservation_follows_the_body_then_takes_the_frame_peak():
         return reservation
 
     async def run() -> None:
-        budget = MemoryBudget(64 << 20, wait_s=0.1, max_uploads=1)
+        budget = MemoryBudget(64 << 20, wait_s=0.1)
         held: list[int] = []
         reservation = await receive_in_chunks(budget, 40 << 20, held)
         assert max(held) <= len(data) + 2 * chunk, held  # not the 40 MiB peak
