@@ -11,11 +11,18 @@ from window to window the way a free optical flow is (a Lucas–Kanade flow on t
 was 0.5–1.1 px off Cycles' vectors on a slow dolly, this fit 0.08–0.19 px: docs/zoo.md, "Motion
 from the aux"), and a history fetched half a pixel off costs more than it gains.
 
-Confidence per pixel: the previous probe warped by the camera's field must match the current
-probe within TRUST_ERROR (mean |difference| over the probe's channels and a (2r+1)² window):
-an object that moves on its own, a disocclusion or a frame edge fails it. An untrusted pixel
-gets a vector that points outside the frame, which every temporal model reads as "no history
-here" (its per-frame stage). A frame without a depth buffer gets no estimate.
+Confidence per pixel, two checks, both needed:
+- aux reprojection: the previous probe warped by the camera's field must match the current
+  probe within TRUST_ERROR (mean |difference| over the probe's channels and a (2r+1)² window):
+  an object that moves on its own, a disocclusion or a frame edge fails it;
+- forward-backward: the previous frame's own depth (kept by the stream, `depth_probe`) carried
+  forward by the same camera must land back where the pixel came from, within FB_PIXELS (3×3
+  worst): where the previous frame saw something nearer at p + m (a post the camera trucked
+  past, a disocclusion whose surfaces share an albedo and a normal) the two fields disagree by
+  the parallax, and the aux alone cannot tell.
+An untrusted pixel gets a vector that points outside the frame, which every temporal model
+reads as "no history here" (its per-frame stage). A frame without a depth buffer gets no
+estimate; one whose previous frame kept no depth gets the aux check only.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ DAMPING = 1e-4  # Levenberg–Marquardt, relative to the normal matrix's diagona
 FOV_DEG = 60.0
 TRUST_ERROR = 0.05  # mean |aux difference| after the fit over the window: above it, untrusted
 TRUST_RADIUS = 2  # probe pixels: the window's radius
+FB_PIXELS = 0.5  # frame pixels: forward-backward disagreement above this is untrusted
 # Memory: the fit runs only on levels of at most FIT_PIXELS (a camera has six parameters), the
 # trust check on the first level of at most TRUST_PIXELS (a 4K frame's probe), and the frame's
 # field in bands of BAND_ROWS rows, so an 8K frame holds tens of MB here, not gigabytes.
@@ -51,6 +59,7 @@ class EstimatedMotion:
     trusted: np.ndarray  # (H, W) bool
     share: float  # of the frame's pixels, those trusted
     estimate: np.ndarray  # (2, H, W) the camera's field everywhere, trusted or not
+    depth: np.ndarray  # (1, h, w) this frame's depth_probe, for the next frame's check
 
 
 def working_set_bytes(height: int, width: int) -> int:
@@ -140,6 +149,34 @@ def _step(params: np.ndarray, previous: np.ndarray, current: np.ndarray, depth: 
     return params - np.linalg.solve(normal, np.einsum("cnk,cn->k", jw, r))
 
 
+def _inverse(params: np.ndarray) -> np.ndarray:
+    """The parameters of the opposite move: previous = R·current + t <=> current = Rᵀ·previous
+    - Rᵀt (the rotation's axis-angle negated)."""
+    return np.concatenate((-params[:3], -_rotation(params[:3]).T @ params[3:6]))
+
+
+def _fetch_nearest(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """(C, h, w) image at the nearest pixel to p + flow(p), clamped: a field is not blended
+    across a depth edge (a post's motion and the sky's would average to neither)."""
+    _, h, w = image.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    x = np.clip(np.rint(xs + flow[0]), 0, w - 1).astype(np.intp)
+    y = np.clip(np.rint(ys + flow[1]), 0, h - 1).astype(np.intp)
+    return image[:, y, x]
+
+
+def _forward_backward_error(params: np.ndarray, depth: np.ndarray, previous_depth: np.ndarray,
+                            focal: float) -> np.ndarray:
+    """(h, w) worst |b(p) + f(p + b(p))| over each pixel's 3×3, pixels of this level: b the
+    backward field of this frame's depth, f the forward field of the previous frame's."""
+    back = motion_field(params, depth, focal)
+    forward = motion_field(_inverse(params), previous_depth, focal)
+    error = np.hypot(*(back + _fetch_nearest(forward, back)))
+    padded = np.pad(error, 1, mode="edge")
+    h, w = error.shape
+    return np.max([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)], axis=0)
+
+
 def _pyramid(x: np.ndarray) -> list[np.ndarray]:
     out = [x]
     while len(out) < LEVELS and min(out[-1].shape[1:]) >= 16:
@@ -157,18 +194,27 @@ def _ray_depth(depth: np.ndarray) -> np.ndarray | None:
     return np.where(finite, np.minimum(depth, 1e3 * max(far, 1e-3)), far).astype(np.float32)
 
 
+def depth_probe(depth: np.ndarray | None) -> np.ndarray | None:
+    """(1, ceil(H/2), ceil(W/2)) inverse ray depth of a (1, H, W) depth at the probe's size
+    (motion_evidence.DEPTH_STATE); None without a usable depth. Averaged as inverse depth:
+    motion goes with 1/depth, so a probe pixel of a thin post and the sky behind it moves as
+    the mean of their motions (a plain mean of depths would put it far off)."""
+    ray = _ray_depth(depth) if depth is not None else None
+    return None if ray is None else _box(1 / ray[None], PROBE_SCALE)
+
+
 def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
-             depth: np.ndarray | None) -> EstimatedMotion | None:
+             depth: np.ndarray | None, previous_depth: np.ndarray | None = None
+             ) -> EstimatedMotion | None:
     """Backward motion of an H×W frame from the previous frame's probe and its own (probes of
     one shape: motion_evidence.probe) and its ray depth (1, H, W); None without a usable depth.
-    Per-pixel trust: module docstring."""
+    `previous_depth`: the previous frame's depth_probe, for the forward-backward check (skipped
+    without one). Per-pixel trust: module docstring."""
     depth = _ray_depth(depth) if depth is not None else None
     if depth is None:
         return None
-    # Averaged as inverse depth: motion goes with 1/depth, so a probe pixel of a thin post and
-    # the sky behind it moves as the mean of their motions (a plain mean would put it far off)
-    probe_depth = 1 / _box(1 / depth[None], PROBE_SCALE)[0]
-    depths = [1 / d[0] for d in _pyramid(1 / probe_depth[None])]
+    inverse = _box(1 / depth[None], PROBE_SCALE)  # depth_probe of this frame
+    depths = [1 / d[0] for d in _pyramid(inverse)]
     previous_levels, current_levels = _pyramid(previous), _pyramid(current)
     focal = width / (2 * np.tan(np.radians(FOV_DEG) / 2))  # frame pixels
     params = np.zeros(6)
@@ -191,8 +237,13 @@ def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
     local = sum(padded[i:i + error.shape[0], j:j + error.shape[1]]
                 for i in range(k) for j in range(k)) / k**2
     good = (local <= TRUST_ERROR) & inside
+    if previous_depth is not None and previous_depth.shape == inverse.shape:
+        previous_depths = _pyramid(previous_depth)
+        if len(previous_depths) > level:
+            good &= _forward_backward_error(params, depths[level], 1 / previous_depths[level][0],
+                                            focal / scale) <= FB_PIXELS / scale
     trusted = np.repeat(np.repeat(good, scale, 0), scale, 1)[:height, :width]
     motion = field.copy()
     motion[0][~trusted] = 4.0 * (height + width)  # outside the frame: no history here
     motion[1][~trusted] = 0.0
-    return EstimatedMotion(motion, trusted, float(trusted.mean()), field)
+    return EstimatedMotion(motion, trusted, float(trusted.mean()), field, inverse)

@@ -171,6 +171,10 @@ def judge(previous: np.ndarray | None, current: np.ndarray) -> MotionEvidence:
 # ---- the history gate: one rule for the service and the evaluation ------------------------------
 
 PROBE_STATE = "motion_probe"  # the previous frame's probe, kept beside a temporal model's state
+# The previous frame's inverse depth at the probe's size (aux_motion.depth_probe), kept where a
+# frame without vectors had a depth: the estimate's occlusion check reads it.
+DEPTH_STATE = "motion_depth"
+STREAM_STATES = (PROBE_STATE, DEPTH_STATE)  # kept by the stream, never given to the model
 
 
 def probe_shape(height: int, width: int) -> tuple[int, int, int]:
@@ -240,7 +244,8 @@ def gate_history(planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarra
     if camera not in CAMERAS:
         raise ValueError(f"camera must be one of {CAMERAS}, got {camera!r}")
     current = probe(planes)
-    model_state = None if state is None else {k: v for k, v in state.items() if k != PROBE_STATE}
+    model_state = None if state is None else {k: v for k, v in state.items()
+                                              if k not in STREAM_STATES}
     previous = None if state is None else state.get(PROBE_STATE)
     if has_motion(planes):
         cut = judge_cut(previous, current, planes["motion"])
@@ -259,16 +264,23 @@ def gate_history(planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarra
     return HistoryGate(model_state, current, evidence, False)
 
 
-def keep_probe(state: Mapping[str, np.ndarray], probe_: np.ndarray) -> dict[str, np.ndarray]:
-    return {**state, PROBE_STATE: probe_}
+def keep_probe(state: Mapping[str, np.ndarray], probe_: np.ndarray,
+               depth: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The model's new state with this frame's probe (and inverse-depth probe, where one was
+    made) beside it, for the next frame's gate and estimate."""
+    kept = {**state, PROBE_STATE: probe_}
+    if depth is not None:
+        kept[DEPTH_STATE] = depth
+    return kept
 
 
 def history_shapes(state_specs, height: int, width: int) -> dict[str, tuple[int, ...]]:
-    """Every tensor a temporal model's session keeps between frames: the model's state and the
-    probe beside it (nothing for a model without state)."""
+    """Every tensor a temporal model's session may keep between frames: the model's state and
+    the probes beside it (nothing for a model without state)."""
     shapes = {s.name: tuple(s.shape(height, width)) for s in state_specs}
     if shapes:
         shapes[PROBE_STATE] = probe_shape(height, width)
+        shapes[DEPTH_STATE] = (1, *probe_shape(height, width)[1:])
     return shapes
 
 

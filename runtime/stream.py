@@ -24,7 +24,9 @@ from quietframe.runtime.aux_motion import EstimatedMotion
 from quietframe.runtime.card import SAMPLES_INPUT
 from quietframe.runtime.denoiser import Denoiser, ModelInfo
 from quietframe.runtime.motion_evidence import (
+    DEPTH_STATE,
     PROBE_STATE,
+    STREAM_STATES,
     HistoryGate,
     gate_history,
     judge_cut,
@@ -34,15 +36,24 @@ from quietframe.runtime.motion_evidence import (
 MOTIONS = ("estimated", "rendered-only")  # a session's `motion`
 
 
+def chosen_samples(options: Mapping[str, float | int], stated: float | None,
+                   estimate: float | None = None) -> tuple[float, str] | None:
+    """The one rule for a frame's spp as a model is given it, with where it came from: the
+    session's `spp` option (`session`), else the count the renderer's header states
+    (`header`), else `auto`'s estimate of the shot's noise (`estimate`), else None (the
+    model's default). At least 1."""
+    for source, value in zip(("session", "header", "estimate"),
+                             (options.get(SAMPLES_INPUT), stated, estimate), strict=True):
+        if value is not None and math.isfinite(float(value)):
+            return max(1.0, float(value)), source
+    return None
+
+
 def samples_for(options: Mapping[str, float | int], stated: float | None,
                 estimate: float | None = None) -> float | None:
-    """The one rule for a frame's spp as a model is given it: the session's `spp` option, else
-    the count the renderer's header states, else `auto`'s estimate of the shot's noise, else
-    None (the model's default). At least 1."""
-    for value in (options.get(SAMPLES_INPUT), stated, estimate):
-        if value is not None and math.isfinite(float(value)):
-            return max(1.0, float(value))
-    return None
+    """chosen_samples' spp."""
+    chosen = chosen_samples(options, stated, estimate)
+    return None if chosen is None else chosen[0]
 
 
 def options_for(info: ModelInfo, options: Mapping[str, float | int],
@@ -110,14 +121,15 @@ class Stream:
         options = options_for(info, self.options,
                               samples_for(self.options, stated_spp, estimated_spp))
         gate = gate_history(planes, state, self.camera) if info.state_specs else None
-        estimated = None
+        estimated = depth = None
         if gate is not None and self._estimates(gate, state):
             assert state is not None
             # A moving frame without vectors: follow the motion the aux show where it is
             # trusted, the per-frame stage elsewhere (aux_motion), instead of a fresh history.
             h, w = planes["color"].shape[-2:]
             estimated = aux_motion.estimate(state[PROBE_STATE], gate.probe, h, w,
-                                            planes.get("depth"))
+                                            planes.get("depth"), state.get(DEPTH_STATE))
+            depth = estimated.depth if estimated is not None else None
             # A camera switch moves "everything": the aux along the estimate show it as a cut.
             # Without a depth there is no estimate: a fresh history, as with rendered-only.
             cut = (judge_cut(state[PROBE_STATE], gate.probe, estimated.estimate)
@@ -126,13 +138,20 @@ class Stream:
                 gate, estimated = HistoryGate(None, gate.probe, cut, True), None
             elif estimated is not None:
                 planes = {**planes, "motion": estimated.motion}
-                history = {k: v for k, v in state.items() if k != PROBE_STATE}
+                history = {k: v for k, v in state.items() if k not in STREAM_STATES}
                 gate = HistoryGate(history, gate.probe, gate.evidence, False)
+        elif gate is not None and self._may_estimate_next(gate):
+            depth = aux_motion.depth_probe(planes.get("depth"))
         result = self.denoiser.denoise(planes, gate.state if gate else state, options,
                                        renderer or self.renderer, oidn=self.oidn)
-        new_state = keep_probe(result.state, gate.probe) if gate else result.state
+        new_state = keep_probe(result.state, gate.probe, depth) if gate else result.state
         return Step(result.color, new_state, result.sanitized, tuple(result.missing), gate,
                     estimated)
+
+    def _may_estimate_next(self, gate: HistoryGate) -> bool:
+        """Whether the next frame may estimate motion against this one (a frame without
+        vectors, on a session that allows estimates): keep this frame's depth for its check."""
+        return self.motion == "estimated" and gate.evidence is not None
 
     def _estimates(self, gate: HistoryGate, state: Mapping[str, np.ndarray] | None) -> bool:
         """Whether motion is estimated for this frame: the gate dropped a history because the

@@ -46,7 +46,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from quietframe.runtime.motion_evidence import PROBE_STATE
+from quietframe.runtime.motion_evidence import STREAM_STATES
 from quietframe.service import frames
 
 FORMAT = 1  # meta["codec"]["format"]; a record without meta["codec"] is the float32 form
@@ -183,7 +183,7 @@ def _parts(name: str, tensor: np.ndarray) -> tuple[tuple[str, int, int], ...]:
     if roles is not None:
         return roles
     channels = tensor.shape[1] if tensor.ndim == 4 else tensor.shape[0]
-    return (("probe" if name == PROBE_STATE else "exact", 0, channels),)
+    return (("probe" if name in STREAM_STATES else "exact", 0, channels),)
 
 
 def _finite(x: np.ndarray) -> np.ndarray:

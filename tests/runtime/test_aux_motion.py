@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from quietframe.runtime import aux_motion as am
-from quietframe.runtime.motion_evidence import PROBE_STATE, probe
+from quietframe.runtime.motion_evidence import DEPTH_STATE, PROBE_STATE, probe
 
 SEQUENCES = Path(__file__).resolve().parents[1] / "fixtures" / "blender_sequences"
 PAN_PX = 3.0  # the fixtures' pan, pixels a frame (manifest.json)
@@ -53,6 +53,34 @@ def test_a_known_camera_move_of_real_aux_is_found_to_a_tenth_of_a_pixel(params):
     full_truth = am.motion_field(np.array(params), depth, focal)
     error = np.hypot(*(estimated.estimate - full_truth))[estimated.trusted]
     assert estimated.share > 0.8 and np.median(error) < 0.1, (estimated.share, np.median(error))
+
+
+def test_a_surface_the_previous_frame_saw_behind_something_nearer_is_not_trusted():
+    """The forward-backward check: the previous frame's depth says a patch was nearer there (a
+    post the camera trucked past), which the aux alone cannot show (they are the same on both
+    sides here): the pixels fetched from it are untrusted, the rest keep their trust."""
+    planes = aux("locked_off", 3)
+    previous = probe(planes)
+    _, h, w = planes["color"].shape
+    focal = w / (2 * np.tan(np.radians(am.FOV_DEG) / 2))
+    params = np.array((0.0, 0.0, 0.0, 0.02, 0.0, -0.05))
+    inverse = am.depth_probe(planes["depth"])
+    truth = am.motion_field(params, 1 / inverse[0], focal / 2)
+    current, _ = am.warp(previous, truth)
+    same = am.estimate(previous, current, h, w, planes["depth"], inverse)
+    aux_only = am.estimate(previous, current, h, w, planes["depth"])
+    assert same.share > 0.8 and same.share > aux_only.share - 0.05, (same.share, aux_only.share)
+    nearer = inverse.copy()
+    nearer[:, 12:24, 20:44] *= 5.0  # the previous frame saw something 5x nearer here
+    occluded = am.estimate(previous, current, h, w, planes["depth"], nearer)
+    fetched_from = np.zeros((h, w), bool)
+    ys, xs = np.mgrid[0:h, 0:w]
+    x, y = xs + same.estimate[0], ys + same.estimate[1]
+    fetched_from[(x >= 44) & (x < 84) & (y >= 28) & (y < 44)] = True  # well inside the patch
+    assert fetched_from.sum() > 200
+    assert not occluded.trusted[fetched_from].any()
+    away = same.trusted & ~np.isin(np.arange(h), range(16, 56))[:, None]
+    assert occluded.trusted[away].mean() > 0.95
 
 
 def test_a_motion_blurred_pan_without_vectors_moves_three_pixels_a_frame():
@@ -112,7 +140,9 @@ def test_the_stream_follows_the_estimate_and_starts_afresh_at_a_switch_of_camera
     second = stream.step(aux("motion_blur", 2), first.state)
     motion, history = model.seen
     assert second.estimated is not None and second.history_verdict is None
-    assert history is not None and PROBE_STATE not in history
+    assert history is not None and PROBE_STATE not in history and DEPTH_STATE not in history
+    # each frame without vectors keeps its depth for the next frame's forward-backward check
+    assert first.state[DEPTH_STATE].shape == (1, 36, 64) and DEPTH_STATE in second.state
     np.testing.assert_array_equal(motion, second.estimated.motion)
     flipped = {k: np.ascontiguousarray(v[:, ::-1, ::-1]) for k, v in aux("motion_blur", 3).items()}
     third = stream.step(flipped, second.state)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import frame_bytes, shot
 
-from quietframe.runtime.motion_evidence import PROBE_STATE
+from quietframe.runtime.motion_evidence import DEPTH_STATE, PROBE_STATE
 from quietframe.service import state_codec
 from quietframe.service.session_store import (
     Reply,
@@ -75,6 +75,17 @@ def test_what_comes_back_is_what_the_writer_continues_from():
                      ("f32", "probe")]
     stored = sum(p.size for p in encoded.planes)
     assert stored < 0.45 * sum(t.nbytes for t in state.values())
+
+
+def test_the_depth_probe_beside_the_probe_comes_back_exact():
+    """The previous frame's inverse depth, kept for motion estimated from the aux, is stored
+    like the probe: float32, compressed, exact."""
+    state = two_stages()
+    state[DEPTH_STATE] = np.random.default_rng(1).gamma(2.0, 0.1, (1, H // 2, W // 2)
+                                                        ).astype(np.float32)
+    encoded, back = round_trip(state)
+    assert np.array_equal(back[DEPTH_STATE], state[DEPTH_STATE])
+    assert encoded.layout["planes"][-1]["kind"] == "f32"
 
 
 def test_radiance_beyond_half_range_is_kept_exactly_and_nothing_non_finite_comes_back():
