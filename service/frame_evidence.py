@@ -7,6 +7,7 @@ import math
 from collections.abc import Mapping
 
 from quietframe.runtime.card import SAMPLES_INPUT
+from quietframe.runtime.stream import chosen_samples
 from quietframe.service.noise_estimate import NoiseLevel
 from quietframe.wire.exr_layout import attribute_number
 
@@ -46,12 +47,15 @@ def stated_samples(
     model_options: Mapping[str, float | int],
 ) -> NoiseLevel | None:
     """The spp stated for a frame, or None (estimate it): the session's `model_options.spp`
-    where set, else the renderer's header. The session's wins as it does for the model's input
-    (runtime/stream.samples_for), so the choice plans for the spp the chosen model is
+    where set, else the renderer's header, by the rule the model's input follows
+    (runtime/stream.chosen_samples), so the choice plans for the spp the chosen model is
     given."""
-    if SAMPLES_INPUT in model_options:
-        return NoiseLevel(float(model_options[SAMPLES_INPUT]), SESSION_SAMPLES)
-    return samples_from_header(attributes, layer)
+    header = samples_from_header(attributes, layer)
+    chosen = chosen_samples(model_options, header.spp if header is not None else None)
+    if chosen is None:
+        return None
+    spp, source = chosen
+    return NoiseLevel(spp, SESSION_SAMPLES if source == "session" else header.source)
 
 
 def renderer_from_header(attributes: Mapping[str, tuple[str, bytes]]) -> str | None:
