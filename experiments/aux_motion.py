@@ -191,16 +191,17 @@ def _epe(estimate: np.ndarray, truth: np.ndarray, where: np.ndarray) -> float:
 
 def score_shot(folder: Path, spp: int, frames: int) -> list[dict]:
     """Per frame t >= 1: median EPE of each estimator over all pixels and its trusted ones."""
-    rows, previous = [], None
+    rows, previous, previous_depth = [], None, None
     for t in range(frames):
         planes = planes_from_hwc(cycles_io.load_inputs(folder, t, spp))
-        current = probe(planes)
+        current, depth = probe(planes), aux_motion.depth_probe(planes["depth"])
         if previous is not None:
             truth = np.nan_to_num(planes["motion"][:2]).astype(np.float32)
             _, height, width = truth.shape
             everywhere = np.ones((height, width), bool)
             flow = estimate_flow(previous, current, height, width)
-            camera = aux_motion.estimate(previous, current, height, width, planes["depth"])
+            camera = aux_motion.estimate(previous, current, height, width, planes["depth"],
+                                         previous_depth)
             row = {"shot": folder.name, "spp": spp, "frame": t,
                    "motion_px": float(np.median(np.hypot(*truth)))}
             trusted = flow.doubt[0] < 0.5
@@ -216,7 +217,7 @@ def score_shot(folder: Path, spp: int, frames: int) -> list[dict]:
                   + "; ".join(f"{n} EPE {row[n]['epe']:.2f} px, {row[n]['epe_trusted']:.2f} on "
                               f"the {row[n]['trusted_share']:.0%} it trusts"
                               for n in ("flow", "camera") if n in row), flush=True)
-        previous = current
+        previous, previous_depth = current, depth
     return rows
 
 
