@@ -13,7 +13,7 @@ WITH_OPS := QUIETFRAME_BUILD_OPS=1
 CYCLES_VENV := .venv-cycles
 CYCLES_PYTHON ?= python3.11
 
-.PHONY: test serve lint bench clean cycles
+.PHONY: test serve lint bench clean cycles blender-addon
 
 # A virtualenv with a current pip: $(call new-venv,PYTHON,DIR)
 new-venv = $(1) -m venv $(2) && $(2)/bin/python -m pip install $(PIP) --upgrade pip
@@ -61,6 +61,11 @@ $(CYCLES_VENV)/.base:
 
 cycles: $(CYCLES_VENV)/.base
 	$(CYCLES_VENV)/bin/python -m pip install $(PIP) ".[cycles]"
+
+# The Blender extension: build/quietframe-blender-<version>.zip, the add-on in blender/ with a
+# copy of wire/ inside (docs/blender-addon.md). Standard library only: any python3 builds it.
+blender-addon:
+	$(PYTHON) blender/build_extension.py
 
 lint: install-dev
 	$(VENV)/bin/ruff check .
