@@ -34,9 +34,13 @@ import numpy as np
 from quietframe.runtime.motion_evidence import PROBE_SCALE, _box
 
 LEVELS = 4  # pyramid levels of the probe (the coarsest at 1/8 of its size)
-# Gauss–Newton steps per level, finest (the probe's own size) first: the camera is known well
-# at half the probe's size, and the finest level costs four times the next.
-ITERATIONS = (0, 4, 6, 8)
+# Gauss–Newton steps per level, finest (the probe's own size) first. A level is fitted only up
+# to FIT_PIXELS, so a 1080p frame's fit ends at a quarter of its size, where its 130k pixels pin
+# the camera; a small frame needs its finest level too: on a 256×144 pan of 11 px a frame over
+# fine brick the error against Cycles' vectors fell from 0.4–0.7 px to 0.1–0.25 px at 4–16 spp
+# with it (and across a motion-blurred pan the fit had wandered ±0.2 px from frame to frame,
+# where motion blur leaves the picture sharp: docs/zoo.md, "Motion from the aux").
+ITERATIONS = (4, 4, 6, 8)
 HUBER = 0.005  # probe units: residuals beyond this weigh less (moving objects, mixed pixels)
 DAMPING = 1e-4  # Levenberg–Marquardt, relative to the normal matrix's diagonal
 # The focal length is not fitted: at first order the field sees only focal × rotation and
@@ -64,12 +68,15 @@ class EstimatedMotion:
 
 def working_set_bytes(height: int, width: int) -> int:
     """About the most an estimate holds for an H×W frame: its two fields and trust mask
-    (17 B a pixel), the probe pyramid's depths, one band's float64 temporaries, and a fitting
-    step's Jacobian and weights (~400 B a pixel of the largest level it fits on)."""
+    (17 B a pixel), the probe pyramid's depths and the forward-backward check's fields and error
+    (~80 B a probe pixel), one band's float64 temporaries, and a fitting step's Jacobian and weights
+    (~400 B a pixel of the largest level it fits on)."""
     probe_pixels = -(-height // PROBE_SCALE) * -(-width // PROBE_SCALE)
     band = 16 * 8 * min(BAND_ROWS, height) * width
-    return (17 * height * width + 12 * probe_pixels + band
-            + 400 * min(probe_pixels // 4, FIT_PIXELS))
+    fitted = probe_pixels  # the largest level the fit runs on
+    while fitted > FIT_PIXELS:
+        fitted //= 4
+    return 17 * height * width + 80 * probe_pixels + band + 400 * fitted
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
@@ -174,7 +181,10 @@ def _forward_backward_error(params: np.ndarray, depth: np.ndarray, previous_dept
     error = np.hypot(*(back + _fetch_nearest(forward, back)))
     padded = np.pad(error, 1, mode="edge")
     h, w = error.shape
-    return np.max([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)], axis=0)
+    for i in range(3):
+        for j in range(3):
+            np.maximum(error, padded[i:i + h, j:j + w], out=error)
+    return error
 
 
 def _pyramid(x: np.ndarray) -> list[np.ndarray]:
