@@ -34,13 +34,16 @@ import numpy as np
 from quietframe.runtime.motion_evidence import PROBE_SCALE, _box
 
 LEVELS = 4  # pyramid levels of the probe (the coarsest at 1/8 of its size)
-# Gauss–Newton steps per level, finest (the probe's own size) first. A level is fitted only up
-# to FIT_PIXELS, so a 1080p frame's fit ends at a quarter of its size, where its 130k pixels pin
-# the camera; a small frame needs its finest level too: on a 256×144 pan of 11 px a frame over
-# fine brick the error against Cycles' vectors fell from 0.4–0.7 px to 0.1–0.25 px at 4–16 spp
-# with it (and across a motion-blurred pan the fit had wandered ±0.2 px from frame to frame,
-# where motion blur leaves the picture sharp: docs/zoo.md, "Motion from the aux").
+# Gauss–Newton steps per level, finest (the probe's own size) first. The fit runs from the
+# coarsest level down to the first that holds PIN_PIXELS (its pixels pin the camera: the error
+# goes as the level's pixel size over √pixels), or the finest: a 1080p or 720p frame's fit ends
+# at a quarter of its size (130k and 58k pixels), a small frame's on the probe itself. Ending a
+# 256×144 frame's fit at a quarter of its size (2 300 pixels) left 0.4–0.7 px of error against
+# Cycles' vectors on a fast pan over fine brick, 0.1–0.25 px with the finest level, and across
+# a motion-blurred pan the camera wandered ±0.2 px from frame to frame, where motion blur leaves
+# the picture sharp (docs/zoo.md, "Motion from the aux").
 ITERATIONS = (4, 4, 6, 8)
+PIN_PIXELS = 50_000
 HUBER = 0.005  # probe units: residuals beyond this weigh less (moving objects, mixed pixels)
 DAMPING = 1e-4  # Levenberg–Marquardt, relative to the normal matrix's diagonal
 # The focal length is not fitted: at first order the field sees only focal × rotation and
@@ -71,12 +74,27 @@ def working_set_bytes(height: int, width: int) -> int:
     (17 B a pixel), the probe pyramid's depths and the forward-backward check's fields and error
     (~80 B a probe pixel), one band's float64 temporaries, and a fitting step's Jacobian and weights
     (~400 B a pixel of the largest level it fits on)."""
-    probe_pixels = -(-height // PROBE_SCALE) * -(-width // PROBE_SCALE)
+    probe_h, probe_w = -(-height // PROBE_SCALE), -(-width // PROBE_SCALE)
+    shapes = [(probe_h, probe_w)]
+    while len(shapes) < LEVELS and min(shapes[-1]) >= 16:  # as _pyramid
+        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
+    sizes = [h * w for h, w in shapes]
+    fitted = sizes[min(_fitted_levels(sizes), default=len(sizes) - 1)]
     band = 16 * 8 * min(BAND_ROWS, height) * width
-    fitted = probe_pixels  # the largest level the fit runs on
-    while fitted > FIT_PIXELS:
-        fitted //= 4
-    return 17 * height * width + 80 * probe_pixels + band + 400 * fitted
+    return 17 * height * width + 80 * sizes[0] + band + 400 * fitted
+
+
+def _fitted_levels(sizes: list[int]) -> list[int]:
+    """The pyramid levels the fit runs on, coarsest first, from the levels' pixel counts
+    (finest first): down to the first that holds PIN_PIXELS, none above FIT_PIXELS."""
+    levels = []
+    for level in reversed(range(len(sizes))):
+        if sizes[level] > FIT_PIXELS:
+            break  # the camera is known from the coarser levels
+        levels.append(level)
+        if sizes[level] >= PIN_PIXELS:
+            break
+    return levels
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
@@ -229,9 +247,7 @@ def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
     focal = width / (2 * np.tan(np.radians(FOV_DEG) / 2))  # frame pixels
     params = np.zeros(6)
     levels = min(len(previous_levels), len(depths))
-    for level in reversed(range(levels)):
-        if depths[level].size > FIT_PIXELS:
-            continue  # the camera is known from the coarser levels
+    for level in _fitted_levels([d.size for d in depths[:levels]]):
         for _ in range(ITERATIONS[min(level, len(ITERATIONS) - 1)]):
             params = _step(params, previous_levels[level], current_levels[level],
                            depths[level], focal / (PROBE_SCALE * 2**level))
