@@ -175,6 +175,44 @@ def test_killed_server_continues_sequence_from_durable_state(tmp_path, live_serv
         server.wait(timeout=30)
 
 
+def test_motion_estimated_from_the_aux_survives_a_kill(tmp_path):
+    """A motion-blurred Cycles pan (all-zero Vector): the history follows motion estimated from
+    the aux, whose forward-backward check reads the previous frame's depth, kept beside the
+    probe in the stored state. After kill -9 the next frames continue exactly as a session of
+    the same durable server that was never killed: the same estimate, no reset, the same
+    bytes (the writer continues from the stored values, state_codec)."""
+    from pathlib import Path
+
+    sequences = Path(__file__).resolve().parents[1] / "fixtures" / "blender_sequences"
+    frames = [(sequences / f"motion_blur.{t:04d}.exr").read_bytes() for t in range(1, 5)]
+    model, size = "oidn-fast-history", (128, 72)
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    server = _start_cli_server(port, tmp_path)
+    try:
+        with Client(url) as client:
+            sid = client.create_session(*size, model)["id"]
+            reference = [client.send_frame(sid, i, f) for i, f in enumerate(frames)]
+            client.delete_session(sid)
+            sid = client.create_session(*size, model)["id"]
+            first = [client.send_frame(sid, i, frames[i]) for i in range(2)]
+        assert all("motion estimated from the aux" in r.motion for r in reference[1:])
+        server.send_signal(signal.SIGKILL)
+        server.wait(timeout=30)
+        assert b"motion_depth" in np.load(tmp_path / f"{sid}.npz")["meta"].tobytes()
+        server = _start_cli_server(port, tmp_path)
+        with Client(url) as client:
+            rest = [client.send_frame(sid, i, frames[i]) for i in (2, 3)]
+            client.delete_session(sid)
+        assert [r.reset for r in rest] == ["none", "none"]
+        for got, expected in zip(first + rest, reference, strict=True):
+            assert got.motion == expected.motion  # the same share of the frame trusted
+            np.testing.assert_array_equal(colour(got.exr), colour(expected.exr))
+    finally:
+        server.kill()
+        server.wait(timeout=30)
+
+
 @pytest.mark.parametrize("layout", ["blender", "renderman-rgb"])
 def test_missing_motion_over_http(live_server, layout):
     data = write_exr(LAYOUTS[layout](make_buffers(motion=False)))
