@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from quietframe.runtime.motion_evidence import PROBE_SCALE, _box
+from quietframe.runtime.motion_evidence import PROBE_SCALE, _box, fetch_nearest
 
 LEVELS = 4  # pyramid levels of the probe (the coarsest at 1/8 of its size)
 # Gauss–Newton steps per level, finest (the probe's own size) first. The fit runs from the
@@ -74,11 +74,7 @@ def working_set_bytes(height: int, width: int) -> int:
     (17 B a pixel), the probe pyramid's depths and the forward-backward check's fields and error
     (~80 B a probe pixel), one band's float64 temporaries, and a fitting step's Jacobian and weights
     (~400 B a pixel of the largest level it fits on)."""
-    probe_h, probe_w = -(-height // PROBE_SCALE), -(-width // PROBE_SCALE)
-    shapes = [(probe_h, probe_w)]
-    while len(shapes) < LEVELS and min(shapes[-1]) >= 16:  # as _pyramid
-        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
-    sizes = [h * w for h, w in shapes]
+    sizes = [h * w for h, w in _level_shapes(-(-height // PROBE_SCALE), -(-width // PROBE_SCALE))]
     fitted = sizes[min(_fitted_levels(sizes), default=len(sizes) - 1)]
     band = 16 * 8 * min(BAND_ROWS, height) * width
     return 17 * height * width + 80 * sizes[0] + band + 400 * fitted
@@ -180,23 +176,13 @@ def _inverse(params: np.ndarray) -> np.ndarray:
     return np.concatenate((-params[:3], -_rotation(params[:3]).T @ params[3:6]))
 
 
-def _fetch_nearest(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
-    """(C, h, w) image at the nearest pixel to p + flow(p), clamped: a field is not blended
-    across a depth edge (a post's motion and the sky's would average to neither)."""
-    _, h, w = image.shape
-    ys, xs = np.mgrid[0:h, 0:w]
-    x = np.clip(np.rint(xs + flow[0]), 0, w - 1).astype(np.intp)
-    y = np.clip(np.rint(ys + flow[1]), 0, h - 1).astype(np.intp)
-    return image[:, y, x]
-
-
-def _forward_backward_error(params: np.ndarray, depth: np.ndarray, previous_depth: np.ndarray,
+def _forward_backward_error(params: np.ndarray, back: np.ndarray, previous_depth: np.ndarray,
                             focal: float) -> np.ndarray:
     """(h, w) worst |b(p) + f(p + b(p))| over each pixel's 3×3, pixels of this level: b the
-    backward field of this frame's depth, f the forward field of the previous frame's."""
-    back = motion_field(params, depth, focal)
+    camera's backward field of this frame (motion_field), f the forward field of the previous
+    frame's depth. The nearest f: a post's motion and the sky's would average to neither."""
     forward = motion_field(_inverse(params), previous_depth, focal)
-    error = np.hypot(*(back + _fetch_nearest(forward, back)))
+    error = np.hypot(*(back + fetch_nearest(forward, back)))
     padded = np.pad(error, 1, mode="edge")
     h, w = error.shape
     for i in range(3):
@@ -205,9 +191,18 @@ def _forward_backward_error(params: np.ndarray, depth: np.ndarray, previous_dept
     return error
 
 
+def _level_shapes(height: int, width: int) -> list[tuple[int, int]]:
+    """(h, w) of each pyramid level of an image of this size, finest first: halved (rounded
+    up) while both sides are at least 16, at most LEVELS levels."""
+    shapes = [(height, width)]
+    while len(shapes) < LEVELS and min(shapes[-1]) >= 16:
+        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
+    return shapes
+
+
 def _pyramid(x: np.ndarray) -> list[np.ndarray]:
     out = [x]
-    while len(out) < LEVELS and min(out[-1].shape[1:]) >= 16:
+    for _ in _level_shapes(*x.shape[1:])[1:]:
         out.append(_box(out[-1], 2))
     return out
 
@@ -228,7 +223,12 @@ def depth_probe(depth: np.ndarray | None) -> np.ndarray | None:
     motion goes with 1/depth, so a probe pixel of a thin post and the sky behind it moves as
     the mean of their motions (a plain mean of depths would put it far off)."""
     ray = _ray_depth(depth) if depth is not None else None
-    return None if ray is None else _box(1 / ray[None], PROBE_SCALE)
+    return None if ray is None else _inverse_probe(ray)
+
+
+def _inverse_probe(ray: np.ndarray) -> np.ndarray:
+    """depth_probe of an (H, W) ray depth already put through _ray_depth."""
+    return _box(1 / ray[None], PROBE_SCALE)
 
 
 def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
@@ -241,7 +241,7 @@ def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
     depth = _ray_depth(depth) if depth is not None else None
     if depth is None:
         return None
-    inverse = _box(1 / depth[None], PROBE_SCALE)  # depth_probe of this frame
+    inverse = _inverse_probe(depth)  # this frame's depth_probe
     depths = [1 / d[0] for d in _pyramid(inverse)]
     previous_levels, current_levels = _pyramid(previous), _pyramid(current)
     focal = width / (2 * np.tan(np.radians(FOV_DEG) / 2))  # frame pixels
@@ -255,8 +255,8 @@ def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
     # the trust check on the probe (or, for frames beyond 4K, the first level that fits)
     level = next((i for i in range(levels) if depths[i].size <= TRUST_PIXELS), levels - 1)
     scale = PROBE_SCALE * 2**level
-    warped, inside = warp(previous_levels[level],
-                          motion_field(params, depths[level], focal / scale))
+    level_field = motion_field(params, depths[level], focal / scale)
+    warped, inside = warp(previous_levels[level], level_field)
     error = np.abs(warped - current_levels[level]).mean(0)
     k = 2 * TRUST_RADIUS + 1
     padded = np.pad(error, TRUST_RADIUS, mode="edge")
@@ -266,7 +266,7 @@ def estimate(previous: np.ndarray, current: np.ndarray, height: int, width: int,
     if previous_depth is not None and previous_depth.shape == inverse.shape:
         previous_depths = _pyramid(previous_depth)
         if len(previous_depths) > level:
-            good &= _forward_backward_error(params, depths[level], 1 / previous_depths[level][0],
+            good &= _forward_backward_error(params, level_field, 1 / previous_depths[level][0],
                                             focal / scale) <= FB_PIXELS / scale
     trusted = np.repeat(np.repeat(good, scale, 0), scale, 1)[:height, :width]
     motion = field.copy()

@@ -199,12 +199,18 @@ class HistoryGate:
 def warp_probe(previous: np.ndarray, motion: np.ndarray) -> np.ndarray:
     """The previous frame's probe fetched along this frame's motion (pixel p was at p + m in
     the previous frame), nearest probe pixel, clamped to the frame."""
-    m = _box(np.asarray(motion[:2], np.float32), PROBE_SCALE) / PROBE_SCALE
-    _, h, w = previous.shape
+    return fetch_nearest(previous,
+                         _box(np.asarray(motion[:2], np.float32), PROBE_SCALE) / PROBE_SCALE)
+
+
+def fetch_nearest(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """(C, h, w) image at the nearest pixel to p + flow(p), clamped to the frame (a non-finite
+    flow counts as 0): nothing is blended across an edge."""
+    _, h, w = image.shape
     rows, cols = np.mgrid[0:h, 0:w]
-    x = np.clip(np.rint(cols + np.nan_to_num(m[0])), 0, w - 1).astype(np.intp)
-    y = np.clip(np.rint(rows + np.nan_to_num(m[1])), 0, h - 1).astype(np.intp)
-    return previous[:, y, x]
+    x = np.clip(np.rint(cols + np.nan_to_num(flow[0])), 0, w - 1).astype(np.intp)
+    y = np.clip(np.rint(rows + np.nan_to_num(flow[1])), 0, h - 1).astype(np.intp)
+    return image[:, y, x]
 
 
 def judge_cut(previous: np.ndarray | None, current: np.ndarray,

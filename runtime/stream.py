@@ -150,8 +150,10 @@ class Stream:
 
     def _may_estimate_next(self, gate: HistoryGate) -> bool:
         """Whether the next frame may estimate motion against this one (a frame without
-        vectors, on a session that allows estimates): keep this frame's depth for its check."""
-        return self.motion == "estimated" and gate.evidence is not None
+        vectors, on a session that allows estimates and whose camera is not locked off: a
+        locked camera never estimates): keep this frame's depth for its check."""
+        return (self.motion == "estimated" and self.camera != "locked"
+                and gate.evidence is not None)
 
     def _estimates(self, gate: HistoryGate, state: Mapping[str, np.ndarray] | None) -> bool:
         """Whether motion is estimated for this frame: the gate dropped a history because the
