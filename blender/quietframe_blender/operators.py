@@ -163,11 +163,4 @@ class QF_OT_set_up_passes(bpy.types.Operator):
 CLASSES = (QF_OT_denoise_frames, QF_OT_cancel, QF_OT_set_up_passes)
 
 
-def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

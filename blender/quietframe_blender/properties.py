@@ -89,13 +89,14 @@ class QuietframeSceneSettings(bpy.types.PropertyGroup):
 CLASSES = (QuietframePreferences, QuietframeSceneSettings)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
 def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     bpy.types.Scene.quietframe = bpy.props.PointerProperty(type=QuietframeSceneSettings)
 
 
 def unregister() -> None:
     del bpy.types.Scene.quietframe
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    _unregister_classes()

@@ -81,11 +81,4 @@ class RENDER_PT_quietframe(bpy.types.Panel):
 CLASSES = (RENDER_PT_quietframe,)
 
 
-def register() -> None:
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)
