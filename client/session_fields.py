@@ -27,6 +27,8 @@ MAX_LAYER_NAME_BYTES = 120  # two of them and ".R" fit in an EXR channel name (2
 # exact as a float64 and within every graph input's type (int64, float32). Python's int has no
 # bound: 10**400 would pass as a JSON integer and overflow where it becomes a float.
 MAX_OPTION_MAGNITUDE = 2**53 - 1
+# The most frames a session may hold back for its look-ahead (docs/service.md, "Look-ahead")
+MAX_LOOKAHEAD = 4
 
 
 def _within_option_range(value: int | float) -> int | float:
@@ -108,6 +110,13 @@ class SessionFields(BaseModel):
         description="compression of the denoised EXR; 'input' keeps the input's (a header "
         "attribute) unless it is lossy (dwaa, dwab, b44, b44a, pxr24: then zip, so passed-through "
         "data keep their values), 'none' is the fastest to write",
+    )
+    lookahead: Annotated[int, Field(strict=True, ge=0, le=MAX_LOOKAHEAD)] = Field(
+        0,
+        description="frames the session holds back so frame t can use frames t+1..t+k: a "
+        "frame's reply then carries the frame k before it (X-Quietframe-Frame), 202 while "
+        "fewer than k+1 are pending, and POST .../frames/{t}/finish returns a pending frame "
+        "at the end of a shot or chunk; 0 (default): each reply carries its own frame",
     )
     model_options: dict[str, OptionValue] = Field(
         default_factory=dict,
