@@ -48,6 +48,7 @@ class Header:
     # model=auto sessions: "<model>; spp=<n>; source=<header attribute|estimate|unknown>;
     # reason=<why>" (the choice made at the shot's first frame, repeated on every frame of it)
     CHOICE = "X-Quietframe-Choice"
+    PENDING = "X-Quietframe-Pending"
     REPLAYED = "X-Quietframe-Replayed"  # "true": the stored reply of an idempotent retry
     SERVER_TIMING = "Server-Timing"  # "decode;dur=1.0, denoise;dur=..., encode;..., total;..."
 
