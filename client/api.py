@@ -93,17 +93,31 @@ class Client(_ClientBase):
                 raise
 
     def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False,
-                   shot_model: str | None = None) -> FrameResult:
-        """`shot_model` (model=auto): the model already chosen for the frame's shot."""
+                   shot_model: str | None = None) -> FrameResult | None:
+        """`shot_model` (model=auto): the model already chosen for the frame's shot. The result
+        is the frame the reply carries: frame `index`, or in a look-ahead session (`lookahead`
+        k > 0) the frame k before it (`result.index`); None while the session holds the frame
+        back (202: nothing to write yet)."""
         response = self._send(core.frame_call(session_id, index, exr, cut, shot_model))
         return core.parse_frame(index, response)
 
-    def denoise_sequence(self, source, out_dir, **options) -> str | None:
-        """Stream a folder or glob of EXR frames through one session into `out_dir` (same
-        names), resuming an earlier run; options of `sequence.run_sequence` (model, precision,
-        compression, warmup, on_progress, layers, and session fields such as channels).
+    def finish_frame(self, session_id: str, index: int) -> FrameResult:
+        """A look-ahead session's oldest pending frame `index`, finished now with the later
+        frames it has: call it for each frame still pending at the end of a shot or chunk."""
+        return core.parse_finished(index, self._send(core.finish_call(session_id, index)))
+
+    def denoise_sequence(self, source, out_dir, frames: tuple[int, ...] | None = None,
+                         pre_roll: int = 0, post_roll: int = 0, cuts: tuple[int, ...] = (),
+                         **options) -> str | None:
+        """Stream a folder, glob or frame pattern of EXR frames through one session into
+        `out_dir` (same names), resuming an earlier run: `frames` (frame numbers, e.g.
+        range(1001, 1013)) limits it to a chunk, sent after its `pre_roll` frames and before
+        its `post_roll` ones (for `lookahead`; neither written), `cuts` starts a fresh history
+        at those frames; options of `sequence.run_sequence` (model, precision, compression,
+        warmup, on_progress, layers, and session fields such as channels or lookahead).
         Returns the session id, None if nothing was left."""
-        job = Job.plan(source, out_dir)
+        job = Job.plan(source, out_dir, _frames(frames), pre_roll, tuple(cuts),
+                       post_roll=post_roll)
         return run_sequence(self, job, str(self._http.base_url), **options)
 
 
@@ -156,11 +170,23 @@ class AsyncClient(_ClientBase):
     async def send_frame(
         self, session_id: str, index: int, exr: bytes, cut: bool = False,
         shot_model: str | None = None,
-    ) -> FrameResult:
+    ) -> FrameResult | None:
         response = await self._send(core.frame_call(session_id, index, exr, cut, shot_model))
         return core.parse_frame(index, response)
 
-    async def denoise_sequence(self, source, out_dir, **options) -> str | None:
+    async def finish_frame(self, session_id: str, index: int) -> FrameResult:
+        response = await self._send(core.finish_call(session_id, index))
+        return core.parse_finished(index, response)
+
+    async def denoise_sequence(self, source, out_dir, frames: tuple[int, ...] | None = None,
+                               pre_roll: int = 0, post_roll: int = 0,
+                               cuts: tuple[int, ...] = (), **options) -> str | None:
         """`Client.denoise_sequence` for asyncio (one task per sequence)."""
-        job = Job.plan(source, out_dir)
+        job = Job.plan(source, out_dir, _frames(frames), pre_roll, tuple(cuts),
+                       post_roll=post_roll)
         return await arun_sequence(self, job, str(self._http.base_url), **options)
+
+
+def _frames(frames) -> tuple[int, ...] | None:
+    """Frame numbers as Job.plan takes them: ascending, without repeats."""
+    return None if frames is None else tuple(sorted(set(frames)))

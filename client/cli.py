@@ -36,7 +36,12 @@ from quietframe.client.preflight import (
     model_names,
 )
 from quietframe.client.report import Reporter
-from quietframe.client.sequence import job_settings, refuse_conflicts, run_sequence
+from quietframe.client.sequence import (
+    job_settings,
+    refuse_conflicts,
+    run_sequence,
+    warm_positions,
+)
 from quietframe.client.session_fields import AUTO
 from quietframe.client.settings import client_settings
 
@@ -87,7 +92,7 @@ def _plan(args: argparse.Namespace):
         raise _Stop(outcome.CONFIG, *problem)
     try:
         job = Job.plan(args.input, args.out, frames, args.pre_roll, tuple(args.cut or ()),
-                       create_out=not args.dry_run)
+                       create_out=not args.dry_run, post_roll=args.post_roll)
     except SequenceError as exc:
         raise _Stop(outcome.INPUT, str(exc)) from exc
     except ValueError as exc:
@@ -116,7 +121,8 @@ def _reporter(args: argparse.Namespace, total: int, done: int):
 def _preflight(args, job, reporter):
     """Every frame's header before the first upload (the preflight.Report); _Stop for what
     would fail later."""
-    report = check_frames(job.files, job.missing, pre_roll_missing=job.pre_roll_missing)
+    report = check_frames(job.files, job.missing, pre_roll_missing=job.pre_roll_missing,
+                          post_roll_missing=job.post_roll_missing)
     for warning in report.warnings:
         if args.strict:
             raise _Stop(outcome.INPUT, warning, "render the missing frames, or leave out "
@@ -232,10 +238,29 @@ def _dry_run(args, server, options, job, layers, report, reporter) -> None:
     pending = job.first_pending(settings) - job.first_written
     todo = len(job.written) - pending
     redo = f"; --force redoes {_force_redoes(job, settings)}" if args.force and todo else ""
+    sent, words = _frames_sent(job, settings, args.warmup, bool(options.get("lookahead")))
     reporter.event("dry-run", f"quietframe: dry run: {server} answers ({len(model_names(listing))} "
                    f"models), --model {args.model} accepted; {todo} of {len(job.written)} "
-                   f"frame(s) to denoise{redo}; no frame was sent", server=server,
-                   model=args.model, to_denoise=todo, total=len(job.written))
+                   f"frame(s) to denoise{redo}; {words}; no frame was sent", server=server,
+                   model=args.model, to_denoise=todo, total=len(job.written),
+                   lookahead=options.get("lookahead") or 0, **sent)
+
+
+def _frames_sent(job, settings: dict, warmup: int, lookahead: bool) -> tuple[dict, str]:
+    """The frames a run would send in a new session, by role, and that in words: the pre-roll
+    or, resuming, the warm-up (not written), the frames to write, the post-roll (look-ahead
+    only; not written)."""
+    pending = job.first_pending(settings)
+    warm = warm_positions(job, pending, warmup if pending > job.first_written else
+                          job.first_written) if pending < job.end_written else []
+    todo = range(pending, job.end_written)
+    sent = {"pre_roll": [job.indices[i] for i in warm],
+            "frames": [job.indices[i] for i in todo],
+            "post_roll": job.indices[job.end_written:] if lookahead and todo else []}
+    said = [f"{format_numbers(numbers)}{role}" for numbers, role in (
+        (sent["pre_roll"], " (pre-roll, not written)"), (sent["frames"], ""),
+        (sent["post_roll"], " (post-roll, not written)")) if numbers]
+    return sent, "would send frame(s) " + ", ".join(said) if said else "would send nothing"
 
 
 def _client(args, server, reporter):
@@ -258,7 +283,7 @@ def _server_stop(exc, at: str, server: str, mapping: bool, view_layers) -> _Stop
 def _redone_positions(job, settings: dict) -> list[int]:
     """Positions whose existing output --force writes again: every one from the first frame
     that is not this job's on (each later frame's history runs through it)."""
-    return [i for i in range(job.first_pending(settings), len(job.files))
+    return [i for i in range(job.first_pending(settings), job.end_written)
             if os.path.lexists(job.output(i))]
 
 
@@ -296,12 +321,17 @@ def _run(args, server, options, job, layers, reporter, position) -> int:
         watcher = _ShotWatcher(args, client, reporter, job)
 
         def progress(p) -> None:
-            position["at"] = p.position + 1
+            # after the frame just sent (or finished): a written one may be an earlier frame
+            position["at"] = (p.position if p.sent is None else p.sent) + 1
+            index = job.indices[p.position]
             if p.result is None:
-                reporter.warm(job.indices[p.position], p.path.name)
+                report = (reporter.post_roll if p.post_roll else
+                          reporter.held if p.held else reporter.warm)
+                report(index, p.path.name)
                 return
             watcher.seen(p)
-            reporter.frame(job.indices[p.position], p.path.name, p.result)
+            reporter.frame(index, p.path.name, p.result, finished=p.sent is None,
+                           reply_to=None if p.sent is None else job.indices[p.sent])
             written["count"] += 1
 
         try:

@@ -8,7 +8,7 @@ import json
 import math
 from pathlib import Path
 
-from quietframe.client.session_fields import AUTO, SessionFields
+from quietframe.client.session_fields import AUTO, MAX_LOOKAHEAD, SessionFields
 from quietframe.client.settings import client_settings
 
 # Session fields a run sets itself: the frames' size, one session per view layer, and the
@@ -49,6 +49,8 @@ def session_options(args: argparse.Namespace) -> dict:
         raise ValueError('--channels must be a JSON object, e.g. \'{"albedo": "alb"}\'')
     given = {name: getattr(args, name) for name in SessionFields.model_fields
              if name not in RUN_FIELDS and hasattr(args, name)}
+    if given.get("lookahead") == 0:  # today's session: no new setting in the records
+        given["lookahead"] = None
     return given | {
         "channels": mapping or None,
         "motion_scale": tuple(args.motion_scale) if args.motion_scale else None,
@@ -59,8 +61,20 @@ def session_options(args: argparse.Namespace) -> dict:
 def flag_problem(args: argparse.Namespace, options: dict) -> tuple[str, str] | None:
     """(message, advice) for flags that contradict each other or cannot work, which the run
     would otherwise refuse late or ignore silently; None when they hold together."""
-    if args.pre_roll < 0 or args.warmup < 0:
-        return "--pre-roll and --warmup take a frame count >= 0", ""
+    if args.pre_roll < 0 or args.post_roll < 0 or args.warmup < 0:
+        return "--pre-roll, --post-roll and --warmup take a frame count >= 0", ""
+    lookahead = args.lookahead or 0
+    if not 0 <= lookahead <= MAX_LOOKAHEAD:
+        return (f"--lookahead is how many later frames each frame may use, 0 to "
+                f"{MAX_LOOKAHEAD}; got {lookahead}", "e.g. --lookahead 2 (with --post-roll 2 "
+                "for a chunk of a longer shot), or leave it out")
+    if args.post_roll > lookahead:
+        unused = "no output uses them" if not lookahead else (
+            f"a frame looks at most --lookahead {lookahead} frame(s) ahead")
+        return (f"--post-roll {args.post_roll} sends frames after --frames only for the "
+                f"look-ahead of the chunk's last frames, and {unused}",
+                f"pass --post-roll {lookahead}" if lookahead else
+                "pass --lookahead K with --post-roll K, or leave out --post-roll")
     if not args.timeout > 0 or not math.isfinite(args.timeout):
         return (f"--timeout is seconds per request, > 0; got {args.timeout:g}",
                 "e.g. --timeout 300 (a farm requeues a failure it cannot fix forever)")
@@ -102,6 +116,24 @@ def add_denoise_arguments(denoise: argparse.ArgumentParser) -> None:
         metavar="N",
         help="send the N frames before --frames first, to warm the history without writing "
         "them (a farm chunk then continues its shot without a visible pop)",
+    )
+    denoise.add_argument(
+        "--post-roll",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --lookahead, send the N frames after --frames too, so the chunk's last "
+        "frames see their later frames, without writing them (at most --lookahead; a shot's "
+        "last chunk: --cut at the frame after the shot)",
+    )
+    denoise.add_argument(
+        "--lookahead",
+        type=int,
+        default=None,  # unset: the server's default (0), and no new setting in the records
+        metavar="K",
+        help=f"frames (0-{MAX_LOOKAHEAD}) the server holds back so that each frame's denoise "
+        "also uses the K frames after it: a frame's output comes K frames later, and those "
+        "still held are finished at the end of the run (docs/service.md, 'Look-ahead')",
     )
     denoise.add_argument(
         "--cut",

@@ -6,6 +6,11 @@ errors. Frames are idempotent by index on the server (the same index again retur
 bytes without advancing history), so a frame whose response was lost is simply sent again.
 Creating a session is retried only when the server surely did not create it (429/502/503/504,
 or the connection was never made).
+
+A look-ahead session (session field `lookahead` k > 0) holds frames back: the reply to a frame
+carries an earlier one (X-Quietframe-Frame), or nothing yet (202: `parse_frame` gives None), and
+`finish_call` asks for a pending frame at the end of a shot or chunk. A retried frame or finish
+gets the stored reply, the same frame.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ class QuietframeError(Exception):
 
 @dataclass
 class FrameResult:
-    index: int
+    index: int  # the frame it carries: the one sent, or with look-ahead an earlier one
     exr: bytes  # the denoised EXR
     reset: str  # a protocol.Reset value: "none", "first-frame", "cut", "gap"
     sanitized: int  # input values replaced by the server's sanitising rule
@@ -55,6 +60,9 @@ class FrameResult:
     # a temporal model's frame without usable motion vectors: what its aux showed
     # (X-Quietframe-Motion, e.g. "moving (64% of 120 tiles moved); history not used")
     motion: str = ""
+    # look-ahead sessions: the frames the session holds back after this reply
+    # (X-Quietframe-Pending); None where the server does not say (no look-ahead)
+    pending: int | None = None
 
 
 @dataclass(frozen=True)
@@ -148,10 +156,16 @@ def parse_error(response: httpx.Response) -> QuietframeError:
         return QuietframeError(response.status_code, "http_error", response.text[:500])
 
 
-def parse_frame(index: int, response: httpx.Response) -> FrameResult:
+def parse_frame(index: int, response: httpx.Response) -> FrameResult | None:
+    """The frame a reply to frame `index` carries: that frame, or where the session looks ahead
+    the earlier frame X-Quietframe-Frame names; None for 202 (the session holds the frame back:
+    nothing to write yet)."""
+    if response.status_code == 202:
+        return None
     h = response.headers
+    pending = h.get(Header.PENDING)
     return FrameResult(
-        index=index,
+        index=_frame_number(h.get(Header.FRAME), index),
         exr=response.content,
         reset=h.get(Header.RESET, "none"),
         sanitized=int(h.get(Header.SANITIZED, "0")),
@@ -162,7 +176,13 @@ def parse_frame(index: int, response: httpx.Response) -> FrameResult:
         model=h.get(Header.MODEL, ""),
         choice=h.get(Header.CHOICE, ""),
         motion=h.get(Header.MOTION, ""),
+        pending=int(pending) if pending is not None and pending.isdigit() else None,
     )
+
+
+def _frame_number(value: str | None, sent: int) -> int:
+    """X-Quietframe-Frame's index; the frame sent where the header is absent (or not a number)."""
+    return int(value) if value is not None and value.isdigit() else sent
 
 
 class SyncClient(Protocol):
@@ -176,7 +196,9 @@ class SyncClient(Protocol):
     def delete_session(self, session_id: str, missing_ok: bool = True) -> None: ...
 
     def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False,
-                   shot_model: str | None = None) -> FrameResult: ...
+                   shot_model: str | None = None) -> FrameResult | None: ...
+
+    def finish_frame(self, session_id: str, index: int) -> FrameResult: ...
 
 
 class AsyncClient(Protocol):
@@ -190,7 +212,9 @@ class AsyncClient(Protocol):
     async def delete_session(self, session_id: str, missing_ok: bool = True) -> None: ...
 
     async def send_frame(self, session_id: str, index: int, exr: bytes, cut: bool = False,
-                         shot_model: str | None = None) -> FrameResult: ...
+                         shot_model: str | None = None) -> FrameResult | None: ...
+
+    async def finish_frame(self, session_id: str, index: int) -> FrameResult: ...
 
 
 def base_url(url: str) -> str:
@@ -274,3 +298,19 @@ def frame_call(session_id: str, index: int, exr: bytes, cut: bool = False,
     if params:
         options["params"] = params
     return Call("POST", f"/v1/sessions/{session_id}/frames/{index}", options=options)
+
+
+def finish_call(session_id: str, index: int) -> Call:
+    """A look-ahead session's pending frame `index` now, finished with the later frames it has
+    (it must be the oldest pending: else 409)."""
+    return Call("POST", f"/v1/sessions/{session_id}/frames/{index}/finish")
+
+
+def parse_finished(index: int, response: httpx.Response) -> FrameResult:
+    """A finish reply: frame `index` itself; QuietframeError where the server says otherwise."""
+    result = parse_frame(index, response)
+    if result is None or result.index != index:
+        got = "nothing (202)" if result is None else f"frame {result.index}"
+        raise QuietframeError(response.status_code, "unexpected_reply",
+                              f"finishing frame {index} returned {got}")
+    return result

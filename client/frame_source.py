@@ -101,26 +101,32 @@ def find_frames(source: str | Path) -> list[Path]:
 class Selection:
     """The files to write (ascending numbers), the pre-roll files before them (sent to warm the
     history, never written), the frame numbers of the range that have no file, those of the
-    pre-roll, and every frame of the source (`found`)."""
+    pre-roll, every frame of the source (`found`), and the post-roll files after the range
+    (sent only for the look-ahead of its last frames, never written) with the post-roll
+    numbers that have no file."""
 
     files: tuple[Path, ...]
     pre_roll: tuple[Path, ...]
     missing: tuple[int, ...]
     pre_roll_missing: tuple[int, ...] = ()
     found: tuple[Path, ...] = ()
+    post_roll: tuple[Path, ...] = ()
+    post_roll_missing: tuple[int, ...] = ()
 
 
 def select_frames(
-    source: str | Path, frames: tuple[int, ...] | None = None, pre_roll: int = 0
+    source: str | Path, frames: tuple[int, ...] | None = None, pre_roll: int = 0,
+    post_roll: int = 0,
 ) -> Selection:
     """The frames of `source` in `frames` (all when None), the `pre_roll` numbers just before
     the first of them (those with a file, and those without: not rendered yet, or before the
-    shot), and the numbers in the range (or between the first and last file) that are absent.
-    Files without a number are taken in sorted order (no range, no pre-roll)."""
+    shot), the `post_roll` numbers just after the last (the same), and the numbers in the range
+    (or between the first and last file) that are absent. Files without a number are taken in
+    sorted order (no range, no pre- or post-roll)."""
     found = find_frames(source)
     numbered = {frame_number(p): p for p in found}
     if None in numbered:
-        if frames is not None or pre_roll:
+        if frames is not None or pre_roll or post_roll:
             raise SequenceError(f"{source}: file names carry no frame number for a range")
         return Selection(tuple(found), (), (), (), tuple(found))
     _check_clashes(found)
@@ -129,15 +135,21 @@ def select_frames(
     chosen = [numbered[n] for n in wanted if n in numbered]
     if not chosen:
         raise SequenceError(f"no frame of range {wanted[0]}-{wanted[-1]} in {source}")
-    first = frame_number(chosen[0])
-    assert first is not None
+    first, last = frame_number(chosen[0]), frame_number(chosen[-1])
+    assert first is not None and last is not None
     # Only the numbers just before: a frame beyond a gap would warm a history the gap resets.
     # Without a range the run starts at the sequence's first frame: nothing is missing before.
     before = range(max(first - pre_roll, 0), first)
     missing = tuple(n for n in wanted if n not in numbered)
     absent = tuple(n for n in before if n not in numbered) if frames is not None else ()
+    # After the range, up to the first absent number: a frame's look-ahead ends at a gap, so
+    # frames beyond one would be sent for nothing. Without a range nothing follows the run.
+    after = range(last + 1, last + 1 + post_roll) if frames is not None else range(0)
+    gap = next((n for n in after if n not in numbered), None)
+    sent_after = tuple(numbered[n] for n in after if gap is None or n < gap)
     return Selection(tuple(chosen), tuple(numbered[n] for n in before if n in numbered), missing,
-                     absent, tuple(found))
+                     absent, tuple(found), sent_after,
+                     tuple(n for n in after if n not in numbered))
 
 
 def _check_clashes(files: list[Path]) -> None:

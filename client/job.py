@@ -1,7 +1,7 @@
 """One run's frames and what it finds and leaves in the output folder: the frames to send (the
-chunk's range and its pre-roll), their shots, each output's state against this run (done, in
-the way, or to write), and the job file that remembers the run's sessions (client/sequence.py
-sends the frames)."""
+chunk's range, its pre-roll and its post-roll), their shots, each output's state against this
+run (done, in the way, or to write), and the job file that remembers the run's sessions
+(client/sequence.py sends the frames)."""
 
 from __future__ import annotations
 
@@ -44,7 +44,8 @@ def frame_size(path: Path) -> tuple[int, int]:
 
 @dataclass
 class Job:
-    """One run's frames: `files[:first_written]` are pre-roll (sent, never written)."""
+    """One run's frames: `files[:first_written]` are pre-roll (sent, never written), the last
+    `post_roll` post-roll (sent for the look-ahead of the frames before them, never written)."""
 
     files: list[Path]
     indices: list[int]
@@ -64,6 +65,8 @@ class Job:
     # (shot's cut, view layer or "") -> its model's record (client/shots.py), read lazily
     shot_records: dict[tuple[int | None, str], shots.ShotRecord] = field(
         default_factory=dict, repr=False)
+    post_roll: int = 0  # post-roll files at the end of `files`
+    post_roll_missing: tuple[int, ...] = ()  # post-roll frame numbers without a file
 
     @classmethod
     def plan(
@@ -74,10 +77,12 @@ class Job:
         pre_roll: int = 0,
         cuts: tuple[int, ...] = (),
         create_out: bool = True,
+        post_roll: int = 0,
     ) -> Job:
-        chosen = select_frames(source, frames, pre_roll)
+        chosen = select_frames(source, frames, pre_roll, post_roll)
         out = Path(out_dir)
-        if any(f.parent.resolve() == out.resolve() for f in [*chosen.pre_roll, *chosen.files]):
+        sent = [*chosen.pre_roll, *chosen.files, *chosen.post_roll]
+        if any(f.parent.resolve() == out.resolve() for f in sent):
             raise ValueError("--out must differ from the input folder (outputs keep the names)")
         numbers = [frame_number(f) for f in chosen.files]
         sequence = {} if None in numbers else {frame_number(p): p for p in chosen.found}
@@ -88,8 +93,13 @@ class Job:
         # the pre-roll stays in the chunk's shot: a cut inside it starts the history anyway
         pre_roll_files = [f for f in chosen.pre_roll if start is None or frame_number(f) >= start]
         pre_missing = tuple(n for n in chosen.pre_roll_missing if start is None or n >= start)
-        files = [*pre_roll_files, *chosen.files]
-        indices = [*(frame_number(f) for f in pre_roll_files), *indices]  # type: ignore[misc]
+        # the post-roll stays in the shot of the chunk's last frame: a frame after a cut does
+        # not look back across it
+        after, post_missing = _before_next_cut(indices[-1], chosen.post_roll,
+                                               chosen.post_roll_missing, set(cuts))
+        files = [*pre_roll_files, *chosen.files, *after]
+        indices = [*(frame_number(f) for f in pre_roll_files), *indices,  # type: ignore[misc]
+                   *(frame_number(f) for f in after)]
         all_cuts = frozenset(flagged | ({start} if start is not None else set()))
         problem = out_dir_problem(out)
         if problem is not None:
@@ -102,12 +112,19 @@ class Job:
             job_file = f".quietframe-job.{frames[0]}-{frames[-1]}.json"
         return cls(files, indices, out, width, height, len(pre_roll_files), chosen.missing,
                    all_cuts, job_file, pre_missing, sequence,  # type: ignore[arg-type]
-                   [_shot_of(n, all_cuts) for n in indices])
+                   [_shot_of(n, all_cuts) for n in indices], post_roll=len(after),
+                   post_roll_missing=post_missing)
+
+    @property
+    def end_written(self) -> int:
+        """The position after the last one whose output this job writes (the first post-roll
+        position, or len(files))."""
+        return len(self.files) - self.post_roll
 
     @property
     def written(self) -> range:
         """Positions whose output this job writes."""
-        return range(self.first_written, len(self.files))
+        return range(self.first_written, self.end_written)
 
     def output(self, i: int) -> Path:
         return self.out_dir / self.files[i].name
@@ -119,7 +136,7 @@ class Job:
                              self.models_at(i, settings), self.sequence.keys())
 
     def first_pending(self, settings: dict | None = None) -> int:
-        """Position of the first written frame that is not this job's output (len(files) when
+        """Position of the first written frame that is not this job's output (end_written when
         all are done); with `settings` None, the first without an output file at all."""
         for i in self.written:
             if settings is None:
@@ -127,7 +144,7 @@ class Job:
                     return i
             elif self.check(i, settings).status is not records.Status.DONE:
                 return i
-        return len(self.files)
+        return self.end_written
 
     def conflicts(self, settings: dict) -> list[tuple[int, records.Check]]:
         """Outputs in the way: every written position whose file exists but is neither done
@@ -206,6 +223,18 @@ class Job:
                 return ()
         return self.pre_roll_missing
 
+    def short_lookahead(self, i: int, lookahead: int) -> tuple[int, ...]:
+        """The missing post-roll frames within position `i`'s look-ahead (its `lookahead` next
+        frame numbers), unless a cut or a gap between it and the chunk's end ends its run
+        first: frames whose absence its output inherits, like short_history's."""
+        reach = [n for n in self.post_roll_missing if n <= self.indices[i] + lookahead]
+        if not reach:
+            return ()
+        for j in range(i + 1, self.end_written):
+            if self.is_cut(j) or self.indices[j] != self.indices[j - 1] + 1:
+                return ()
+        return tuple(reach)
+
     def read_job(self, on_damage: Callable[[str], None] | None = None) -> dict:
         """The job file's fields; {} when there is none, or when it is damaged (unreadable,
         not JSON, or a field of another type), which `on_damage` is told: a new session is
@@ -258,6 +287,8 @@ _JOB_FIELDS: dict[str, Callable[[object], bool]] = {
     "sessions": lambda v: isinstance(v, dict) and all(map(_is_session_id, v.values())),
     "last_index": lambda v: v is None or records.is_int(v),
     "settings": lambda v: v is None or isinstance(v, dict),
+    # look-ahead sessions: the frames they hold back, oldest first
+    "held": lambda v: isinstance(v, list) and all(map(records.is_int, v)),
 }
 
 
@@ -286,6 +317,18 @@ def out_dir_problem(out: Path) -> str | None:
     if not os.access(existing, os.W_OK | os.X_OK):
         return f"--out {out}: {existing} is not writable by this user"
     return None
+
+
+def _before_next_cut(last: int, post_roll: tuple[Path, ...], missing: tuple[int, ...],
+                     cuts: set[int]) -> tuple[list[Path], tuple[int, ...]]:
+    """The post-roll files and missing numbers before the first cut after frame `last` (a
+    --cut, or a post-roll frame whose header flags one)."""
+    flagged = cuts | {frame_number(f) for f in post_roll if shots.is_cut_frame(f)}
+    end = min((c for c in flagged if c is not None and c > last), default=None)
+    if end is None:
+        return list(post_roll), missing
+    return ([f for f in post_roll if frame_number(f) < end],  # type: ignore[operator]
+            tuple(n for n in missing if n < end))
 
 
 def _shot_of(index: int, cuts: frozenset[int]) -> int | None:

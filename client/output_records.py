@@ -58,7 +58,8 @@ class Status(str, Enum):
     CHANGED = "changed"  # written with other settings (model, options, channel flags)
     DAMAGED = "damaged"  # not the file written (truncated copy, other bytes of the same size)
     PENDING = "pending"  # a write that a stopped run left half-way, by its record: redone
-    # made without its full pre-roll (frames not rendered then), which exists now: redone
+    # made without its full pre-roll or post-roll (frames not rendered then), which exist
+    # now: redone
     INCOMPLETE = "incomplete"
 
 
@@ -79,6 +80,8 @@ class Record:
     models: dict | None = None
     # Pre-roll frame numbers that were missing when it was made (its history started short)
     pre_roll_missing: tuple[int, ...] = ()
+    # Post-roll frame numbers within its look-ahead that were missing when it was made
+    post_roll_missing: tuple[int, ...] = ()
 
 
 class DamagedRecord(ValueError):
@@ -257,13 +260,16 @@ def parse_record(raw: object) -> Record:
         raise DamagedRecord(f"output is not a stamp ({', '.join(fields)})")
     if not isinstance(pending, bool):
         raise DamagedRecord("pending is not true or false")
-    models, missing = raw.get("models"), raw.get("pre_roll_missing", [])
+    models = raw.get("models")
     if models is not None and not (isinstance(models, dict) and all(
             isinstance(v, str) for v in models.values())):
         raise DamagedRecord("models is not an object of model names")
-    if not (isinstance(missing, list) and all(map(is_int, missing))):
-        raise DamagedRecord("pre_roll_missing is not a list of frame numbers")
-    return Record(source, settings, output, pending, models, tuple(missing))
+    missing = {name: raw.get(name, []) for name in ("pre_roll_missing", "post_roll_missing")}
+    for name, numbers in missing.items():
+        if not (isinstance(numbers, list) and all(map(is_int, numbers))):
+            raise DamagedRecord(f"{name} is not a list of frame numbers")
+    return Record(source, settings, output, pending, models,
+                  tuple(missing["pre_roll_missing"]), tuple(missing["post_roll_missing"]))
 
 
 def is_int(value: object) -> bool:
@@ -285,7 +291,8 @@ def check(output: Path, source: Path, settings: dict, models: dict | None = None
           present: Collection[int] = ()) -> Check:
     """Whether `output` is this job's output of `source` made with `settings`; `models`: the
     model this run uses per view layer (auto resolved, None if not known yet); `present`: the
-    frame numbers in the input now (a record's missing pre-roll frame among them: INCOMPLETE)."""
+    frame numbers in the input now (a record's missing pre- or post-roll frame among them:
+    INCOMPLETE)."""
     try:
         stat_now = os.lstat(output)
     except FileNotFoundError:
@@ -304,9 +311,10 @@ def check(output: Path, source: Path, settings: dict, models: dict | None = None
         return Check(Status.STALE)
     if not _same_output(record.output, output, stat_now):
         return Check(Status.PENDING if record.pending else Status.DAMAGED)
-    rendered_since = [n for n in record.pre_roll_missing if n in present]
-    if rendered_since:
-        return Check(Status.INCOMPLETE, f"pre-roll frame(s) {rendered_since} rendered since")
+    for kind, missing in (("pre", record.pre_roll_missing), ("post", record.post_roll_missing)):
+        rendered_since = [n for n in missing if n in present]
+        if rendered_since:
+            return Check(Status.INCOMPLETE, f"{kind}-roll frame(s) {rendered_since} rendered since")
     return Check(Status.DONE)
 
 

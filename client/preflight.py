@@ -60,10 +60,12 @@ def read_header(path: Path) -> FrameHeader:
 
 
 def check_frames(files: list[Path], missing: tuple[int, ...] = (), limit: int = 10,
-                 pre_roll_missing: tuple[int, ...] = ()) -> Report:
+                 pre_roll_missing: tuple[int, ...] = (),
+                 post_roll_missing: tuple[int, ...] = ()) -> Report:
     """Every file against the first; `missing`: frame numbers of the range without a file
     (a gap: warned); `pre_roll_missing`: those of the pre-roll (warned: the chunk starts on a
-    short history). At most `limit` errors are listed, then a count."""
+    short history); `post_roll_missing`: those of the post-roll (warned: its last frames get a
+    shorter look-ahead). At most `limit` errors are listed, then a count."""
     report = Report(len(files))
     first: FrameHeader | None = None
     problems: list[str] = []
@@ -94,6 +96,12 @@ def check_frames(files: list[Path], missing: tuple[int, ...] = (), limit: int = 
             "a shorter history (a visible pop at its first frame); its outputs are recorded as "
             "such, and a rerun once those frames are rendered redoes them (a shot's first "
             "chunk: pass --cut at its first frame, or --pre-roll 0)")
+    if post_roll_missing:
+        report.warnings.append(
+            f"missing post-roll frame(s) {format_numbers(post_roll_missing)}: the chunk's last "
+            "frames look ahead to fewer frames; their outputs are recorded as such, and a rerun "
+            "once those frames are rendered redoes them (a shot's last chunk: pass --cut at the "
+            "frame after its last, or --post-roll 0)")
     return report
 
 

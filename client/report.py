@@ -98,7 +98,10 @@ class Reporter:
             self.err.write(f"quietframe: {text}\n")
             self.err.flush()
 
-    def frame(self, index: int, name: str, result) -> None:
+    def frame(self, index: int, name: str, result, reply_to: int | None = None,
+              finished: bool = False) -> None:
+        """Frame `index`'s output written; with look-ahead it came with the reply to frame
+        `reply_to`, or from a finish call (`finished`) at the end of the run."""
         for buffer, count in result.sanitized_buffers.items():
             self.sanitized[buffer].append(count)
         if result.reset == Reset.NO_MOTION.value:
@@ -113,16 +116,33 @@ class Reporter:
         fields = {"frame": index, "file": name, "reset": result.reset,
                   "missing": list(result.missing), "model": result.model,
                   "server_ms": ms, "replayed": result.replayed,
-                  "sanitized": result.sanitized_buffers, "done": self.done, "total": self.total}
+                  "sanitized": result.sanitized_buffers, "done": self.done, "total": self.total,
+                  "reply_to": index if reply_to is None and not finished else reply_to,
+                  "finished": finished}
         if self.mode == "bar" and self.bar is not None:
             self.bar.update(1)
             notes = [] if result.reset == "none" else [f"new history: {result.reset}"]
             self.bar.set_postfix_str(" ".join(notes))
             return
         notes = "" if result.reset == "none" else f", new history ({result.reset})"
+        if finished:
+            notes += ", finished at the end of the run"
         timing = f", {ms:.0f} ms" if ms is not None else ""
         self.event("frame", f"frame {index} {name} done [{self.done}/{self.total}]{timing}"
                    f"{notes}", **fields)
+
+    def held(self, index: int, name: str) -> None:
+        """A frame the server holds back for its look-ahead: its output comes later."""
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"held for look-ahead: {name}")
+        self.event("held", f"frame {index} {name} sent; held back for its look-ahead (written "
+                   "when a later frame's reply carries it)", frame=index, file=name)
+
+    def post_roll(self, index: int, name: str) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"post-roll: {name}")
+        self.event("post-roll", f"frame {index} {name} sent for the look-ahead of the frames "
+                   "before it (not written)", frame=index, file=name)
 
     def warm(self, index: int, name: str) -> None:
         if self.bar is not None:

@@ -16,6 +16,11 @@ empty history (a visible pop at every chunk boundary). Pre-roll frames not rende
 named (Job.pre_roll_missing) and recorded with the outputs whose history they shorten: a rerun
 redoes those once the frames are there (output_records.Status.INCOMPLETE).
 
+With look-ahead (session field `lookahead` k > 0) a reply carries the frame k before the one sent
+and the run finishes the frames still held at its end (client/frame_stream.py); a chunk sends
+the post-roll frames after its range (sent, never written) so that its last frames see their k
+later frames too, and records the missing ones as it does the pre-roll's.
+
 With model=auto, each shot keeps one model across chunks and reruns (client/shots.py): decided
 once, recorded in the output folder, sent with every frame.
 
@@ -26,23 +31,18 @@ with every other layer's channels taken from that layer's reply (one file per fr
 
 from __future__ import annotations
 
-import io
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from pathlib import Path
-
-import OpenEXR
 
 from quietframe.client import output_records as records
 from quietframe.client import shots
-from quietframe.client.core import AsyncClient, FrameResult, QuietframeError, SyncClient
+from quietframe.client.core import AsyncClient, QuietframeError, SyncClient
 from quietframe.client.frame_source import SequenceError, find_frames, frame_number
-from quietframe.client.job import JOB_FILE, Job, file_view_layers, frame_size, warn
+from quietframe.client.frame_stream import FrameStream, Progress, continuation, merge_layers
+from quietframe.client.job import JOB_FILE, Job, file_view_layers, warn
 from quietframe.client.output_records import OutputConflict
-from quietframe.client.session_fields import AUTO
 
-__all__ = ["JOB_FILE", "Job", "OutputConflict", "SequenceError", "file_view_layers", "find_frames",
-           "frame_number", "run_sequence"]
+__all__ = ["JOB_FILE", "Job", "OutputConflict", "Progress", "SequenceError", "file_view_layers",
+           "find_frames", "frame_number", "merge_layers", "run_sequence"]
 
 def job_settings(
     model: str = "auto",
@@ -93,26 +93,7 @@ def refuse_conflicts(job: Job, settings: dict) -> None:
         changed=False)
 
 
-def _check_size(job: Job, i: int) -> bytes:
-    width, height = frame_size(job.files[i])
-    if (width, height) != (job.width, job.height):
-        raise SequenceError(
-            f"{job.files[i].name} is {width}x{height}, the sequence is {job.width}x{job.height}; "
-            "denoise different sizes as separate sequences"
-        )
-    return job.files[i].read_bytes()
-
-
-@dataclass
-class Progress:
-    position: int  # 0-based position in job.files
-    path: Path
-    result: FrameResult | None  # None for warm-up / pre-roll frames (sent to build history)
-    session: str | None = None  # the (first layer's) session that made it
-    resumed: bool = False  # the first frame of a run that continued an existing session
-
-
-def _warm_positions(job: Job, pending: int, count: int) -> list[int]:
+def warm_positions(job: Job, pending: int, count: int) -> list[int]:
     """Up to `count` positions before `pending` that rebuild its history: none across a cut
     or a gap (the server resets there anyway)."""
     start = max(0, pending - count)
@@ -122,12 +103,14 @@ def _warm_positions(job: Job, pending: int, count: int) -> list[int]:
     return list(range(start, pending))
 
 
-def _matches(job: Job, server: str, pending: int, stored: dict, session: dict, layer) -> bool:
-    """A stored session can go on at `pending`: same server and settings, at the previous
-    frame, or at `pending` itself (its reply was lost; the server replays it)."""
+def _matches(job: Job, server: str, at: int, stored: dict, session: dict, layer) -> bool:
+    """A stored session can go on at position `at` (the next frame to send): same server and
+    settings, at the previous frame, or at `at` itself (its reply was lost; the server replays
+    it)."""
+    here = job.indices[at] if at < len(job.files) else None
     return (
         stored.get("server") == server
-        and session.get("last_index") in (job.indices[pending - 1], job.indices[pending])
+        and session.get("last_index") in (job.indices[at - 1], here)
         and (session.get("width"), session.get("height")) == (job.width, job.height)
         and session.get("layer") == layer
     )
@@ -138,31 +121,6 @@ def _stored_sessions(stored: dict) -> dict[str, str]:
     if "sessions" in stored:
         return dict(stored["sessions"])
     return {"": stored["session"]} if stored.get("session") else {}
-
-
-def merge_layers(replies: dict[str | None, bytes]) -> bytes:
-    """One file from the replies of one frame's sessions (one per view layer): the first reply,
-    with each other layer's channels (`<layer>.*`) from that layer's reply. Channels keep
-    their pixel types; parts, attributes and compression are the first reply's."""
-    (_, first), *others = replies.items()
-    base = OpenEXR.File(io.BytesIO(first), separate_channels=True)
-    for layer, data in others:
-        reply = OpenEXR.File(io.BytesIO(data), separate_channels=True)
-        for part in reply.parts:
-            for name, channel in part.channels.items():
-                if not name.startswith(f"{layer}."):
-                    continue
-                home = next((p for p in base.parts if name in p.channels), None)
-                if home is None:  # a new layer (`denoised_layer`): next to the layer's others
-                    home = next((p for p in base.parts if _holds(p, layer)), base.parts[0])
-                home.channels[name] = channel
-    out = io.BytesIO()
-    base.write(out)
-    return out.getvalue()
-
-
-def _holds(part, layer: str) -> bool:
-    return any(name.startswith(f"{layer}.") for name in part.channels)
 
 
 def run_sequence(client: SyncClient, job: Job, server: str, **options) -> str | None:
@@ -218,11 +176,13 @@ async def arun_sequence(
     works around (a damaged job file; default: a RuntimeWarning); `on_session`: told the id of
     each session the run sends its frames to, as it is created or continued (the run deletes
     them once done; a caller whose run stops for good may delete them too); `options`:
-    further session fields (channels, denoised_layer, quality, motion_scale, model_options)."""
+    further session fields (channels, denoised_layer, quality, motion_scale, model_options,
+    lookahead: then the job's post-roll frames are sent too, and the frames the sessions still
+    hold at the end are finished)."""
     settings = job_settings(model, precision, compression, layers, **options)
     if not force:
         refuse_conflicts(job, settings)
-    if job.first_pending(settings) == len(job.files):
+    if job.first_pending(settings) == job.end_written:
         return None
     # Each shot's model before any frame is sent; then outputs of another model are in the way
     named = await shots.settle_shots(client, job, settings, layers, force,
@@ -231,103 +191,63 @@ async def arun_sequence(
     if not force:
         refuse_conflicts(job, settings)
     pending = job.first_pending(settings)
-    if pending == len(job.files):
+    if pending == job.end_written:
         return None
     stored = {} if force else job.read_job(on_warning)
     if stored.get("settings") not in (None, settings):
         stored = {}  # a session made with other flags is never continued
+    lookahead = int(options.get("lookahead") or 0)
+    start, held = pending, ()  # the first position to send, the frames the sessions hold
+    if lookahead:
+        going_on = continuation(job, stored, pending)
+        stored = stored if going_on is not None else {}
+        start, held = going_on or (pending, ())
+    found: dict[str | None, dict | None] = {}
+    for layer in layers:
+        model_now = (job.models_at(pending, settings) or {}).get(layer or "")
+        found[layer] = await _reusable_session(client, job, server, start, stored, layer,
+                                               model_now)
+    if lookahead and None in found.values():  # every layer's session goes on, or none does:
+        for session in filter(None, found.values()):  # they must hold the same frames
+            await client.delete_session(session["id"])
+        found = dict.fromkeys(layers)
+        start, held = pending, ()
     sessions: dict[str | None, str] = {}
     fresh: set[str] = set()  # sessions created now: they get the warm-up frames
     for layer in layers:
-        model_now = (job.models_at(pending, settings) or {}).get(layer or "")
-        session = await _reusable_session(client, job, server, pending, stored, layer,
-                                          model_now)
+        session = found[layer]
         if session is None:
-            created = await client.create_session(
+            session = await client.create_session(
                 job.width, job.height, model, precision=precision, compression=compression,
                 layer=layer, **options,
             )
-            session = created
-            fresh.add(created["id"])
+            fresh.add(session["id"])
         sessions[layer] = session["id"]
         if on_session is not None:
             on_session(session["id"])
     shots.write_deferred(job, named)  # the server has taken the named model
-    resumed = not fresh
+    stream = FrameStream(client, job, server, sessions, settings, pending, on_progress, held,
+                         resumed=not fresh)
     count = warmup if pending > job.first_written else (
         job.first_written if pre_roll is None else pre_roll)
-    for i in _warm_positions(job, pending, count) if fresh else []:
-        data = _check_size(job, i)
-        for layer, session_id in sessions.items():
-            if session_id in fresh:
-                await _send(client, job, session_id, i, data, layer, settings)
-        _notify(on_progress, Progress(i, job.files[i], None))
-    keys = {layer or "": session_id for layer, session_id in sessions.items()}
-    first_session = next(iter(sessions.values()))
-    for i in range(pending, len(job.files)):
-        data = _check_size(job, i)
-        source = records.source_stamp(job.files[i], data)
-        results = {
-            layer: await _send(client, job, session_id, i, data, layer, settings)
-            for layer, session_id in sessions.items()
-        }
-        result = _combined(results)
-        job.write_output(i, result.exr, settings, source, model=result.model,
-                         session=first_session, index=job.indices[i],
-                         **_made_with(job, i, results))
-        job.write_job(server=server, sessions=keys, last_index=job.indices[i], settings=settings)
-        _notify(on_progress, Progress(i, job.files[i], result, first_session,
-                                      resumed=resumed and i == pending))
+    for i in warm_positions(job, pending, count) if fresh else []:
+        await stream.warm(i, [layer for layer, sid in sessions.items() if sid in fresh])
+    # the post-roll only where a session looks ahead: otherwise no output uses it
+    end = len(job.files) if lookahead else job.end_written
+    for i in range(start, end):
+        await stream.send(i)
+    await stream.finish(job.indices[end - 1] if start < end else stored.get("last_index"))
     for session_id in sessions.values():
         await client.delete_session(session_id)
-    return first_session
-
-
-async def _send(client: AsyncClient, job: Job, session_id: str, i: int, data: bytes,
-                layer: str | None, settings: dict) -> FrameResult:
-    """Frame `i` to a layer's session, with its shot's recorded model (model=auto): the server
-    takes it where the shot's history starts (a first frame, a cut) instead of choosing."""
-    shot = job.shot_record(job.shot_of(i), layer or "") if settings["model"] == AUTO else None
-    keep = {"shot_model": shot.model} if shot is not None else {}
-    return await client.send_frame(session_id, job.indices[i], data, cut=job.is_cut(i), **keep)
-
-
-def _made_with(job: Job, i: int, results: dict[str | None, FrameResult]) -> dict:
-    """What the output's record says made it besides the flags: the model of each view layer
-    (auto resolved), and the pre-roll frames its history lacked."""
-    made: dict = {}
-    models = {layer or "": r.model.partition(" ")[0] for layer, r in results.items()}
-    if all(models.values()):
-        made["models"] = models
-    if job.short_history(i):
-        made["pre_roll_missing"] = list(job.short_history(i))
-    return made
-
-
-def _combined(results: dict[str | None, FrameResult]) -> FrameResult:
-    """One frame's results of every layer's session as one (the first's reset and timings)."""
-    first = next(iter(results.values()))
-    if len(results) == 1:
-        return first
-    sanitized: dict[str, int] = {}
-    for r in results.values():
-        for name, count in r.sanitized_buffers.items():
-            sanitized[name] = sanitized.get(name, 0) + count
-    return replace(
-        first,
-        exr=merge_layers({layer: r.exr for layer, r in results.items()}),
-        sanitized=sum(r.sanitized for r in results.values()),
-        sanitized_buffers=sanitized,
-        missing=tuple(sorted({m for r in results.values() for m in r.missing})),
-    )
+    return next(iter(sessions.values()))
 
 
 async def _reusable_session(
     client: AsyncClient, job: Job, server: str, pending: int, stored: dict, layer: str | None,
     model: str | None = None,
 ):
-    """The stored session of `layer`, where it can go on at `pending` (with `model`, this
-    run's model there, where known)."""
+    """The stored session of `layer`, where it can go on at position `pending` (the next frame
+    to send; with `model`, this run's model there, where known)."""
     session_id = _stored_sessions(stored).get(layer or "")
     if pending == 0 or not session_id:
         return None
@@ -340,7 +260,3 @@ async def _reusable_session(
         return None  # another model's history: the shot's model is not this session's
     return session if _matches(job, server, pending, stored, session, layer) else None
 
-
-def _notify(callback, progress: Progress) -> None:
-    if callback is not None:
-        callback(progress)

@@ -259,8 +259,9 @@ async def _decide(client: AsyncClient, job: Job, start: int | None, layer: str |
     if model != AUTO:
         return ShotRecord(model)
     frame, index = job.deciding_frame(start)
-    session = await client.create_session(job.width, job.height, AUTO, layer=layer,
-                                          **session_fields)
+    # auto chooses at the frame itself; a look-ahead would only hold it back
+    fields = {name: value for name, value in session_fields.items() if name != "lookahead"}
+    session = await client.create_session(job.width, job.height, AUTO, layer=layer, **fields)
     try:
         await client.send_frame(session["id"], index, frame.read_bytes())
         choice = (await client.session(session["id"])).get("choice")
