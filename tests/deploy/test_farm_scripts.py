@@ -5,7 +5,10 @@ node against a stand-in for Flamenco's job-author API (written from its document
 denoise commands run as the Worker runs them (retry_on_75.py around the client) against a real
 server once their renders are done; and the Deadline submission script's job files, written
 (--write-only) and submitted through a stand-in deadlinecommand, their command line run per
-chunk as the CommandLine plugin runs it."""
+chunk as the CommandLine plugin runs it. With a look-ahead each denoise task also waits for the
+renders of its post-roll (the frames after its chunk): run as soon as its dependencies are done,
+against the look-ahead stand-in (tests/lookahead_support.py), with only the frames they waited
+for on disk."""
 
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ from pathlib import Path
 
 import pytest
 from conftest import shot
+from lookahead_support import FakeServer
 
 FARM = Path(__file__).resolve().parents[2] / "deploy" / "farm"
 FLAMENCO_SCRIPT = FARM / "flamenco" / "quietframe_render_denoise.js"
@@ -298,3 +302,120 @@ def test_deadline_refuses_a_pattern_without_a_frame_field(tmp_path):
     flags[flags.index("--render-output") + 1] = "/shots/sh010/render/sh010.exr"
     result = deadline(*flags)
     assert result.returncode == 2 and "####" in result.stderr
+
+
+# ---- look-ahead: each chunk also reads the frames after it ------------------------------------
+
+
+def test_flamenco_lookahead_waits_for_the_renders_of_the_post_roll(tmp_path):
+    tasks = compile_flamenco_job(flamenco_settings(tmp_path, "http://denoise:8000",
+                                                   lookahead=2))
+    by_name = {t["name"]: t for t in tasks}
+    # each denoise task: its own chunk's render, its 2 pre-roll frames' and 2 post-roll frames'
+    assert by_name["denoise-1001-1004"]["dependencies"] == ["render-1001-1004",
+                                                            "render-1005-1008"]
+    assert by_name["denoise-1005-1008"]["dependencies"] == [
+        "render-1001-1004", "render-1005-1008", "render-1009,1010"]
+    assert by_name["denoise-1009,1010"]["dependencies"] == ["render-1005-1008",
+                                                            "render-1009,1010"]
+    for task in tasks:
+        if task["type"] == "misc":
+            args = task["commands"][0]["parameters"]["args"]
+            assert args[args.index("--lookahead") + 1] == "2"
+            assert args[args.index("--post-roll") + 1] == "2"
+            cuts = [args[i + 1] for i, a in enumerate(args) if a == "--cut"]
+            assert cuts == ["1001", "1011"]  # the job's first frame, the one after its last
+    plain = compile_flamenco_job(flamenco_settings(tmp_path, "http://denoise:8000"))
+    args = next(t for t in plain if t["type"] == "misc")["commands"][0]["parameters"]["args"]
+    assert "--lookahead" not in args and "--post-roll" not in args
+
+
+def test_flamenco_lookahead_tasks_run_as_soon_as_their_renders_are_done(tmp_path):
+    """A scheduler that starts each denoise task once its dependencies are done, between render
+    tasks: a chunk whose post-roll render were not among them would fail (--strict, a missing
+    post-roll frame). Against the look-ahead stand-in, whose outputs are their frames' uploads."""
+    with FakeServer() as fake:
+        tasks = compile_flamenco_job(flamenco_settings(
+            tmp_path, fake.url, frames="1001..1006", chunk_size=2, model="fake", lookahead=2,
+            python=sys.executable, retry_wrapper=str(RETRY_WRAPPER), quietframe=str(QUIETFRAME)))
+        frames = shot(6, "blender")
+        render = tmp_path / "render"
+        render.mkdir()
+        done: set[str] = set()
+        waiting = [t for t in tasks if t["type"] == "misc"]
+        for task in (t for t in tasks if t["type"] == "blender"):
+            for frame in render_frames(task["commands"][0]["parameters"]["args"][-1]):
+                (render / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
+            done.add(task["name"])
+            for ready in [t for t in waiting if set(t["dependencies"]) <= done]:
+                result = run_exec(ready["commands"][0]["parameters"])
+                assert result.returncode == 0, result.stderr
+                waiting.remove(ready)
+                done.add(ready["name"])
+        assert not waiting
+        sent = fake.fake.sent("frame")
+    denoised = tmp_path / "denoised"
+    assert sorted(p.name for p in denoised.glob("*.exr")) == [
+        f"sh010.{n}.exr" for n in range(1001, 1007)]
+    assert all((denoised / f"sh010.{n}.exr").read_bytes() == frames[n - 1001]
+               for n in range(1001, 1007))  # each output made from its own frame
+    assert sent.count(1003) == 3  # chunk 1's post-roll, chunk 2's frame, chunk 3's pre-roll
+
+
+def render_frames(frames: str) -> list[int]:
+    """The frames of Blender's --render-frame argument: `1001..1004`, `1005,1006`, `7`."""
+    found = []
+    for part in frames.split(","):
+        first, _, last = part.partition("..")
+        found += range(int(first), int(last or first) + 1)
+    return found
+
+
+def test_deadline_lookahead_offsets_the_dependency_end_and_passes_the_post_roll(tmp_path):
+    result = deadline(*SUBMISSION, "--lookahead", "2", "--write-only", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    job = read_info(tmp_path / "denoise_job.txt")
+    assert (job["FrameDependencyOffsetStart"], job["FrameDependencyOffsetEnd"]) == ("-4", "2")
+    arguments = read_info(tmp_path / "denoise_plugin.txt")["Arguments"].split()
+    assert arguments[arguments.index("--lookahead") + 1] == "2"
+    assert arguments[arguments.index("--post-roll") + 1] == "2"
+    assert [arguments[i + 1] for i, a in enumerate(arguments) if a == "--cut"] == ["1001",
+                                                                                    "1101"]
+    plain = deadline(*SUBMISSION, "--write-only", str(tmp_path / "plain"))
+    assert plain.returncode == 0, plain.stderr
+    assert read_info(tmp_path / "plain" / "denoise_job.txt")["FrameDependencyOffsetEnd"] == "0"
+    assert "--lookahead" not in read_info(tmp_path / "plain" / "denoise_plugin.txt")["Arguments"]
+    refused = deadline(*SUBMISSION, "--lookahead", "5", "--write-only", str(tmp_path / "no"))
+    assert refused.returncode == 2 and "--lookahead takes 0 to 4" in refused.stderr
+
+
+def test_deadline_lookahead_tasks_read_only_the_frames_their_dependency_waits_for(tmp_path):
+    """Each task of the denoise job run with the render folder holding just the frames its
+    frame dependency (the offsets) has waited for: with --strict a missing one fails it."""
+    frames = shot(6, "blender")
+    render = tmp_path / "render"
+    with FakeServer() as fake:
+        result = deadline("--blend", "sh010.blend", "--render-output",
+                          str(render / "sh010.####.exr"), "--out", str(tmp_path / "denoised"),
+                          "--frames", "1001-1006", "--chunk-size", "2", "--pre-roll", "2",
+                          "--lookahead", "2", "--server", fake.url, "--model", "fake",
+                          "--python", sys.executable, "--retry-wrapper", str(RETRY_WRAPPER),
+                          "--quietframe", str(QUIETFRAME), "--write-only", str(tmp_path / "jobs"))
+        assert result.returncode == 0, result.stderr
+        job = read_info(tmp_path / "jobs" / "denoise_job.txt")
+        plugin = read_info(tmp_path / "jobs" / "denoise_plugin.txt")
+        before, after = int(job["FrameDependencyOffsetStart"]), int(
+            job["FrameDependencyOffsetEnd"])
+        for start in (1001, 1003, 1005):  # Deadline's chunks of 2
+            shutil.rmtree(render, ignore_errors=True)
+            render.mkdir()
+            for frame in range(max(1001, start + before), min(1006, start + 1 + after) + 1):
+                (render / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
+            line = plugin["Arguments"].replace("<STARTFRAME>", str(start)).replace(
+                "<ENDFRAME>", str(start + 1))
+            task = subprocess.run([plugin["Executable"], *shlex.split(line)],
+                                  capture_output=True, text=True, timeout=120)
+            assert task.returncode == 0, task.stderr
+    denoised = tmp_path / "denoised"
+    assert all((denoised / f"sh010.{n}.exr").read_bytes() == frames[n - 1001]
+               for n in range(1001, 1007))

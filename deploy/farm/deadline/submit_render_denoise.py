@@ -8,11 +8,14 @@ depends on it frame by frame, so each denoise task starts as soon as its frames 
         --frames 1001-1100 --chunk-size 12 --pre-roll 4 --server http://denoise:8000
 
 The denoise job is frame dependent (IsFrameDependent) with its start offset set back by the
-pre-roll (FrameDependencyOffsetStart=-N): a task for 1013-1024 waits for the render of
-1009-1024, the frames it reads, and never for the whole render. Each task runs
-`quietframe denoise ... --strict`, so a frame the render did not write fails the task instead
-of being denoised across; `--cut` at the job's first frame starts the history there (the
-frames before it are not this job's renders, so the first chunk has no pre-roll to wait for).
+pre-roll (FrameDependencyOffsetStart=-N) and, with `--lookahead K`, its end offset forward by
+the post-roll (FrameDependencyOffsetEnd=K): a task for 1013-1024 with pre-roll 4 and look-ahead
+2 waits for the render of 1009-1026, the frames it reads, and never for the whole render. Each
+task runs `quietframe denoise ... --strict`, so a frame the render did not write fails the task
+instead of being denoised across; `--cut` at the job's first frame starts the history there (the
+frames before it are not this job's renders, so the first chunk has no pre-roll to wait for),
+and with a look-ahead `--cut` at the frame after the job's last ends the last chunk's post-roll
+(`--post-roll K`: frames sent only for the look-ahead of the chunk's last frames, not written).
 
 Failures: Deadline fails a task on any non-zero exit and requeues it until its error limits,
 whatever the code. So each denoise task runs under deploy/farm/retry_on_75.py (`--retry-wrapper`,
@@ -71,7 +74,8 @@ def render_plugin(args: argparse.Namespace) -> dict[str, str]:
 
 
 def denoise_job(args: argparse.Namespace, render_id: str) -> dict[str, str]:
-    """Frame dependent on the render: each task waits for its frames and its pre-roll."""
+    """Frame dependent on the render: each task waits for its frames, its pre-roll and (with a
+    look-ahead) its post-roll."""
     job = {
         "Plugin": "CommandLine",
         "Name": f"{args.name} denoise",
@@ -81,7 +85,7 @@ def denoise_job(args: argparse.Namespace, render_id: str) -> dict[str, str]:
         "JobDependencies": render_id,
         "IsFrameDependent": "true",
         "FrameDependencyOffsetStart": str(-args.pre_roll),
-        "FrameDependencyOffsetEnd": "0",
+        "FrameDependencyOffsetEnd": str(args.lookahead),  # the post-roll's frames
         "ResumeOnCompleteDependencies": "true",
         "OutputDirectory0": args.out,
     }
@@ -92,11 +96,14 @@ def denoise_job(args: argparse.Namespace, render_id: str) -> dict[str, str]:
 
 
 def denoise_plugin(args: argparse.Namespace) -> dict[str, str]:
-    first = min(int(n) for n in re.findall(r"\d+", args.frames))
+    numbers = [int(n) for n in re.findall(r"\d+", args.frames)]
     arguments = ["denoise", "--server", args.server, quoted(args.render_output),
                  "--out", quoted(args.out), "--frames", "<STARTFRAME>-<ENDFRAME>",
-                 "--pre-roll", str(args.pre_roll), "--cut", str(first), "--model", args.model,
-                 "--strict"]
+                 "--pre-roll", str(args.pre_roll), "--cut", str(min(numbers)), "--model",
+                 args.model, "--strict"]
+    if args.lookahead:  # the post-roll ends at the frame after the job's last
+        arguments += ["--lookahead", str(args.lookahead), "--post-roll", str(args.lookahead),
+                      "--cut", str(max(numbers) + 1)]
     executable = args.quietframe
     if args.retry_wrapper:  # python3 retry_on_75.py -- quietframe denoise ...
         arguments = [quoted(args.retry_wrapper), "--", quoted(args.quietframe), *arguments]
@@ -136,6 +143,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--chunk-size", type=int, default=12, help="frames per task")
     parser.add_argument("--pre-roll", type=int, default=4,
                         help="frames sent before each chunk to warm the history (not written)")
+    parser.add_argument("--lookahead", type=int, default=0,
+                        help="later frames (0-4) each frame's denoise also uses; each task "
+                        "then reads as many frames after its chunk (post-roll, not written)")
     parser.add_argument("--server", default="http://denoise:8000", help="quietframe server")
     parser.add_argument("--model", default="auto", help="quietframe model, or auto")
     parser.add_argument("--name", help="job name (default: the .blend's name)")
@@ -158,6 +168,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         parser.error("--render-output needs a frame field (####)")
     if args.chunk_size < 1 or args.pre_roll < 0 or args.task_errors < 0:
         parser.error("--chunk-size takes a count >= 1, --pre-roll and --task-errors ones >= 0")
+    if not 0 <= args.lookahead <= 4:
+        parser.error(f"--lookahead takes 0 to 4 frames, got {args.lookahead}")
     args.name = args.name or Path(args.blend).stem
     return args
 

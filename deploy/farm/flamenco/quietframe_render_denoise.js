@@ -13,11 +13,14 @@
 //
 // Per chunk of frames the job has a render task and a denoise task. A denoise task waits for
 // its own chunk's render task and for the ones that render its pre-roll (the frames just
-// before the chunk, sent to warm the temporal history): without those it could read a frame
-// Blender is still writing. `--strict` fails the task when a frame of the chunk is missing (a
-// render that wrote nothing) instead of denoising across the gap. `--cut` at the job's first
-// frame starts the history there: the frames before it are not this job's renders (without
-// it, --strict would fail the first chunk for its missing pre-roll).
+// before the chunk, sent to warm the temporal history) and, with a look-ahead, its post-roll
+// (the `lookahead` frames just after it, sent so that the chunk's last frames see their later
+// frames; not written): without those it could read a frame Blender is still writing.
+// `--strict` fails the task when a frame of the chunk is missing (a render that wrote nothing)
+// instead of denoising across the gap. `--cut` at the job's first frame starts the history
+// there: the frames before it are not this job's renders (without it, --strict would fail the
+// first chunk for its missing pre-roll); with a look-ahead, `--cut` at the frame after the
+// job's last ends the last chunk's post-roll the same way.
 //
 // Failures: Flamenco fails a task on any non-zero exit and gives it to another Worker (up to
 // the Manager's task_fail_after_softfail_count), blocklisting a Worker that fails
@@ -54,6 +57,9 @@ const JOB_TYPE = {
       description: "quietframe model, or auto (`quietframe models` lists them)" },
     { key: "pre_roll", type: "int32", default: 4, visible: "submission",
       description: "Frames sent before each chunk to warm the history (not written)" },
+    { key: "lookahead", type: "int32", default: 0, visible: "submission",
+      description: "Later frames (0-4) each frame's denoise also uses; each chunk then reads "
+        + "that many frames after it too (post-roll, not written). 0: none" },
     { key: "quietframe", type: "string", default: "quietframe", visible: "submission",
       description: "The quietframe client on the Workers" },
     { key: "retry_wrapper", type: "string", default: "/opt/quietframe/bin/retry_on_75.py",
@@ -95,10 +101,16 @@ function compileJob(job) {
   for (const task of renders) {
     job.addTask(task);
   }
-  const firstFrame = chunkBounds(chunks[0])[0];  // where the job's history starts
+  const lookahead = settings.lookahead || 0;
+  if (lookahead < 0 || lookahead > 4) {
+    throw "lookahead takes 0 to 4 frames";
+  }
+  // where the job's history starts, and the frame after its last (no post-roll beyond it)
+  const bounds = [chunkBounds(chunks[0])[0], chunkBounds(chunks[chunks.length - 1])[1] + 1];
   for (const chunk of chunks) {
-    const task = denoiseTask(settings, chunk, firstFrame);
-    for (const render of rendersNeededBy(chunk, chunks, renders, settings.pre_roll)) {
+    const task = denoiseTask(settings, chunk, bounds, lookahead);
+    const needed = rendersNeededBy(chunk, chunks, renders, settings.pre_roll, lookahead);
+    for (const render of needed) {
       task.addDependency(render);
     }
     job.addTask(task);
@@ -132,12 +144,16 @@ function renderSteps(chunk) {
   return typeof frameCount === "function" ? frameCount(chunk) : 0;
 }
 
-function denoiseTask(settings, chunk, firstFrame) {
+function denoiseTask(settings, chunk, bounds, lookahead) {
   const task = author.Task(`denoise-${chunk}`, "misc");
-  const denoise = [settings.quietframe, "denoise", "--server", settings.server,
-                   settings.render_output, "--out", settings.denoised_output, "--frames", chunk,
-                   "--pre-roll", String(settings.pre_roll), "--cut", String(firstFrame),
-                   "--model", settings.model, "--strict"];
+  let denoise = [settings.quietframe, "denoise", "--server", settings.server,
+                 settings.render_output, "--out", settings.denoised_output, "--frames", chunk,
+                 "--pre-roll", String(settings.pre_roll), "--cut", String(bounds[0]),
+                 "--model", settings.model, "--strict"];
+  if (lookahead > 0) {
+    denoise = denoise.concat(["--lookahead", String(lookahead), "--post-roll",
+                              String(lookahead), "--cut", String(bounds[1])]);
+  }
   const command = settings.retry_wrapper
     ? { exe: settings.python, args: [settings.retry_wrapper, "--"].concat(denoise) }
     : { exe: denoise[0], args: denoise.slice(1) };
@@ -146,13 +162,13 @@ function denoiseTask(settings, chunk, firstFrame) {
 }
 
 // The render tasks whose frames a chunk's denoise task reads: its own and those holding the
-// `preRoll` frames before it.
-function rendersNeededBy(chunk, chunks, renders, preRoll) {
+// `preRoll` frames before it and the `postRoll` frames after it.
+function rendersNeededBy(chunk, chunks, renders, preRoll, postRoll) {
   const bounds = chunkBounds(chunk);
   const needed = [];
   chunks.forEach((other, i) => {
     const otherBounds = chunkBounds(other);
-    if (otherBounds[1] >= bounds[0] - preRoll && otherBounds[0] <= bounds[1]) {
+    if (otherBounds[1] >= bounds[0] - preRoll && otherBounds[0] <= bounds[1] + postRoll) {
       needed.push(renders[i]);
     }
   });
