@@ -7,6 +7,10 @@ that frame's header) and deleted after its last, so the server's history never c
 camera switch. Frames go in frame order with the frame number as the index: a frame not rendered
 is a gap, where the server starts the history afresh. Each reply is checked to be an EXR of the
 frame's size and written atomically beside its source (or into the chosen folder).
+
+With a look-ahead (`lookahead` k > 0) the session holds k frames back: the reply to a frame
+carries the frame k before it, and the frames still held at the end of the shot are finished
+there, in order, before the session is deleted.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import frame_files
-from .server_api import Cancelled, DenoiseError, RetryPolicy, ServerApi
+from .server_api import Cancelled, DenoiseError, FrameReply, RetryPolicy, ServerApi
 from .shots import Shot
 
 
@@ -30,6 +34,7 @@ class JobSettings:
     quality: str | None = None  # the session's target for model auto (None: the server's)
     layer: str | None = None  # the view layer to denoise where the files hold several
     out_folder: Path | None = None  # None: beside each render, as <name>_denoised.exr
+    lookahead: int = 0  # later frames each frame's denoise uses (the session's `lookahead`)
     timeout_s: float = 300.0
     retry: RetryPolicy = field(default_factory=RetryPolicy)
 
@@ -82,14 +87,17 @@ ProgressCallback = Callable[[Progress], None]
 
 class ShotSession:
     """One camera shot's session on the server: opened on the shot's first frame, each frame
-    sent in order and its reply written, deleted by `close`."""
+    sent in order and the reply written as the frame it carries, the frames still held
+    finished by `finish`, deleted by `close`."""
 
     def __init__(self, api: ServerApi, settings: JobSettings) -> None:
         self.api, self.settings = api, settings
         self.session_id: str | None = None
         self.size: tuple[int, int] | None = None
+        self.held: dict[int, Path] = {}  # frames sent whose reply has not come: their sources
 
-    def send(self, frame: int, source: Path) -> FrameOutcome:
+    def send(self, frame: int, source: Path) -> FrameOutcome | None:
+        """The outcome of the frame the reply carries; None while the session holds it."""
         if frame < 0:
             raise DenoiseError(f"frame {frame} is negative: the server numbers frames from 0; "
                                "move the animation to frame 0 or later")
@@ -105,7 +113,22 @@ class ShotSession:
                 f"{source} is {header.width}x{header.height}, the shot's first frame "
                 f"{self.size[0]}x{self.size[1]}: re-render the shot at one resolution"
             )
+        self.held[frame] = source
         reply = self.api.send_frame(self.session_id, frame, exr)
+        return None if reply is None else self._write(reply)
+
+    def finish(self) -> list[FrameOutcome]:
+        """The frames the session still holds, oldest first, finished with what it has."""
+        return [self._write(self.api.finish_frame(self.session_id, frame))
+                for frame in list(self.held)]
+
+    def _write(self, reply: FrameReply) -> FrameOutcome:
+        frame = reply.frame
+        oldest = next(iter(self.held), None)
+        if frame != oldest:
+            raise DenoiseError(f"the server returned frame {frame} where frame {oldest} was "
+                               "the oldest sent and not returned: denoise the shot again")
+        source = self.held.pop(frame)
         got = frame_files.read_header(reply.exr, f"the server's reply for frame {frame}")
         if (got.width, got.height) != self.size:
             raise DenoiseError(f"the server's reply for frame {frame} is {got.width}x"
@@ -119,6 +142,7 @@ class ShotSession:
         session = self.api.create_session(
             header.width, header.height, model=self.settings.model or "auto",
             quality=self.settings.quality, layer=layer,
+            lookahead=self.settings.lookahead or None,
         )
         self.session_id, self.size = session["id"], (header.width, header.height)
 
@@ -159,7 +183,9 @@ def denoise_shots(
                                 f"shot {number + 1}: {shot.describe()}, frame {frame}"))
                 if cancel.is_set():
                     raise Cancelled()
-                result.outcomes.append(session.send(frame, sources[frame]))
+                outcome = session.send(frame, sources[frame])
+                result.outcomes += [outcome] if outcome is not None else []
+            result.outcomes += session.finish()  # the frames held for the look-ahead
         except Cancelled:
             result.cancelled = True
             return result
@@ -210,28 +236,45 @@ class LiveJob:
         try:
             while (item := self._queue.get()) is not None:
                 frame, source, this_camera = item
-                if self.result.error is not None or self.result.cancelled:
+                if self._stopped:
                     continue  # stopped: drain the queue
-                try:
-                    if session is None or this_camera != camera:
-                        if session is not None:
-                            session.close()
-                        session, camera = ShotSession(api, self.settings), this_camera
-                        self.result.shots += 1
-                    self._progress(f"frame {frame} ({this_camera})")
-                    self.result.outcomes.append(session.send(frame, source))
-                    self._progress(f"denoised frame {frame}")
-                except Cancelled:
-                    self.result.cancelled = True
-                except Exception as exc:  # a thread of its own: nobody else would see it
-                    known = isinstance(exc, DenoiseError)
-                    self.result.error = str(exc) if known else f"{type(exc).__name__}: {exc}"
-                    self._progress(f"stopped: {self.result.error}")
+                if session is None or this_camera != camera:
+                    if session is not None:  # the last shot's held frames, then its session
+                        self._step(session.finish)
+                        session.close()
+                    session, camera = ShotSession(api, self.settings), this_camera
+                    self.result.shots += 1
+                self._progress(f"frame {frame} ({this_camera})")
+                self._step(session.send, frame, source)
+            if session is not None:
+                self._step(session.finish)
         finally:
             if session is not None:
                 session.close()
             if self.result.error is None:
                 self._progress(self.result.summary())
+
+    @property
+    def _stopped(self) -> bool:
+        return self.result.error is not None or self.result.cancelled
+
+    def _step(self, step: Callable, *args) -> None:
+        """One send or finish: the outcomes it returns kept (one, none or a list), a cancel or
+        an error kept in the result (a thread of its own: nobody else would see it), after
+        which nothing more is sent."""
+        if self._stopped:
+            return
+        try:
+            got = step(*args)
+            for outcome in got if isinstance(got, list) else [got] if got else []:
+                self.result.outcomes.append(outcome)
+                self._progress(f"denoised frame {outcome.frame}")
+        except Cancelled:
+            self.result.cancelled = True
+        except Exception as exc:
+            known = isinstance(exc, DenoiseError)
+            self.result.error = str(exc) if known else f"{type(exc).__name__}: {exc}"
+            self._progress(f"stopped: {self.result.error}")
 
 
 def _frames_text(frames: Sequence[int]) -> str:

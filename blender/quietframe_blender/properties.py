@@ -74,6 +74,13 @@ class QuietframeSceneSettings(bpy.types.PropertyGroup):
         ],
         default="balanced",
     )
+    lookahead: bpy.props.IntProperty(
+        name="Look-Ahead",
+        description="Later frames each frame's denoise also uses (0: none): the server holds "
+        "that many frames back and returns each once it has them; the shot's last frames are "
+        "finished with what there is",
+        default=0, min=0, max=4,
+    )
     view_layer: bpy.props.StringProperty(
         name="View Layer",
         description="The view layer to denoise where the render writes several (empty: the "

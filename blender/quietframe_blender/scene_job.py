@@ -84,6 +84,7 @@ def job_settings(scene, active_layer: str, context=None) -> JobSettings:
         quality=qs.quality if model == "auto" else None,
         layer=qs.view_layer.strip() or active_layer,
         out_folder=out_folder,
+        lookahead=qs.lookahead,
         timeout_s=float(prefs.timeout_s),
         retry=RetryPolicy(retries=prefs.retries),
     )

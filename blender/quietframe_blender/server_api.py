@@ -9,6 +9,8 @@ create a session, send a frame, delete the session, with the retries the service
   only when the server surely did not create one (a refused connection is reported at once,
   naming the URL: that is a wrong URL or a server that is not running).
 - Any other refusal (4xx) is an error carrying the server's own message, which says what to fix.
+- A look-ahead session (`lookahead` k > 0) answers a frame with an earlier one (the reply's
+  `frame`), or nothing yet (202: None); `finish_frame` asks for a frame it still holds.
 """
 
 from __future__ import annotations
@@ -61,6 +63,7 @@ class FrameReply:
     missing: tuple[str, ...]
     replayed: bool
     choice: str = ""
+    frame: int | None = None  # the frame it carries (look-ahead: an earlier one than sent)
 
 
 @dataclass
@@ -125,20 +128,21 @@ class ServerApi:
         )
         return json.loads(outcome.body)
 
-    def send_frame(self, session_id: str, index: int, exr: bytes) -> FrameReply:
+    def send_frame(self, session_id: str, index: int, exr: bytes) -> FrameReply | None:
+        """The frame the reply carries: frame `index`, or in a look-ahead session an earlier
+        one; None while the session holds the frame back (202)."""
         outcome = self._request(
             "POST", f"/v1/sessions/{session_id}/frames/{index}", exr,
             {"Content-Type": protocol.EXR_MEDIA_TYPE},
         )
-        h = outcome.headers
-        return FrameReply(
-            exr=outcome.body,
-            reset=h.get(protocol.Header.RESET.lower(), "none"),
-            model=h.get(protocol.Header.MODEL.lower(), ""),
-            missing=protocol.split_list(h.get(protocol.Header.MISSING.lower(), "")),
-            replayed=h.get(protocol.Header.REPLAYED.lower()) == "true",
-            choice=h.get(protocol.Header.CHOICE.lower(), ""),
-        )
+        return None if outcome.status == 202 else _reply(outcome, index)
+
+    def finish_frame(self, session_id: str, index: int) -> FrameReply:
+        """A look-ahead session's oldest held frame `index`, finished with the later frames it
+        has (at the end of a shot)."""
+        outcome = self._request("POST", f"/v1/sessions/{session_id}/frames/{index}/finish",
+                                None, {})
+        return _reply(outcome, index)
 
     def delete_session(self, session_id: str) -> None:
         """Frees the session's history; best effort (an expired session is already gone)."""
@@ -219,6 +223,20 @@ class ServerApi:
             message = (f"the quietframe server at {self.url} stayed busy after "
                        f"{retried} retries ({outcome.status} {code}): {detail}")
         return DenoiseError(message)
+
+
+def _reply(outcome: _Outcome, index: int) -> FrameReply:
+    h = outcome.headers
+    frame = h.get(protocol.Header.FRAME.lower(), "")
+    return FrameReply(
+        exr=outcome.body,
+        reset=h.get(protocol.Header.RESET.lower(), "none"),
+        model=h.get(protocol.Header.MODEL.lower(), ""),
+        missing=protocol.split_list(h.get(protocol.Header.MISSING.lower(), "")),
+        replayed=h.get(protocol.Header.REPLAYED.lower()) == "true",
+        choice=h.get(protocol.Header.CHOICE.lower(), ""),
+        frame=int(frame) if frame.isdigit() else index,
+    )
 
 
 def _lower(headers) -> dict[str, str]:

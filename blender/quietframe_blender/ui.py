@@ -63,6 +63,7 @@ class RENDER_PT_quietframe(bpy.types.Panel):
         layout.prop(qs, "model")
         if (qs.model.strip() or "auto") == "auto":
             layout.prop(qs, "quality")
+        layout.prop(qs, "lookahead")
         if sum(layer.use for layer in scene.view_layers) > 1:
             layout.prop_search(qs, "view_layer", scene, "view_layers")
         layout.prop(qs, "output")
