@@ -7,8 +7,8 @@ server once their renders are done; and the Deadline submission script's job fil
 (--write-only) and submitted through a stand-in deadlinecommand, their command line run per
 chunk as the CommandLine plugin runs it. With a look-ahead each denoise task also waits for the
 renders of its post-roll (the frames after its chunk): run as soon as its dependencies are done,
-against the look-ahead stand-in (tests/lookahead_support.py), with only the frames they waited
-for on disk."""
+with only the frames they waited for on disk, against the look-ahead stand-in
+(tests/lookahead_support.py), whose outputs are their own frames, and against the real server."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -330,36 +331,57 @@ def test_flamenco_lookahead_waits_for_the_renders_of_the_post_roll(tmp_path):
     assert "--lookahead" not in args and "--post-roll" not in args
 
 
-def test_flamenco_lookahead_tasks_run_as_soon_as_their_renders_are_done(tmp_path):
+@pytest.fixture(params=["stand-in", "server"])
+def lookahead_server(request):
+    """(URL, model, the stand-in or None): the look-ahead stand-in, whose outputs are their
+    own frames, and the real server (skipped where it has no look-ahead yet)."""
+    if request.param == "stand-in":
+        with FakeServer() as fake:
+            yield fake.url, "fake", fake.fake
+        return
+    live = request.getfixturevalue("live_server")
+    paths = json.loads(urllib.request.urlopen(f"{live.url}/openapi.json", timeout=60).read())
+    if "/v1/sessions/{session_id}/frames/{index}/finish" not in paths["paths"]:
+        pytest.skip("this server has no look-ahead (no finish route)")
+    yield live.url, "oidn-fast-history", None
+
+
+def assert_denoised_from_their_frames(denoised: Path, frames: list[bytes], fake) -> None:
+    """Every frame written; by the stand-in, each from its own frame's upload."""
+    assert sorted(p.name for p in denoised.glob("*.exr")) == [
+        f"sh010.{n}.exr" for n in range(1001, 1001 + len(frames))]
+    if fake is not None:
+        assert all((denoised / f"sh010.{n}.exr").read_bytes() == frames[n - 1001]
+                   for n in range(1001, 1001 + len(frames)))
+
+
+def test_flamenco_lookahead_tasks_run_as_soon_as_their_renders_are_done(tmp_path,
+                                                                        lookahead_server):
     """A scheduler that starts each denoise task once its dependencies are done, between render
     tasks: a chunk whose post-roll render were not among them would fail (--strict, a missing
-    post-roll frame). Against the look-ahead stand-in, whose outputs are their frames' uploads."""
-    with FakeServer() as fake:
-        tasks = compile_flamenco_job(flamenco_settings(
-            tmp_path, fake.url, frames="1001..1006", chunk_size=2, model="fake", lookahead=2,
-            python=sys.executable, retry_wrapper=str(RETRY_WRAPPER), quietframe=str(QUIETFRAME)))
-        frames = shot(6, "blender")
-        render = tmp_path / "render"
-        render.mkdir()
-        done: set[str] = set()
-        waiting = [t for t in tasks if t["type"] == "misc"]
-        for task in (t for t in tasks if t["type"] == "blender"):
-            for frame in render_frames(task["commands"][0]["parameters"]["args"][-1]):
-                (render / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
-            done.add(task["name"])
-            for ready in [t for t in waiting if set(t["dependencies"]) <= done]:
-                result = run_exec(ready["commands"][0]["parameters"])
-                assert result.returncode == 0, result.stderr
-                waiting.remove(ready)
-                done.add(ready["name"])
-        assert not waiting
-        sent = fake.fake.sent("frame")
-    denoised = tmp_path / "denoised"
-    assert sorted(p.name for p in denoised.glob("*.exr")) == [
-        f"sh010.{n}.exr" for n in range(1001, 1007)]
-    assert all((denoised / f"sh010.{n}.exr").read_bytes() == frames[n - 1001]
-               for n in range(1001, 1007))  # each output made from its own frame
-    assert sent.count(1003) == 3  # chunk 1's post-roll, chunk 2's frame, chunk 3's pre-roll
+    post-roll frame)."""
+    url, model, fake = lookahead_server
+    tasks = compile_flamenco_job(flamenco_settings(
+        tmp_path, url, frames="1001..1006", chunk_size=2, model=model, lookahead=2,
+        python=sys.executable, retry_wrapper=str(RETRY_WRAPPER), quietframe=str(QUIETFRAME)))
+    frames = shot(6, "blender")
+    render = tmp_path / "render"
+    render.mkdir()
+    done: set[str] = set()
+    waiting = [t for t in tasks if t["type"] == "misc"]
+    for task in (t for t in tasks if t["type"] == "blender"):
+        for frame in render_frames(task["commands"][0]["parameters"]["args"][-1]):
+            (render / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
+        done.add(task["name"])
+        for ready in [t for t in waiting if set(t["dependencies"]) <= done]:
+            result = run_exec(ready["commands"][0]["parameters"])
+            assert result.returncode == 0, result.stderr
+            waiting.remove(ready)
+            done.add(ready["name"])
+    assert not waiting
+    assert_denoised_from_their_frames(tmp_path / "denoised", frames, fake)
+    if fake is not None:  # chunk 1's post-roll, chunk 2's frame, chunk 3's pre-roll
+        assert fake.sent("frame").count(1003) == 3
 
 
 def render_frames(frames: str) -> list[int]:
@@ -389,33 +411,31 @@ def test_deadline_lookahead_offsets_the_dependency_end_and_passes_the_post_roll(
     assert refused.returncode == 2 and "--lookahead takes 0 to 4" in refused.stderr
 
 
-def test_deadline_lookahead_tasks_read_only_the_frames_their_dependency_waits_for(tmp_path):
+def test_deadline_lookahead_tasks_read_only_the_frames_their_dependency_waits_for(
+        tmp_path, lookahead_server):
     """Each task of the denoise job run with the render folder holding just the frames its
     frame dependency (the offsets) has waited for: with --strict a missing one fails it."""
+    url, model, fake = lookahead_server
     frames = shot(6, "blender")
     render = tmp_path / "render"
-    with FakeServer() as fake:
-        result = deadline("--blend", "sh010.blend", "--render-output",
-                          str(render / "sh010.####.exr"), "--out", str(tmp_path / "denoised"),
-                          "--frames", "1001-1006", "--chunk-size", "2", "--pre-roll", "2",
-                          "--lookahead", "2", "--server", fake.url, "--model", "fake",
-                          "--python", sys.executable, "--retry-wrapper", str(RETRY_WRAPPER),
-                          "--quietframe", str(QUIETFRAME), "--write-only", str(tmp_path / "jobs"))
-        assert result.returncode == 0, result.stderr
-        job = read_info(tmp_path / "jobs" / "denoise_job.txt")
-        plugin = read_info(tmp_path / "jobs" / "denoise_plugin.txt")
-        before, after = int(job["FrameDependencyOffsetStart"]), int(
-            job["FrameDependencyOffsetEnd"])
-        for start in (1001, 1003, 1005):  # Deadline's chunks of 2
-            shutil.rmtree(render, ignore_errors=True)
-            render.mkdir()
-            for frame in range(max(1001, start + before), min(1006, start + 1 + after) + 1):
-                (render / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
-            line = plugin["Arguments"].replace("<STARTFRAME>", str(start)).replace(
-                "<ENDFRAME>", str(start + 1))
-            task = subprocess.run([plugin["Executable"], *shlex.split(line)],
-                                  capture_output=True, text=True, timeout=120)
-            assert task.returncode == 0, task.stderr
-    denoised = tmp_path / "denoised"
-    assert all((denoised / f"sh010.{n}.exr").read_bytes() == frames[n - 1001]
-               for n in range(1001, 1007))
+    result = deadline("--blend", "sh010.blend", "--render-output", str(render / "sh010.####.exr"),
+                      "--out", str(tmp_path / "denoised"), "--frames", "1001-1006",
+                      "--chunk-size", "2", "--pre-roll", "2", "--lookahead", "2", "--server",
+                      url, "--model", model, "--python", sys.executable, "--retry-wrapper",
+                      str(RETRY_WRAPPER), "--quietframe", str(QUIETFRAME), "--write-only",
+                      str(tmp_path / "jobs"))
+    assert result.returncode == 0, result.stderr
+    job = read_info(tmp_path / "jobs" / "denoise_job.txt")
+    plugin = read_info(tmp_path / "jobs" / "denoise_plugin.txt")
+    before, after = int(job["FrameDependencyOffsetStart"]), int(job["FrameDependencyOffsetEnd"])
+    for start in (1001, 1003, 1005):  # Deadline's chunks of 2
+        shutil.rmtree(render, ignore_errors=True)
+        render.mkdir()
+        for frame in range(max(1001, start + before), min(1006, start + 1 + after) + 1):
+            (render / f"sh010.{frame}.exr").write_bytes(frames[frame - 1001])
+        line = plugin["Arguments"].replace("<STARTFRAME>", str(start)).replace(
+            "<ENDFRAME>", str(start + 1))
+        task = subprocess.run([plugin["Executable"], *shlex.split(line)], capture_output=True,
+                              text=True, timeout=120)
+        assert task.returncode == 0, task.stderr
+    assert_denoised_from_their_frames(tmp_path / "denoised", frames, fake)
