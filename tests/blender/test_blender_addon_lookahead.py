@@ -2,11 +2,16 @@
 (tests/lookahead_support.py), whose replies are their frames' own uploads: each camera shot's
 session is created with the look-ahead, every output is written from the reply that carries its
 frame, and the frames the session still holds are finished at the end of each shot, in order,
-after the render (denoise_shots) and while it renders (LiveJob)."""
+after the render (denoise_shots) and while it renders (LiveJob); and once against the real
+server (skipped where it has no look-ahead yet)."""
 
 from __future__ import annotations
 
-from blender_addon_support import copy_sequence
+import json
+import urllib.request
+
+import pytest
+from blender_addon_support import assert_denoised, copy_sequence
 from conftest import hard_timeout
 from lookahead_support import FakeServer
 from quietframe_blender.denoise_job import JobSettings, LiveJob, denoise_shots
@@ -53,3 +58,18 @@ def test_denoising_while_rendering_finishes_each_camera_and_the_end(tmp_path):
     assert [o.frame for o in result.outcomes] == [1, 2, 3, 4]
     assert finished == [2, 4]  # the camera switch, then the end of the render
     assert own_frames(sources, out)
+
+
+def test_the_real_server_returns_every_frame_of_each_shot(tmp_path, live_server):
+    paths = json.loads(urllib.request.urlopen(f"{live_server.url}/openapi.json",
+                                              timeout=60).read())["paths"]
+    if "/v1/sessions/{session_id}/frames/{index}/finish" not in paths:
+        pytest.skip("this server has no look-ahead (no finish route)")
+    sources = copy_sequence(tmp_path, "motion_blur", range(1, 6))
+    shots = plan_shots(sources, [CameraMarker(1, "A"), CameraMarker(4, "B")], "A")
+    with hard_timeout(60):
+        result = denoise_shots(shots, sources, JobSettings(live_server.url, lookahead=2))
+    assert [o.frame for o in result.outcomes] == [1, 2, 3, 4, 5] and result.shots == 2
+    assert [o.reset for o in result.outcomes][3] == "first-frame"  # shot B's own history
+    for frame, source in sources.items():
+        assert_denoised(source, source.with_name(f"shot_{frame:04d}_denoised.exr"), (128, 72))
