@@ -57,6 +57,10 @@ CANDIDATES: dict[str, dict] = {
     # a resampled history weighs less as the spp rise: the stage alone from 16 / 64 spp
     "w16": {"resampled_weight_per_doubling": 0.1625, "resampled_weight_max": 1.0},
     "w64": {"resampled_weight_per_doubling": 0.11, "resampled_weight_max": 1.0},
+    # the resampled history clipped to the 3×3 mean ± γ·std of the stage (variance clipping)
+    "clip 1σ": {"clip_sigma": 1.0},
+    "clip 1.5σ": {"clip_sigma": 1.5},
+    "clip 2σ": {"clip_sigma": 2.0},
 }
 
 
@@ -132,7 +136,8 @@ def worst_frame_gap(row: dict, stage: dict) -> float:
     return min(a - b for a, b in zip(row["per_frame"][1:], stage["per_frame"][1:], strict=True))
 
 
-def run_shot(folder: Path, model: str, spps: list[int], aux_quality: str = "") -> list[dict]:
+def run_shot(folder: Path, model: str, spps: list[int], aux_quality: str = "",
+             candidates: tuple[str, ...] = tuple(CANDIDATES)) -> list[dict]:
     denoiser = Denoiser(find_model(model))
     prepass = None
     if aux_quality:  # the same tier with its aux prefiltered at another quality
@@ -147,7 +152,8 @@ def run_shot(folder: Path, model: str, spps: list[int], aux_quality: str = "") -
         refs = [ref for _, ref, _ in frames]
         scored = {"stage": stages,
                   "blender": [p[STORED_BLENDER] for p, _, _ in frames]}
-        for name, change in CANDIDATES.items():
+        for name in candidates:
+            change = CANDIDATES[name]
             scored[name] = history_run(dataclasses.replace(base, **change), outputs, frames, spp)
         for method, preds in scored.items():
             per_frame = [_psnr(p, r) for p, r in zip(preds, refs, strict=True)]
@@ -169,8 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", default="oidn-history-cleanaux", choices=sorted(VARIANTS))
     p.add_argument("--aux-quality", default="", choices=("", "fast", "balanced", "high"),
                    help="prefilter the aux at this quality instead of the model's")
+    p.add_argument("--candidates", type=lambda v: tuple(c.strip() for c in v.split(",")),
+                   default=tuple(CANDIDATES),
+                   help=f"comma-separated, of: {', '.join(CANDIDATES)} (default: all)")
     cli_args.add_json(p)
     args = p.parse_args(argv)
+    if unknown := [c for c in args.candidates if c not in CANDIDATES]:
+        p.error(f"unknown candidates {unknown}; choose from {list(CANDIDATES)}")
     root = zoo_dir(args.data, args.split, args.zoo)
     names = [s.name for s in shots(args.split, args.zoo)
              if not args.shots or s.name in args.shots]
@@ -180,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (folder / "manifest.json").exists():
             print(f"{name}: not rendered", file=sys.stderr)
             continue
-        rows += run_shot(folder, args.model, list(args.spp), args.aux_quality)
+        rows += run_shot(folder, args.model, list(args.spp), args.aux_quality, args.candidates)
     if args.json:
         args.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
     return 0

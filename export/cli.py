@@ -24,8 +24,10 @@ def carried_metrics(old: Path, training: dict) -> tuple[dict, dict]:
 
     props = {p.key: p.value for p in onnx.load(str(old), load_external_data=False).metadata_props}
     metrics = json.loads(props.get("quietframe.metrics", "{}"))
-    notes = {**training, "tables_measured_with_version": props.get("quietframe.version", "?")}
-    return notes, metrics
+    # Tables carried before were measured by an earlier version still: name that one.
+    measured = json.loads(props.get("quietframe.training", "{}")).get(
+        "tables_measured_with_version", props.get("quietframe.version", "?"))
+    return {**training, "tables_measured_with_version": measured}, metrics
 
 
 def main(argv: list[str] | None = None) -> int:

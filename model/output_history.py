@@ -90,6 +90,11 @@ class OutputHistoryConfig:
     # studio-spin's worst frame 0.24 dB: never below the stage comes first.
     untrusted_weight: float = 1.0
     untrusted_weight_per_doubling: float = 0.0
+    # The resampled history's clip box: 0 is the 3×3 min/max of OIDN's output; γ > 0 the 3×3
+    # mean ± γ·std (variance clipping, Salvi 2016), inside min/max: tighter where a caustic or
+    # a reflection moves over a still surface (the motion vectors follow the surface, not what
+    # it shows), so the history cannot carry last frame's shading there.
+    clip_sigma: float = 0.0
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
@@ -155,11 +160,18 @@ def trusted_resample(config: OutputHistoryConfig, motion: Tensor, depth: Tensor,
     return smooth
 
 
-def clamp_to_neighbourhood(previous: Tensor, current: Tensor) -> Tensor:
+def clamp_to_neighbourhood(previous: Tensor, current: Tensor, sigma: float = 0.0) -> Tensor:
     """`previous` clipped per channel to the 3×3 min/max of `current` (border: the pixels
-    inside the frame)."""
+    inside the frame); with `sigma` > 0 also to the 3×3 mean ± sigma·std (border: the
+    neighbourhood's pixels outside the frame count as the edge's, replicate padding)."""
     low = -F.max_pool2d(-current, 3, 1, 1)
     high = F.max_pool2d(current, 3, 1, 1)
+    if sigma > 0:
+        padded = F.pad(current, (1, 1, 1, 1), mode="replicate")
+        mean = F.avg_pool2d(padded, 3, 1)
+        spread = (F.avg_pool2d(padded * padded, 3, 1) - mean * mean).clamp_min(0).sqrt()
+        low = torch.maximum(low, mean - sigma * spread)
+        high = torch.minimum(high, mean + sigma * spread)
     return torch.minimum(torch.maximum(previous, low), high)
 
 
@@ -190,7 +202,8 @@ class OutputHistory(nn.Module):
         # The nearest pixel's depth and normal test the surface, as in the accumulation.
         warped, keep = reproject_history(state, motion, depth, normal, reset)
         fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
-        fetched = clamp_to_neighbourhood(F.relu(fetched), oidn)  # bicubic overshoots below 0
+        # bicubic overshoots below 0
+        fetched = clamp_to_neighbourhood(F.relu(fetched), oidn, self.config.clip_sigma)
         # Arithmetic blends, not Where: onnxruntime broadcasts a 1-channel condition over 3
         # channels slowly (three Wheres were a quarter of this graph's time at 720p).
         exact = pixel_aligned(motion).to(oidn.dtype)  # 1: the nearest pixel is exact

@@ -347,3 +347,17 @@ def test_the_weight_ablations_spp_row_is_the_shipped_stage():
         rule.header_spp = spp
         for p, expected in zip(planes, shipped, strict=True):
             np.testing.assert_allclose(rule(p), expected, rtol=1e-5, atol=1e-6)
+
+
+def test_variance_clipping_is_tighter_than_the_range_and_off_by_default():
+    torch = pytest.importorskip("torch")
+    current = torch.full((1, 1, 5, 5), 1.0)
+    current[0, 0, 2, 2] = 9.0  # one bright pixel: the 3×3 range reaches 9, the mean ± σ less
+    previous = torch.full((1, 1, 5, 5), 8.0)
+    ranged = oh.clamp_to_neighbourhood(previous, current)
+    assert ranged[0, 0, 2, 2] == 8.0 and ranged[0, 0, 0, 0] == 1.0
+    tight = oh.clamp_to_neighbourhood(previous, current, sigma=1.0)
+    mean, std = 17 / 9, (8 / 9 * 64 / 9) ** 0.5  # 3×3 around the bright pixel
+    assert tight[0, 0, 2, 2].item() == pytest.approx(mean + std, rel=1e-5)
+    assert (tight <= ranged).all()
+    assert oh.OutputHistoryConfig().clip_sigma == 0  # the shipped tiers keep the range

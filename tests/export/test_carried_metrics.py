@@ -1,0 +1,38 @@
+"""quietframe-export --metrics-from: a re-export carries the measured tables and names the
+version that measured them, even across several re-exports."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+onnx = pytest.importorskip("onnx")
+from onnx import TensorProto, helper  # noqa: E402
+
+from quietframe.export.cli import carried_metrics  # noqa: E402
+
+
+def tiny_model(path, version: str, training: dict, metrics: dict) -> None:
+    node = helper.make_node("Identity", ["x"], ["y"])
+    graph = helper.make_graph([node], "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT,
+                                                                          [1])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
+    model = helper.make_model(graph)
+    for key, value in (("quietframe.version", version),
+                       ("quietframe.training", json.dumps(training)),
+                       ("quietframe.metrics", json.dumps(metrics))):
+        model.metadata_props.append(onnx.StringStringEntryProto(key=key, value=value))
+    onnx.save(model, str(path))
+
+
+def test_the_measuring_version_survives_a_second_carry(tmp_path):
+    tables = {"cycles": {"psnr": [30.0]}}
+    first = tmp_path / "v2.onnx"
+    tiny_model(first, "2", {"trained": False}, tables)
+    notes, metrics = carried_metrics(first, {"trained": False})
+    assert metrics == tables and notes["tables_measured_with_version"] == "2"
+    second = tmp_path / "v3.onnx"
+    tiny_model(second, "3", notes, metrics)  # version 3 carried version 2's tables
+    notes, metrics = carried_metrics(second, {"trained": False})
+    assert metrics == tables and notes["tables_measured_with_version"] == "2"
