@@ -42,7 +42,15 @@ BUFFERS: dict[str, Buffer] = {
     )
 }
 BUFFER_NAMES: tuple[str, ...] = tuple(BUFFERS)
-BUFFER_CHANNELS: dict[str, int] = {name: b.channels for name, b in BUFFERS.items()}
+# Read beside a model's buffers for the runtime itself, never given to a model: `forward`, the
+# motion to the next frame (XY in pixels, x right and y down: frame t + 1 shows p's surface at
+# p + forward), for a look-ahead session (runtime/lookahead.py). Absent: left out, not zeros.
+FORWARD = "forward"
+SIDE_BUFFERS: dict[str, Buffer] = {
+    FORWARD: Buffer(FORWARD, 2, Rule.DIRECTION, "left out (no look-ahead along it)"),
+}
+BUFFER_CHANNELS: dict[str, int] = {name: b.channels
+                                   for name, b in (BUFFERS | SIDE_BUFFERS).items()}
 
 
 class BufferError(ValueError):

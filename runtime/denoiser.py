@@ -109,6 +109,7 @@ class DenoiseResult:
     state: dict[str, np.ndarray]  # feed back as the next frame's state
     sanitized: dict[str, int]  # replaced input values per buffer (see sanitize.py)
     missing: tuple[str, ...]  # optional buffers that were absent and fed as zeros
+    oidn: np.ndarray | None = None  # (3, H, W) the last OIDN stage's output (a composition's)
 
 
 def check_options(info: ModelInfo, options: Mapping[str, float | int]) -> None:
@@ -408,6 +409,7 @@ class Denoiser:
         feeds |= self._options(self._option_feeds, options) if options else self._option_feeds
         new_state: dict[str, np.ndarray] = {}
         color = feeds["color"]  # (1, 3, H, W): what the next OIDN stage denoises
+        oidn_output = None
         for stage in self.stages:
             if isinstance(stage, OIDNStage):
                 # The sanitised planes, so OIDN sees exactly what a plain graph would; an absent
@@ -416,6 +418,7 @@ class Denoiser:
                                if name not in missing}
                 feeds[stage.input] = self.prepass({"color": color[0], **oidn_planes}, renderer,
                                                   filters=oidn)
+                oidn_output = feeds[stage.input][0]
                 continue
             output, stage_state = stage.run(feeds, state, height, width)
             clean, bad = sanitize_output(output[0])
@@ -424,4 +427,4 @@ class Denoiser:
             color = clean[None]
             new_state |= {stage.stage.state_key(k): v for k, v in stage_state.items()}
         return DenoiseResult(color=color[0], state=new_state, sanitized=sanitized,
-                             missing=missing)
+                             missing=missing, oidn=oidn_output)

@@ -1,10 +1,10 @@
 """Channels: which EXR channels hold each canonical buffer (the one renderer alias table).
 
 `resolve` maps a header's channel names onto the canonical buffers (runtime/buffers.py: color
-RGB, albedo RGB, normal XYZ, depth Z, motion XY, backward, in pixels, x right and y down) by
-ALIASES below or by the session's own mapping, naming what was found and what was expected
-when a required buffer is missing; `Source.motion_scale` converts a renderer's motion vectors to
-ours.
+RGB, albedo RGB, normal XYZ, depth Z, motion XY, backward, in pixels, x right and y down; and
+`forward`, the motion to the next frame, which only a look-ahead session reads) by ALIASES
+below or by the session's own mapping, naming what was found and what was expected when a
+required buffer is missing; `Source.motion_scale` converts a renderer's motion vectors to ours.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ COMPONENTS: dict[str, tuple[str, ...]] = {
     "normal": ("XYZ", "RGB"),
     "depth": ("Z", "V", "R", "Y"),
     "motion": ("XY", "RG", "UV"),
+    "forward": ("XY", "RG", "UV"),
 }
 
 
@@ -30,12 +31,15 @@ COMPONENTS: dict[str, tuple[str, ...]] = {
 class Alias:
     """A renderer's name for a buffer. `layer` matches a channel prefix (case-insensitive),
     optionally behind a view-layer prefix (`<ViewLayer>.Combined`); `bare` aliases match whole
-    channel names only. `motion_scale` converts the renderer's motion vectors to ours."""
+    channel names only. `motion_scale` converts the renderer's motion vectors to ours;
+    `components`: the spellings this alias reads instead of the buffer's COMPONENTS (Cycles'
+    Vector holds both motions: XY backward, ZW forward)."""
 
     layer: str
     source: str
     bare: bool = False
     motion_scale: tuple[float, float] = (1.0, 1.0)
+    components: tuple[str, ...] | None = None
 
 
 # The one alias table. Order is priority: the first alias with a match wins.
@@ -75,7 +79,7 @@ ALIASES: dict[str, tuple[Alias, ...]] = {
     "motion": (
         Alias("motion", "quietframe convention"),
         # Cycles: Vector.XY = raster position in t-1 minus position in t (our direction), raster
-        # y pointing up; EXR rows go down, so y flips. Vector.ZW (to t+1) is not used.
+        # y pointing up; EXR rows go down, so y flips. Vector.ZW (to t+1): `forward` below.
         Alias("Vector", "Blender Cycles", motion_scale=(1.0, -1.0)),
         # RenderMan: backward = raster offset to the previous frame (raster y down).
         Alias("backward", "RenderMan"),
@@ -84,6 +88,15 @@ ALIASES: dict[str, tuple[Alias, ...]] = {
         Alias("motionvector", "Arnold", motion_scale=(-1.0, 1.0)),
         # RenderMan forward (to t+1), negated: the constant-velocity estimate of backward.
         Alias("forward", "RenderMan (constant-velocity estimate)", motion_scale=(-1.0, -1.0)),
+    ),
+    # Motion to the next frame, read only by a look-ahead session (runtime/lookahead.py).
+    "forward": (
+        Alias("forward_motion", "quietframe convention"),
+        # Cycles: Vector.ZW = raster position in t minus position in t+1, y up (checked by
+        # warping the references: experiments/lookahead.py): forward is (-Z, +W).
+        Alias("Vector", "Blender Cycles", motion_scale=(-1.0, 1.0), components=("ZW",)),
+        # RenderMan: forward = raster offset to the next frame (raster y down).
+        Alias("forward", "RenderMan"),
     ),
 }
 
@@ -109,11 +122,13 @@ def _layer_matches(layer: str, alias: str) -> bool:
 
 
 def _components(
-    layers: Mapping[str, dict[str, list[str]]], layer: str, buffer: str
+    layers: Mapping[str, dict[str, list[str]]], layer: str, buffer: str,
+    spellings: tuple[str, ...] | None = None,
 ) -> tuple[str, ...] | None:
-    """Channel names of `layer` for `buffer`, in canonical order, or None if incomplete."""
+    """Channel names of `layer` for `buffer`, in canonical order, or None if incomplete;
+    `spellings`: an alias's own (else the buffer's COMPONENTS)."""
     present = layers.get(layer, {})
-    for spelling in COMPONENTS[buffer]:
+    for spelling in spellings or COMPONENTS[buffer]:
         wanted = spelling[: BUFFER_CHANNELS[buffer]]
         found = [present.get(c.lower(), []) for c in wanted]
         if all(found):
@@ -145,7 +160,8 @@ def _find_alias(buffer: str, names: Sequence[str], layers) -> Source | None:
             matching = [layer for layer in layers if _layer_matches(layer, alias.layer)]
             if alias.layer == "":
                 matching = [""] if "" in layers else []
-            hits = [c for layer in matching if (c := _components(layers, layer, buffer))]
+            hits = [c for layer in matching
+                    if (c := _components(layers, layer, buffer, alias.components))]
         if len(hits) > 1:
             raise AmbiguousChannels(
                 f"buffer {buffer!r} matches several layers {[h[0] for h in hits]}; "

@@ -17,9 +17,12 @@ import numpy as np
 import OpenEXR
 
 from quietframe.runtime import exr_warnings
+from quietframe.runtime.buffers import FORWARD
 from quietframe.runtime.exr_channels import Source, split_name
 from quietframe.runtime.frame_errors import BadExr
 from quietframe.runtime.sanitize import clamp_to_half
+
+MOTIONS = frozenset({"motion", FORWARD})  # scaled to ours; all zero: left out
 
 log = logging.getLogger("quietframe.service")  # a decode's warnings are its request's
 
@@ -95,8 +98,9 @@ def decode(data: bytes | bytearray, sources: Mapping[str, Source]) -> DecodedFra
     """Decode the pixels into planar (C, H, W) float32 buffers, the runtime's layout (one
     conversion per channel, no interleaving); BadExr for anything the decoder rejects.
     Depth is passed on as written: the runtime's sanitising rule turns every renderer's "no hit"
-    marker (0, ≥ 1e10, ±inf) into the frame's farthest depth. An all-zero motion layer is left
-    out (motion blur on in Blender), so the runtime fills it and reports it missing. The
+    marker (0, ≥ 1e10, ±inf) into the frame's farthest depth. An all-zero motion layer (either
+    direction) is left out (motion blur on in Blender), so the runtime fills it and reports it
+    missing. The
     decoder's printed warnings go to the log as fields of one record (exr_warnings)."""
     with exr_warnings.logged("decoding"):
         return _decode(data, sources)
@@ -124,7 +128,7 @@ def _decode(data: bytes | bytearray, sources: Mapping[str, Source]) -> DecodedFr
         planar = np.empty((len(source.channels), *first.shape), np.float32)  # (C, H, W)
         for i, name in enumerate(source.channels):
             planar[i] = planes[name]
-        if buffer == "motion":
+        if buffer in MOTIONS:
             if not planar.any():  # the whole frame: Cycles writes 0 on the sky of a moving camera
                 continue
             if source.motion_scale != (1.0, 1.0):

@@ -80,6 +80,18 @@ class Step:
     missing: tuple[str, ...] = ()  # optional buffers the frame lacked
     gate: HistoryGate | None = None
     estimated: EstimatedMotion | None = None  # motion estimated from the aux, where it was
+    # What a look-ahead reads of the frame (runtime/lookahead.py): the last OIDN stage's output
+    # D (None without one), the backward motion the model was given (None: zero motion), and
+    # the spp it was given (None: the model's default or no spp input).
+    oidn: np.ndarray | None = None
+    motion: np.ndarray | None = None
+    spp: float | None = None
+
+    @property
+    def history_used(self) -> bool:
+        """Whether the frame continued a history (else it starts a new run: first frame, cut,
+        gap, a dropped history, a model without one)."""
+        return self.gate is not None and self.gate.state is not None
 
     @property
     def history_verdict(self) -> str | None:
@@ -145,8 +157,10 @@ class Stream:
         result = self.denoiser.denoise(planes, gate.state if gate else state, options,
                                        renderer or self.renderer, oidn=self.oidn)
         new_state = keep_probe(result.state, gate.probe, depth) if gate else result.state
+        spp = options.get(SAMPLES_INPUT)
         return Step(result.color, new_state, result.sanitized, tuple(result.missing), gate,
-                    estimated)
+                    estimated, result.oidn, planes.get("motion"),
+                    None if spp is None else float(spp))
 
     def _may_estimate_next(self, gate: HistoryGate) -> bool:
         """Whether the next frame may estimate motion against this one (a frame without
