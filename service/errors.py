@@ -41,6 +41,23 @@ class FrameConflict(ServiceError):
     status, code = 409, "frame_conflict"
 
 
+class FrameNotPending(ServiceError):
+    """A finish for a frame that is not a look-ahead session's oldest pending one."""
+
+    status, code = 409, "frame_not_pending"
+
+
+def not_pending(session, index: int, held: list[int]) -> str:
+    """FrameNotPending's detail: which frame can be finished instead, if any."""
+    if not session.spec.lookahead:
+        return (f"frame {index}: session {session.id} has lookahead 0 and holds no frame back; "
+                "every frame's reply carries that frame")
+    if not held:
+        return f"frame {index} is not pending: no frame of this session is pending"
+    return (f"frame {index} is not the oldest pending frame; finish frame {held[0]} first "
+            f"(pending: {', '.join(map(str, held))})")
+
+
 class BodyReadTimeout(ServiceError):
     """The client paused sending its body for longer than QUIETFRAME_BODY_READ_TIMEOUT_S."""
 

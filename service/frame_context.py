@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 from quietframe.client.session_fields import AUTO
 from quietframe.runtime import BUFFER_NAMES, ModelInfo
+from quietframe.runtime.buffers import FORWARD, SIDE_BUFFERS
 from quietframe.runtime.usable_buffers import unusable_buffers
 from quietframe.service import frames
 from quietframe.service.frame_evidence import renderer_from_header, stated_samples
@@ -41,7 +42,8 @@ class FrameContext:
         counts as present: it is no evidence either way (a locked-off camera, motion blur, a
         first frame), and the chosen model's history follows the aux's evidence frame by frame
         (runtime/motion_evidence.py)."""
-        return [b for b in self.sources if b not in self.unusable or b == "motion"]
+        return [b for b in self.sources
+                if b not in SIDE_BUFFERS and (b not in self.unusable or b == "motion")]
 
     def decode(self, body: bytes | bytearray) -> FrameContext:
         """With its pixels (worker pool): every buffer of `sources`; those that hold nothing
@@ -58,6 +60,7 @@ class FrameContext:
         go before the model runs."""
         sources = frames.for_model(self.sources, self.header.channels, info.required_buffers,
                                    info.optional_buffers, info.name, installed)
+        sources |= {b: s for b, s in self.sources.items() if b in SIDE_BUFFERS}  # look-ahead
         decoded = self.decoded
         if decoded is not None:
             decoded = replace(decoded, buffers={b: plane for b, plane in decoded.buffers.items()
@@ -68,12 +71,15 @@ class FrameContext:
 def frame_context(header: frames.ExrHeader, spec: SessionSpec, info: ModelInfo | None,
                   installed: Installed | None) -> FrameContext:
     """A frame's context from its header alone (no pixel decoded). `info`: the session's model;
-    None (model=auto): every canonical buffer the file has, colour required. MissingChannels
-    where a required buffer is absent."""
+    None (model=auto): every canonical buffer the file has, colour required. A look-ahead
+    session also reads the frame's motion to the next frame (FORWARD), where it has one.
+    MissingChannels where a required buffer is absent."""
     if info is None:
         required, optional = ("color",), tuple(b for b in BUFFER_NAMES if b != "color")
     else:
         required, optional = info.required_buffers, info.optional_buffers
+    if spec.lookahead:
+        optional = (*optional, FORWARD)
     sources = frames.resolve(
         header.channels,
         required,

@@ -7,11 +7,12 @@ import time
 
 import numpy as np
 
+from quietframe.runtime import lookahead
 from quietframe.runtime.stream import Step, Stream
-from quietframe.service import frames, state_codec
+from quietframe.service import frames, lookahead_queue, state_codec
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
-from quietframe.service.session import ProcessedFrame
+from quietframe.service.session import ProcessedFrame, Session
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply, request_digest
 from quietframe.service.shot_choice import choice_header
@@ -34,12 +35,15 @@ def process_frame(
     reset: Reset,
     state: dict[str, np.ndarray] | None,
     choice: Choice | None = None,
+    window: dict[str, np.ndarray] | None = None,
 ) -> ProcessedFrame:
     """Decode, denoise, encode one frame. `stream`: the session's sequence on the model that
     runs (runtime/stream.py: options, spp, the motion-evidence gate, the history, OIDN's
     filters); `context`: the frame as found for that model (FrameContext.for_model), its pixels
     too where the choice decoded them; `state` is None when the history starts afresh;
-    `choice` (model=auto) is said in a header."""
+    `choice` (model=auto) is said in a header. A look-ahead session (`spec.lookahead`) queues
+    the frame in its `window` instead and replies with the oldest pending one, once more than
+    `lookahead` are pending (`_held_back`)."""
     if context.decoded is None:
         context = context.decode(body)
     frame, sources = context.decoded, context.sources
@@ -57,6 +61,9 @@ def process_frame(
     info = stream.info
     model = f"{info.name} {info.version}"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
+    if spec.lookahead:
+        return _held_back(stream, spec, index, body, context, reset, choice, window or {},
+                          step, extra, 1e3 * (denoised - decoded))
     body_out, clamped = frames.encode_denoised(
         step.color,
         frame,
@@ -77,6 +84,28 @@ def process_frame(
     sanitized = {k: v for k, v in step.sanitized.items() if v}
     if clamped:
         sanitized["denoised"] = sanitized.get("denoised", 0) + clamped
+    headers = frame_headers(index, reset, model, sanitized, timings, step, choice)
+    # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
+    dtypes = frames.output_dtypes(frame, spec.precision)
+    recipe = state_codec.reply_recipe(step.color, step.state, dtypes, sources["color"].channels,
+                                      spec.precision, spec.compression, spec.denoised_layer, extra)
+    return ProcessedFrame(
+        reply=Reply(index, body_out, headers, len(body), request_digest(body), recipe=recipe),
+        state=step.state,
+        reset=reset,
+        sources={b: list(s.channels) for b, s in sources.items()},
+        missing=list(step.missing),
+        sanitized=sanitized,
+        timings_ms=timings,
+        info=info,
+        choice=choice,
+    )
+
+
+def frame_headers(index: int, reset: Reset, model: str, sanitized: dict[str, int],
+                  timings: dict[str, float], step: Step, choice: Choice | None
+                  ) -> dict[str, str]:
+    """The headers that describe a denoised frame."""
     headers = {
         Header.FRAME: str(index),
         Header.RESET: reset.value,
@@ -92,20 +121,75 @@ def process_frame(
         headers[Header.MOTION] = motion_header(step)
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
-    # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
-    dtypes = frames.output_dtypes(frame, spec.precision)
-    recipe = state_codec.reply_recipe(step.color, step.state, dtypes, sources["color"].channels,
-                                      spec.precision, spec.compression, spec.denoised_layer, extra)
+    return headers
+
+
+def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | bytearray,
+               context: FrameContext, reset: Reset, choice: Choice | None,
+               window: dict[str, np.ndarray], step: Step, extra: dict[str, str],
+               denoise_ms: float) -> ProcessedFrame:
+    """A look-ahead session's frame: queued with its headers and how to write its reply, and
+    the reply to this request: the oldest pending frame finished (200) once more than
+    `spec.lookahead` are pending, else 202 (docs/service.md, "Look-ahead")."""
+    frame, sources = context.decoded, context.sources
+    assert frame is not None
+    info = stream.info
+    timings = {"decode": context.decode_ms, "denoise": denoise_ms, "encode": 0.0,
+               "total": context.decode_ms + denoise_ms}
+    sanitized = {k: v for k, v in step.sanitized.items() if v}
+    headers = frame_headers(index, reset, extra["quietframe.model"], sanitized, timings, step,
+                            choice)
+    dtypes = tuple(np.dtype(d).name for d in frames.output_dtypes(frame, spec.precision))
+    recipe = state_codec.ReplyRecipe("", 0, dtypes, tuple(sources["color"].channels),
+                                     spec.precision, spec.compression, spec.denoised_layer,
+                                     extra)
+    start = time.perf_counter()
+    window = lookahead_queue.hold(window, step, frame.buffers, info.card.architecture, index,
+                                  body, headers, timings, sanitized, recipe)
+    if len(lookahead.pending(window)) > spec.lookahead:
+        released = lookahead_queue.release(window)
+        window, reply_body, status = released.window, released.body, 200
+        reply_headers = released.headers
+    else:
+        reply_body, status = b"", 202
+        reply_headers = {Header.PENDING: str(len(lookahead.pending(window)))}
+    encode_ms = 1e3 * (time.perf_counter() - start)  # queueing, and the reply's blend and write
+    now = {"decode": context.decode_ms, "denoise": denoise_ms, "encode": encode_ms,
+           "total": context.decode_ms + denoise_ms + encode_ms}
     return ProcessedFrame(
-        reply=Reply(index, body_out, headers, len(body), request_digest(body), recipe=recipe),
-        state=step.state,
+        reply=Reply(index, reply_body, reply_headers, len(body), request_digest(body),
+                    status=status),
+        state=lookahead_queue.join(step.state, window),
         reset=reset,
         sources={b: list(s.channels) for b, s in sources.items()},
         missing=list(step.missing),
         sanitized=sanitized,
-        timings_ms=timings,
+        timings_ms=now,
         info=info,
         choice=choice,
+        pending=lookahead.pending(window),
+    )
+
+
+def finish_frame(session: Session) -> ProcessedFrame:
+    """A look-ahead session's oldest pending frame finished now with the later frames it has
+    (POST .../frames/{index}/finish): its reply, and the session's state without it."""
+    history, window = lookahead_queue.split(session.state)
+    start = time.perf_counter()
+    released = lookahead_queue.release(window)
+    total = 1e3 * (time.perf_counter() - start)
+    return ProcessedFrame(
+        reply=Reply(released.index, released.body, released.headers, 0, request_digest(b""),
+                    finish=True),
+        state=lookahead_queue.join(history, released.window),
+        reset=Reset.NONE,
+        sources=session.sources,
+        missing=session.missing,
+        sanitized={},
+        timings_ms={"decode": 0.0, "denoise": 0.0, "encode": total, "total": total},
+        info=session.info,
+        pending=lookahead.pending(released.window),
+        finish=True,
     )
 
 

@@ -95,6 +95,10 @@ class SessionPublic(SessionFields):
     reserved_bytes: int = Field(0, description="what the session counts against the budget")
     expires_in_s: float = Field(description="deleted after this much more idle time")
     durable: bool = Field(False, description="state is written to the state directory")
+    pending: list[int] = Field(
+        default_factory=list,
+        description="look-ahead sessions: the frames held back, oldest first (each leaves with "
+        "the reply to a later frame, or through POST .../frames/{index}/finish)")
 
 
 class BufferSpec(BaseModel):

@@ -15,6 +15,7 @@ from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.runtime.stream import Stream
+from quietframe.service import lookahead_queue
 from quietframe.service.choice_policy import Choice
 from quietframe.service.errors import FrameConflict, FrameOutOfOrder
 from quietframe.service.measured_speed import MeasuredSpeeds
@@ -40,6 +41,8 @@ class ProcessedFrame:
     timings_ms: dict[str, float]
     info: ModelInfo  # the model that denoised it
     choice: Choice | None = None  # model=auto: set when this frame made (or kept) the choice
+    pending: list[int] = field(default_factory=list)  # look-ahead: frames held back after it
+    finish: bool = False  # a held-back frame finished (POST .../finish), not a frame denoised
 
 
 @dataclass
@@ -65,6 +68,7 @@ class Session:
     sources: dict[str, list[str]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
     choice: Choice | None = None  # model=auto only
+    pending: list[int] = field(default_factory=list)  # look-ahead: frames held back, oldest first
     timing_sum: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     timing_last: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     lock: asyncio.Lock = field(default_factory=asyncio.Lock, repr=False)
@@ -84,6 +88,16 @@ class Session:
             self.stream.close()
             self.stream = None
 
+    @property
+    def history(self) -> dict[str, np.ndarray] | None:
+        """The state the next frame's model reads (a look-ahead session's window aside)."""
+        return lookahead_queue.split(self.state)[0]
+
+    @property
+    def window(self) -> dict[str, np.ndarray]:
+        """A look-ahead session's frames held back (runtime/lookahead.py's window)."""
+        return lookahead_queue.split(self.state)[1]
+
     def memory_bytes(self) -> int:
         state = sum(a.nbytes for a in self.state.values()) if self.state else 0
         return state + (len(self.reply.body) if self.reply else 0)
@@ -96,6 +110,10 @@ class Session:
             return Reset.STATE_LOST
         if self.last_index is not None and index == self.last_index:
             reply = self.reply
+            if reply and reply.finish:  # a look-ahead session finished a frame since
+                raise FrameConflict(
+                    f"frame {index} was already denoised, and a pending frame was finished "
+                    "after it (its reply is that finish's); send the next index for a new frame")
             if reply and reply.matches(body):
                 return reply
             raise FrameConflict(
@@ -117,6 +135,10 @@ class Session:
         self.state_lost = False
         self.state = frame.state
         self.reply = frame.reply
+        self.pending = list(frame.pending)
+        if frame.finish:  # a held-back frame left: no frame was denoised
+            self.last_used = time.monotonic()
+            return
         self.last_index = frame.reply.index
         self.frames_done += 1
         self.resets += frame.reset is not Reset.NONE
@@ -132,15 +154,19 @@ class Session:
     def meta(self, after: ProcessedFrame | None = None) -> dict:
         """The stored record of the session, as it will be once `after` is committed."""
         choice = after.choice if after is not None and after.choice else self.choice
-        return {
+        frame = after if after is not None and not after.finish else None
+        meta = {
             "choice": choice.to_dict() if choice else None,
             "id": self.id,
             **self.spec.model_dump(),
             "created_at": self.created_at,
-            "last_index": after.reply.index if after else self.last_index,
-            "frames_done": self.frames_done + (after is not None),
-            "resets": self.resets + (after is not None and after.reset is not Reset.NONE),
+            "last_index": frame.reply.index if frame else self.last_index,
+            "frames_done": self.frames_done + (frame is not None),
+            "resets": self.resets + (frame is not None and frame.reset is not Reset.NONE),
         }
+        if self.spec.lookahead:
+            meta["pending"] = list(after.pending if after is not None else self.pending)
+        return meta
 
     def public(self, ttl_s: float, speeds: MeasuredSpeeds | None = None) -> SessionPublic:
         """The session as the API shows it; `speeds`: this server's measured times, said in
@@ -167,6 +193,7 @@ class Session:
             reserved_bytes=self.reserve_bytes if self.resident else 0,
             expires_in_s=round(max(0.0, ttl_s - (time.monotonic() - self.last_used)), 1),
             durable=self.durable,
+            pending=self.pending,
         )
 
     def choice_public(self, speeds: MeasuredSpeeds | None) -> ChoicePublic | None:
@@ -186,4 +213,6 @@ def reserve_bytes(info: ModelInfo, spec: SessionSpec) -> int:
     the denoised colour planes (the reply is the whole input file: the registry grows the
     reservation to its real size on the first frame)."""
     reply = 3 * spec.width * spec.height * (2 if spec.precision == "half" else 4)
-    return history_nbytes(info.state_specs, spec.height, spec.width) + reply + REPLY_MARGIN_BYTES
+    held = lookahead_queue.reserve_bytes(spec.lookahead, spec.height, spec.width, reply)
+    return (history_nbytes(info.state_specs, spec.height, spec.width) + reply + held
+            + REPLY_MARGIN_BYTES)

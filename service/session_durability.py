@@ -13,6 +13,7 @@ import logging
 
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_shapes
+from quietframe.service import lookahead_queue
 from quietframe.service.choice_policy import Choice
 from quietframe.service.errors import ServiceError, SessionNotFound
 from quietframe.service.model_registry import ModelRegistry
@@ -130,6 +131,7 @@ class SessionDurability:
             return
         spec = session.spec
         shapes = history_shapes(session.info.state_specs, spec.height, spec.width)
+        shapes |= lookahead_queue.shapes(spec.lookahead, spec.height, spec.width)
         try:
             session.state, session.reply = await self._pool.read_state(
                 self.store, session.id, shapes
@@ -143,6 +145,7 @@ class SessionDurability:
                 extra={"session": session.id, "error": str(exc), "quarantined": str(aside)},
             )
             session.state, session.reply, session.state_lost = None, None, True
+            session.pending = []  # held-back frames went with the state
         session.resident = True
         self._table.update_gauges()
 
@@ -172,6 +175,8 @@ class SessionDurability:
             )
         session.state, session.reply = loaded.state, loaded.reply
         session.state_lost = loaded.meta is None
+        if session.state_lost:
+            session.pending = []  # held-back frames went with the state
         session.store_version, session.resident = loaded.version, True
         self._table.update_gauges()
 
@@ -184,6 +189,7 @@ class SessionDurability:
             "resets": meta["resets"],
             "choice": Choice.from_dict(choice) if choice else None,
             "info": self._info_of(meta),
+            "pending": list(meta.get("pending") or []),
         }
 
     def _info_of(self, meta: dict) -> ModelInfo:
@@ -194,7 +200,8 @@ class SessionDurability:
 
     def _shapes_of(self, meta: dict) -> dict[str, tuple[int, ...]]:
         info, (w, h) = self._info_of(meta), (meta["width"], meta["height"])
-        return history_shapes(info.state_specs, h, w)
+        return (history_shapes(info.state_specs, h, w)
+                | lookahead_queue.shapes(meta.get("lookahead") or 0, h, w))
 
     def restore_all(self) -> None:
         """A local folder's sessions of an earlier run, registered in the table (state stays on
@@ -245,6 +252,7 @@ class SessionDurability:
         progress = {"last_index": None, "frames_done": 0, "resets": 0}
         if not lost:
             progress = {k: meta[k] for k in progress}
+            progress["pending"] = list(meta.get("pending") or [])
         session = self._table.build(
             session_id,
             spec,

@@ -38,4 +38,5 @@ def spec_difference(record: Mapping, settings: Mapping) -> str:
 def _compared(record: Mapping) -> dict:
     fields = {name: record.get(name) for name in SessionSpec.model_fields}
     fields["model_options"] = fields["model_options"] or {}  # absent in older files
+    fields["lookahead"] = fields["lookahead"] or 0  # absent in older files
     return fields

@@ -3,9 +3,10 @@
 A file holds the session's settings and progress (`meta`, JSON), its state and the last reply
 (for an idempotent retry after a restart), in state_codec's compact form: what the next frame
 reads, in the narrowest type that leaves results unchanged, and the reply as a recipe where its
-colour is a state plane. Files of the earlier form (float32 tensors, the reply's bytes) still
-load. The registry decides when to write and read; this module only knows the file format. All
-calls do disk I/O: run them off the event loop.
+colour is a state plane; a look-ahead session's held-back frames are part of its state (1-D
+arrays among them, its requests, as their bytes: `record`). Files of the earlier form (float32
+tensors, the reply's bytes) still load. The registry decides when to write and read; this
+module only knows the file format. All calls do disk I/O: run them off the event loop.
 
 Reading verifies the file: every member is read whole, so the zip format's CRC-32 of each one is
 checked; the meta lists every member with its shape (`manifest`), its id must be the file's
@@ -89,6 +90,10 @@ class Reply:
     request_crc: int | None = None
     recipe: ReplyRecipe | None = None
     color: np.ndarray | None = None  # (3, H, W) float32 until the body is written again
+    # A look-ahead session's: 202 while the frame is held back (an empty body); `finish`: the
+    # reply to POST .../frames/{index}/finish (no request body), not to a frame
+    status: int = 200
+    finish: bool = False
 
     def matches(self, body: bytes | bytearray) -> bool:
         """Whether `body` is the request this reply answered (a retry); if so, the reply has
@@ -135,13 +140,21 @@ def record(
     meta = dict(meta)
     meta["reply"] = None
     recipe = reply.recipe if reply is not None else None
-    encoded = state_codec.encode(state or {}, recipe)
+    # 1-D arrays (a look-ahead window's indices and held requests: service/lookahead_queue.py)
+    # are kept as their bytes; every other tensor in state_codec's form
+    raw = {name: np.asarray(a) for name, a in (state or {}).items() if np.ndim(a) == 1}
+    encoded = state_codec.encode({k: v for k, v in (state or {}).items() if k not in raw},
+                                 recipe)
     if state is not None:
         state.update(encoded.state)
     meta["codec"] = encoded.layout
     # "state." names: a replica that predates this form finds no tensor of its model's shapes
     # under them and refuses the record as damaged (a fresh history), never reads it as empty
     arrays = {f"state.plane{i}": plane for i, plane in enumerate(encoded.planes)}
+    if raw:
+        meta["raw"] = {name: a.dtype.name for name, a in raw.items()}
+        arrays |= {f"raw.{name}": np.ascontiguousarray(a).view(np.uint8).reshape(-1)
+                   for name, a in raw.items()}
     if reply is not None:
         meta["reply"] = {
             "index": reply.index,
@@ -151,6 +164,8 @@ def record(
             "len": reply.request_len,
             "recipe": recipe.to_dict() if encoded.reply and recipe is not None else None,
         }
+        if reply.status != 200 or reply.finish:  # a look-ahead session's (absent: 200, a frame)
+            meta["reply"] |= {"status": reply.status, "finish": reply.finish}
         if meta["reply"]["recipe"] is None:
             arrays["reply"] = np.frombuffer(reply.body, np.uint8)
     meta["manifest"] = {name: list(array.shape) for name, array in arrays.items()}
@@ -171,6 +186,8 @@ def unpack(
     else:
         planes = [arrays[f"state.plane{i}"] for i in range(len(layout["planes"]))]
         state = state_codec.decode(layout, planes, shapes) or None
+    if meta.get("raw"):
+        state = (state or {}) | _raw_arrays(meta["raw"], arrays, shapes)
     r, reply = meta["reply"], None
     recipe = r.get("recipe") if r is not None else None
     if recipe is not None:
@@ -183,9 +200,33 @@ def unpack(
     elif r is not None and "reply" in arrays:
         reply = Reply(
             r["index"], arrays["reply"].tobytes(), r["headers"], r["len"], r.get("digest"),
-            r.get("crc"),
+            r.get("crc"), status=r.get("status", 200), finish=r.get("finish", False),
         )
     return state, reply
+
+
+RAW_DTYPES = frozenset({"uint8", "int64"})
+ANY_LENGTH = (-1,)  # a shape in `shapes`: a 1-D array of any length
+
+
+def _raw_arrays(kinds: dict, arrays: dict[str, np.ndarray],
+                shapes: Mapping[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
+    """The 1-D arrays `record` kept as bytes, each one the session's `shapes` names (ValueError
+    otherwise: another dtype, length or name)."""
+    out = {}
+    for name, kind in kinds.items():
+        want = shapes.get(name)
+        if kind not in RAW_DTYPES or want is None or len(want) != 1:
+            raise ValueError(f"stored array {name!r} ({kind}) is not one of the session's")
+        data = arrays[f"raw.{name}"]
+        size = np.dtype(kind).itemsize
+        if data.size % size:
+            raise ValueError(f"stored array {name!r}: {data.size} bytes of {kind}")
+        value = data.view(kind)
+        if want != ANY_LENGTH and value.shape != want:
+            raise ValueError(f"stored array {name!r} has shape {value.shape}, not {want}")
+        out[name] = value
+    return out
 
 
 class SessionStore:

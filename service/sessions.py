@@ -29,8 +29,13 @@ from quietframe.client.session_fields import AUTO
 from quietframe.runtime import ModelInfo
 from quietframe.runtime.motion_evidence import history_nbytes
 from quietframe.runtime.stream import Stream
-from quietframe.service import admission, frames
-from quietframe.service.errors import SessionNotFound, TooManySessions
+from quietframe.service import admission, frames, lookahead_queue
+from quietframe.service.errors import (
+    FrameNotPending,
+    SessionNotFound,
+    TooManySessions,
+    not_pending,
+)
 from quietframe.service.frame_context import frame_context
 from quietframe.service.measured_speed import MeasuredSpeeds
 from quietframe.service.metrics import Metrics
@@ -165,8 +170,10 @@ class SessionRegistry:
         model=auto that is the shot's choice, except where this frame may choose again (a
         shot's first frame, a cut: CHOICE_RESETS) and any installed model may run (the
         largest counts)."""
+        spec = session.spec
         return admission.frame_need(header, body_bytes, [
-            self.models.denoiser(name) for name in self._models_for(session, cut or header.cut)])
+            self.models.denoiser(name) for name in self._models_for(session, cut or header.cut)]
+        ) + lookahead_queue.frame_need(spec.lookahead, header.height, header.width, body_bytes)
 
     def _models_for(self, session: Session, cut: bool) -> list[str]:
         """The models a frame of `session` may run (`cut`: flagged by query or header)."""
@@ -214,7 +221,7 @@ class SessionRegistry:
             if isinstance(plan, Reply):
                 self.metrics.replays.inc()
                 return FrameOutcome(plan, replayed=True)
-            history = session.state if plan is Reset.NONE else None
+            history = session.history if plan is Reset.NONE else None
             info, choice, chose, starts_shot = session.info, None, False, False
             if auto:
                 starts_shot = plan in CHOICE_RESETS or session.choice is None
@@ -231,9 +238,9 @@ class SessionRegistry:
                     history = None
             frame = await self.pool.process_frame(
                 self._stream(session, info.name), spec, index, body, context, plan, history,
-                choice
+                choice, session.window if spec.lookahead else None
             )
-            self._reserve_reply(session, len(frame.reply.body), info)
+            self._reserve_reply(session, len(frame.reply.body), info, len(body))
             if self.durability is not None:
                 await self.durability.persist(session, frame)
             self._commit(session, frame)
@@ -261,6 +268,39 @@ class SessionRegistry:
         )
         return FrameOutcome(frame.reply, replayed=False)
 
+    async def finish_frame(self, session_id: str, index: int) -> FrameOutcome:
+        """POST .../frames/{index}/finish: a look-ahead session's oldest pending frame now,
+        finished with the later frames it has (docs/service.md, "Look-ahead"); the stored reply
+        again for a retry of the last finish; FrameNotPending (409) for any other index."""
+        session = await self.get(session_id)
+        async with session.lock:
+            if session.closed:
+                raise SessionNotFound(f"session {session_id!r} was closed while this waited")
+            if self.durability is not None:  # a retry needs the stored reply, the window
+                await self.durability.ensure_resident(session)
+            reply = session.reply
+            if reply is not None and reply.finish and reply.index == index:
+                self.metrics.replays.inc()
+                return FrameOutcome(reply, replayed=True)
+            held = lookahead_queue.pending(session.state)
+            if not held or held[0] != index:
+                raise FrameNotPending(not_pending(session, index, held))
+            need = lookahead_queue.finish_need(session.state, session.spec)
+            reservation = self.admission.reserve(0)
+            try:
+                await reservation.admit(need, f"finishing frame {index}")
+                frame = await self.pool.finish_frame(session)
+            finally:
+                reservation.release()
+            if self.durability is not None:
+                await self.durability.persist(session, frame)
+            session.commit(frame)
+            self.table.touch(session)
+            self.table.update_gauges()
+        log.info("frame finished", extra={"session": session.id, "index": index,
+                                          "pending": len(frame.pending)})
+        return FrameOutcome(frame.reply, replayed=False)
+
     def _stream(self, session: Session, model: str) -> Stream:
         """The session's sequence on `model`: kept from frame to frame, built anew when the
         shot's model changes (the old one's filters let go)."""
@@ -273,13 +313,17 @@ class SessionRegistry:
             session.stream = stream
         return stream
 
-    def _reserve_reply(self, session: Session, reply_bytes: int, info: ModelInfo) -> None:
+    def _reserve_reply(self, session: Session, reply_bytes: int, info: ModelInfo,
+                       body_bytes: int) -> None:
         """The reply is the whole input file with the denoised colour in it, larger than the
-        creation-time estimate when the farm sends many passes: grow the session's reservation
-        to what it will hold (MemoryBudgetExceeded, before anything changed, if that does not
-        fit)."""
-        need = history_nbytes(info.state_specs, session.spec.height, session.spec.width)
-        need += reply_bytes + REPLY_MARGIN_BYTES
+        creation-time estimate when the farm sends many passes (and a look-ahead session holds
+        `lookahead` such requests back): grow the session's reservation to what it will hold
+        (MemoryBudgetExceeded, before anything changed, if that does not fit)."""
+        spec = session.spec
+        need = history_nbytes(info.state_specs, spec.height, spec.width)
+        need += max(reply_bytes, body_bytes if spec.lookahead else 0) + REPLY_MARGIN_BYTES
+        need += lookahead_queue.reserve_bytes(spec.lookahead, spec.height, spec.width,
+                                              body_bytes)
         if need > session.reserve_bytes:
             self.table.make_room(need - session.reserve_bytes, keep=session)
             session.reserve_bytes = need

@@ -32,6 +32,9 @@ class StoredReply(BaseModel):
     digest: str | None = None
     crc: Annotated[int, Field(strict=True)] | None = None
     recipe: dict[str, Any] | None = None
+    # a look-ahead session's: 202 while its frame is held back; the reply to a finish
+    status: Annotated[int, Field(strict=True, ge=200, le=299)] = 200
+    finish: Annotated[bool, Field(strict=True)] = False
 
 
 class StoredChoice(BaseModel):
@@ -54,6 +57,8 @@ class StoredProgress(BaseModel):
     reply: StoredReply | None = None
     codec: dict[str, Any] | None = None
     manifest: dict[str, list[Count]] | None = None
+    raw: dict[str, str] | None = None  # 1-D state arrays stored as bytes: name -> dtype
+    pending: list[Index] | None = None  # a look-ahead session's frames held back
 
 
 def parse_meta(raw: bytes | str, session_id: str, progress: bool = True) -> dict:

@@ -17,7 +17,7 @@ import numpy as np
 from quietframe.runtime.stream import Stream
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
-from quietframe.service.frame_path import process_frame
+from quietframe.service.frame_path import finish_frame, process_frame
 from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.session import ProcessedFrame, Session
 from quietframe.service.session_spec import SessionSpec
@@ -53,11 +53,15 @@ class WorkerPool:
 
     async def process_frame(self, stream: Stream, spec: SessionSpec, index: int, body: Body,
                             context: FrameContext, reset: Reset,
-                            state: dict[str, np.ndarray] | None, choice: Choice | None
-                            ) -> ProcessedFrame:
+                            state: dict[str, np.ndarray] | None, choice: Choice | None,
+                            window: dict[str, np.ndarray] | None = None) -> ProcessedFrame:
         """Decode, denoise, encode (service/frame_path.py)."""
         return await self._run(
-            process_frame, stream, spec, index, body, context, reset, state, choice)
+            process_frame, stream, spec, index, body, context, reset, state, choice, window)
+
+    async def finish_frame(self, session: Session) -> ProcessedFrame:
+        """A look-ahead session's oldest pending frame finished (service/frame_path.py)."""
+        return await self._run(finish_frame, session)
 
     # ---- the session store ------------------------------------------------------------------
     # `store.<method>` is looked up at each call, not bound once: a test may replace one.

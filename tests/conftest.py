@@ -30,10 +30,11 @@ def layout_blender(b, view_layer="ViewLayer", noisy=False):
     ch[f"{view_layer}.Denoising Depth.Z"] = b["depth"]
     ch[f"{view_layer}.Depth.Z"] = b["depth"] + 100  # plain Z pass: lower priority
     if "motion" in b:
-        # Cycles Vector.XY: position in t-1 minus position in t, raster y up; ZW: to t+1.
+        # Cycles Vector.XY: position in t-1 minus position in t, raster y up; ZW: position in
+        # t minus position in t+1 at constant velocity (forward motion -motion: (-Z, +W)).
         m = b["motion"]
         ch[f"{view_layer}.Vector.X"], ch[f"{view_layer}.Vector.Y"] = m[..., 0], -m[..., 1]
-        ch[f"{view_layer}.Vector.Z"], ch[f"{view_layer}.Vector.W"] = -m[..., 0], m[..., 1]
+        ch[f"{view_layer}.Vector.Z"], ch[f"{view_layer}.Vector.W"] = m[..., 0], -m[..., 1]
     return ch
 
 

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Path, Query, Request, Response, status
 from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
 from quietframe.service.errors import ERROR_EXAMPLES, InvalidRequest, UnsupportedMediaType
 from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
+from quietframe.service.sessions import FrameOutcome
 from quietframe.service.upload import declared_length, read_frame
 from quietframe.wire.protocol import (
     ACCEPTED_FRAME_TYPES,
@@ -104,7 +105,11 @@ history.
 Response headers: `{Header.RESET}` ({", ".join(f"`{r.value}`" for r in Reset)}),
 `{Header.SANITIZED}` (input values replaced: NaN/Inf, negative colour/albedo/depth) with
 `{Header.SANITIZED_BUFFERS}`, `{Header.MISSING}` (optional buffers that were absent and
-filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` (ms per stage)."""
+filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` (ms per stage).
+
+Look-ahead (session `lookahead` k > 0): the frame is held back; the reply carries the oldest
+pending frame once more than k are pending (200, `{Header.FRAME}` its index, the headers its own),
+else 202 with no body; every reply says `{Header.PENDING}` (frames held back after it)."""
 
 
 @router.post(
@@ -115,8 +120,10 @@ filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` 
     responses={
         200: {
             "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
-            "description": "the denoised EXR",
+            "description": "the denoised EXR (with look-ahead: of the frame X-Quietframe-Frame "
+            "names)",
         },
+        202: {"description": "look-ahead: the frame is held back; nothing to write yet"},
         **errors(400, 401, 404, 408, 409, 413, 415, 422, 429),
     },
     openapi_extra={
@@ -166,7 +173,41 @@ async def post_frame(
                                                shot_model)
     finally:
         reservation.release()
+    return _response(outcome, metrics)
+
+
+def _response(outcome: FrameOutcome, metrics) -> Response:
+    """A frame's reply: the EXR (200), or nothing yet (202: a look-ahead session holds it)."""
     reply = outcome.reply
     metrics.bytes_out.inc(len(reply.body))
     headers = {**reply.headers, Header.REPLAYED: "true" if outcome.replayed else "false"}
-    return Response(reply.body, media_type=EXR_MEDIA_TYPE, headers=headers)
+    if reply.status == status.HTTP_202_ACCEPTED:
+        return Response(status_code=reply.status, headers=headers)
+    return Response(reply.body, status_code=reply.status, media_type=EXR_MEDIA_TYPE,
+                    headers=headers)
+
+
+@router.post(
+    "/{session_id}/frames/{index}/finish",
+    response_class=Response,
+    summary="Finish a held-back frame (look-ahead sessions)",
+    responses={
+        200: {
+            "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+            "description": "the denoised EXR of frame `index`",
+        },
+        **errors(401, 404, 409, 413, 429),
+    },
+)
+async def finish_frame(
+    session_id: str,
+    index: Annotated[int, Path(ge=0, description="the oldest pending frame")],
+    sessions: SessionsDep,
+    metrics: MetricsDep,
+) -> Response:
+    """A session with `lookahead` k > 0 returns frame `index` now, finished with the later
+    frames it has received: call it for each frame still pending at the end of a shot or a
+    chunk, oldest first. `index` must be the oldest pending frame (409 naming it otherwise); the
+    same request again replays the reply (`X-Quietframe-Replayed: true`). The headers describe
+    the frame, with `X-Quietframe-Pending` the frames still held back."""
+    return _response(await sessions.finish_frame(session_id, index), metrics)
