@@ -48,6 +48,7 @@ from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser, installed_models
+from quietframe.runtime.buffers import FORWARD
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes import cycles_io
 from quietframe.scenes.exr_io import color_layer, load_frame, read_meta
@@ -170,15 +171,19 @@ def sequence_dirs(data: Path, split: str, renderer: str = "mitsuba",
     return folders
 
 
-def load_sequence(folder: Path, spp: int) -> list[tuple[dict, np.ndarray, bool]]:
+def load_sequence(folder: Path, spp: int, forward: bool = False
+                  ) -> list[tuple[dict, np.ndarray, bool]]:
     """[(buffers, reference, reset)] for every frame of a sequence at `spp`. A Cycles frame's
-    buffers also hold Blender's own denoise of it (STORED_BLENDER)."""
+    buffers also hold Blender's own denoise of it (STORED_BLENDER) and with `forward` its motion
+    to the next frame (FORWARD, where the renderer wrote one: only a look-ahead reads it)."""
     if cycles_io.is_cycles_sequence(folder):
         resets = cycles_io.frame_resets(folder)
         frames = []
         for t, reset in enumerate(resets):
             f = cycles_io.load_frame(folder, t, spp)
             buffers = {k: f[k] for k in ("color", *AUX, STORED_BLENDER)}
+            if forward and (motion := cycles_io.load_forward(folder, t, spp)) is not None:
+                buffers[FORWARD] = motion
             frames.append((buffers, f["reference"], reset))
         return frames
     frames = []
@@ -220,6 +225,8 @@ def run_sequence(method, frames: Frames, scores: Scores, keep: list | None = Non
     metric); `locked_off` (a static shot) also scores flicker. Only a method that reads a
     stored output (Blender's denoise) is given it."""
     inputs = None if getattr(method, "reads_stored", False) else _inputs
+    if getattr(method, "reads_forward", False):  # a look-ahead (bench/lookahead_method.py)
+        inputs = _inputs_with_forward
     if hasattr(method, "look_ahead"):  # non-causal (sid_temporal.py): frame t+1 rides with t
         frames = method.look_ahead(frames)
     sequence = score_sequence(method, frames, tuple(FRAME_METRICS), locked_off, inputs)
@@ -229,6 +236,10 @@ def run_sequence(method, frames: Frames, scores: Scores, keep: list | None = Non
 
 
 def _inputs(planes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: v for k, v in planes.items() if k not in (STORED_BLENDER, FORWARD)}
+
+
+def _inputs_with_forward(planes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v for k, v in planes.items() if k != STORED_BLENDER}
 
 

@@ -23,11 +23,12 @@ import numpy as np
 
 from quietframe.model import metrics
 from quietframe.runtime import Denoiser
-from quietframe.runtime.buffers import BUFFER_CHANNELS, planes_from_hwc
-from quietframe.runtime.stream import Stream
+from quietframe.runtime.buffers import BUFFER_CHANNELS, FORWARD, planes_from_hwc
+from quietframe.runtime.stream import Step, Stream
 
 Planes = dict[str, np.ndarray]  # canonical name -> (C, H, W) float32
 Frames = list[tuple[Planes, np.ndarray, bool]]  # (planes, reference (H, W, 3), reset)
+VECTORS = ("motion", FORWARD)  # what a renderer with motion blur on writes none of
 FRAME_METRICS: dict[str, Callable[[np.ndarray, np.ndarray], float]] = {
     "psnr": metrics.psnr, "ssim": metrics.ssim, "smape": metrics.smape, "relmse": metrics.relmse,
 }
@@ -69,6 +70,7 @@ class RuntimeMethod:
         self.header_spp: float | None = None
         self.dropped = 0  # frames whose history was not used: moved without motion vectors
         self.estimated = 0  # frames that followed motion estimated from the aux
+        self.last_step: Step | None = None  # the last frame's (a look-ahead reads it)
 
     def reset(self) -> None:
         self.state = None
@@ -82,8 +84,9 @@ class RuntimeMethod:
                                    for name in self.denoiser.info.required_buffers
                                    if name not in planes}}
         if self.withhold_vectors:
-            planes = {name: plane for name, plane in planes.items() if name != "motion"}
+            planes = {name: plane for name, plane in planes.items() if name not in VECTORS}
         step = self.stream.step(planes, self.state, self.header_spp)
+        self.last_step = step
         self.dropped += step.gate is not None and step.gate.dropped
         self.estimated += step.estimated is not None
         self.state = step.state

@@ -7,9 +7,11 @@ on a locked-off shot its flicker; for a runtime model also the frames whose hist
 evidence dropped, and for `auto` the model it chose. Methods: Blender's denoise (stored beside
 each input), per-frame OIDN-high with plain and with prefiltered aux, every installed OIDN tier
 and learned tier, each history tier's per-frame stage (`<tier>/frame`), `auto`, and the SID
-add-on's temporal mode. Cuts are not flagged to the methods: Blender writes nothing into a frame
-that says "cut", so a farm sends a shot with a camera switch as one sequence (`--flag-cuts`
-tells the methods, as a farm using `quietframe denoise --cut` would).
+add-on's temporal mode; by name also a tier with a look-ahead of k frames
+(`<tier>/lookahead-<k>`, bench/lookahead_method.py: a session's `lookahead`). Cuts are not
+flagged to the methods: Blender writes nothing into a frame that says "cut", so a farm sends a
+shot with a camera switch as one sequence (`--flag-cuts` tells the methods, as a farm using
+`quietframe denoise --cut` would).
 
 Writes <out>/zoo.json (every row, per shot) and <out>/README.md (tables per shot type).
 """
@@ -33,6 +35,7 @@ from quietframe.bench.evaluate import (
     run_sequence,
 )
 from quietframe.bench.harness import planar_frames
+from quietframe.bench.lookahead_method import LookaheadMethod, lookahead_methods
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes import cycles_io
 from quietframe.scenes.zoo_shots import ZOO_VERSION, zoo_dir
@@ -62,7 +65,7 @@ def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
         info = shot_info(folder)
         locked = info["camera"] == "locked"
         for spp in spp_levels:
-            frames = planar_frames(load_sequence(folder, spp))
+            frames = planar_frames(load_sequence(folder, spp, forward=True))
             if not flag_cuts:
                 frames = [(p, r, i == 0) for i, (p, r, _) in enumerate(frames)]
             for name, factory in list(methods.items()):
@@ -87,6 +90,10 @@ def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
                 if hasattr(current, "dropped"):
                     row["history_dropped"] = current.dropped
                     row["motion_estimated"] = current.estimated
+                if isinstance(method, LookaheadMethod):  # frames blended, pixels trusted
+                    row["lookahead_blended"] = method.blended
+                    row["lookahead_trusted"] = (round(float(np.mean(method.trusted)), 4)
+                                                if method.trusted else None)
                 rows.append(row)
                 log(json.dumps(row))
     return rows
@@ -127,6 +134,7 @@ def report(rows: list[dict], meta: dict) -> str:
     for r in rows:
         by.setdefault((r["shot"], r["spp"]), {})[r["method"]] = r
     methods = [m for m in METHODS if any(m in v for v in by.values())]
+    methods += sorted({r["method"] for r in rows} - set(METHODS))  # asked for by name
     lines = [f"# Validation zoo ({meta['split']}): per shot and spp", "",
              f"`{meta['command']}` ({meta['zoo']}, {meta['threads']} threads). "
              "PSNR (dB, tone-mapped) of Blender's denoise, and every other method's difference "
@@ -195,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     wanted = args.methods.split(",")
     everything = build_methods(args.threads, single_frame=HISTORY_TIERS, renderer="cycles",
                                rendered_only=HISTORY_TIERS)
+    everything |= lookahead_methods(everything, wanted)  # <tier>/lookahead-<k>
     methods = {m: everything[m] for m in wanted if m in everything}
     rows = evaluate(folders, spp_levels, methods, args.flag_cuts)
     meta = {"split": args.split, "zoo": args.zoo, "threads": args.threads,

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quietframe.runtime.buffers import BUFFER_CHANNELS
+from quietframe.runtime.buffers import BUFFER_CHANNELS, FORWARD
 from quietframe.runtime.exr_channels import resolve
 from quietframe.runtime.exr_codec import decode
 from quietframe.runtime.exr_header import read_header
@@ -60,6 +60,16 @@ def load_inputs(folder: Path, t: int, spp: int) -> dict[str, np.ndarray]:
         if name not in out:
             out[name] = np.zeros((h, w, BUFFER_CHANNELS[name]), np.float32)
     return out
+
+
+def load_forward(folder: Path, t: int, spp: int) -> np.ndarray | None:
+    """Frame t's motion to frame t + 1 at `spp`, (H, W, 2), as a look-ahead session decodes it
+    (Cycles' Vector.ZW: runtime/exr_channels); None where it is all zero (motion blur on)."""
+    data = (folder / level_dir(spp) / frame_file(t)).read_bytes()
+    header = read_header(data, _NO_LIMIT, _NO_LIMIT)
+    sources = resolve(list(header.channels), [], [FORWARD])
+    forward = decode(data, sources).buffers.get(FORWARD) if sources else None
+    return None if forward is None else forward.transpose(1, 2, 0)
 
 
 def load_frame(folder: Path, t: int, spp: int) -> dict[str, np.ndarray]:
