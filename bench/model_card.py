@@ -5,12 +5,15 @@
         [--static-evaluation S.json] [--timing T.json] [--absent A.json]
         [--noise-points P.json] [--measured-as METHOD] [--no-card] models/*.onnx
     python -m quietframe.bench.model_card --zoo zoo.json --no-card models/*.onnx
+    python -m quietframe.bench.model_card models/*.onnx --input-margin zoo1.json zoo3.json
 
 The markdown repeats what the file's card says (runtime/card.py: architecture, composition,
 tiling, training, measured tables per renderer) and adds the speed measured on this machine
 through the shipped runtime, so the markdown and the file can never disagree. `--stamp` first
 writes the measured tables `model=auto` reads into the files (bench/model_metrics.py), `--zoo`
-how each model held on the validation zoo (bench/zoo_stamp.py); `--no-card` stops there.
+how each model held on the validation zoo (bench/zoo_stamp.py), `--input-margin` how it compared
+with its own noisy input there (bench/input_margin_stamp.py); `--no-card` stops there. Without
+`--measure` the markdown quotes the cards' speed: re-writing it measures nothing.
 """
 
 from __future__ import annotations
@@ -20,13 +23,20 @@ import json
 from pathlib import Path
 
 from quietframe.bench import cli_args
+from quietframe.bench.input_margin_stamp import stamp_input_margin
 from quietframe.bench.model_metrics import RunProblem, TableRuns, card_of, stamp_tables
 from quietframe.bench.oidn_temporal import measure as time_stages
 from quietframe.bench.synthetic import cpu_peak_gflops, frame_buffers
 from quietframe.bench.timing import time_ms
 from quietframe.bench.zoo_stamp import stamp_zoo
 from quietframe.runtime import Denoiser
-from quietframe.runtime.card import GraphStage, ModelCard, OIDNStage
+from quietframe.runtime.card import (
+    GraphStage,
+    Measurements,
+    ModelCard,
+    OIDNStage,
+    worse_than_input_from,
+)
 from quietframe.scenes.layout import RENDERERS, split_dir
 
 
@@ -169,7 +179,37 @@ def card_lines(card: ModelCard) -> list[str]:
                       f"{short}."
                       + (f" Its worst shot against Blender's own denoise (what `auto` weighs "
                          f"so that no shot loses to it): {worst}." if worst else ""), ""]
+        lines += input_margin_lines(table)
     return lines
+
+
+def worth_using(table: Measurements) -> str:
+    """Where the model is worth using against its own noisy input, one clause; "" where that
+    was not measured."""
+    rows = table.input_margin
+    if not rows:
+        return ""
+    worse = worse_than_input_from(rows)
+    span = f"{rows[0].spp:g}-{rows[-1].spp:g} spp"
+    if worse is None:
+        return (f"never worse than its noisy input on the validation zoo's worst shot over "
+                f"{span}")
+    return (f"worse than its noisy input from {worse:g} spp on the validation zoo's worst shot "
+            f"(measured over {span}), so `auto` does not choose it from there")
+
+
+def input_margin_lines(table: Measurements) -> list[str]:
+    """The card's `input_margin`: per spp the worst shot's and the mean (model − noisy input)
+    PSNR, and from which spp the model is worse than its input."""
+    if not table.input_margin:
+        return []
+    rows = ", ".join(f"{r.spp:g} spp {r.worst_db:+.2f} dB (worst shot"
+                     f"{' ' + r.worst_shot if r.worst_shot else ''}; mean {r.mean_db:+.2f})"
+                     for r in table.input_margin)
+    shots = ", ".join(table.input_margin_measured.get("shots") or ())
+    return [f"Against its own noisy input on the validation zoo (output PSNR less the input's, "
+            f"same frames{'; shots ' + shots if shots else ''}): {rows}. "
+            f"It is {worth_using(table)}.", ""]
 
 
 def role_lines(path: Path, card: ModelCard) -> list[str]:
@@ -183,15 +223,19 @@ def role_lines(path: Path, card: ModelCard) -> list[str]:
     if baseline.is_file() and table.ms_720p:
         oidn = card_of(baseline).measured("cycles").ms_720p
         if oidn:
-            speed = f", about {oidn / table.ms_720p:.1f}× faster than OIDN-high at 720p"
+            ratio = oidn / table.ms_720p
+            speed = (f", about {ratio:.1f}× faster than OIDN-high at 720p" if ratio >= 1
+                     else f" (about {1 / ratio:.1f}× slower than OIDN-high at 720p)")
     worst = min((r.worst_gap_db for r in table.zoo), default=None)
     mean = [r.gap_db for r in table.zoo]
     fall = (f" It falls short on content unlike the scene generator's: on the validation zoo "
             f"it is {max(mean):+.1f} to {min(mean):+.1f} dB against per-frame OIDN-high over "
             f"1-64 spp, {worst:+.1f} dB on its worst shot, so `auto` does not choose it for "
             f"final frames." if mean else "")
+    worth = worth_using(table)
     return ["## What it is for", "",
-            f"Previews{speed}: a learned tier trained on quietframe's scene generator.{fall} "
+            f"Previews{speed}: a learned tier trained on quietframe's scene generator.{fall}"
+            f"{f' It is {worth}.' if worth else ''} "
             "For final frames use the OIDN tiers (or `auto`).", ""]
 
 
@@ -283,7 +327,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     stamping.add_argument("--zoo", type=Path,
                           help="zoo.json of bench/zoo_eval.py --split validation: each model's "
                                "zoo rows, after --stamp (give oidn-frame.onnx too)")
+    stamping.add_argument("--input-margin", type=Path, nargs="+", action="extend",
+                          metavar="RUN.json",
+                          help="zoo.json runs of bench/zoo_eval.py --split validation with the "
+                               "`noisy` method: each model's margin over its own input, the "
+                               "runs joined by shot (give the models before this flag)")
     args = parser.parse_args(argv)
+    onnx_runs = [str(p) for p in args.input_margin or () if p.suffix == ".onnx"]
+    if onnx_runs:
+        parser.error(f"--input-margin takes zoo.json runs, got {', '.join(onnx_runs)}: give the "
+                     "models before --input-margin (or after `--`)")
     if args.measured_as and len(args.models) != 1:
         parser.error("--measured-as names one model's rows: give exactly one model")
     if args.stamp and not args.evaluation:
@@ -291,8 +344,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     given = [f"--{k.replace('_', '-')}" for k in STAMP_RUNS if getattr(args, k)]
     if given and not args.stamp:
         parser.error(f"{', '.join(given)}: only with --stamp")
-    if args.no_card and not (args.stamp or args.zoo):
-        parser.error("--no-card: nothing to do without --stamp or --zoo")
+    if args.no_card and not (args.stamp or args.zoo or args.input_margin):
+        parser.error("--no-card: nothing to do without --stamp, --zoo or --input-margin")
     return args
 
 
@@ -306,6 +359,8 @@ def stamp_models(args: argparse.Namespace) -> None:
         print("\n".join(stamp_tables(args.models, runs, args.renderer, args.measured_as)))
     if args.zoo:
         print("\n".join(stamp_zoo(args.zoo, args.models)))
+    if args.input_margin:
+        print("\n".join(stamp_input_margin(args.input_margin, args.models)))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,6 +19,7 @@ BLENDER_DENOISE_COST = 6.88
 # shown (and measured); else a preview: quicker, or cheaper passes, at a visible loss.
 FINAL_FRAMES_SLACK_DB = 0.1
 CARD_DEFAULT_RENDERER = "mitsuba"  # the table at the top level of `metrics` (runtime/card.py)
+ZOO_RENDERER = "cycles"  # the validation zoo's shots: its figures stand for every renderer's
 RENDERER_NAMES = {"cycles": "Cycles", "mitsuba": "Mitsuba"}
 
 
@@ -77,6 +78,33 @@ def renderer_table(model: dict, renderer: str) -> tuple[dict, bool]:
     if isinstance(table, dict) and table.get("by_spp"):
         return table, True
     return metrics, False
+
+
+def input_margin(model: dict, renderer: str) -> dict:
+    """The card's `input_margin` (the model against its own noisy input on the validation zoo,
+    runtime/card.py): the renderer's table's, else the zoo's renderer's, as `auto` reads it;
+    {} where not measured."""
+    table, _ = renderer_table(model, renderer)
+    zoo = ((model.get("metrics") or {}).get("by_renderer") or {}).get(ZOO_RENDERER) or {}
+    for candidate in (table, zoo):
+        margin = candidate.get("input_margin") if isinstance(candidate, dict) else None
+        if isinstance(margin, dict) and margin.get("by_spp"):
+            return margin
+    return {}
+
+
+def worth_using(model: dict, renderer: str) -> str:
+    """Where the model is worth using against its noisy input, one clause; "" unmeasured."""
+    margin = input_margin(model, renderer)
+    levels = [r["spp"] for r in margin.get("by_spp") or () if isinstance(r, dict) and "spp" in r]
+    if not levels:
+        return ""
+    worse = margin.get("worse_than_input_from_spp")
+    if not isinstance(worse, int | float):
+        return (f"never worse than its noisy input on the validation zoo "
+                f"({min(levels):g}-{max(levels):g} spp)")
+    return (f"worth using below {worse:g} spp: from there worse than its noisy input on a "
+            "validation-zoo shot (auto does not choose it there)")
 
 
 def _rows_by_spp(table: dict) -> dict[float, dict]:
@@ -184,6 +212,8 @@ def model_table(models: list[dict], default: str, renderer: str = "cycles") -> s
         what = describe(m)
         if not own:
             what += f" ({RENDERER_NAMES[CARD_DEFAULT_RENDERER]} table: none measured on {name})"
+        if worth := worth_using(m, renderer):
+            what += f"; {worth}"
         if m.get("options"):
             what += f"; options: {_options(m)} (--model-option NAME=VALUE)"
         row = [f"{m['name']} {m['version']}{mark}", ",".join(m["required_buffers"]), _ms(table),

@@ -228,7 +228,7 @@ def json_safe(value: object) -> object:
 
 
 MEASUREMENT_KEYS = ("by_spp", "ms_720p", "measured", "absent_db", "absent_db_worst", "by_noise",
-                    "zoo")
+                    "zoo", "input_margin")
 
 
 @dataclass(frozen=True)
@@ -253,6 +253,37 @@ class ZooRow:
 
 
 @dataclass(frozen=True)
+class InputMarginRow:
+    """How a model's output compared with its own noisy input on the validation zoo at one spp:
+    (model − noisy input) PSNR on the same frames, `worst_db` the lowest shot's (`worst_shot`),
+    `mean_db` the mean over the `shots` measured. Below 0 the denoiser made the frame worse than
+    leaving it alone; `auto` does not choose a model where its worst shot is (choice_policy)."""
+
+    spp: float
+    worst_db: float
+    mean_db: float
+    worst_shot: str = ""
+    shots: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def worse_than_input_from(rows: Sequence[InputMarginRow]) -> float | None:
+    """The lowest spp from which the worst shot's margin is below 0, read as `auto` reads it
+    (linear in log2 spp between measured levels, flat beyond them): where it first crosses 0,
+    the first level where it starts below; None where it never is."""
+    rows = sorted(rows, key=lambda r: r.spp)
+    if rows and rows[0].worst_db < 0:
+        return float(rows[0].spp)
+    for a, b in zip(rows, rows[1:], strict=False):
+        if b.worst_db < 0 <= a.worst_db:
+            t = a.worst_db / (a.worst_db - b.worst_db)
+            return round(2 ** (math.log2(a.spp) + t * (math.log2(b.spp) - math.log2(a.spp))), 2)
+    return None
+
+
+@dataclass(frozen=True)
 class Measurements:
     """One renderer's measured table of a model (docs/model-interface.md, what `auto` reads)."""
 
@@ -266,6 +297,10 @@ class Measurements:
     by_noise_measured: Mapping = field(default_factory=dict)
     zoo: tuple[ZooRow, ...] = ()  # spp ascending; empty where the zoo was not measured
     zoo_measured: Mapping = field(default_factory=dict)  # the zoo run: command, shots
+    # spp ascending; empty where not measured. Stamped apart from `zoo` (its own runs, which
+    # may cover other shots), read as `worse_than_input_from`.
+    input_margin: tuple[InputMarginRow, ...] = ()
+    input_margin_measured: Mapping = field(default_factory=dict)  # the runs: commands, shots
 
     @property
     def complete(self) -> bool:
@@ -290,11 +325,19 @@ class Measurements:
         if self.zoo:
             out["zoo"] = {"by_spp": [r.to_dict() for r in self.zoo],
                           "measured": dict(self.zoo_measured)}
+        if self.input_margin:
+            # worse_than_input_from_spp is derived (from_dict recomputes it): written for the
+            # readers without this module, GET /v1/models' clients
+            out["input_margin"] = {
+                "by_spp": [r.to_dict() for r in self.input_margin],
+                "worse_than_input_from_spp": worse_than_input_from(self.input_margin),
+                "measured": dict(self.input_margin_measured)}
         return out
 
     @classmethod
     def from_dict(cls, d: Mapping) -> Measurements:
         noise, zoo = d.get("by_noise") or {}, d.get("zoo") or {}
+        margin = d.get("input_margin") or {}
         return cls(
             by_spp=tuple(SppRow(r["spp"], r["psnr"], r.get("trmae"), r.get("flicker"),
                                 r.get("renderer_denoise"))
@@ -309,6 +352,9 @@ class Measurements:
             zoo=tuple(ZooRow(**r) for r in sorted(zoo.get("by_spp") or [],
                                                   key=lambda r: r["spp"])),
             zoo_measured=dict(zoo.get("measured") or {}),
+            input_margin=tuple(InputMarginRow(**r) for r in sorted(margin.get("by_spp") or [],
+                                                                    key=lambda r: r["spp"])),
+            input_margin_measured=dict(margin.get("measured") or {}),
         )
 
 

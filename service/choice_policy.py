@@ -5,7 +5,8 @@ frame, a cut), so a shot never switches model mid-way (a switch changes the look
 
 The rule, in order (docs/service.md, "How auto chooses"): the models that accept the frame's
 buffers and have a table; a temporal model only where its table vouches for it (motion vectors
-present or their absence measured, the spp within reach); within the latency budget; not below
+present or their absence measured, the spp within reach); none whose worst validation-zoo shot
+was worse than its own noisy input at the frame's spp; within the latency budget; not below
 the per-frame floor (the renderer's own denoise, else per-frame OIDN-high); for balanced and
 best, those that held on every validation-zoo shot; then the steady ones (locked-off flicker,
 else TRMAE), within the quality's tolerance of the best expected PSNR; the cheapest of those."""
@@ -93,6 +94,9 @@ def choose(
     measured, unreached_note = leave_out(measured, unreached,
                                          f"temporal measured only below {noise.spp:g} spp")
     blind_note += unreached_note
+    # Never a model that made a validation shot worse than leaving the frame alone.
+    measured, below_note = not_below_input(measured, noise.spp)
+    blind_note += below_note
     quality = quality or DEFAULT_QUALITY
     # by_noise only when every candidate has it: absolute PSNRs from different tables (or
     # different validation points) are not comparable.
@@ -109,7 +113,8 @@ def choose(
             fastest = min(scored, key=lambda s: s[2])
             return Choice(
                 fastest[0].name,
-                f"no model fits {latency_ms:g} ms; the fastest ({fastest[2]:.0f} ms expected)",
+                f"no model fits {latency_ms:g} ms; the fastest ({fastest[2]:.0f} ms expected)"
+                f"{blind_note}",
                 **base,
                 expected_psnr=round(fastest[1], 2),
                 expected_ms=round(fastest[2], 3),
@@ -154,6 +159,26 @@ def leave_out(pool: list[ModelProfile], out: list[ModelProfile],
     if not out or len(out) == len(pool):
         return pool, ""
     return [p for p in pool if p not in out], f", {len(out)} {why} left out"
+
+
+def not_below_input(pool: list[ModelProfile], spp: float) -> tuple[list[ModelProfile], str]:
+    """`pool` less the models whose worst validation-zoo shot at `spp` was below their own
+    noisy input (ModelProfile.input_margin < 0), and a note naming them; a model without the
+    figure stays. Where every candidate is below (no other model installed), the least below,
+    and the note says so: auto must serve the frame with some model."""
+    margin = {p.name: p.input_margin(spp) for p in pool}
+    below = [p for p in pool if (m := margin[p.name]) is not None and m < 0]
+    if not below:
+        return pool, ""
+    names = ", ".join(f"{p.name} ({margin[p.name]:+.2f} dB)" for p in below)
+    if len(below) < len(pool):
+        return ([p for p in pool if p not in below],
+                f", left out as worse than their noisy input at {spp:g} spp on a validation-zoo "
+                f"shot: {names}")
+    least = max(margin[p.name] for p in below)
+    return ([p for p in below if margin[p.name] >= least - 1e-9],
+            f", every candidate worse than its noisy input at {spp:g} spp on a validation-zoo "
+            f"shot ({names}): the least below")
 
 
 Scored = tuple[ModelProfile, float, float]  # profile, expected PSNR, expected ms

@@ -1,7 +1,7 @@
 """What `auto` knows of one installed model: its measured table for the frame's renderer (PSNR,
 TRMAE and locked-off flicker by spp, by noise statistic, the cost of each absent buffer, how far
-it held on the validation zoo, ms at 720p), read from its card (runtime/card.py), and what it
-is expected to give on a frame."""
+it held on the validation zoo and against its own noisy input there, ms at 720p), read from its
+card (runtime/card.py), and what it is expected to give on a frame."""
 
 from __future__ import annotations
 
@@ -57,6 +57,9 @@ class ModelProfile:
     zoo_shortfall_by_spp: tuple[tuple[float, float], ...] = ()
     # (spp, dB): the worst validation-zoo shot's PSNR less Blender's own denoise's (ZooRow)
     zoo_worst_vs_denoise_by_spp: tuple[tuple[float, float], ...] = ()
+    # (spp, dB): the worst validation-zoo shot's PSNR less its own noisy input's
+    # (runtime/card.InputMarginRow); below 0 the model made that shot worse than no denoise
+    input_margin_by_spp: tuple[tuple[float, float], ...] = ()
 
     @classmethod
     def from_card(cls, card: ModelCard, renderer: str | None = None) -> ModelProfile:
@@ -69,10 +72,13 @@ class ModelProfile:
             default = card.measured(None)
             table = replace(table, absent_db=default.absent_db,
                             absent_db_worst=default.absent_db_worst)
+        zoo = card.measured(ZOO_RENDERER)
         if not table.zoo:
             # The zoo (Cycles shots from outside the generator) measures how far a table from
             # the generator carries to other content; it stands for every renderer's table.
-            table = replace(table, zoo=card.measured(ZOO_RENDERER).zoo)
+            table = replace(table, zoo=zoo.zoo)
+        if not table.input_margin:  # the same content, the same reach
+            table = replace(table, input_margin=zoo.input_margin)
         profile = cls.from_measurements(card.name, card.required, card.optional, table)
         return replace(profile, per_frame_oidn=is_per_frame_oidn(card),
                        temporal=bool(card.state))
@@ -109,6 +115,8 @@ class ModelProfile:
             zoo_worst_vs_denoise_by_spp=tuple((float(r.spp), float(r.worst_vs_denoise_db))
                                               for r in table.zoo
                                               if finite_figure(r.worst_vs_denoise_db)),
+            input_margin_by_spp=tuple((float(r.spp), float(r.worst_db))
+                                      for r in table.input_margin if finite_figure(r.worst_db)),
         )
 
     @property
@@ -150,6 +158,11 @@ class ModelProfile:
         have = set(present)
         psnr += at_spp(self.zoo_shortfall_by_spp, spp) or 0.0
         return psnr + sum(change.get(b, 0.0) for b in self.optional if b not in have)
+
+    def input_margin(self, spp: float) -> float | None:
+        """The worst validation-zoo shot's (model − noisy input) PSNR at `spp`, interpolated
+        as the other tables (at_spp); None where not measured."""
+        return at_spp(self.input_margin_by_spp, spp)
 
     def expected_trmae(self, spp: float) -> float | None:
         """Measured TRMAE (all buffers) at `spp`, as expected_psnr interpolates."""
