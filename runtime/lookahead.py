@@ -81,15 +81,26 @@ INVERTED = "inverted"  # (1,) uint8: the frame's FORWARD is the next frame's bac
 FLAGS = (INDEX, STARTS, ESTIMATED, INVERTED)  # (1,) arrays
 STAGE, WORTH, BACKWARD, ALBEDO, NORMAL, DEPTH = (
     "stage", "worth", "backward", "albedo", "normal", "depth")
-BLEND = (STAGE, WORTH, BACKWARD, ALBEDO, NORMAL, DEPTH)  # BACKWARD: only where history went on
+# (3,) float32: the tier's w(spp) for this frame and its per-pixel trust bounds edge_depth,
+# edge_motion (model/output_history.OutputHistoryConfig), which the blend applies as the
+# tier's own history does.
+LIMITS = "limits"
+BLEND = (STAGE, WORTH, BACKWARD, ALBEDO, NORMAL, DEPTH, LIMITS)  # BACKWARD: where history went on
 PLANES = {COLOR: 3, STAGE: 3, WORTH: 1, BACKWARD: 2, ALBEDO: 3, NORMAL: 3, DEPTH: 1, FORWARD: 2}
 _KEY = re.compile(r"(\d+)\.(.+)")
-# Hops along motion estimated from the aux a frame may chain. Its forward-backward check is the
-# estimate's own (the inversion holds to it by construction), so errors of 0.1-0.25 px a hop
-# add up: on the motion-blurred twin of the dolly (study-dolly-blur, validation) k = 1 gained
-# at every spp (+0.09..+0.14 dB, worst frame +0.03) and k = 2 / 4 lost up to 0.10 / 0.36 dB
-# on a frame at 16 spp (docs/service.md, "Look-ahead").
-ESTIMATED_HOPS = 1
+DEPTH_RANGE = "depth_range"  # the blend's own: a later frame's 3×3 depth range
+# Hops along motion estimated from the aux a frame may chain: none. Its forward-backward check
+# is the estimate's own (the inversion holds to it by construction), so nothing refuses its
+# 0.1-0.25 px errors: on the motion-blurred twin of the dolly one hop gained (+0.09..+0.14 dB)
+# but on motion-blurred foliage under an orbit (garden-blur, validation) it lost 0.46 dB at
+# 1 spp and 3.5 dB at 64, and on the blurred railing (test) 0.30 at 64 (docs/service.md,
+# "Look-ahead"). Such frames keep their causal output.
+ESTIMATED_HOPS = 0
+# Above this current-frame weight w(spp) (the tier's, 0.8 at 64 spp) a resampled later frame
+# is not blended: on a fast pan (gallery-pan, validation) a weight of 1 lost 0.7-1.2 dB at
+# 64 spp, (1 - w) / w = 0.25 still 0.09-0.37, where the tier's own history loses 0.09 to its
+# stage; at 16 spp (w = 0.65, weight 0.54) it gains 0.27-0.31 with no frame below k = 0.
+RESAMPLED_FLOOR_MAX = 0.75
 
 
 # ---- what one frame leaves in the window ---------------------------------------------------
@@ -143,6 +154,8 @@ def frame_pieces(step: Step, planes: Mapping[str, np.ndarray],
     # the sky and no surface (sanitize's fill, the frame's farthest depth, changes per frame).
     hit = np.isfinite(depth) & (depth > 0) & (depth < DEPTH_NO_HIT)
     pieces |= {
+        LIMITS: np.array([floor, float(architecture.get("edge_depth", 0.0)),
+                          float(architecture.get("edge_motion", 0.0))], np.float32),
         STAGE: np.nan_to_num(np.asarray(step.oidn, np.float32)),
         WORTH: causal_worth(state[0, COUNT_CHANNEL], motion, floor),
         ALBEDO: sanitize_buffer("albedo", planes["albedo"])[0],
@@ -248,6 +261,7 @@ def window_shapes(lookahead: int, height: int, width: int) -> dict[str, tuple[in
         shapes |= {f"{slot}.{name}": (channels, height, width)
                    for name, channels in PLANES.items()}
         shapes |= {f"{slot}.{name}": (1,) for name in FLAGS}
+        shapes[f"{slot}.{LIMITS}"] = (3,)
     return shapes
 
 
@@ -301,6 +315,9 @@ def blend(run: list[dict[str, np.ndarray]]) -> tuple[np.ndarray, float]:
     trusted = np.zeros(len(run) - 1)
     flats = [{name: piece.reshape(piece.shape[0], -1) for name, piece in frame.items()
               if name in PLANES} for frame in run]
+    for frame, flat in zip(run[1:], flats[1:], strict=True):  # the edge test where it lands
+        low, high = _range3(frame[DEPTH], slice(0, h))
+        flat[DEPTH_RANGE] = (high - low).reshape(1, -1)
     for top in range(0, h, BAND_ROWS):
         rows = slice(top, min(top + BAND_ROWS, h))
         out[:, rows], counts = _blend_band(run, flats, rows, h, w)
@@ -318,16 +335,31 @@ def _blend_band(run, flats, rows: slice, h: int, w: int) -> tuple[np.ndarray, np
     worth = me[WORTH][:, rows]
     total = worth * me[COLOR][:, rows]
     weight = worth.copy()
+    floor, edge_depth, edge_motion = (float(v) for v in me[LIMITS])
+    # A later frame fetched at a sub-pixel position weighs what the tier lets its own
+    # resampled history weigh against the current frame, (1 - w(spp)) / w(spp) (at most 1),
+    # and nothing where w(spp) > RESAMPLED_FLOOR_MAX: the cleaner the frames, the more the
+    # resampling's error outweighs the noise it averages. Whole-pixel hops fetch exactly and
+    # weigh 1.
+    resampled = (min(1.0, (1 - floor) / floor) if 0 < floor <= RESAMPLED_FLOOR_MAX
+                 else 0.0 if floor > RESAMPLED_FLOOR_MAX else 1.0)
+    smooth = _smooth_here(me, rows, edge_depth, edge_motion)
     y, x = np.mgrid[rows, 0:w].astype(np.float32)
     at = _nearest_index(x, y, h, w)
     ok = np.ones(x.shape, bool)
+    exact = np.ones(x.shape, bool)
     counts = np.zeros(len(run) - 1)
     for j in range(1, len(run)):
         step = flats[j - 1][FORWARD][:, at].reshape(2, *x.shape)
         x, y = x + step[0], y + step[1]
+        exact &= (np.abs(step - np.rint(step)) <= ALIGNED_TOLERANCE).all(0)
         ok &= (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
         at = _nearest_index(x, y, h, w)
         later = flats[j]
+        if edge_depth > 0:  # the fetch's footprint on one surface where it lands, too
+            there = later[DEPTH][0, at].reshape(x.shape)
+            smooth &= (later[DEPTH_RANGE][0, at].reshape(x.shape)
+                       <= edge_depth * np.maximum(there, 1e-6))
         back = later[BACKWARD][:, at].reshape(2, *x.shape)
         ok &= np.hypot(step[0] + back[0], step[1] + back[1]) <= FB_PIXELS
         # the aux check (_aux_agree of experiments/lookahead.py, `range`)
@@ -343,10 +375,28 @@ def _blend_band(run, flats, rows: slice, h: int, w: int) -> tuple[np.ndarray, np
                   | ((ln < EMPTY_NORMAL) & (lm < EMPTY_NORMAL)))
         fetched = np.maximum(_bicubic(later[STAGE], x, y, h, w), 0)
         fetched = np.minimum(np.maximum(fetched, low), high)
-        total += agree * fetched
-        weight += agree
-        counts[j - 1] = np.count_nonzero(agree)
+        tau = agree * np.where(exact, 1.0, resampled * smooth).astype(np.float32)
+        total += tau * fetched
+        weight += tau
+        counts[j - 1] = np.count_nonzero(tau)
     return total / weight, counts
+
+
+def _smooth_here(me: Mapping[str, np.ndarray], rows: slice, edge_depth: float,
+                 edge_motion: float) -> np.ndarray:
+    """Where frame t's pixel may take a resampled fetch (the tier's own trust of a resampled
+    history, model/output_history.trusted_resample): its 3×3 depth range within edge_depth of
+    its depth (not a silhouette, thin geometry against a far background) and its neighbours
+    moving alike (3×3 range of either forward-motion component within edge_motion px)."""
+    depth = me[DEPTH][0, rows]
+    smooth = np.ones(depth.shape, bool)
+    if edge_depth > 0:
+        low, high = _range3(me[DEPTH], rows)
+        smooth &= (high - low)[0] <= edge_depth * np.maximum(depth, 1e-6)
+    if edge_motion > 0:
+        low, high = _range3(me[FORWARD], rows)
+        smooth &= (high - low).max(0) <= edge_motion
+    return smooth
 
 
 def _range3(x: np.ndarray, rows: slice) -> tuple[np.ndarray, np.ndarray]:

@@ -205,7 +205,7 @@ def unpack(
     return state, reply
 
 
-RAW_DTYPES = frozenset({"uint8", "int64"})
+RAW_DTYPES = frozenset({"uint8", "int64", "float32"})  # float32: a window's limits
 ANY_LENGTH = (-1,)  # a shape in `shapes`: a 1-D array of any length
 
 

@@ -46,6 +46,8 @@ def translation(n: int, v=(1.5, 0.5), sigma=0.05, seed=0, rendered_forward=True)
             "albedo": _texture(xs - t * v[0], ys - t * v[1]),
             "normal": np.tile(np.array([0, 0, 1], np.float32)[:, None, None], (1, H, W)),
             "depth": np.full((1, H, W), 3.0, np.float32),
+            # w(spp) = 0.35 (1-4 spp): a later frame weighs 1; the edge tests off
+            lookahead.LIMITS: np.array([0.35, 0.0, 0.0], np.float32),
         }
         if t:
             pieces[BACKWARD] = -field
@@ -245,16 +247,60 @@ def test_cycles_vector_zw_is_read_as_forward_motion() -> None:
     assert FORWARD not in resolve(two, ["color"], ["motion", FORWARD])
 
 
-def test_a_frame_chains_one_hop_along_motion_estimated_from_the_aux() -> None:
+def test_motion_estimated_from_the_aux_is_not_looked_along() -> None:
     """Rendered backward motion inverted chains as far as k; where it was estimated from the
-    aux (whose forward-backward check the inversion passes by construction) one hop only."""
+    aux (whose forward-backward check the inversion passes by construction) the frame keeps its
+    causal output."""
     frames = translation(5, rendered_forward=False)
     assert run(frames, 3)[0].used == 3
     for _, pieces in frames[1:]:
         pieces[lookahead.ESTIMATED] = np.ones(1, np.uint8)
     popped = run(frames, 3)
-    assert [p.used for p in popped] == [1, 1, 1, 1, 0]
+    assert [p.used for p in popped] == [0, 0, 0, 0, 0]
+    for p, (_, pieces) in zip(popped, frames, strict=True):
+        np.testing.assert_array_equal(p.color, pieces["color"])
     for _, pieces in frames:  # rendered forward motion: the estimate is checked against it
         pieces[FORWARD] = np.stack([np.full((H, W), 1.5), np.full((H, W), 0.5)]).astype(
             np.float32)
     assert run(frames, 3)[0].used == 3
+
+
+def _weight_of_later_frames(frames) -> float:
+    """The later frame's share in frame 0's output of a two-frame window, from where D_1 is
+    set apart: out = (n C + τ F) / (n + τ)."""
+    (_, first), (_, second) = frames
+    first["color"][:], first["worth"][:] = 0.0, 1.0
+    second["stage"][:] = 1.0
+    first["stage"][:] = 0.5  # F is clipped to frame 0's D range: [0.5, 0.5]
+    out = run(frames, 1)[0].color
+    return float(np.median(out[:, 6:-6, 6:-6]) / 0.5)  # τ / (1 + τ)
+
+
+def test_a_resampled_later_frame_weighs_what_the_tier_lets_a_resampled_history_weigh() -> None:
+    """At w(spp) = 0.65 (16 spp) a later frame fetched at a sub-pixel position weighs
+    (1 - w) / w against the causal output's 1; above RESAMPLED_FLOOR_MAX (64 spp: 0.8)
+    nothing; a whole-pixel fetch weighs 1 at any spp."""
+    for floor, weight in ((0.65, 0.35 / 0.65), (0.8, 0.0)):
+        sub = translation(2, v=(1.5, 0.5))
+        for _, pieces in sub:
+            pieces[lookahead.LIMITS][0] = floor
+        assert _weight_of_later_frames(sub) == pytest.approx(weight / (1 + weight), abs=1e-4)
+    whole = translation(2, v=(2.0, 1.0))
+    for _, pieces in whole:
+        pieces[lookahead.LIMITS][0] = 0.8
+    assert _weight_of_later_frames(whole) == pytest.approx(0.5, abs=1e-4)
+
+
+def test_a_resampled_fetch_across_a_depth_edge_or_mixed_motion_is_not_blended() -> None:
+    """The tier's own per-pixel trust: a 3×3 depth range beyond edge_depth, or neighbours whose
+    forward motion differs by more than edge_motion, keep the causal output there."""
+    frames = translation(2, v=(1.5, 0.5))
+    for _, pieces in frames:
+        pieces[lookahead.LIMITS][1:] = (0.05, 0.25)
+        pieces["depth"][0, :, 24:] = 30.0  # a far wall right of column 24
+    frames[0][1][FORWARD][0, 30:] = 3.5  # the bottom rows move otherwise from row 30
+    popped = run(frames, 1)[0]
+    color, kept = popped.color, frames[0][1]["color"]
+    np.testing.assert_array_equal(color[:, 10:20, 23:25], kept[:, 10:20, 23:25])  # the edge
+    np.testing.assert_array_equal(color[:, 29:31, 8:16], kept[:, 29:31, 8:16])  # mixed motion
+    assert not np.array_equal(color[:, 10:20, 8:16], kept[:, 10:20, 8:16])  # smooth: blended
