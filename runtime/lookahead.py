@@ -16,19 +16,23 @@ For frame t, with m ≤ k later frames of the same history run in the window:
   t + j, p_j = p_{j−1} + f_{t+j−1}(p_{j−1}) (the forward motion chained hop by hop, each hop the
   nearest pixel's vector so no field is blended across a depth edge), bicubically (Keys,
   a = −0.75: the tier's own history fetch) and clipped to frame t's D's 3×3 range.
-- τ_j ∈ {0, 1}: every hop so far landed inside the frame and passed the forward-backward check
+- τ_j: 0 unless every hop so far landed inside the frame and passed the forward-backward check
   (|f_{t+i}(p_i) + b_{t+i+1}(p_{i+1})| ≤ FB_PIXELS, b the backward motion frame t + i + 1's
   history followed), and the aux of t + j at p_j show frame t's surface (experiments/lookahead's
   `aux_agree`, its `range` rule: depth of the nearest pixel within 10%, 3×3-mean normals within
-  cos 0.9, the albedo (bilinear) within frame t's 3×3 albedo range ± TRUST_ERROR).
+  cos 0.9, the albedo (bilinear) within frame t's 3×3 albedo range ± TRUST_ERROR). Then 1 where
+  every hop is whole pixels (an exact fetch); where the fetch is resampled, the tier's own trust
+  of a resampled history (`_smooth_here` and the depth range where it lands) and the weight it
+  lets such a history have, (1 − w(spp)) / w(spp) up to 1, nothing above RESAMPLED_FLOOR_MAX.
 
 The forward motion f_t: the renderer's (Cycles' Vector.ZW: buffers.FORWARD, exr_channels), else
 frame t + 1's backward motion inverted by a fixed point (`invert`: f(p) = −b(p + f(p)), which the
 forward-backward check then holds to), whether that motion was rendered or estimated from the
-aux (aux_motion: its untrusted pixels point outside the frame, so nothing lands on them; a frame
-chains at most ESTIMATED_HOPS hops along an estimate inverted so, since the inversion passes its
-own forward-backward check by construction). A frame whose history did not continue (a cut, a
-gap, a detected cut, a dropped history) starts a new run: no frame looks across it. Measured in
+aux (aux_motion: its untrusted pixels point outside the frame, so nothing lands on them); along
+an estimate inverted so a frame chains at most ESTIMATED_HOPS (0) hops, since the inversion
+passes its own forward-backward check by construction. A frame whose history did not continue
+(a cut, a gap, a detected cut, a dropped history) starts a new run: no frame looks across it.
+Measured in
 experiments/lookahead.py (the same rule with the per-frame stage S in place of D: identical on
 sub-pixel motion, experiments/README.md).
 
@@ -96,11 +100,14 @@ DEPTH_RANGE = "depth_range"  # the blend's own: a later frame's 3×3 depth range
 # 1 spp and 3.5 dB at 64, and on the blurred railing (test) 0.30 at 64 (docs/service.md,
 # "Look-ahead"). Such frames keep their causal output.
 ESTIMATED_HOPS = 0
-# Above this current-frame weight w(spp) (the tier's, 0.8 at 64 spp) a resampled later frame
-# is not blended: on a fast pan (gallery-pan, validation) a weight of 1 lost 0.7-1.2 dB at
-# 64 spp, (1 - w) / w = 0.25 still 0.09-0.37, where the tier's own history loses 0.09 to its
-# stage; at 16 spp (w = 0.65, weight 0.54) it gains 0.27-0.31 with no frame below k = 0.
-RESAMPLED_FLOOR_MAX = 0.75
+# Above this current-frame weight w(spp) (the tier's: 0.575 at 8 spp, 0.65 at 16, 0.8 at 64) a
+# resampled later frame is not blended: the cleaner the frames, the more the resampling's error
+# and what the motion vectors do not follow (caustics and reflections moving over a still
+# surface) outweigh the noise it averages. Validation (docs/service.md, "Look-ahead"): with a
+# weight of 1 a fast pan lost 0.7-1.2 dB at 64 spp; with (1 - w) / w the dark studio's turning
+# wireframe still lost 0.04/0.10 dB at 16 spp with k = 2/4 (worst frame -0.18/-0.26), while
+# the pan and the dolly gained 0.06-0.31 there. Never below k = 0 comes first.
+RESAMPLED_FLOOR_MAX = 0.6
 
 
 # ---- what one frame leaves in the window ---------------------------------------------------

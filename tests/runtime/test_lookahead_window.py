@@ -277,10 +277,10 @@ def _weight_of_later_frames(frames) -> float:
 
 
 def test_a_resampled_later_frame_weighs_what_the_tier_lets_a_resampled_history_weigh() -> None:
-    """At w(spp) = 0.65 (16 spp) a later frame fetched at a sub-pixel position weighs
-    (1 - w) / w against the causal output's 1; above RESAMPLED_FLOOR_MAX (64 spp: 0.8)
+    """At w(spp) = 0.575 (8 spp) a later frame fetched at a sub-pixel position weighs
+    (1 - w) / w against the causal output's 1; above RESAMPLED_FLOOR_MAX (16 spp: 0.65)
     nothing; a whole-pixel fetch weighs 1 at any spp."""
-    for floor, weight in ((0.65, 0.35 / 0.65), (0.8, 0.0)):
+    for floor, weight in ((0.575, 0.425 / 0.575), (0.65, 0.0), (0.8, 0.0)):
         sub = translation(2, v=(1.5, 0.5))
         for _, pieces in sub:
             pieces[lookahead.LIMITS][0] = floor
