@@ -42,6 +42,7 @@ from quietframe.model.metrics import psnr
 from quietframe.model.oidn_temporal import VARIANTS as OIDN_VARIANTS
 from quietframe.runtime.buffers import BUFFER_NAMES
 from quietframe.runtime.oidn_prepass import OIDNSettings
+from quietframe.scenes.corpus_shots import corpus_dir
 from quietframe.scenes.layout import DATA_DIR, DEFAULT_THREADS, RENDERERS, RUNS_DIR, split_dir
 
 
@@ -54,6 +55,9 @@ class TrainConfig:
     # The renderers whose splits are trained and validated on, comma-separated ("mitsuba",
     # "cycles", "mitsuba,cycles"): the train split is the union of theirs, validation too.
     renderers: str = "mitsuba"
+    # 1: the train and validation splits also take the Cycles training corpus (shots from
+    # outside the generator: scenes/corpus_shots.py, <data>/corpus-cycles/<split>; docs/data.md)
+    corpus: int = 0
     # or "l1" (paper §4.4: L1 on the LDR-mapped output), or "relmse+temporal" (unbiased under
     # noisy targets, losses.relmse_unbiased_loss), or "tau+temporal" (squared error in the
     # evaluation's τ space, Işık eq. 14-15: the loss whose optimum is the best PSNR)
@@ -245,8 +249,10 @@ def renderers(cfg: TrainConfig) -> tuple[str, ...]:
 
 
 def split_roots(cfg: TrainConfig, split: str) -> list[Path]:
-    """The split's folder for each of the run's renderers (g2/<split>, g2-cycles/<split>)."""
-    return [split_dir(cfg.data, split, renderer=r) for r in renderers(cfg)]
+    """The split's folder for each of the run's renderers (g2/<split>, g2-cycles/<split>),
+    and the corpus's (corpus-cycles/<split>) where the run takes it."""
+    roots = [split_dir(cfg.data, split, renderer=r) for r in renderers(cfg)]
+    return [*roots, corpus_dir(cfg.data, split)] if cfg.corpus else roots
 
 
 class TrainingBatches:

@@ -300,6 +300,17 @@ def test_renderers_name_the_union_of_their_splits(data):
         qt.split_roots(config(data, renderers="mitsuba,blender"), "train")
 
 
+def test_the_corpus_joins_the_splits_when_the_run_takes_it(data):
+    from quietframe.scenes.corpus_shots import corpus_dir
+
+    write_cycles_sequence(corpus_dir(data, "train"), 9_500_001)
+    without = qt.TrainingBatches(config(data, renderers="cycles"))
+    assert 9_500_001 not in [s.seed for s in without.dataset.sequences]
+    taken = qt.TrainingBatches(config(data, renderers="cycles", corpus=1))
+    assert [s.seed for s in taken.dataset.sequences][-1] == 9_500_001
+    assert taken(0)["color"].shape == (2, 2, 3, 16, 16)
+
+
 def test_a_renderer_without_a_split_is_refused_for_training_not_validation(tmp_path):
     data = tmp_path / "data"
     write_cycles_sequence(split_dir(data, "train", "cycles"), 5_000_000)
