@@ -232,27 +232,29 @@ def close(client, server) -> None:
         server.__exit__()
 
 
-class LiveServer:
-    """A real uvicorn server on 127.0.0.1 in a background thread."""
+class ThreadedServer:
+    """An ASGI app served by uvicorn on 127.0.0.1 in a background thread; `url` once entered."""
 
-    def __init__(self, port: int = 0, **overrides) -> None:
+    start_timeout_s = 60
+
+    def __init__(self, app, port: int = 0) -> None:
         import threading
 
         import uvicorn
 
-        self.app = app_for(service_settings(**overrides))
-        config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_level="warning")
+        self.app = app
+        config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 
-    def __enter__(self) -> LiveServer:
+    def __enter__(self):
         import time
 
         self.thread.start()
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + self.start_timeout_s
         while not self.server.started:
             if not self.thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("test server did not start")
+                raise RuntimeError(f"{type(self).__name__} did not start")
             time.sleep(0.02)
         port = self.server.servers[0].sockets[0].getsockname()[1]
         self.port, self.url = port, f"http://127.0.0.1:{port}"
@@ -261,6 +263,13 @@ class LiveServer:
     def __exit__(self, *_) -> None:
         self.server.should_exit = True
         self.thread.join(timeout=30)
+
+
+class LiveServer(ThreadedServer):
+    """A real quietframe server on 127.0.0.1 in a background thread."""
+
+    def __init__(self, port: int = 0, **overrides) -> None:
+        super().__init__(app_for(service_settings(**overrides)), port)
 
 
 @pytest.fixture(scope="session")

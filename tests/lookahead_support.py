@@ -14,10 +14,10 @@ from __future__ import annotations
 import json
 import secrets
 import threading
-import time
 from collections import deque
 from dataclasses import dataclass, field
 
+from conftest import ThreadedServer
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
@@ -164,28 +164,11 @@ def _error(status: int, code: str, detail: str) -> Response:
     return JSONResponse({"error": code, "detail": detail}, status_code=status)
 
 
-class FakeServer:
+class FakeServer(ThreadedServer):
     """The fake on 127.0.0.1 in a background thread (uvicorn), as conftest.LiveServer."""
 
+    start_timeout_s = 30
+
     def __init__(self) -> None:
-        import uvicorn
-
         self.fake = LookaheadFake()
-        config = uvicorn.Config(self.fake.app, host="127.0.0.1", port=0, log_level="warning")
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
-
-    def __enter__(self) -> FakeServer:
-        self.thread.start()
-        deadline = time.monotonic() + 30
-        while not self.server.started:
-            if not self.thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("fake server did not start")
-            time.sleep(0.02)
-        port = self.server.servers[0].sockets[0].getsockname()[1]
-        self.url = f"http://127.0.0.1:{port}"
-        return self
-
-    def __exit__(self, *_) -> None:
-        self.server.should_exit = True
-        self.thread.join(timeout=30)
+        super().__init__(self.fake.app)

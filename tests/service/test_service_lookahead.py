@@ -5,18 +5,14 @@ otherwise), idempotent replays of frames and finishes, the status, DELETE, a ref
 
 from __future__ import annotations
 
-import os
 import shutil
 import signal
-import socket
-import subprocess
-import sys
-import time
 
 import httpx
 import numpy as np
 import pytest
 from conftest import LiveServer, read_exr, shot
+from server_support import free_port, start_cli_server
 
 from quietframe.wire.protocol import Header
 
@@ -166,38 +162,12 @@ def test_a_model_without_an_oidn_stage_keeps_the_delay_and_its_output(server, fr
         assert got.content == was.content  # queued and returned unchanged
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _serve(port: int, state_dir) -> subprocess.Popen:
-    """`quietframe serve` in its own process with durable state."""
-    env = {**os.environ, "QUIETFRAME_THREADS": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "quietframe.client.cli", "serve", "--port",
-                             str(port), "--state-dir", str(state_dir)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"server exited: {proc.stderr.read().decode()[-2000:]}")
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return proc
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
-    proc.kill()
-    raise RuntimeError("server did not become ready")
-
-
 def test_pending_frames_survive_a_kill(tmp_path, frames) -> None:
     """kill -9 with two frames held back: the restarted server still holds them, and every
     reply is the one a session of the same server never killed gives, byte for byte."""
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
-    server = _serve(port, tmp_path)
+    server = start_cli_server(port, tmp_path)
     try:
         with httpx.Client(base_url=url, timeout=60) as c:
             sid = create(c, 2)
@@ -208,7 +178,7 @@ def test_pending_frames_survive_a_kill(tmp_path, frames) -> None:
             before = [post(c, sid, i, f) for i, f in enumerate(frames[:3])]
         server.send_signal(signal.SIGKILL)  # only what was on disk survives
         server.wait(timeout=30)
-        server = _serve(port, tmp_path)
+        server = start_cli_server(port, tmp_path)
         with httpx.Client(base_url=url, timeout=60) as c:
             assert c.get(f"/v1/sessions/{sid}").json()["pending"] == [1, 2]
             repeat = post(c, sid, 2, frames[2])  # the last reply survived too

@@ -3,18 +3,13 @@ retry races, and a killed-and-restarted server with durable state."""
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
-import subprocess
-import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 
-import httpx
 import numpy as np
 import pytest
 from conftest import LAYOUTS, make_buffers, read_exr, shot, write_exr
+from server_support import free_port, start_cli_server
 
 from quietframe.client import Client
 
@@ -110,46 +105,12 @@ def test_async_client_streams_sessions_in_parallel(live_server):
     assert [[r.reset for r in seq] for seq in results] == [["first-frame", "none", "none"]] * 3
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _start_cli_server(port: int, state_dir) -> subprocess.Popen:
-    """`quietframe serve` in its own process (the README command), durable state on."""
-    env = {**os.environ, "QUIETFRAME_THREADS": "1", "QUIETFRAME_LOG_JSON": "true"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "quietframe.client.cli",
-        "serve",
-        "--port",
-        str(port),
-        "--state-dir",
-        str(state_dir),
-    ]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"server exited: {proc.stderr.read().decode()[-2000:]}")
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return proc
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
-    proc.kill()
-    raise RuntimeError("server did not become ready")
-
-
 def test_killed_server_continues_sequence_from_durable_state(tmp_path, live_server):
     frames = shot(5, "arnold")
     reference = run_sequence(live_server.url, frames)
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
-    server = _start_cli_server(port, tmp_path)
+    server = start_cli_server(port, tmp_path, QUIETFRAME_LOG_JSON="true")
     try:
         with Client(url) as client:
             sid = client.create_session(*SIZE)["id"]
@@ -157,7 +118,7 @@ def test_killed_server_continues_sequence_from_durable_state(tmp_path, live_serv
         server.send_signal(signal.SIGKILL)  # no shutdown hook: only what was on disk survives
         server.wait(timeout=30)
         assert sorted(p.name for p in tmp_path.iterdir()) == [f"{sid}.json", f"{sid}.npz"]
-        server = _start_cli_server(port, tmp_path)
+        server = start_cli_server(port, tmp_path, QUIETFRAME_LOG_JSON="true")
         with Client(url) as client:
             assert client.session(sid)["last_index"] == 2
             retry = client.send_frame(sid, 2, frames[2])  # the lost-response retry, after restart
@@ -186,9 +147,9 @@ def test_motion_estimated_from_the_aux_survives_a_kill(tmp_path):
     sequences = Path(__file__).resolve().parents[1] / "fixtures" / "blender_sequences"
     frames = [(sequences / f"motion_blur.{t:04d}.exr").read_bytes() for t in range(1, 5)]
     model, size = "oidn-fast-history", (128, 72)
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
-    server = _start_cli_server(port, tmp_path)
+    server = start_cli_server(port, tmp_path, QUIETFRAME_LOG_JSON="true")
     try:
         with Client(url) as client:
             sid = client.create_session(*size, model)["id"]
@@ -200,7 +161,7 @@ def test_motion_estimated_from_the_aux_survives_a_kill(tmp_path):
         server.send_signal(signal.SIGKILL)
         server.wait(timeout=30)
         assert b"motion_depth" in np.load(tmp_path / f"{sid}.npz")["meta"].tobytes()
-        server = _start_cli_server(port, tmp_path)
+        server = start_cli_server(port, tmp_path, QUIETFRAME_LOG_JSON="true")
         with Client(url) as client:
             rest = [client.send_frame(sid, i, frames[i]) for i in (2, 3)]
             client.delete_session(sid)
