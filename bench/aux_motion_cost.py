@@ -20,7 +20,7 @@ import statistics
 
 from quietframe.bench import cli_args
 from quietframe.bench.synthetic import frame_buffers
-from quietframe.bench.timing import time_ms
+from quietframe.bench.timing import interleaved_rounds
 from quietframe.runtime import Denoiser, aux_motion, find_model
 from quietframe.runtime.motion_evidence import probe
 from quietframe.runtime.stream import Stream
@@ -49,15 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     runs = {"frame": lambda: stream.step(current, state),
             "estimate": lambda: aux_motion.estimate(*probes, height, width, current["depth"],
                                                     previous_depth)}
-    wall: dict[str, list[float]] = {k: [] for k in runs}
-    cpu: dict[str, list[float]] = {k: [] for k in runs}
-    for r in range(args.rounds):
-        for name, run in runs.items():
-            timing = time_ms(run, warmup=1, repeats=args.repeats)
-            wall[name].append(timing.median_ms)
-            cpu[name].append(timing.cpu_ms)
-        print(f"round {r + 1}: " + ", ".join(f"{k} {v[-1]:.0f} ms" for k, v in wall.items()),
-              flush=True)
+    wall, cpu = interleaved_rounds(runs, args.rounds, args.repeats)
     share = [e / f for e, f in zip(wall["estimate"], wall["frame"], strict=True)]
     share_cpu = [e / f for e, f in zip(cpu["estimate"], cpu["frame"], strict=True)]
     print(f"\n{width}×{height}, {args.threads} threads, {args.rounds} interleaved rounds")

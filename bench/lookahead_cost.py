@@ -23,7 +23,7 @@ import numpy as np
 
 from quietframe.bench import cli_args
 from quietframe.bench.synthetic import frame_buffers
-from quietframe.bench.timing import time_ms
+from quietframe.bench.timing import interleaved_rounds
 from quietframe.runtime import Denoiser, find_model
 from quietframe.runtime.buffers import FORWARD
 from quietframe.runtime.lookahead import frame_pieces, pop, push
@@ -79,15 +79,7 @@ def main(argv: list[str] | None = None) -> int:
             "push (inverted forward)": lambda: push(before, last, 2, False),
             "push (rendered forward)": lambda: push(windows[1], frames[2], 2, False)}
     runs |= {f"pop, k = {k}": lambda k=k: pop(windows[k]) for k in ks}
-    wall: dict[str, list[float]] = {k: [] for k in runs}
-    cpu: dict[str, list[float]] = {k: [] for k in runs}
-    for r in range(args.rounds):
-        for name, run in runs.items():
-            timing = time_ms(run, warmup=1, repeats=args.repeats)
-            wall[name].append(timing.median_ms)
-            cpu[name].append(timing.cpu_ms)
-        print(f"round {r + 1}: " + ", ".join(f"{k} {v[-1]:.0f} ms" for k, v in wall.items()),
-              flush=True)
+    wall, cpu = interleaved_rounds(runs, args.rounds, args.repeats)
     print(f"\n{width}×{height}, {args.model}, {args.threads} threads, {args.rounds} interleaved "
           "rounds; per frame: a push, and the pop of a frame with k later frames")
     print("| | median ms | median CPU ms | ÷ the frame (wall) | ÷ the frame (CPU) |")

@@ -59,3 +59,20 @@ def timing_table(title: str, first: str, columns: Sequence[str],
                  else "–" for c in columns]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def interleaved_rounds(runs: Mapping[str, Callable[[], object]], rounds: int, repeats: int
+                       ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """Each of `runs` timed once a round (time_ms, one warm-up), `rounds` times, interleaved
+    so a background load falls on all of them alike; prints each round's medians. Returns
+    per run the median wall ms and CPU ms of every round."""
+    wall: dict[str, list[float]] = {k: [] for k in runs}
+    cpu: dict[str, list[float]] = {k: [] for k in runs}
+    for r in range(rounds):
+        for name, run in runs.items():
+            timing = time_ms(run, warmup=1, repeats=repeats)
+            wall[name].append(timing.median_ms)
+            cpu[name].append(timing.cpu_ms)
+        print(f"round {r + 1}: " + ", ".join(f"{k} {v[-1]:.0f} ms" for k, v in wall.items()),
+              flush=True)
+    return wall, cpu

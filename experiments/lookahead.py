@@ -72,11 +72,11 @@ from quietframe.runtime import Denoiser, find_model
 from quietframe.runtime.aux_motion import FB_PIXELS, TRUST_ERROR, warp
 from quietframe.runtime.exr_channels import Source
 from quietframe.runtime.exr_codec import decode
+from quietframe.runtime.lookahead import bicubic, box3
 from quietframe.scenes import cycles_io
 from quietframe.scenes.zoo_shots import zoo_dir
 
 HISTORY_KEY = "accumulation"  # the output history's state: O (3), depth, normal (3), length
-CUBIC_A = -0.75  # PyTorch's bicubic, the tier's history fetch
 EMPTY_NORMAL = 1e-3  # shorter normals: no surface (the world background)
 VECTOR = tuple(f"ViewLayer.Vector.{c}" for c in "XYZW")
 
@@ -169,35 +169,11 @@ def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     return warp(image, np.stack((x - xs, y - ys)))[0]
 
 
-def _cubic_weights(f: np.ndarray) -> list[np.ndarray]:
-    """Keys' cubic convolution weights of the taps at −1, 0, 1, 2 for fraction f."""
-    a = CUBIC_A
-
-    def near(d):
-        return ((a + 2) * d - (a + 3)) * d * d + 1
-
-    def far(d):
-        return ((a * d - 5 * a) * d + 8 * a) * d - 4 * a
-
-    return [far(1 + f), near(f), near(1 - f), far(2 - f)]
-
-
 def sample_bicubic(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(C, H', W') bicubic fetch at float pixel positions, taps clamped to the frame."""
-    _, h, w = image.shape
-    x = np.clip(x, 0, w - 1)
-    y = np.clip(y, 0, h - 1)
-    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
-    wx = _cubic_weights((x - x0).astype(np.float32))
-    wy = _cubic_weights((y - y0).astype(np.float32))
-    out = np.zeros((image.shape[0], *x.shape), np.float32)
-    for i, wyi in enumerate(wy):
-        rows = np.clip(y0 + i - 1, 0, h - 1)
-        line = np.zeros_like(out)
-        for j, wxj in enumerate(wx):
-            line += wxj * image[:, rows, np.clip(x0 + j - 1, 0, w - 1)]
-        out += wyi * line
-    return out
+    """(C, H', W') bicubic fetch at float pixel positions, taps clamped to the frame (the
+    runtime's: Keys, a = −0.75, the tier's history fetch)."""
+    c, h, w = image.shape
+    return bicubic(image.reshape(c, -1), x, y, h, w)
 
 
 def _range3(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -206,12 +182,6 @@ def _range3(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     padded = np.pad(x, ((0, 0), (1, 1), (1, 1)), mode="edge")
     taps = [padded[:, i:i + h, j:j + w] for i in range(3) for j in range(3)]
     return np.min(taps, axis=0), np.max(taps, axis=0)
-
-
-def _box3(x: np.ndarray) -> np.ndarray:
-    _, h, w = x.shape
-    padded = np.pad(x, ((0, 0), (1, 1), (1, 1)), mode="edge")
-    return sum(padded[:, i:i + h, j:j + w] for i in range(3) for j in range(3)) / 9
 
 
 # --- the look-ahead -------------------------------------------------------------------------
@@ -280,11 +250,11 @@ def aux_agree(here: dict[str, np.ndarray], there: dict[str, np.ndarray], x: np.n
     if mode == "pixel":
         n, m = here["normal"], sample_nearest(there["normal"], x, y)
         a = np.abs(sample_bilinear(there["albedo"], x, y) - here["albedo"]).mean(0)
-        ok &= _box3(a[None])[0] <= TRUST_ERROR
+        ok &= box3(a[None])[0] <= TRUST_ERROR
     else:
-        n, m = _box3(here["normal"]), sample_bilinear(_box3(there["normal"]), x, y)
+        n, m = box3(here["normal"]), sample_bilinear(box3(there["normal"]), x, y)
     if mode == "box":
-        a, b = _box3(here["albedo"]), sample_bilinear(_box3(there["albedo"]), x, y)
+        a, b = box3(here["albedo"]), sample_bilinear(box3(there["albedo"]), x, y)
         ok &= np.abs(a - b).mean(0) <= TRUST_ERROR
     elif mode == "range":
         low, high = _range3(here["albedo"])

@@ -57,7 +57,7 @@ from quietframe.runtime.buffers import FORWARD
 from quietframe.runtime.sanitize import DEPTH_NO_HIT, sanitize_buffer
 from quietframe.runtime.stream import Step
 
-__all__ = ["Popped", "Window", "causal_worth", "current_weight_floor",
+__all__ = ["Popped", "Window", "bicubic", "box3", "causal_worth", "current_weight_floor",
            "frame_pieces", "invert", "pending", "pop", "push", "window_shapes"]
 
 Window = dict[str, np.ndarray]
@@ -166,7 +166,7 @@ def frame_pieces(step: Step, planes: Mapping[str, np.ndarray],
         STAGE: np.nan_to_num(np.asarray(step.oidn, np.float32)),
         WORTH: causal_worth(state[0, COUNT_CHANNEL], motion, floor),
         ALBEDO: sanitize_buffer("albedo", planes["albedo"])[0],
-        NORMAL: _box3(sanitize_buffer("normal", planes["normal"])[0]),
+        NORMAL: box3(sanitize_buffer("normal", planes["normal"])[0]),
         DEPTH: np.where(hit, depth, np.float32(0)),
     }
     if step.history_used:  # the motion this frame's history followed: zero where none was given
@@ -380,7 +380,7 @@ def _blend_band(run, flats, rows: slice, h: int, w: int) -> tuple[np.ndarray, np
         lm = np.sqrt((normal * normal).sum(0))
         agree &= (((here_normal * normal).sum(0) > NORMAL_MIN_DOT * ln * lm)
                   | ((ln < EMPTY_NORMAL) & (lm < EMPTY_NORMAL)))
-        fetched = np.maximum(_bicubic(later[STAGE], x, y, h, w), 0)
+        fetched = np.maximum(bicubic(later[STAGE], x, y, h, w), 0)
         fetched = np.minimum(np.maximum(fetched, low), high)
         tau = agree * np.where(exact, 1.0, resampled * smooth).astype(np.float32)
         total += tau * fetched
@@ -422,7 +422,7 @@ def _range3(x: np.ndarray, rows: slice) -> tuple[np.ndarray, np.ndarray]:
     return low, high
 
 
-def _box3(x: np.ndarray) -> np.ndarray:
+def box3(x: np.ndarray) -> np.ndarray:
     """The 3×3 box mean of (C, H, W) `x`, edges replicated."""
     _, h, w = x.shape
     padded = np.pad(x, ((0, 0), (1, 1), (1, 1)), mode="edge")
@@ -465,7 +465,7 @@ def _cubic_weights(f: np.ndarray) -> list[np.ndarray]:
     return [far(1 + f), near(f), near(1 - f), far(2 - f)]
 
 
-def _bicubic(flat: np.ndarray, x: np.ndarray, y: np.ndarray, h: int, w: int) -> np.ndarray:
+def bicubic(flat: np.ndarray, x: np.ndarray, y: np.ndarray, h: int, w: int) -> np.ndarray:
     """(C, *x.shape) of (C, H·W) `flat` fetched bicubically at (x, y), taps clamped to the
     frame (PyTorch's grid_sample bicubic with border padding, as the tier fetches its
     history)."""

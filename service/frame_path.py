@@ -146,13 +146,14 @@ def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | byte
     start = time.perf_counter()
     window = lookahead_queue.hold(window, step, frame.buffers, info.card.architecture, index,
                                   body, headers, timings, sanitized, recipe)
-    if len(lookahead.pending(window)) > spec.lookahead:
+    held = lookahead.pending(window)
+    if len(held) > spec.lookahead:
         released = lookahead_queue.release(window)
         window, reply_body, status = released.window, released.body, 200
-        reply_headers = released.headers
+        reply_headers, held = released.headers, held[1:]
     else:
         reply_body, status = b"", 202
-        reply_headers = {Header.PENDING: str(len(lookahead.pending(window)))}
+        reply_headers = {Header.PENDING: str(len(held))}
     encode_ms = 1e3 * (time.perf_counter() - start)  # queueing, and the reply's blend and write
     now = {"decode": context.decode_ms, "denoise": denoise_ms, "encode": encode_ms,
            "total": context.decode_ms + denoise_ms + encode_ms}
@@ -167,7 +168,7 @@ def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | byte
         timings_ms=now,
         info=info,
         choice=choice,
-        pending=lookahead.pending(window),
+        pending=held,
     )
 
 

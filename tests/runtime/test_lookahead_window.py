@@ -196,7 +196,7 @@ def test_the_blend_is_the_experiments_blend() -> None:
                         p[FORWARD], p.get(BACKWARD, -p[FORWARD]), p["color"], p["worth"][0],
                         p["stage"], p["stage"]) for _, p in frames]
     for pieces in (p for _, p in frames):  # the window keeps the 3×3 mean of the normals
-        pieces["normal"] = lookahead._box3(pieces["normal"])
+        pieces["normal"] = lookahead.box3(pieces["normal"])
     popped = run(frames, 3)
     for t in range(3):
         theirs, share = look_ahead(experiment, t, 3, Candidate(source="oidn"))
