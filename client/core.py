@@ -63,6 +63,9 @@ class FrameResult:
     # look-ahead sessions: the frames the session holds back after this reply
     # (X-Quietframe-Pending); None where the server does not say (no look-ahead)
     pending: int | None = None
+    # a model asked for by name at an spp where its card says it is below its own noisy input
+    # (X-Quietframe-Warning); the frame was denoised as asked
+    warning: str = ""
 
 
 @dataclass(frozen=True)
@@ -177,6 +180,7 @@ def parse_frame(index: int, response: httpx.Response) -> FrameResult | None:
         choice=h.get(Header.CHOICE, ""),
         motion=h.get(Header.MOTION, ""),
         pending=int(pending) if pending is not None and pending.isdigit() else None,
+        warning=h.get(Header.WARNING, ""),
     )
 
 

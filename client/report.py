@@ -46,6 +46,7 @@ class Reporter:
         # Server-Timing totals of this run's frames per model name: the time measured on this
         # server, which is what a farm plans with (the tables' figures come from elsewhere)
         self.server_ms: dict[str, list[float]] = defaultdict(list)
+        self.below_input: set[str] = set()  # models whose X-Quietframe-Warning was said
         self.bar = None
         if mode == "bar":
             self.bar = tqdm(total=total, initial=done, unit="frame", dynamic_ncols=True,
@@ -109,6 +110,7 @@ class Reporter:
         share = parse_estimated_motion(result.motion or "")
         if share is not None:
             self.estimated[index] = share
+        self._below_input(index, result)
         self.done += 1
         ms = result.timings_ms.get("total")
         if ms is not None:
@@ -130,6 +132,15 @@ class Reporter:
         timing = f", {ms:.0f} ms" if ms is not None else ""
         self.event("frame", f"frame {index} {name} done [{self.done}/{self.total}]{timing}"
                    f"{notes}", **fields)
+
+    def _below_input(self, index: int, result) -> None:
+        """The server's warning that the model asked for is below its own noisy input at the
+        frame's spp: once per model and run (every frame at that spp has it), as a warning."""
+        model = result.model.split(" ")[0]
+        if not result.warning or model in self.below_input:
+            return
+        self.below_input.add(model)
+        self.warn(f"frame {index}: {result.warning} (said once per run)")
 
     def held(self, index: int, name: str) -> None:
         """A frame the server holds back for its look-ahead: its output comes later."""

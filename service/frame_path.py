@@ -10,6 +10,7 @@ import numpy as np
 from quietframe.runtime import lookahead
 from quietframe.runtime.stream import Step, Stream
 from quietframe.service import frames, lookahead_queue, state_codec
+from quietframe.service.below_input import below_input_warning
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
 from quietframe.service.session import ProcessedFrame, Session
@@ -41,9 +42,10 @@ def process_frame(
     runs (runtime/stream.py: options, spp, the motion-evidence gate, the history, OIDN's
     filters); `context`: the frame as found for that model (FrameContext.for_model), its pixels
     too where the choice decoded them; `state` is None when the history starts afresh;
-    `choice` (model=auto) is said in a header. A look-ahead session (`spec.lookahead`) queues
-    the frame in its `window` instead and replies with the oldest pending one, once more than
-    `lookahead` are pending (`_held_back`)."""
+    `choice` (model=auto) is said in a header; a model asked for by name at an spp where it is
+    below its own noisy input gets X-Quietframe-Warning (service/below_input.py). A look-ahead
+    session (`spec.lookahead`) queues the frame in its `window` instead and replies with the
+    oldest pending one, once more than `lookahead` are pending (`_held_back`)."""
     if context.decoded is None:
         context = context.decode(body)
     frame, sources = context.decoded, context.sources
@@ -61,9 +63,13 @@ def process_frame(
     info = stream.info
     model = f"{info.name} {info.version}"
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
+    # auto's own choice leaves such a model out (choice_policy.not_below_input), and a shot's
+    # kept model is auto's too: only a model the session names is warned of
+    warning = (below_input_warning(info.name, stream.denoiser, stated, context.renderer)
+               if choice is None else None)
     if spec.lookahead:
         return _held_back(stream, spec, index, body, context, reset, choice, window or {},
-                          step, extra, 1e3 * (denoised - decoded))
+                          step, extra, 1e3 * (denoised - decoded), warning)
     body_out, clamped = frames.encode_denoised(
         step.color,
         frame,
@@ -84,7 +90,7 @@ def process_frame(
     sanitized = {k: v for k, v in step.sanitized.items() if v}
     if clamped:
         sanitized["denoised"] = sanitized.get("denoised", 0) + clamped
-    headers = frame_headers(index, reset, model, sanitized, timings, step, choice)
+    headers = frame_headers(index, reset, model, sanitized, timings, step, choice, warning)
     # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
     dtypes = frames.output_dtypes(frame, spec.precision)
     recipe = state_codec.reply_recipe(step.color, step.state, dtypes, sources["color"].channels,
@@ -103,9 +109,9 @@ def process_frame(
 
 
 def frame_headers(index: int, reset: Reset, model: str, sanitized: dict[str, int],
-                  timings: dict[str, float], step: Step, choice: Choice | None
-                  ) -> dict[str, str]:
-    """The headers that describe a denoised frame."""
+                  timings: dict[str, float], step: Step, choice: Choice | None,
+                  warning: str | None = None) -> dict[str, str]:
+    """The headers that describe a denoised frame (`warning`: below_input_warning's)."""
     headers = {
         Header.FRAME: str(index),
         Header.RESET: reset.value,
@@ -121,13 +127,15 @@ def frame_headers(index: int, reset: Reset, model: str, sanitized: dict[str, int
         headers[Header.MOTION] = motion_header(step)
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
+    if warning:
+        headers[Header.WARNING] = warning
     return headers
 
 
 def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | bytearray,
                context: FrameContext, reset: Reset, choice: Choice | None,
                window: dict[str, np.ndarray], step: Step, extra: dict[str, str],
-               denoise_ms: float) -> ProcessedFrame:
+               denoise_ms: float, warning: str | None) -> ProcessedFrame:
     """A look-ahead session's frame: queued with its headers and how to write its reply, and
     the reply to this request: the oldest pending frame finished (200) once more than
     `spec.lookahead` are pending, else 202 (docs/service.md, "Look-ahead")."""
@@ -138,7 +146,7 @@ def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | byte
                "total": context.decode_ms + denoise_ms}
     sanitized = {k: v for k, v in step.sanitized.items() if v}
     headers = frame_headers(index, reset, extra["quietframe.model"], sanitized, timings, step,
-                            choice)
+                            choice, warning)
     dtypes = tuple(np.dtype(d).name for d in frames.output_dtypes(frame, spec.precision))
     recipe = state_codec.ReplyRecipe("", 0, dtypes, tuple(sources["color"].channels),
                                      spec.precision, spec.compression, spec.denoised_layer,

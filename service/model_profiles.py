@@ -11,7 +11,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from quietframe.runtime.card import Measurements, ModelCard, finite_figure
+from quietframe.runtime.card import (
+    InputMarginRow,
+    Measurements,
+    ModelCard,
+    finite_figure,
+    worse_than_input_from,
+)
 from quietframe.service.noise_estimate import NoiseLevel
 
 # A temporal model's table vouches for it up to this factor above the highest spp it was measured
@@ -163,6 +169,13 @@ class ModelProfile:
         """The worst validation-zoo shot's (model − noisy input) PSNR at `spp`, interpolated
         as the other tables (at_spp); None where not measured."""
         return at_spp(self.input_margin_by_spp, spp)
+
+    def worse_than_input_from(self) -> float | None:
+        """The lowest spp from which `input_margin` is below 0 (runtime/card.py
+        worse_than_input_from, which reads only each row's spp and worst shot); None where it
+        never is or was not measured."""
+        return worse_than_input_from([InputMarginRow(spp, worst, worst)
+                                      for spp, worst in self.input_margin_by_spp])
 
     def expected_trmae(self, spp: float) -> float | None:
         """Measured TRMAE (all buffers) at `spp`, as expected_psnr interpolates."""

@@ -49,6 +49,10 @@ class Header:
     # reason=<why>" (the choice made at the shot's first frame, repeated on every frame of it)
     CHOICE = "X-Quietframe-Choice"
     PENDING = "X-Quietframe-Pending"
+    # A model asked for by name at an spp where its card says it is worse than its own noisy
+    # input (service/below_input.py); on a frame's reply, and on a session's creation where
+    # its spp option is in that range
+    WARNING = "X-Quietframe-Warning"
     REPLAYED = "X-Quietframe-Replayed"  # "true": the stored reply of an idempotent retry
     SERVER_TIMING = "Server-Timing"  # "decode;dur=1.0, denoise;dur=..., encode;..., total;..."
 

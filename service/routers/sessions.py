@@ -7,6 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response, status
 
+from quietframe.service.below_input import creation_warning
 from quietframe.service.deps import MetricsDep, SessionsDep, SettingsDep
 from quietframe.service.errors import ERROR_EXAMPLES, InvalidRequest, UnsupportedMediaType
 from quietframe.service.schemas import ErrorBody, SessionCreate, SessionPublic
@@ -50,7 +51,8 @@ async def create_session(
     spec: SessionCreate, response: Response, sessions: SessionsDep, settings: SettingsDep
 ) -> SessionPublic:
     """Returns the session id, the model chosen for it and the buffers each frame must carry.
-    Every frame of the sequence must have this width and height."""
+    Every frame of the sequence must have this width and height. A model named at an `spp`
+    option where its card says it is below its own noisy input: X-Quietframe-Warning."""
     if spec.width > settings.max_width or spec.height > settings.max_height:
         raise InvalidRequest(
             f"{spec.width}x{spec.height} exceeds this server's maximum frame size "
@@ -58,6 +60,9 @@ async def create_session(
         )
     session = await sessions.create(spec)
     response.headers["Location"] = f"/v1/sessions/{session.id}"
+    warning = creation_warning(session, sessions.models)
+    if warning:
+        response.headers[Header.WARNING] = warning
     log.info(
         "session created",
         extra={
@@ -105,7 +110,9 @@ history.
 Response headers: `{Header.RESET}` ({", ".join(f"`{r.value}`" for r in Reset)}),
 `{Header.SANITIZED}` (input values replaced: NaN/Inf, negative colour/albedo/depth) with
 `{Header.SANITIZED_BUFFERS}`, `{Header.MISSING}` (optional buffers that were absent and
-filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` (ms per stage).
+filled: motion -> static camera), `{Header.REPLAYED}`, `{Header.SERVER_TIMING}` (ms per stage),
+`{Header.WARNING}` (a model asked for by name at an spp where its card says it is below its own
+noisy input; the frame is denoised as asked).
 
 Look-ahead (session `lookahead` k > 0): the frame is held back; the reply carries the oldest
 pending frame once more than k are pending (200, `{Header.FRAME}` its index, the headers its own),
