@@ -233,8 +233,11 @@ def role_lines(path: Path, card: ModelCard) -> list[str]:
             f"1-64 spp, {worst:+.1f} dB on its worst shot, so `auto` does not choose it for "
             f"final frames." if mean else "")
     worth = worth_using(table)
+    kind = ("a learned tier trained on quietframe's scene generator"
+            if card.training.get("trained", True)
+            else "no network, the temporal accumulation of the noisy frames alone")
     return ["## What it is for", "",
-            f"Previews{speed}: a learned tier trained on quietframe's scene generator.{fall}"
+            f"Previews{speed}: {kind}.{fall}"
             f"{f' It is {worth}.' if worth else ''} "
             "For final frames use the OIDN tiers (or `auto`).", ""]
 

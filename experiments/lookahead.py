@@ -52,6 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from quietframe.bench import cli_args
 from quietframe.bench.evaluate import _inputs, build_methods, give_header_spp
@@ -63,10 +64,10 @@ from quietframe.experiments.history_trust import rendered_frames, stage_outputs
 from quietframe.model import metrics
 from quietframe.model.output_history import VARIANTS
 from quietframe.model.temporal import (
-    ALIGNED_TOLERANCE,
     DEPTH_REL_TOLERANCE,
     MIN_CURRENT_WEIGHT,
     NORMAL_MIN_DOT,
+    pixel_aligned,
 )
 from quietframe.runtime import Denoiser, find_model
 from quietframe.runtime.aux_motion import FB_PIXELS, TRUST_ERROR, warp
@@ -206,7 +207,7 @@ def causal_worth(count: np.ndarray, motion: np.ndarray, spp: float,
     floor = np.clip(config.resampled_weight
                     + config.resampled_weight_per_doubling * np.log2(max(spp, 1.0)),
                     MIN_CURRENT_WEIGHT, config.resampled_weight_max)
-    aligned = (np.abs(motion - np.rint(motion)).max(0) <= ALIGNED_TOLERANCE)
+    aligned = pixel_aligned(torch.from_numpy(np.ascontiguousarray(motion))[None])[0, 0].numpy()
     count = np.maximum(count, 1.0)
     alpha = np.maximum(1 / count, np.where(aligned, MIN_CURRENT_WEIGHT, floor))
     return np.minimum(count, (2 - alpha) / alpha).astype(np.float32)

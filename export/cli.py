@@ -58,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.variant in ("accumulation", "aligned-accumulation") and not args.checkpoint:
         model = AccumulationDenoiser(aligned_history=args.variant == "aligned-accumulation")
         training, metrics = {"trained": False}, {}
+        if args.metrics_from:
+            training, metrics = carried_metrics(args.metrics_from, training)
     elif args.variant in output_history.VARIANTS and not args.checkpoint:
         model = output_history.OutputHistory(output_history.VARIANTS[args.variant])
         training, metrics = {"trained": False, "learned_stage": False}, {}

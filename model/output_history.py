@@ -95,6 +95,24 @@ class OutputHistoryConfig:
     # a reflection moves over a still surface (the motion vectors follow the surface, not what
     # it shows), so the history cannot carry last frame's shading there.
     clip_sigma: float = 0.0
+    # The shading test of a resampled fetch: where the clipped history P_t and this frame's
+    # D_t differ, tone-mapped (Işık eq. 15) and averaged over channels, by more than
+    # θ(spp) = shading_change · (16 / spp)^shading_change_power, the pixel is its stage. The
+    # motion vectors follow surfaces, not what they show: a caustic, a reflection or a shadow
+    # moving over a still surface passes the surface and footprint tests, and its history is
+    # last frame's shading. Only from ~16 spp is D_t clean enough for the difference to be
+    # the shading's rather than noise (at 1–4 spp the history gained even where it differed
+    # most). Chosen on zoo round 2's validation shots (experiments/history_trust, docs/zoo.md
+    # "Shading the motion vectors do not follow"): studio-spin -0.06/-0.13 dB against the stage
+    # at 16/64 spp became -0.01/+0.00, for 0.00-0.02 on fence-truck; power 0.5 cost
+    # gallery-pan 0.06-0.07 at 1-4 spp, power 1 fence-truck 0.03 at 64. 0: off.
+    shading_change: float = 0.06
+    shading_change_power: float = 0.75
+
+    def shading_threshold(self, spp: Tensor) -> Tensor:
+        """θ(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
+        ratio = 16.0 / spp.clamp_min(1.0)
+        return (self.shading_change * ratio ** self.shading_change_power).view(-1, 1, 1, 1)
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
@@ -160,6 +178,20 @@ def trusted_resample(config: OutputHistoryConfig, motion: Tensor, depth: Tensor,
     return smooth
 
 
+def tonemap_tau(x: Tensor) -> Tensor:
+    """Işık eq. 15, τ(x) = (x / (1 + x))^(1/2.4), negatives as 0: the metric's tone map, so
+    a difference means what it costs in the figures (model/metrics.tonemap_tau, numpy)."""
+    x = x.clamp_min(0.0)
+    return (x / (1 + x)) ** (1 / 2.4)
+
+
+def shading_changed(history: Tensor, current: Tensor, threshold: Tensor) -> Tensor:
+    """(N, 1, H, W) 1 where the fetched history and this frame's output differ, tone-mapped
+    and averaged over channels, by more than `threshold` (OutputHistoryConfig.shading_change)."""
+    difference = (tonemap_tau(history) - tonemap_tau(current)).abs().mean(dim=1, keepdim=True)
+    return (difference > threshold).to(current.dtype)
+
+
 def clamp_to_neighbourhood(previous: Tensor, current: Tensor, sigma: float = 0.0) -> Tensor:
     """`previous` clipped per channel to the 3×3 min/max of `current` (border: the pixels
     inside the frame); with `sigma` > 0 also to the 3×3 mean ± sigma·std (border: the
@@ -213,14 +245,18 @@ class OutputHistory(nn.Module):
             spp = torch.full((1,), self.config.default_spp)
         alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_floor(spp))
         config = self.config
-        if config.edge_depth > 0 or config.edge_motion > 0 or config.exact_edge_motion > 0:
+        if (config.edge_depth > 0 or config.edge_motion > 0 or config.exact_edge_motion > 0
+                or config.shading_change > 0):
             # a pixel whose fetch cannot be right weighs at least u(spp); at 1 it is its
             # stage, and its history starts afresh (length 1)
             # one 3×3 motion range for both tests (it is on the service's per-frame path)
             spread = (motion_spread(motion)
                       if config.edge_motion > 0 or config.exact_edge_motion > 0 else None)
-            doubt = (1 - exact) * (1 - trusted_resample(config, motion, depth, state[:, 3:4],
-                                                        spread))
+            trusted = trusted_resample(config, motion, depth, state[:, 3:4], spread)
+            if config.shading_change > 0:
+                trusted = trusted * (1 - shading_changed(previous, oidn,
+                                                         config.shading_threshold(spp)))
+            doubt = (1 - exact) * (1 - trusted)
             if config.exact_edge_motion > 0:
                 doubt = doubt + exact * (spread > config.exact_edge_motion).to(oidn.dtype)
             floor = config.untrusted_floor(spp)

@@ -134,12 +134,20 @@ def causal_worth(count: np.ndarray, motion: np.ndarray | None, floor: float) -> 
     """(1, H, W) n_t of the module docstring from the history length `count` (H, W), the
     backward `motion` (2, H, W) the model was given (None: zero) and w(spp) `floor`."""
     count = np.maximum(np.asarray(count, np.float32), 1.0)
-    if motion is None:
-        aligned = np.ones(count.shape, bool)
-    else:
-        aligned = np.abs(motion - np.rint(motion)).max(0) <= ALIGNED_TOLERANCE
+    aligned = np.ones(count.shape, bool) if motion is None else pixel_aligned(motion)
     alpha = np.maximum(1 / count, np.where(aligned, MIN_CURRENT_WEIGHT, floor))
     return np.minimum(count, (2 - alpha) / alpha).astype(np.float32)[None]
+
+
+def pixel_aligned(motion: np.ndarray) -> np.ndarray:
+    """(H, W) model/temporal.pixel_aligned of (2, H, W) `motion`, in numpy: the pixel and its
+    3×3 neighbours all move by the same whole number of pixels (where the graph's history is
+    fetched exactly and weighs like a locked-off one)."""
+    rows = slice(0, motion.shape[1])
+    low, high = _range3(motion, rows)
+    whole = ((np.abs(motion - np.rint(motion)).max(0) <= ALIGNED_TOLERANCE)
+             & ((high - low).max(0) <= ALIGNED_TOLERANCE))
+    return _range3(whole[None].astype(np.float32), rows)[0][0] > 0.5
 
 
 def frame_pieces(step: Step, planes: Mapping[str, np.ndarray],

@@ -36,3 +36,21 @@ def test_the_measuring_version_survives_a_second_carry(tmp_path):
     tiny_model(second, "3", notes, metrics)  # version 3 carried version 2's tables
     notes, metrics = carried_metrics(second, {"trained": False})
     assert metrics == tables and notes["tables_measured_with_version"] == "2"
+
+
+@pytest.mark.parametrize("variant", ["aligned-accumulation", "oidn-history"])
+def test_an_untrained_stage_re_exported_keeps_its_tables(tmp_path, variant):
+    """The accumulation and the output-history tiers (no learned parameters) are re-exported
+    when their rule changes; their measured tables travel with them."""
+    pytest.importorskip("torch")
+    from quietframe.export.cli import main
+
+    tables = {"cycles": {"by_spp": [{"spp": 1, "psnr": 30.0}]}}
+    old = tmp_path / "old.onnx"
+    tiny_model(old, "1", {"trained": False}, tables)
+    new = tmp_path / f"{variant}.onnx"
+    assert main(["--variant", variant, "--version", "2", "--metrics-from", str(old),
+                 "--out", str(new)]) == 0
+    props = {p.key: p.value for p in onnx.load(str(new)).metadata_props}
+    assert json.loads(props["quietframe.metrics"]) == tables
+    assert json.loads(props["quietframe.training"])["tables_measured_with_version"] == "1"

@@ -117,7 +117,9 @@ def test_a_cleaner_frame_keeps_less_resampled_history():
         for f in frames[:-1]:  # a constant history: any fetch of it reads 0.5
             f["oidn"] = torch.full_like(f["oidn"], 0.5)
         frames[-1]["oidn"] = stripes.contiguous()  # its 3x3 range [0.4, 1] does not clip 0.5
-        stage = oh.OutputHistory()
+        # the floor alone: the shading test would reject the history, which differs from
+        # the frame (0.5 against 1.0 / 0.4) by more than it allows at 64 spp
+        stage = oh.OutputHistory(oh.OutputHistoryConfig(shading_change=0.0))
         state, given = stage.initial_state(1, H, W), None if spp is None else torch.tensor([spp])
         for index, f in enumerate(frames):
             with torch.no_grad():
@@ -134,8 +136,9 @@ def test_a_cleaner_frame_keeps_less_resampled_history():
     assert centre(1.0, 0.5) < centre(4.0, 0.5) < centre(64.0, 0.5)
 
 
-TRUSTING = oh.OutputHistoryConfig()  # the shipped per-pixel trust (version 3)
-VERSION2 = oh.OutputHistoryConfig(edge_depth=0, edge_motion=0, exact_edge_motion=0)  # none
+TRUSTING = oh.OutputHistoryConfig()  # the shipped per-pixel trust (version 4)
+VERSION2 = oh.OutputHistoryConfig(edge_depth=0, edge_motion=0, exact_edge_motion=0,
+                                   shading_change=0)  # none
 
 
 def _constant_history_then(frames: list[dict], last: torch.Tensor) -> list[dict]:
@@ -220,6 +223,60 @@ def test_an_exact_fetch_beside_pixels_that_move_otherwise_is_not_trusted():
     still = _halves_moving(0.0, 0.0)  # locked off: no motion anywhere
     torch.testing.assert_close(run_stage(oh.OutputHistory(TRUSTING), still)[-1],
                                run_stage(oh.OutputHistory(VERSION2), still)[-1])
+
+
+def _stage_at(spp: float, frames: list[dict], config: oh.OutputHistoryConfig = TRUSTING
+              ) -> torch.Tensor:
+    stage, state = oh.OutputHistory(config), None
+    state = stage.initial_state(1, H, W)
+    for index, f in enumerate(frames):
+        with torch.no_grad():
+            out, state = stage(f["oidn"], f["albedo"], f["normal"], f["depth"], f["motion"],
+                               torch.tensor([float(index == 0)]), state, torch.tensor([spp]))
+    return out
+
+
+def test_a_shading_change_the_motion_does_not_follow_takes_the_frame_at_high_spp():
+    """A caustic moving over a still-shaded surface: the history (0.5) and the frame (stripes
+    1.0 / 0.4, inside the clip's range) differ by far more than a clean 64-spp frame's error,
+    so the pixel is its stage there; at 1 spp the same difference is the frame's noise and the
+    history is kept, and a frame within a few per cent of its history keeps it at 64 spp."""
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    frames = _constant_history_then(surface(4, (0.5, 0.0)), stripes)
+    frame = frames[-1]["oidn"]
+    centre = (..., slice(H // 2 - 2, H // 2 + 2), slice(10, 18))
+    torch.testing.assert_close(_stage_at(64.0, frames)[centre], frame[centre])
+    assert not torch.allclose(_stage_at(1.0, frames)[centre], frame[centre])
+    assert not torch.allclose(_stage_at(64.0, frames, VERSION2)[centre], frame[centre])
+    close = _constant_history_then(surface(4, (0.5, 0.0)),
+                                   torch.full((1, 3, H, W), 0.5) + 0.005 * (stripes - 0.7))
+    assert not torch.allclose(_stage_at(64.0, close)[centre], close[-1]["oidn"][centre])
+    at = [TRUSTING.shading_threshold(torch.tensor([s])).item() for s in (1.0, 16.0, 64.0)]
+    assert at[0] > at[1] > at[2] and at[1] == pytest.approx(TRUSTING.shading_change)
+
+
+def test_pixel_alignment_needs_every_neighbour_moving_by_the_same_whole_pixels():
+    """A pan by whole pixels is aligned everywhere, the frame's border included; a smooth
+    sub-pixel motion field that crosses a whole value at a few pixels (a camera orbit) is not
+    aligned there; nor is the seam between two halves moving by different whole pixels."""
+    from quietframe.model.temporal import pixel_aligned
+
+    pan = torch.zeros(1, 2, H, W)
+    pan[:, 0] = -3.0
+    assert pixel_aligned(pan).all()
+    smooth = pan.clone()
+    smooth[:, 0] += torch.linspace(-0.3, 0.3, W)  # crosses -3 exactly between two columns
+    smooth[:, 0, :, W // 2] = -3.0  # and one column lands on it
+    whole_alone = ((smooth - smooth.round()).abs().amax(1) <= 1 / 64).any()
+    assert whole_alone and not pixel_aligned(smooth).any()
+    seam = pan.clone()
+    seam[:, 0, :, W // 2:] = -4.0
+    aligned = pixel_aligned(seam)[0, 0]
+    assert not aligned[:, W // 2 - 1: W // 2 + 1].any()
+    assert aligned[:, : W // 2 - 2].all() and aligned[:, W // 2 + 2:].all()
+    nan = pan.clone()
+    nan[:, 1, 5, 5] = float("nan")
+    assert not pixel_aligned(nan)[0, 0, 4:7, 4:7].any() and pixel_aligned(nan)[0, 0, 10:, :].all()
 
 
 class _Given:
@@ -326,16 +383,17 @@ def test_runtime_composition_matches_pytorch_with_state_carried(composed):
 
 
 def test_the_weight_ablations_spp_row_is_the_shipped_stage():
-    """experiments/history_weight's `w(spp)` row computes what the shipped stage does at that
-    spp."""
+    """experiments/history_weight's `w(spp)` row computes what the shipped stage without its
+    shading test (which came after that ablation) does at that spp."""
     from quietframe.experiments.history_weight import HistoryRule
 
     frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:]
+    stage = oh.OutputHistory(oh.OutputHistoryConfig(shading_change=0.0))
     for spp in (1.0, 64.0):
-        state, shipped = oh.OutputHistory().initial_state(1, H, W), []
+        state, shipped = stage.initial_state(1, H, W), []
         for index, f in enumerate(frames):
             with torch.no_grad():
-                out, state = oh.OutputHistory()(
+                out, state = stage(
                     f["oidn"], f["albedo"], f["normal"], f["depth"], f["motion"],
                     torch.tensor([float(index == 0)]), state, torch.tensor([spp]))
             shipped.append(out[0].numpy())

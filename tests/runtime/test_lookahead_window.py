@@ -172,6 +172,7 @@ def test_the_worth_is_the_output_historys() -> None:
     count = rng.integers(0, 7, (H, W)).astype(np.float32)
     motion = rng.uniform(-2, 2, (2, H, W)).astype(np.float32)
     motion[:, :10] = np.rint(motion[:, :10])  # whole-pixel motion: the 0.2 floor
+    motion[:, 15, 15] = 1.0  # whole at one pixel alone: not aligned
     architecture = VARIANTS["oidn-history-cleanaux"].to_dict() | {"family": "output-history"}
     for spp in (1, 4, 16, 64):
         floor = lookahead.current_weight_floor(architecture, spp)
