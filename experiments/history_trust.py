@@ -10,9 +10,10 @@ The tier is OIDN on the pixel-aligned accumulation (its first graph and OIDN sta
 through the shipped runtime pieces, once per frame), then the output history
 (model/output_history.OutputHistory). Only the last step differs between candidates, so it runs
 in PyTorch on the cached OIDN outputs: each candidate is an OutputHistoryConfig (the shipped
-one, and the per-pixel trust tests `edge_depth`, `edge_motion`, `shading_change`). The
-exported graph computes the same (tests/experiments/test_output_history.py); the zoo figures of
-the shipped models come from bench/zoo_eval, not from here.
+one, and the per-pixel trust tests `edge_depth`, `edge_motion`, `shading_change`,
+`resampling_detail`). The exported graph computes the same
+(tests/experiments/test_output_history.py); the zoo figures of the shipped models come from
+bench/zoo_eval, not from here.
 """
 
 from __future__ import annotations
@@ -40,8 +41,10 @@ from quietframe.scenes import cycles_io
 from quietframe.scenes.zoo_shots import shots, zoo_dir
 
 # name -> changes to the shipped config (version 4: edge_depth 0.05, edge_motion 0.25,
-# exact_edge_motion 0.25, shading_change 0.06 with power 0.75)
-OFF = {"edge_depth": 0.0, "edge_motion": 0.0, "exact_edge_motion": 0.0, "shading_change": 0.0}
+# exact_edge_motion 0.25, shading_change 0.06 with power 0.75, resampling_detail 0.04 with
+# power 1.5)
+OFF = {"edge_depth": 0.0, "edge_motion": 0.0, "exact_edge_motion": 0.0, "shading_change": 0.0,
+       "resampling_detail": 0.0}
 U_SPP = {"untrusted_weight": 0.5, "untrusted_weight_per_doubling": 0.25}
 CANDIDATES: dict[str, dict] = {
     "shipped": {},
@@ -67,6 +70,10 @@ CANDIDATES: dict[str, dict] = {
     "shading 0.12": {"shading_change": 0.12},
     "shading power 0.5": {"shading_change_power": 0.5},
     "shading power 1": {"shading_change_power": 1.0},
+    # the detail test: off, other bounds θ_r(16 spp) and powers
+    "no detail test": {"resampling_detail": 0.0},
+    "detail 0.02 power 1": {"resampling_detail": 0.02, "resampling_detail_power": 1.0},
+    "detail 0.08 power 2": {"resampling_detail": 0.08, "resampling_detail_power": 2.0},
 }
 
 

@@ -9,7 +9,11 @@ then OIDN on its output (D_t), then this graph:
         clip(max(B O_{t-1}(p + m), 0), min₃ₓ₃ D_t, max₃ₓ₃ D_t)   elsewhere, B = bicubic fetch
   O_t = α D_t + (1 - α) P_t   where the reprojected surface is this one (history_valid),
         α = max(1/n, 0.2) over the history's n frames (model/temporal.history_weights), and at
-        least w(spp) where the history was resampled (OutputHistoryConfig.resampled_floor)
+        least w(spp) where the history was resampled (OutputHistoryConfig.resampled_floor);
+        α = 1 (the stage, history restarted) where the evidence says the fetch cannot be
+        right: a resampled fetch across a depth or motion edge, whose shading changed, or
+        on detail a bicubic fetch blurs; an exact fetch beside pixels that move otherwise
+        (`OutputHistory.history`, OutputHistoryConfig's trust tests)
 
 Why each piece (measured on Cycles test shots, 1–64 spp): OIDN on a history fetched from the
 nearest pixel under sub-pixel motion lost up to 1 dB to OIDN on the frame alone, and a bicubic
@@ -108,11 +112,28 @@ class OutputHistoryConfig:
     # gallery-pan 0.06-0.07 at 1-4 spp, power 1 fence-truck 0.03 at 64. 0: off.
     shading_change: float = 0.06
     shading_change_power: float = 0.75
+    # The detail test of a resampled fetch: a bicubic fetch blurs detail finer than a pixel by
+    # an amount that depends on the sub-pixel offset and on the content, and every frame
+    # resamples the history again. Its size at p is measured on this frame: D_t shifted by the
+    # motion's fraction and back (two bicubic fetches), tone-mapped and averaged over
+    # channels; above θ_r(spp) = resampling_detail · (16 / spp)^resampling_detail_power the
+    # blur costs more than the history's averaging gains and the pixel is its stage. The
+    # cleaner the frame, the less noise the history can remove, so the bound falls fast with
+    # spp (16 spp 0.04, 64 spp 0.005). Chosen on the zoo's validation shots: gallery-pan (10
+    # px a frame past 22 cm bricks and posters) -0.10 dB against the stage at 64 spp became
+    # +0.06, for 0.01 at 16 spp there and 0.02 on fence-truck at 64 spp (docs/zoo.md). 0: off.
+    resampling_detail: float = 0.04
+    resampling_detail_power: float = 1.5
 
     def shading_threshold(self, spp: Tensor) -> Tensor:
         """θ(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
         ratio = 16.0 / spp.clamp_min(1.0)
         return (self.shading_change * ratio ** self.shading_change_power).view(-1, 1, 1, 1)
+
+    def resampling_threshold(self, spp: Tensor) -> Tensor:
+        """θ_r(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
+        ratio = 16.0 / spp.clamp_min(1.0)
+        return (self.resampling_detail * ratio ** self.resampling_detail_power).view(-1, 1, 1, 1)
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
@@ -192,6 +213,16 @@ def shading_changed(history: Tensor, current: Tensor, threshold: Tensor) -> Tens
     return (difference > threshold).to(current.dtype)
 
 
+def resampling_blur(current: Tensor, motion: Tensor) -> Tensor:
+    """(N, 1, H, W) what one round of bicubic resampling at this frame's sub-pixel offsets does
+    to `current`: shifted by the motion's fraction and back, tone-mapped difference averaged
+    over channels (0 where the motion is whole pixels or the content is smooth)."""
+    fraction = motion - motion.round()
+    there, _ = backward_warp(current, fraction, mode="bicubic")
+    back, _ = backward_warp(there, -fraction, mode="bicubic")
+    return (tonemap_tau(back) - tonemap_tau(current)).abs().mean(dim=1, keepdim=True)
+
+
 def clamp_to_neighbourhood(previous: Tensor, current: Tensor, sigma: float = 0.0) -> Tensor:
     """`previous` clipped per channel to the 3×3 min/max of `current` (border: the pixels
     inside the frame); with `sigma` > 0 also to the 3×3 mean ± sigma·std (border: the
@@ -246,7 +277,7 @@ class OutputHistory(nn.Module):
         alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_floor(spp))
         config = self.config
         if (config.edge_depth > 0 or config.edge_motion > 0 or config.exact_edge_motion > 0
-                or config.shading_change > 0):
+                or config.shading_change > 0 or config.resampling_detail > 0):
             # a pixel whose fetch cannot be right weighs at least u(spp); at 1 it is its
             # stage, and its history starts afresh (length 1)
             # one 3×3 motion range for both tests (it is on the service's per-frame path)
@@ -256,6 +287,9 @@ class OutputHistory(nn.Module):
             if config.shading_change > 0:
                 trusted = trusted * (1 - shading_changed(previous, oidn,
                                                          config.shading_threshold(spp)))
+            if config.resampling_detail > 0:
+                trusted = trusted * (resampling_blur(oidn, motion)
+                                     <= config.resampling_threshold(spp)).to(oidn.dtype)
             doubt = (1 - exact) * (1 - trusted)
             if config.exact_edge_motion > 0:
                 doubt = doubt + exact * (spread > config.exact_edge_motion).to(oidn.dtype)

@@ -154,10 +154,13 @@ def oidn_temporal_tiling(arch: Mapping) -> Tiling:
                   bytes_per_pixel=OIDN_TEMPORAL_BYTES_PER_PIXEL, size_ratios=scale > 1)
 
 
-def output_history_tiling() -> Tiling:
+def output_history_tiling(arch: Mapping) -> Tiling:
     """model/output_history: the bicubic fetch reads 2 px beyond the motion target's pixel and
-    the clip the 3×3 neighbourhood of OIDN's output: 3 px with the warp's motion on top."""
-    return Tiling(radius=3, align=1, bytes_per_pixel=OUTPUT_HISTORY_BYTES_PER_PIXEL)
+    the clip the 3×3 neighbourhood of OIDN's output: 3 px with the warp's motion on top; the
+    detail test (`resampling_detail`) shifts OIDN's output by under half a pixel and back, two
+    bicubic fetches: 4 px."""
+    radius = 4 if float(arch.get("resampling_detail", 0) or 0) > 0 else 3
+    return Tiling(radius=radius, align=1, bytes_per_pixel=OUTPUT_HISTORY_BYTES_PER_PIXEL)
 
 
 def identity_tiling() -> Tiling:
@@ -172,7 +175,7 @@ def tiling_for(arch: Mapping, inputs: Sequence[InputSpec], has_prepass: bool) ->
         if arch.get("family") == "affinity":
             return affinity_tiling(arch, inputs)
         if arch.get("family") == "output-history":
-            return output_history_tiling()
+            return output_history_tiling(arch)
         if "grids" in arch and "layers" in arch:
             return nbg_tiling(arch)
         if has_prepass and "layers" in arch and "kernel_size" in arch:

@@ -106,6 +106,10 @@ def test_resampled_floor_rises_with_spp_within_its_bounds():
         config.resampled_weight_max)
 
 
+# the shipped weights without the shading and detail tests
+FLOOR_ALONE = oh.OutputHistoryConfig(shading_change=0.0, resampling_detail=0.0)
+
+
 def test_a_cleaner_frame_keeps_less_resampled_history():
     """Under sub-pixel motion the current frame weighs w(spp); the default spp is 4 spp's;
     under whole-pixel motion the spp changes nothing."""
@@ -117,9 +121,9 @@ def test_a_cleaner_frame_keeps_less_resampled_history():
         for f in frames[:-1]:  # a constant history: any fetch of it reads 0.5
             f["oidn"] = torch.full_like(f["oidn"], 0.5)
         frames[-1]["oidn"] = stripes.contiguous()  # its 3x3 range [0.4, 1] does not clip 0.5
-        # the floor alone: the shading test would reject the history, which differs from
-        # the frame (0.5 against 1.0 / 0.4) by more than it allows at 64 spp
-        stage = oh.OutputHistory(oh.OutputHistoryConfig(shading_change=0.0))
+        # the floor alone: the shading and detail tests would reject the history, which
+        # differs from the stripes by more than they allow at 64 spp
+        stage = oh.OutputHistory(FLOOR_ALONE)
         state, given = stage.initial_state(1, H, W), None if spp is None else torch.tensor([spp])
         for index, f in enumerate(frames):
             with torch.no_grad():
@@ -138,7 +142,7 @@ def test_a_cleaner_frame_keeps_less_resampled_history():
 
 TRUSTING = oh.OutputHistoryConfig()  # the shipped per-pixel trust (version 4)
 VERSION2 = oh.OutputHistoryConfig(edge_depth=0, edge_motion=0, exact_edge_motion=0,
-                                   shading_change=0)  # none
+                                   shading_change=0, resampling_detail=0)  # none
 
 
 def _constant_history_then(frames: list[dict], last: torch.Tensor) -> list[dict]:
@@ -241,18 +245,39 @@ def test_a_shading_change_the_motion_does_not_follow_takes_the_frame_at_high_spp
     1.0 / 0.4, inside the clip's range) differ by far more than a clean 64-spp frame's error,
     so the pixel is its stage there; at 1 spp the same difference is the frame's noise and the
     history is kept, and a frame within a few per cent of its history keeps it at 64 spp."""
+    no_detail = oh.OutputHistoryConfig(resampling_detail=0.0)  # the shading test alone
     stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
     frames = _constant_history_then(surface(4, (0.5, 0.0)), stripes)
     frame = frames[-1]["oidn"]
     centre = (..., slice(H // 2 - 2, H // 2 + 2), slice(10, 18))
-    torch.testing.assert_close(_stage_at(64.0, frames)[centre], frame[centre])
-    assert not torch.allclose(_stage_at(1.0, frames)[centre], frame[centre])
+    torch.testing.assert_close(_stage_at(64.0, frames, no_detail)[centre], frame[centre])
+    assert not torch.allclose(_stage_at(1.0, frames, no_detail)[centre], frame[centre])
     assert not torch.allclose(_stage_at(64.0, frames, VERSION2)[centre], frame[centre])
     close = _constant_history_then(surface(4, (0.5, 0.0)),
                                    torch.full((1, 3, H, W), 0.5) + 0.005 * (stripes - 0.7))
-    assert not torch.allclose(_stage_at(64.0, close)[centre], close[-1]["oidn"][centre])
+    assert not torch.allclose(_stage_at(64.0, close, no_detail)[centre],
+                              close[-1]["oidn"][centre])
     at = [TRUSTING.shading_threshold(torch.tensor([s])).item() for s in (1.0, 16.0, 64.0)]
     assert at[0] > at[1] > at[2] and at[1] == pytest.approx(TRUSTING.shading_change)
+
+
+def test_detail_a_bicubic_fetch_blurs_takes_the_frame_at_high_spp():
+    """One-pixel stripes under half-pixel motion: a fetch of their history blurs them, so at
+    64 spp each pixel is its stage; a smooth ramp under the same motion keeps its history, and
+    so do the stripes at 1 spp (the history's averaging is worth the blur there)."""
+    no_shading = oh.OutputHistoryConfig(shading_change=0.0)  # the detail test alone
+    stripes = torch.where(torch.arange(W) % 2 == 0, 1.0, 0.4).expand(1, 3, H, W)
+    frames = _constant_history_then(surface(4, (0.5, 0.0)), stripes)
+    centre = (..., slice(H // 2 - 2, H // 2 + 2), slice(10, 18))
+    frame = frames[-1]["oidn"]
+    torch.testing.assert_close(_stage_at(64.0, frames, no_shading)[centre], frame[centre])
+    assert not torch.allclose(_stage_at(1.0, frames, no_shading)[centre], frame[centre])
+    ramp = (0.4 + 0.01 * torch.arange(W, dtype=torch.float32)).expand(1, 3, H, W)
+    smooth = _constant_history_then(surface(4, (0.5, 0.0)), ramp)
+    assert not torch.allclose(_stage_at(64.0, smooth, no_shading)[centre], ramp[centre])
+    blur = oh.resampling_blur(stripes.contiguous(), frames[-1]["motion"])
+    whole = oh.resampling_blur(stripes.contiguous(), torch.ones_like(frames[-1]["motion"]))
+    assert blur[centre].min() > 0.05 and whole.max() < 1e-6
 
 
 def test_pixel_alignment_needs_every_neighbour_moving_by_the_same_whole_pixels():
@@ -384,11 +409,11 @@ def test_runtime_composition_matches_pytorch_with_state_carried(composed):
 
 def test_the_weight_ablations_spp_row_is_the_shipped_stage():
     """experiments/history_weight's `w(spp)` row computes what the shipped stage without its
-    shading test (which came after that ablation) does at that spp."""
+    shading and detail tests (which came after that ablation) does at that spp."""
     from quietframe.experiments.history_weight import HistoryRule
 
     frames = surface(3, (0.0, 0.0)) + surface(3, (0.5, 1.25), seed=1)[1:]
-    stage = oh.OutputHistory(oh.OutputHistoryConfig(shading_change=0.0))
+    stage = oh.OutputHistory(FLOOR_ALONE)
     for spp in (1.0, 64.0):
         state, shipped = stage.initial_state(1, H, W), []
         for index, f in enumerate(frames):
