@@ -99,9 +99,10 @@ class OutputHistoryConfig:
     # a reflection moves over a still surface (the motion vectors follow the surface, not what
     # it shows), so the history cannot carry last frame's shading there.
     clip_sigma: float = 0.0
-    # The shading test of a resampled fetch: where the clipped history P_t and this frame's
-    # D_t differ, tone-mapped (Işık eq. 15) and averaged over channels, by more than
-    # θ(spp) = shading_change · (16 / spp)^shading_change_power, the pixel is its stage. The
+    # The shading test of a resampled fetch: where the grey levels (`grey_level`: channel
+    # mean, tone-mapped by Işık eq. 15) of the clipped history P_t and this frame's D_t differ
+    # by more than θ(spp) = shading_change · (16 / spp)^shading_change_power, the pixel is its
+    # stage. The
     # motion vectors follow surfaces, not what they show: a caustic, a reflection or a shadow
     # moving over a still surface passes the surface and footprint tests, and its history is
     # last frame's shading. Only from ~16 spp is D_t clean enough for the difference to be
@@ -115,9 +116,9 @@ class OutputHistoryConfig:
     # The detail test of a resampled fetch: a bicubic fetch blurs detail finer than a pixel by
     # an amount that depends on the sub-pixel offset and on the content, and every frame
     # resamples the history again. Its size at p is measured on this frame: D_t shifted by the
-    # motion's fraction and back (two bicubic fetches), tone-mapped and averaged over
-    # channels; above θ_r(spp) = resampling_detail · (16 / spp)^resampling_detail_power the
-    # blur costs more than the history's averaging gains and the pixel is its stage. The
+    # motion's fraction and back (two bicubic fetches of its grey level); above θ_r(spp) =
+    # resampling_detail · (16 / spp)^resampling_detail_power the blur costs more than the
+    # history's averaging gains and the pixel is its stage. The
     # cleaner the frame, the less noise the history can remove, so the bound falls fast with
     # spp (16 spp 0.04, 64 spp 0.005). Chosen on the zoo's validation shots: gallery-pan (10
     # px a frame past 22 cm bricks and posters) -0.10 dB against the stage at 64 spp became
@@ -199,28 +200,23 @@ def trusted_resample(config: OutputHistoryConfig, motion: Tensor, depth: Tensor,
     return smooth
 
 
-def tonemap_tau(x: Tensor) -> Tensor:
-    """Işık eq. 15, τ(x) = (x / (1 + x))^(1/2.4), negatives as 0: the metric's tone map, so
-    a difference means what it costs in the figures (model/metrics.tonemap_tau, numpy)."""
-    x = x.clamp_min(0.0)
-    return (x / (1 + x)) ** (1 / 2.4)
+def grey_level(x: Tensor) -> Tensor:
+    """(N, 1, H, W) the channel mean of `x` through Işık eq. 15's tone map, τ(y) = (y / (1 +
+    y))^(1/2.4), negatives as 0: a difference of grey levels is about what it costs in the
+    figures (model/metrics.tonemap_tau), where a difference of radiance is not."""
+    y = x.mean(dim=1, keepdim=True).clamp_min(0.0)
+    return (y / (1 + y)) ** (1 / 2.4)
 
 
-def shading_changed(history: Tensor, current: Tensor, threshold: Tensor) -> Tensor:
-    """(N, 1, H, W) 1 where the fetched history and this frame's output differ, tone-mapped
-    and averaged over channels, by more than `threshold` (OutputHistoryConfig.shading_change)."""
-    difference = (tonemap_tau(history) - tonemap_tau(current)).abs().mean(dim=1, keepdim=True)
-    return (difference > threshold).to(current.dtype)
-
-
-def resampling_blur(current: Tensor, motion: Tensor) -> Tensor:
+def resampling_blur(mapped: Tensor, motion: Tensor) -> Tensor:
     """(N, 1, H, W) what one round of bicubic resampling at this frame's sub-pixel offsets does
-    to `current`: shifted by the motion's fraction and back, tone-mapped difference averaged
-    over channels (0 where the motion is whole pixels or the content is smooth)."""
+    to `mapped` (N, 1, H, W), this frame's grey level (`grey_level`): shifted by the motion's
+    fraction and back, the absolute difference (0 where the motion is whole pixels or the
+    content is smooth)."""
     fraction = motion - motion.round()
-    there, _ = backward_warp(current, fraction, mode="bicubic")
+    there, _ = backward_warp(mapped, fraction, mode="bicubic")
     back, _ = backward_warp(there, -fraction, mode="bicubic")
-    return (tonemap_tau(back) - tonemap_tau(current)).abs().mean(dim=1, keepdim=True)
+    return (back - mapped).abs()
 
 
 def clamp_to_neighbourhood(previous: Tensor, current: Tensor, sigma: float = 0.0) -> Tensor:
@@ -284,12 +280,16 @@ class OutputHistory(nn.Module):
             spread = (motion_spread(motion)
                       if config.edge_motion > 0 or config.exact_edge_motion > 0 else None)
             trusted = trusted_resample(config, motion, depth, state[:, 3:4], spread)
+            # both tests read grey levels: a tone-mapped channel mean (Pow on three channels
+            # was a quarter of this graph's time at 720p)
+            mapped = (grey_level(oidn) if config.shading_change > 0
+                      or config.resampling_detail > 0 else None)
             if config.shading_change > 0:
-                trusted = trusted * (1 - shading_changed(previous, oidn,
-                                                         config.shading_threshold(spp)))
+                changed = (grey_level(previous) - mapped).abs() > config.shading_threshold(spp)
+                trusted = trusted * (1 - changed.to(oidn.dtype))
             if config.resampling_detail > 0:
-                trusted = trusted * (resampling_blur(oidn, motion)
-                                     <= config.resampling_threshold(spp)).to(oidn.dtype)
+                blur = resampling_blur(mapped, motion)
+                trusted = trusted * (blur <= config.resampling_threshold(spp)).to(oidn.dtype)
             doubt = (1 - exact) * (1 - trusted)
             if config.exact_edge_motion > 0:
                 doubt = doubt + exact * (spread > config.exact_edge_motion).to(oidn.dtype)
