@@ -102,15 +102,15 @@ class OutputHistoryConfig:
     # The shading test of a resampled fetch: where the grey levels (`grey_level`: channel
     # mean, tone-mapped by Işık eq. 15) of the clipped history P_t and this frame's D_t differ
     # by more than θ(spp) = shading_change · (16 / spp)^shading_change_power, the pixel is its
-    # stage. The
-    # motion vectors follow surfaces, not what they show: a caustic, a reflection or a shadow
-    # moving over a still surface passes the surface and footprint tests, and its history is
-    # last frame's shading. Only from ~16 spp is D_t clean enough for the difference to be
-    # the shading's rather than noise (at 1–4 spp the history gained even where it differed
-    # most). Chosen on zoo round 2's validation shots (experiments/history_trust, docs/zoo.md
-    # "Shading the motion vectors do not follow"): studio-spin -0.06/-0.13 dB against the stage
-    # at 16/64 spp became -0.01/+0.00, for 0.00-0.02 on fence-truck; power 0.5 cost
-    # gallery-pan 0.06-0.07 at 1-4 spp, power 1 fence-truck 0.03 at 64. 0: off.
+    # stage. The motion vectors follow surfaces, not what they show: a caustic, a reflection
+    # or a shadow moving over a still surface passes the surface and footprint tests, and its
+    # history is last frame's shading. Only from ~16 spp is D_t clean enough for the
+    # difference to be the shading's rather than noise (at 1–4 spp the history gained even
+    # where it differed most), hence the bound falls with spp (1 spp 0.48, 16 spp 0.06, 64 spp
+    # 0.021). Chosen on the zoo's validation shots (experiments/history_trust, docs/zoo.md
+    # "History tiers version 4"): studio-spin -0.06/-0.06 dB against the stage at 16/64 spp
+    # became -0.01/+0.00; 0.03 cost gallery-pan 0.16-0.19 dB at 4-16 spp, 0.12 left studio-spin
+    # -0.03 at 16 spp. 0: off.
     shading_change: float = 0.06
     shading_change_power: float = 0.75
     # The detail test of a resampled fetch: a bicubic fetch blurs detail finer than a pixel by
@@ -118,11 +118,11 @@ class OutputHistoryConfig:
     # resamples the history again. Its size at p is measured on this frame: D_t shifted by the
     # motion's fraction and back (two bicubic fetches of its grey level); above θ_r(spp) =
     # resampling_detail · (16 / spp)^resampling_detail_power the blur costs more than the
-    # history's averaging gains and the pixel is its stage. The
-    # cleaner the frame, the less noise the history can remove, so the bound falls fast with
-    # spp (16 spp 0.04, 64 spp 0.005). Chosen on the zoo's validation shots: gallery-pan (10
-    # px a frame past 22 cm bricks and posters) -0.10 dB against the stage at 64 spp became
-    # +0.06, for 0.01 at 16 spp there and 0.02 on fence-truck at 64 spp (docs/zoo.md). 0: off.
+    # history's averaging gains and the pixel is its stage. The cleaner the frame, the less
+    # noise the history can remove, so the bound falls fast with spp (16 spp 0.04, 64 spp
+    # 0.005). Chosen on the zoo's validation shots: gallery-pan (10 px a frame past 22 cm
+    # bricks and posters) -0.11 dB against the stage at 64 spp became +0.04 (its 16 spp
+    # unchanged); 0.02 with power 1 cost it 0.04 at 16 spp. 0: off.
     resampling_detail: float = 0.04
     resampling_detail_power: float = 1.5
 
