@@ -175,7 +175,9 @@ def test_a_missing_pre_roll_is_said_and_its_chunk_redone_once_rendered(
     assert main(chunk) == 0  # not "4 of 4 already": redone with its pre-roll
     seen = events(capsys.readouterr().out)
     assert [e["frame"] for e in seen if e["event"] == "warmup"] == [1, 2, 3, 4]
-    assert seen[-1]["written"] == 4 and not seen[-1]["warnings"]
+    # nbg-2l-3g at these frames' 16 spp is also below its input: that warning stays
+    assert seen[-1]["written"] == 4
+    assert not [w for w in seen[-1]["warnings"] if "pre-roll" in w]
     assert "pre_roll_missing" not in json.loads(
         records.record_path(out / "shot.0005.exr").read_text())
     assert main(chunk) == 0 and events(capsys.readouterr().out)[-1]["written"] == 0
