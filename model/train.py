@@ -5,7 +5,8 @@ One flat loop in a fixed order (nanoGPT style): sample a batch of short crop seq
 the state-in/state-out model over the frames (so reprojection, accumulation and reset are
 trained), loss, step, log; every `eval_every` steps validate and checkpoint.
 
-Run directory (--run): config.json, checkpoint.pt (latest, resumable), best.pt (best val PSNR),
+Run directory (--run): config.json, checkpoint.pt (latest, resumable), best.pt (best val PSNR,
+or with --select-on zoo the best on the zoo's validation shots: model/zoo_selection.py),
 log.txt (one line per logged step).
 
 oidn-temporal variants (model/oidn_temporal.py) train the temporal stage on OIDN's output of the
@@ -27,6 +28,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import default_collate
 
+from quietframe.model import zoo_selection
 from quietframe.model.data import CropDataset, SequenceDataset
 from quietframe.model.families import family_of_checkpoint, family_of_variant
 from quietframe.model.losses import (
@@ -91,6 +93,21 @@ class TrainConfig:
     # Fine-tuning: a checkpoint whose model (architecture and weights) starts a new run, with a
     # fresh optimizer and schedule (e.g. a shipped model on new data); empty: train from scratch
     init: str = ""
+    # Which score keeps best.pt: "validation" (the generator's validation split, and the
+    # corpus's with --corpus 1) or "zoo": the zoo's validation shots rendered on this machine
+    # (every round: <data>/zoo1|zoo2|zoo3-cycles/validation/<shot>/, model/zoo_selection.py),
+    # each through a runtime Stream with its state carried, mean per-frame PSNR per shot and spp.
+    # A shot not rendered (or lacking an spp level) is skipped with a printed note; a shot still
+    # rendering counts the frames it has; none rendered at all is an error at the start, never
+    # a silent fall-back. The generator's validation is still logged beside it.
+    select_on: str = "validation"
+    select_spp: str = "1,4,16"  # zoo: the spp levels scored
+    # zoo: the first frames of each shot, centre crop (whole frame where smaller). One pass
+    # over the 8 shots rendered here (24 sequences of 8 frames at 1,4,16 spp, <= 192x192) costs
+    # about 13 CPU-seconds on one thread for nbg-2l-3g and affinity-h16-k5gc alike (3 s of it
+    # decoding the EXRs; 11-12 s wall on a loaded 2-core machine)
+    select_frames: int = 8
+    select_crop: int = 192
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
@@ -301,6 +318,11 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     checkpoint: the schedule is the one of cfg.steps either way."""
     from tqdm import tqdm
 
+    zoo_selection.check(cfg)
+    if cfg.select_on == "zoo":  # none rendered: an error now, not at the first evaluation
+        notes: list[str] = []
+        zoo_selection.zoo_sequences(cfg, notes)
+        print("\n".join(notes) if notes else "zoo selection: every validation shot rendered")
     run.mkdir(parents=True, exist_ok=True)
     (run / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     torch.manual_seed(cfg.seed)
@@ -334,7 +356,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
         step += 1
         running = loss.item() if running is None else 0.95 * running + 0.05 * loss.item()
         bar.update(1)
-        bar.set_postfix(loss=f"{running:.4f}", val_psnr=f"{best_psnr:.2f}")
+        bar.set_postfix(loss=f"{running:.4f}", best=f"{best_psnr:.2f}")  # the kept score
         if step % cfg.log_every == 0:
             log.write(json.dumps({"step": step, "loss": running,
                                   "seconds": round(time.time() - started, 1)}) + "\n")
@@ -343,18 +365,31 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
             # Re-listed each time: the validation split may still be rendering.
             val_batches = validation_batches(cfg)
             val_psnr = validate(model, val_batches) if val_batches else -math.inf
-            log.write(json.dumps({"step": step, "val_psnr": val_psnr,
-                                  "val_sequences": len(val_batches)}) + "\n")
+            record = {"step": step, "val_psnr": val_psnr, "val_sequences": len(val_batches)}
+            # No validation split: no score (None; -inf is no JSON a card can carry).
+            candidate = {"val_psnr_1spp_last_frame": round(val_psnr, 3) if val_batches else None,
+                         "step": step, "val_sequences": len(val_batches)}
+            if cfg.select_on == "zoo":
+                zoo = zoo_selection.score(model, zoo_selection.zoo_sequences(cfg),
+                                          cfg.select_crop, tqdm.write)
+                score, comparable = zoo.psnr, zoo.same_set(metrics)
+                record |= {"zoo_psnr": zoo.psnr, "zoo_per_shot": zoo.per_shot}
+                candidate |= zoo.metrics()
+            else:
+                # Scores are comparable only on the same validation set, which grows while
+                # rendering (and not with a zoo score a resumed run kept).
+                score = val_psnr
+                comparable = (bool(val_batches) and "selected_on" not in metrics
+                              and metrics.get("val_sequences") == len(val_batches))
+            kept = score > best_psnr or not comparable
+            log.write(json.dumps({**record, "kept": kept}) + "\n")
             log.flush()
-            # Scores are comparable only on the same validation set, which grows while rendering.
-            same_set = metrics.get("val_sequences") == len(val_batches)
-            if val_psnr > best_psnr or not same_set or not val_batches:
-                best_psnr = val_psnr
-                # No validation split: no score (None; -inf is no JSON a card can carry).
-                score = round(val_psnr, 3) if val_batches else None
-                metrics = {"val_psnr_1spp_last_frame": score, "step": step,
-                           "val_sequences": len(val_batches)}
+            if kept:
+                best_psnr, metrics = score, candidate
                 save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
+            if cfg.select_on == "zoo":
+                tqdm.write(f"step {step}: best.pt is step {metrics['step']} "
+                           f"(zoo {best_psnr:.3f} dB)")
             save(latest, model, optimizer, step, cfg, best_psnr, metrics)
     if step % cfg.eval_every and step != cfg.steps:  # paused (--stop-at) between evaluations
         save(latest, model, optimizer, step, cfg, best_psnr, metrics)
@@ -423,6 +458,9 @@ def main(argv: list[str] | None = None) -> int:
         cfg = resume_config(run, flags)
         dropped_buffers(cfg)
         renderers(cfg)
+        zoo_selection.check(cfg)
+        if cfg.select_on == "zoo":
+            zoo_selection.zoo_sequences(cfg)
     except (ValueError, FileNotFoundError) as exc:
         parser.error(str(exc))
     best = train(cfg, run, stop_at)
