@@ -42,9 +42,9 @@ from quietframe.scenes.zoo_shots import shots, zoo_dir
 
 # name -> changes to the shipped config (version 4: edge_depth 0.05, edge_motion 0.25,
 # exact_edge_motion 0.25, shading_change 0.06 with power 0.75, resampling_detail 0.04 with
-# power 1.5)
+# power 1.5, still_radius 16 with the looser surface test there)
 OFF = {"edge_depth": 0.0, "edge_motion": 0.0, "exact_edge_motion": 0.0, "shading_change": 0.0,
-       "resampling_detail": 0.0}
+       "resampling_detail": 0.0, "still_radius": 0}
 U_SPP = {"untrusted_weight": 0.5, "untrusted_weight_per_doubling": 0.25}
 CANDIDATES: dict[str, dict] = {
     "shipped": {},
@@ -74,6 +74,9 @@ CANDIDATES: dict[str, dict] = {
     "no detail test": {"resampling_detail": 0.0},
     "detail 0.02 power 1": {"resampling_detail": 0.02, "resampling_detail_power": 1.0},
     "detail 0.08 power 2": {"resampling_detail": 0.08, "resampling_detail_power": 2.0},
+    # the surface test at still pixels: as strict as elsewhere, or looser still
+    "no still test": {"still_radius": 0},
+    "still cos 0": {"still_normal_min_dot": 0.0, "still_depth_tolerance": 0.5},
 }
 
 

@@ -95,15 +95,18 @@ backward_warp.register_autograd(_warp_backward, setup_context=_warp_setup_contex
 
 
 def history_valid(
-    warped_depth: Tensor, warped_normal: Tensor, depth: Tensor, normal: Tensor
+    warped_depth: Tensor, warped_normal: Tensor, depth: Tensor, normal: Tensor,
+    depth_tolerance: Tensor | float = DEPTH_REL_TOLERANCE,
+    normal_min_dot: Tensor | float = NORMAL_MIN_DOT,
 ) -> Tensor:
-    """Disocclusion test: 1 where the reprojected surface is the current one, else 0."""
-    depth_ok = (warped_depth - depth).abs() <= DEPTH_REL_TOLERANCE * depth.clamp_min(1e-6)
+    """Disocclusion test: 1 where the reprojected surface is the current one, else 0 (the
+    tolerances may be per pixel, (N, 1, H, W))."""
+    depth_ok = (warped_depth - depth).abs() <= depth_tolerance * depth.clamp_min(1e-6)
     # Cosine, not the raw dot: AOV normals averaged over a pixel's samples are shorter than 1 at
     # edges, and their length changes with sub-pixel motion while their direction does not.
     dot = (warped_normal * normal).sum(dim=1, keepdim=True)
     lengths = warped_normal.norm(dim=1, keepdim=True) * normal.norm(dim=1, keepdim=True)
-    normal_ok = dot > NORMAL_MIN_DOT * lengths
+    normal_ok = dot > normal_min_dot * lengths
     return (depth_ok & normal_ok).to(depth.dtype)
 
 
@@ -124,6 +127,21 @@ def pixel_aligned(motion: Tensor) -> Tensor:
     return -F.max_pool2d(-alike, 3, 1, 1) > 0.5  # every 3×3 neighbour alike and whole
 
 
+def still_pixels(motion: Tensor, radius: int) -> Tensor:
+    """(N, 1, H, W) 1 where every pixel within `radius` (a (2r+1)² window, the frame's border
+    counting only pixels inside it) moves by the same whole number of pixels: a locked-off
+    camera's pixels away from anything that moves (NaN: not still)."""
+    k = 2 * radius + 1
+
+    def window_max(x: Tensor) -> Tensor:  # separable: two 1-D max pools
+        x = F.max_pool2d(x, (1, k), 1, (0, radius))
+        return F.max_pool2d(x, (k, 1), 1, (radius, 0))
+
+    spread = (window_max(motion) + window_max(-motion)).amax(dim=1, keepdim=True)
+    whole = (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= ALIGNED_TOLERANCE
+    return (whole & (spread <= ALIGNED_TOLERANCE)).to(motion.dtype)
+
+
 def history_weights(keep: Tensor, previous_count: Tensor) -> tuple[Tensor, Tensor]:
     """(weight of the current frame, new history length) where `keep` (0/1) says whether the
     reprojected history is kept: 1/n over the first frames of a history, then the fixed
@@ -133,7 +151,9 @@ def history_weights(keep: Tensor, previous_count: Tensor) -> tuple[Tensor, Tenso
 
 
 def reproject_history(state: Tensor, motion: Tensor, depth: Tensor, normal: Tensor,
-                      reset: Tensor) -> tuple[Tensor, Tensor]:
+                      reset: Tensor, depth_tolerance: Tensor | float = DEPTH_REL_TOLERANCE,
+                      normal_min_dot: Tensor | float = NORMAL_MIN_DOT
+                      ) -> tuple[Tensor, Tensor]:
     """A history state laid out as the accumulation's (colour 3, depth, normal 3, length)
     reprojected to the nearest pixel, and `keep` (N, 1, H, W): 1 where it is used (in the
     frame, the same surface, no reset).
@@ -144,7 +164,8 @@ def reproject_history(state: Tensor, motion: Tensor, depth: Tensor, normal: Tens
     frame; on the validation set nearest halved relMSE and lowered TRMAE by 7% at equal PSNR
     (docs/training.md)."""
     warped, inside = backward_warp(state, motion, mode="nearest")
-    keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
+    keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal,
+                                  depth_tolerance, normal_min_dot)
     return warped, keep * (1 - reset.view(-1, 1, 1, 1))
 
 

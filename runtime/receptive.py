@@ -158,8 +158,9 @@ def output_history_tiling(arch: Mapping) -> Tiling:
     """model/output_history: the bicubic fetch reads 2 px beyond the motion target's pixel and
     the clip the 3×3 neighbourhood of OIDN's output: 3 px with the warp's motion on top; the
     detail test (`resampling_detail`) shifts OIDN's output by under half a pixel and back, two
-    bicubic fetches: 4 px."""
+    bicubic fetches: 4 px; the still test reads the motion within `still_radius`."""
     radius = 4 if float(arch.get("resampling_detail", 0) or 0) > 0 else 3
+    radius = max(radius, int(arch.get("still_radius", 0) or 0))
     return Tiling(radius=radius, align=1, bytes_per_pixel=OUTPUT_HISTORY_BYTES_PER_PIXEL)
 
 

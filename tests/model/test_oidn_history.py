@@ -281,6 +281,35 @@ def test_detail_a_bicubic_fetch_blurs_takes_the_frame_at_high_spp():
     assert blur[centre].min() > 0.05 and whole.max() < 1e-5  # float rounding of whole shifts
 
 
+def test_a_still_pixel_keeps_its_history_through_noisy_aux_but_not_behind_a_mover():
+    """A locked-off shot whose aux flicker (normals 50° apart, depth 20% apart from frame to
+    frame, as a few samples' averages of a rough surface do) keeps its history; a square
+    sliding 3 px a frame across the wall, 20% nearer, leaves no trail: where it uncovered the
+    wall the pixel takes the frame (its moving pixels are within the still radius)."""
+    frames = surface(6, (0.0, 0.0))
+    tilt = torch.tensor([0.0, 0.766, 0.643]).view(1, 3, 1, 1)  # 50° from (0, 0, 1)
+    for i, f in enumerate(frames):
+        f["normal"] = f["normal"] if i % 2 else tilt.expand_as(f["normal"]).contiguous()
+        f["depth"] = f["depth"] * (1.2 if i % 2 else 1.0)
+    out = run_stage(oh.OutputHistory(TRUSTING), frames)[-1]
+    strict = run_stage(oh.OutputHistory(oh.OutputHistoryConfig(still_radius=0)), frames)[-1]
+    torch.testing.assert_close(strict, frames[-1]["oidn"])  # restarted every frame
+    assert (out - frames[-1]["oidn"]).abs().mean() > 0.01  # kept: the frames' mean
+
+    mover = surface(5, (0.0, 0.0))
+    for i, f in enumerate(mover):
+        x = 2 + 3 * i
+        f["oidn"] = torch.full_like(f["oidn"], 0.5)
+        f["oidn"][..., 6:12, x:x + 6] = 5.0  # a bright square, 20% nearer than the wall
+        f["depth"][..., 6:12, x:x + 6] *= 0.8
+        f["motion"] = torch.zeros_like(f["motion"])
+        if i:
+            f["motion"][:, 0, 6:12, x:x + 6] = -3.0  # it came from 3 px to the left
+    last = run_stage(oh.OutputHistory(TRUSTING), mover)[-1]
+    uncovered = (..., slice(6, 12), slice(2 + 3 * 3, 2 + 3 * 4))  # where it was last frame
+    torch.testing.assert_close(last[uncovered], mover[-1]["oidn"][uncovered])
+
+
 def test_pixel_alignment_needs_every_neighbour_moving_by_the_same_whole_pixels():
     """A pan by whole pixels is aligned everywhere, the frame's border included; a smooth
     sub-pixel motion field that crosses a whole value at a few pixels (a camera orbit) is not
