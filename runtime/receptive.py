@@ -19,6 +19,10 @@ from dataclasses import dataclass, field
 
 from quietframe.runtime.scalar_inputs import InputSpec
 
+# px: the output history's still test reads the motion's range per block of this size
+# (model/temporal.still_pixels), so a tiled frame's tiles align to it
+STILL_BLOCK = 8
+
 
 @dataclass(frozen=True)
 class FrameStatistic:
@@ -158,10 +162,14 @@ def output_history_tiling(arch: Mapping) -> Tiling:
     """model/output_history: the bicubic fetch reads 2 px beyond the motion target's pixel and
     the clip the 3×3 neighbourhood of OIDN's output: 3 px with the warp's motion on top; the
     detail test (`resampling_detail`) shifts OIDN's output by under half a pixel and back, two
-    bicubic fetches: 4 px; the still test reads the motion within `still_radius`."""
-    radius = 4 if float(arch.get("resampling_detail", 0) or 0) > 0 else 3
-    radius = max(radius, int(arch.get("still_radius", 0) or 0))
-    return Tiling(radius=radius, align=1, bytes_per_pixel=OUTPUT_HISTORY_BYTES_PER_PIXEL)
+    bicubic fetches: 4 px; the still test reads the motion's range per 8×8 block over
+    ⌈still_radius / 8⌉ blocks each way (model/temporal.still_pixels): tiles then align to
+    the blocks and reach that many blocks and one more."""
+    radius, align = (4 if float(arch.get("resampling_detail", 0) or 0) > 0 else 3), 1
+    if (still := int(arch.get("still_radius", 0) or 0)) > 0:
+        blocks = -(-still // STILL_BLOCK)
+        radius, align = max(radius, STILL_BLOCK * (blocks + 1)), STILL_BLOCK
+    return Tiling(radius=radius, align=align, bytes_per_pixel=OUTPUT_HISTORY_BYTES_PER_PIXEL)
 
 
 def identity_tiling() -> Tiling:
