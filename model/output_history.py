@@ -146,14 +146,12 @@ class OutputHistoryConfig:
     still_normal_min_dot: float = 0.5
 
     def shading_threshold(self, spp: Tensor) -> Tensor:
-        """θ(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
-        ratio = 16.0 / spp.clamp_min(1.0)
-        return (self.shading_change * ratio ** self.shading_change_power).view(-1, 1, 1, 1)
+        """θ(spp) of the comment above, (1,) -> (1, 1, 1, 1)."""
+        return _bound_from_16_spp(spp, self.shading_change, self.shading_change_power)
 
     def resampling_threshold(self, spp: Tensor) -> Tensor:
-        """θ_r(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
-        ratio = 16.0 / spp.clamp_min(1.0)
-        return (self.resampling_detail * ratio ** self.resampling_detail_power).view(-1, 1, 1, 1)
+        """θ_r(spp) of the comment above, (1,) -> (1, 1, 1, 1)."""
+        return _bound_from_16_spp(spp, self.resampling_detail, self.resampling_detail_power)
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
@@ -172,6 +170,12 @@ class OutputHistoryConfig:
 
     def prepass(self) -> dict:
         return prepass_spec(self.quality, self.prefilter_aux, self.color_from, self.aux_quality)
+
+
+def _bound_from_16_spp(spp: Tensor, at_16: float, power: float) -> Tensor:
+    """at_16 · (16 / spp)^power, (1,) -> (1, 1, 1, 1): a test's bound that falls as the frame
+    gets cleaner; spp below 1 counts as 1."""
+    return (at_16 * (16.0 / spp.clamp_min(1.0)) ** power).view(-1, 1, 1, 1)
 
 
 VARIANTS: dict[str, OutputHistoryConfig] = {

@@ -112,6 +112,12 @@ def history_valid(
     return (depth_ok & normal_ok).to(depth.dtype)
 
 
+def whole_pixels(motion: Tensor) -> Tensor:
+    """(N, 1, H, W) bool: both motion components are whole pixels at this pixel alone (NaN:
+    not whole)."""
+    return (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= ALIGNED_TOLERANCE
+
+
 def pixel_aligned(motion: Tensor) -> Tensor:
     """(N, 1, H, W) bool: the pixel and its 3×3 neighbours all move by the same whole number
     of pixels (NaN: not aligned; the frame's border counts only pixels inside it). A whole
@@ -121,8 +127,7 @@ def pixel_aligned(motion: Tensor) -> Tensor:
     2) such isolated pixels carried an accumulation of caustic fireflies that OIDN, seeing
     noise unlike the frame's around them, kept (-0.13 dB against the stage at 64 spp).
     Radius 2: the accumulation's tiling radius (runtime/receptive.nbg_tiling) covers it."""
-    whole = ((motion - motion.round()).abs().amax(dim=1, keepdim=True)
-             <= ALIGNED_TOLERANCE).to(motion.dtype)
+    whole = whole_pixels(motion).to(motion.dtype)
     spread = (F.max_pool2d(motion, 3, 1, 1) + F.max_pool2d(-motion, 3, 1, 1)).amax(
         dim=1, keepdim=True)
     alike = whole * (spread <= ALIGNED_TOLERANCE).to(motion.dtype)  # NaN spread: not alike
@@ -145,8 +150,7 @@ def still_pixels(motion: Tensor, radius: int) -> Tensor:
         dim=1, keepdim=True)
     spread = F.interpolate(spread, scale_factor=STILL_BLOCK, mode="nearest")[
         ..., :height, :width]
-    whole = (motion - motion.round()).abs().amax(dim=1, keepdim=True) <= ALIGNED_TOLERANCE
-    return (whole & (spread <= ALIGNED_TOLERANCE)).to(motion.dtype)
+    return (whole_pixels(motion) & (spread <= ALIGNED_TOLERANCE)).to(motion.dtype)
 
 
 def history_weights(keep: Tensor, previous_count: Tensor) -> tuple[Tensor, Tensor]:

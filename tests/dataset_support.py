@@ -61,3 +61,12 @@ def write_sequence(
                    "spp_levels": list(levels), "reference_spp": 64},
     }
     (d / "manifest.json").write_text(json.dumps(manifest))
+
+
+def write_generator_splits(root, train_seeds=(11, 12), validation_seeds=(21,)):
+    """The generator's train and validation splits as `quietframe-train` reads them
+    (<root>/<GENERATOR_VERSION>/<split>), one 3-frame sequence per seed; returns `root`."""
+    for split, seeds in (("train", train_seeds), ("validation", validation_seeds)):
+        for seed in seeds:
+            write_sequence(root / GENERATOR_VERSION / split, seed, frames=3)
+    return root

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dataset_support import write_sequence
+from dataset_support import write_generator_splits
 from sequence_support import moving_frame
 
 torch = pytest.importorskip("torch")
@@ -22,7 +22,6 @@ from quietframe.model import affinity, families  # noqa: E402
 from quietframe.model import train as qt  # noqa: E402
 from quietframe.model.losses import bandwidth_regulariser  # noqa: E402
 from quietframe.runtime import Denoiser, find_model, installed_models  # noqa: E402
-from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
 
 HEIGHT, WIDTH, FRAMES = 32, 40, 3
 NAMES = ("color", "albedo", "normal", "depth", "motion")
@@ -139,9 +138,7 @@ def test_bandwidth_regulariser_is_eq_13():
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
-    for split, seeds in (("train", (11, 12)), ("validation", (21,))):
-        for seed in seeds:
-            write_sequence(root / GENERATOR_VERSION / split, seed, frames=3)
+    write_generator_splits(root)
     return root
 
 

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 from conftest import layout_blender, write_exr
-from dataset_support import write_sequence
+from dataset_support import write_generator_splits, write_sequence
 
 from quietframe.model.data import (
     CropDataset,
@@ -255,9 +255,7 @@ def test_mixed_crop_dataset_draws_from_both_renderers(mitsuba_root, cycles_root)
 
 
 def _data(root, cycles: bool):
-    for split, seeds in (("train", (11, 12)), ("validation", (21,))):
-        for seed in seeds:
-            write_sequence(split_dir(root, split), seed, frames=3)
+    write_generator_splits(root)
     if cycles:
         for split, base in (("train", 5_000_000), ("validation", 6_000_000)):
             for i in range(2):

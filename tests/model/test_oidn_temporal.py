@@ -358,7 +358,7 @@ def test_moving_edge_leaves_no_ghost(monkeypatch):
 def test_trains_on_cached_oidn_outputs(tmp_path, monkeypatch):
     """quietframe-train --variant oidn-temporal-fast on a tiny dataset: OIDN runs once per
     (sequence, frame, spp) into the cache, the loss falls, the run resumes its architecture."""
-    from dataset_support import write_sequence
+    from dataset_support import write_generator_splits
 
     from quietframe.model import train as qt
     from quietframe.model.data import list_sequences
@@ -367,9 +367,7 @@ def test_trains_on_cached_oidn_outputs(tmp_path, monkeypatch):
     from quietframe.scenes.generator import GENERATOR_VERSION
 
     monkeypatch.setenv("QUIETFRAME_OIDN_CACHE", str(tmp_path / "cache"))
-    for split, seeds in (("train", (11, 12)), ("validation", (21,))):
-        for seed in seeds:
-            write_sequence(tmp_path / "data" / GENERATOR_VERSION / split, seed, frames=3)
+    write_generator_splits(tmp_path / "data")
     cfg = qt.TrainConfig(variant="oidn-temporal-fast", width=0, data=str(tmp_path / "data"),
                          crop=24, frames=3, batch=2, steps=30, eval_every=15, log_every=5,
                          threads=1, seed=5, lr=3e-3)

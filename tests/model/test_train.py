@@ -11,21 +11,18 @@ import sys
 from pathlib import Path
 
 import pytest
-from dataset_support import write_sequence
+from dataset_support import write_generator_splits
 
 torch = pytest.importorskip("torch", reason="training needs torch")
 
 from quietframe.model import train as qt  # noqa: E402
 from quietframe.model.families import load_checkpoint  # noqa: E402
-from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
-    for split, seeds in (("train", (11, 12, 13)), ("validation", (21,))):
-        for seed in seeds:
-            write_sequence(root / GENERATOR_VERSION / split, seed, frames=3)
+    write_generator_splits(root, train_seeds=(11, 12, 13))
     return root
 
 

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 from conftest import layout_blender, write_exr
-from dataset_support import write_sequence
+from dataset_support import write_generator_splits, write_sequence
 
 torch = pytest.importorskip("torch", reason="training needs torch")
 
@@ -128,9 +128,7 @@ def zoo_config(data, **kw) -> qt.TrainConfig:
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
-    for split, seeds in (("train", (11, 12)), ("validation", (21,))):
-        for seed in seeds:
-            write_sequence(root / GENERATOR_VERSION / split, seed, frames=3)
+    write_generator_splits(root)
     write_shot(root, "zoo1", "gallery-pan", seed=1, frames=4, cuts=(2,))
     write_shot(root, "zoo2", "fence-truck", seed=2, frames=6, rendered=3)  # still rendering
     write_shot(root, "zoo3", "study-dolly", seed=3, frames=4, levels=(1,))  # no 4 spp level
