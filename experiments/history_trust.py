@@ -46,6 +46,7 @@ from quietframe.scenes.zoo_shots import shots, zoo_dir
 OFF = {"edge_depth": 0.0, "edge_motion": 0.0, "exact_edge_motion": 0.0, "shading_change": 0.0,
        "resampling_detail": 0.0, "still_radius": 0}
 U_SPP = {"untrusted_weight": 0.5, "untrusted_weight_per_doubling": 0.25}
+STAGE_INPUT = "stage input"  # a candidate's key that is not a config field: "frame" or not
 CANDIDATES: dict[str, dict] = {
     "shipped": {},
     "version 2": OFF,  # no per-pixel trust
@@ -77,6 +78,10 @@ CANDIDATES: dict[str, dict] = {
     # the surface test at still pixels: as strict as elsewhere, or looser still
     "no still test": {"still_radius": 0},
     "still cos 0": {"still_normal_min_dot": 0.0, "still_depth_tolerance": 0.5},
+    # the output history over OIDN on the frame alone, not on the aligned accumulation: Cycles'
+    # 1-spp frames of a still pixel share their primary hit (the aux are equal frame to frame),
+    # so the accumulation converges to an aliased image (docs/zoo.md "Locked-off at 1 spp")
+    "no accumulation": {STAGE_INPUT: "frame"},
 }
 
 
@@ -166,11 +171,14 @@ def run_shot(folder: Path, model: str, spps: list[int], aux_quality: str = "",
         frames = planar_frames(rendered_frames(folder, spp))
         outputs, stages = stage_outputs(denoiser, frames, spp, prepass)
         refs = [ref for _, ref, _ in frames]
-        scored = {"stage": stages,
+        # "accumulated": OIDN on the aligned accumulation, before the output history
+        scored = {"stage": stages, "accumulated": outputs,
                   "blender": [p[STORED_BLENDER] for p, _, _ in frames]}
         for name in candidates:
-            change = CANDIDATES[name]
-            scored[name] = history_run(dataclasses.replace(base, **change), outputs, frames, spp)
+            change = dict(CANDIDATES[name])
+            stage_input = stages if change.pop(STAGE_INPUT, "") == "frame" else outputs
+            scored[name] = history_run(dataclasses.replace(base, **change), stage_input, frames,
+                                       spp)
         for method, preds in scored.items():
             per_frame = [_psnr(p, r) for p, r in zip(preds, refs, strict=True)]
             rows.append({"shot": folder.name, "spp": spp, "method": method,

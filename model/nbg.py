@@ -14,7 +14,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from quietframe.model.grid import bilateral_slice, bilateral_splat
-from quietframe.model.temporal import STATE_CHANNELS, accumulate
+from quietframe.model.temporal import DEFAULT_SPP, STATE_CHANNELS, accumulate
+from quietframe.runtime.card import SAMPLES_INPUT
 
 ALBEDO_EPSILON = 1e-2  # demodulation divides by (albedo + eps): invertible, gain bounded by 100
 # Below this max-channel albedo (sky, emitters, black paint) demodulation fades out linearly to a
@@ -51,6 +52,9 @@ class NBGConfig:
     # Keep the accumulated history only where the motion is pixel-aligned
     # (model/temporal.accumulate aligned_only): the input of the oidn-history tiers' OIDN pass.
     aligned_history: bool = False
+    # No history where the frame repeats last frame's sample (model/temporal.accumulate
+    # restart_repeated): set with aligned_history for the oidn-history tiers' OIDN pass.
+    restart_repeated: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -110,6 +114,8 @@ def prestage(
     outlier_sigmas: float = OUTLIER_SIGMAS,
     outlier_floor: float = 0.0,
     aligned_history: bool = False,
+    restart_repeated: bool = False,
+    spp: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Demodulate, suppress outliers (unless outlier_sigmas is 0), accumulate over time ->
     (irradiance, safe albedo, state)."""
@@ -120,7 +126,7 @@ def prestage(
     if not temporal:
         return irradiance, safe_albedo, state
     irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state,
-                                       aligned_history)
+                                       aligned_history, restart_repeated, spp)
     return irradiance, safe_albedo, new_state
 
 
@@ -229,24 +235,44 @@ class AccumulationDenoiser(nn.Module):
     preview model, and the input of oidn-temporal-acc's OIDN pass. Same call signature and state
     as NBGDenoiser. No firefly clamp by default: alone, nothing after it can give back the
     energy the clamp takes from a sparse low-spp frame (NBGConfig.outlier_sigmas).
-    `aligned_history`: the pixel-aligned accumulation (`aligned-accumulation`, NBGConfig)."""
+    `aligned_history`: the pixel-aligned accumulation (`aligned-accumulation`, NBGConfig), which
+    also restarts where a frame repeats last frame's sample (`restart_repeated`, version 3;
+    False gives version 2)."""
 
     state_channels = STATE_CHANNELS
 
-    def __init__(self, outlier_sigmas: float = 0.0, aligned_history: bool = False) -> None:
+    def __init__(self, outlier_sigmas: float = 0.0, aligned_history: bool = False,
+                 restart_repeated: bool | None = None) -> None:
         super().__init__()
         name = "aligned-accumulation" if aligned_history else "accumulation"
+        repeated = aligned_history if restart_repeated is None else restart_repeated
         self.config = NBGConfig(name=name, layers=0, width=0, grids=0,
-                                outlier_sigmas=outlier_sigmas, aligned_history=aligned_history)
+                                outlier_sigmas=outlier_sigmas, aligned_history=aligned_history,
+                                restart_repeated=repeated)
 
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
-                motion: Tensor, reset: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
+                motion: Tensor, reset: Tensor, state: Tensor,
+                spp: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        if self.config.restart_repeated and spp is None:
+            spp = torch.full((1,), DEFAULT_SPP)
         irradiance, safe_albedo, new_state = prestage(
             color, albedo, normal, depth, motion, reset, state,
             outlier_sigmas=self.config.outlier_sigmas,
             aligned_history=self.config.aligned_history,
+            restart_repeated=self.config.restart_repeated, spp=spp,
         )
         return irradiance * safe_albedo, new_state
+
+    def run_time_inputs(self) -> list[dict]:
+        """`quietframe.inputs` of the exported graph: the frame's samples per pixel, where
+        the repeated-sample test reads it (version 3 of the aligned accumulation)."""
+        if not self.config.restart_repeated:
+            return []
+        return [{"name": SAMPLES_INPUT, "dtype": "float32", "shape": [1],
+                 "default": DEFAULT_SPP, "allowed": None, "minimum": 1.0,
+                 "doc": "the frame's samples per pixel (the service fills it from the EXR "
+                        "header, or auto's estimate): at 1, a still pixel whose aux repeat "
+                        "last frame's to the last bit restarts its accumulation"}]
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)

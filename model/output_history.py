@@ -32,6 +32,7 @@ from torch import Tensor, nn
 
 from quietframe.model.oidn_temporal import prepass_spec
 from quietframe.model.temporal import (
+    DEFAULT_SPP,
     DEPTH_REL_TOLERANCE,
     MIN_CURRENT_WEIGHT,
     NORMAL_MIN_DOT,
@@ -73,7 +74,7 @@ class OutputHistoryConfig:
     resampled_weight: float = 0.35
     resampled_weight_per_doubling: float = 0.075
     resampled_weight_max: float = 0.85
-    default_spp: float = 4.0  # w = 0.5 there: the constant the tier shipped with before
+    default_spp: float = DEFAULT_SPP  # w = 0.5 there: the constant the tier shipped with before
     # Per-pixel trust of a resampled history (`trusted_resample`): the bicubic fetch is used
     # only where its footprint lies on one surface moving as one, now and in the previous
     # frame; elsewhere the pixel is its per-frame stage. 0 turns a test off (the tiers' version

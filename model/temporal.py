@@ -24,6 +24,12 @@ MIN_CURRENT_WEIGHT = 0.2
 # is exact there (a locked-off shot, a pan by whole pixels), so a history kept only there never
 # blurs (docs/evaluation/cycles-locked-off).
 ALIGNED_TOLERANCE = 1 / 64  # px
+# Depth (relative) and normal (absolute) this close to last frame's are the same sample: far
+# below the change of an average of 4 or more samples, far above float32's rounding of a copy.
+REPEAT_TOLERANCE = 1e-6
+# The frame's spp a graph assumes where it is not given one (its `spp` input's default): the
+# count the oidn-history tiers shipped with before they read it.
+DEFAULT_SPP = 4.0
 # Channels of the accumulation state: radiance (3), depth (1), normal (3), history length (1).
 STATE_CHANNELS = 8
 
@@ -180,6 +186,19 @@ def reproject_history(state: Tensor, motion: Tensor, depth: Tensor, normal: Tens
     return warped, keep * (1 - reset.view(-1, 1, 1, 1))
 
 
+def repeated_sample(warped_depth: Tensor, warped_normal: Tensor, depth: Tensor,
+                    normal: Tensor) -> Tensor:
+    """(N, 1, H, W) 1 where this frame's depth and normal at a surface equal the fetched
+    history's to float precision (REPEAT_TOLERANCE): at one sample a pixel, the renderer
+    sampled the same point of the pixel as last frame. Cycles 4.5 does so at 1 spp (every
+    frame's one sample of a still pixel hits the same point though the seed is animated: all
+    of fence-locked's pixels); from 2 spp its aux differ between frames, and from 4 spp at all
+    but ~0.5% of a still shot's pixels (zoo round 2, fence-locked and studio-locked)."""
+    depth_same = (warped_depth - depth).abs() <= REPEAT_TOLERANCE * depth.abs()
+    normal_same = (warped_normal - normal).abs().amax(dim=1, keepdim=True) <= REPEAT_TOLERANCE
+    return (depth_same & normal_same).to(depth.dtype)
+
+
 def accumulate(
     radiance: Tensor,
     depth: Tensor,
@@ -188,6 +207,8 @@ def accumulate(
     reset: Tensor,
     state: Tensor,
     aligned_only: bool = False,
+    restart_repeated: bool = False,
+    spp: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """One step of temporal accumulation of demodulated radiance (NBG §4.6).
 
@@ -197,11 +218,23 @@ def accumulate(
     the accumulation never resamples: under sub-pixel motion even the nearest fetch is half a
     pixel off, and OIDN on such a history lost up to 1 dB to OIDN on the frame alone on moving
     Cycles shots (docs/evaluation/cycles-locked-off).
+    `restart_repeated`: on a frame of one sample a pixel (`spp` < 2), no history where the
+    frame repeats last frame's sample (`repeated_sample`): a mean of samples of one point
+    converges to that point, not to the pixel's mean, so thin branches and fine texture stay
+    aliased however long the history; on a locked-off exterior of thin geometry at 1 spp OIDN
+    on that accumulation lost 0.59 dB to OIDN on the frame alone (zoo round 2, fence-locked;
+    docs/zoo.md "Repeated samples"). Only there do equal aux say the colour's sample is the
+    same: a 1-spp frame's aux are its one sample's, while a pixel-centre G-buffer repeats at
+    any spp though the colour's samples move. `spp` (1,), None: the test is off.
     """
     warped, keep = reproject_history(state, motion, depth, normal, reset)
     prev_radiance, prev_count = warped[:, 0:3], warped[:, 7:8]
     if aligned_only:
         keep = keep * pixel_aligned(motion).to(keep.dtype)
+    if restart_repeated and spp is not None:
+        single = (spp < 2).to(keep.dtype).view(-1, 1, 1, 1)  # one sample a pixel
+        repeated = repeated_sample(warped[:, 3:4], warped[:, 4:7], depth, normal)
+        keep = keep * (1 - single * repeated)
     alpha, count = history_weights(keep, prev_count)  # (N, 1, H, W) weight of the current frame
     accumulated = alpha * radiance + (1 - alpha) * prev_radiance
     new_state = torch.cat((accumulated, depth, normal, count), dim=1)

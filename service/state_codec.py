@@ -8,9 +8,12 @@ oidn-temporal-acc keeps its state so):
 - radiance: blended into the new frame with weight ≥ 0.2, so an error in it decays at 0.8 a
   frame. float16 (relative step 2^-11); values beyond its range (±65504) are kept exactly as
   float32 patches, so nothing overflows to Inf.
-- depth and normal: only the surface test reads them, |Δdepth| ≤ 10% and cos > 0.9
-  (history_valid), far from float16's rounding. float16 with patches, like radiance; the
-  stages of a composition hold the frame's same depth and normal, stored once.
+- depth and normal: the surface test reads them with tolerance (|Δdepth| ≤ 10%, cos > 0.9,
+  history_valid), but the aligned accumulation's repeated-sample test compares them with the
+  next frame's to the last bit (model/temporal.repeated_sample), where rounding would read as
+  a new sample. float16 (with patches) only where every value is a float16 already (a half
+  EXR's aux), else float32; the stages of a composition hold the frame's same depth and
+  normal, stored once.
 - history length: whole numbers 1..6; uint8 where every value is one (else float32).
 The motion probe stays float32: on a locked-off shot the motion test compares it with the next
 frame's to the last bit, where rounding would read as a change (runtime/motion_evidence.py).
@@ -57,7 +60,8 @@ MAX_PATCH_SHARE = 1 / 8
 # The accumulation layout: (role, first channel, end) of an 8-channel state named so
 ACCUMULATION = (("radiance", 0, 3), ("depth", 3, 4), ("normal", 4, 7), ("count", 7, 8))
 ACCUMULATION_NAME, ACCUMULATION_CHANNELS = "accumulation", 8
-LOSSY = frozenset({"radiance", "depth", "normal"})  # float16 with patches
+LOSSY = frozenset({"radiance"})  # float16 with patches
+HALF_IF_EXACT = frozenset({"depth", "normal"})  # float16 with patches where that loses nothing
 COMPRESSED = frozenset({"depth", "normal", "count", "probe"})
 SHARED = frozenset({"depth", "normal"})  # equal planes of two stages are stored once
 KINDS = {"f32": np.float32, "f16": np.float16, "u8": np.uint8}
@@ -199,9 +203,9 @@ def _encode_plane(x: np.ndarray, role: str, exact: bool
     kind, data, patches, decoded = "f32", x, None, x
     if role == "count" and _whole_bytes(x):
         kind, data = "u8", x.astype(np.uint8)
-    elif role in LOSSY and not exact:
+    elif (role in LOSSY or role in HALF_IF_EXACT) and not exact:
         half = _half(x)
-        if half is not None:
+        if half is not None and (role in LOSSY or np.array_equal(half[2], x)):
             kind, (data, patches, decoded) = "f16", half
     raw = np.ascontiguousarray(data)
     compress = role in COMPRESSED

@@ -348,6 +348,64 @@ class _Given:
         return self.frames[self.index - 1]["oidn"][0].numpy()
 
 
+def repeated_frames() -> list[dict[str, torch.Tensor]]:
+    """Two frames of a locked-off shot whose aux repeat to the last bit (Cycles' 1-spp frames)
+    except in columns 8-11, where the second frame's depth moved by 0.1% (another sample of the
+    pixel); the colour is noisy in each."""
+    gen = torch.Generator().manual_seed(7)
+    frames = []
+    for index in range(2):
+        normal = torch.zeros(1, 3, H, W)
+        normal[:, 2] = 1
+        depth = torch.full((1, 1, H, W), 3.0)
+        depth[..., 8:12] *= 1.001 if index else 1.0
+        frames.append({"color": 0.2 + torch.rand(1, 3, H, W, generator=gen),
+                       "albedo": torch.full((1, 3, H, W), 0.6), "normal": normal,
+                       "depth": depth, "motion": torch.zeros(1, 2, H, W)})
+    return frames
+
+
+def accumulate_frames(frames: list[dict[str, torch.Tensor]], spp: float) -> torch.Tensor:
+    model, state = AccumulationDenoiser(aligned_history=True), torch.zeros(1, 8, H, W)
+    for index, f in enumerate(frames):
+        with torch.no_grad():
+            out, state = model(f["color"], f["albedo"], f["normal"], f["depth"], f["motion"],
+                               torch.tensor([1.0 if index == 0 else 0.0]), state,
+                               torch.tensor([spp]))
+    return out
+
+
+def test_a_repeated_sample_restarts_the_aligned_accumulation_at_one_sample_a_pixel():
+    """At 1 spp, aux equal to last frame's to the last bit mean the renderer sampled the same
+    point of the pixel again (Cycles does), and a mean of one point's samples stays that
+    point's (aliased thin geometry): the accumulation restarts there, but not where the aux
+    changed, and not at 4 spp, where repeating aux are a pixel-centre G-buffer's and say
+    nothing of the colour's samples."""
+    frames = repeated_frames()
+    mean = (frames[0]["color"] + frames[1]["color"]) / 2
+    one = accumulate_frames(frames, 1.0)
+    torch.testing.assert_close(one[..., 12:], frames[1]["color"][..., 12:])  # restarted
+    torch.testing.assert_close(one[..., :8], frames[1]["color"][..., :8])
+    torch.testing.assert_close(one[..., 8:12], mean[..., 8:12])  # another sample: accumulates
+    torch.testing.assert_close(accumulate_frames(frames, 4.0), mean)
+    old = AccumulationDenoiser(aligned_history=True, restart_repeated=False)  # version 2
+    assert old.run_time_inputs() == [] and not old.config.restart_repeated
+
+
+def test_the_shipped_aligned_accumulation_restarts_repeated_samples_as_pytorch_does():
+    from quietframe.runtime import Denoiser, find_model
+
+    runtime = Denoiser(find_model("aligned-accumulation"), threads=1)
+    assert [i.name for i in runtime.info.inputs] == ["spp"]
+    frames = repeated_frames()
+    planes = [{k: v[0].numpy() for k, v in f.items()} for f in frames]
+    for spp in (1.0, 4.0):
+        state = runtime.denoise(planes[0], None, {"spp": spp}).state
+        result = runtime.denoise(planes[1], state, {"spp": spp})
+        np.testing.assert_allclose(result.color, accumulate_frames(frames, spp)[0].numpy(),
+                                   rtol=1e-5, atol=1e-6)
+
+
 def test_the_stage_is_the_ablation_row_it_ships():
     """The shipped stage computes what experiments/output_history's `+hybrid` history measured."""
     from quietframe.experiments.output_history import OutputHistory as AblationRow

@@ -30,13 +30,15 @@ META = {"id": SID, "width": W, "height": H, "model": "nbg-2l-3g", "created_at": 
 EXR = {"content-type": "image/x-exr"}
 
 
-def two_stages(seed: int = 0) -> dict[str, np.ndarray]:
-    """An oidn-history-like state: two accumulation stages with the same depth and normal,
-    and the motion probe."""
+def two_stages(seed: int = 0, half_aux: bool = True) -> dict[str, np.ndarray]:
+    """An oidn-history-like state: two accumulation stages with the same depth and normal
+    (float16 values, as a half EXR's aux, unless `half_aux` is False), and the motion probe."""
     rng = np.random.default_rng(seed)
     depth = rng.uniform(0.5, 80, (1, 1, H, W)).astype(np.float32)
     normal = rng.normal(size=(1, 3, H, W)).astype(np.float32)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    if half_aux:
+        depth, normal = (x.astype(np.float16).astype(np.float32) for x in (depth, normal))
     state = {}
     for name in ("color_from.accumulation", "accumulation"):
         radiance = rng.gamma(2.0, 0.5, (1, 3, H, W)).astype(np.float32)
@@ -75,6 +77,19 @@ def test_what_comes_back_is_what_the_writer_continues_from():
                      ("f32", "probe")]
     stored = sum(p.size for p in encoded.planes)
     assert stored < 0.45 * sum(t.nbytes for t in state.values())
+
+
+def test_float32_depth_and_normal_come_back_exact():
+    """The aligned accumulation tells a repeated sample by depth and normal equal to the last
+    bit (model/temporal.repeated_sample): aux that are not float16 values (a float EXR's) are
+    stored as float32, so a restored session restarts exactly where the live one would."""
+    state = two_stages(half_aux=False)
+    encoded, back = round_trip(state)
+    for name in ("accumulation", "color_from.accumulation"):
+        assert np.array_equal(back[name][0, 3:7], state[name][0, 3:7])
+        assert not np.array_equal(back[name][0, 0:3], state[name][0, 0:3])  # radiance: f16
+    kinds = [(d["kind"], d["shape"][1]) for d in encoded.layout["planes"][:3]]
+    assert kinds == [("f16", 3), ("f32", 1), ("f32", 3)]
 
 
 def test_the_depth_probe_beside_the_probe_comes_back_exact():
