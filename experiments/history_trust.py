@@ -80,7 +80,7 @@ CANDIDATES: dict[str, dict] = {
     "still cos 0": {"still_normal_min_dot": 0.0, "still_depth_tolerance": 0.5},
     # the output history over OIDN on the frame alone, not on the aligned accumulation: Cycles'
     # 1-spp frames of a still pixel share their primary hit (the aux are equal frame to frame),
-    # so the accumulation converges to an aliased image (docs/zoo.md "Locked-off at 1 spp")
+    # so the accumulation converged to an aliased image (docs/zoo.md "Repeated samples")
     "no accumulation": {STAGE_INPUT: "frame"},
 }
 

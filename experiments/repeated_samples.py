@@ -4,8 +4,9 @@ of such frames converge to?
     python -m quietframe.experiments.repeated_samples --zoo zoo2 --split validation
         --shots fence-locked,studio-locked [--spp 1,4,16,64] [--frames 24] [--json F]
 
-For each locked-off shot and spp: the share of pixels whose depth and normal equal the previous
-frame's to the last bit (model/temporal.repeated_sample; the background, normal 0, left out),
+For each locked-off shot and spp: the share of surface pixels (normal not 0) whose depth and
+normal equal the previous frame's to the last bit (the property model/temporal.repeated_sample
+tests in the aligned accumulation, there to 1e-6; its surface test never keeps the background),
 and the PSNR (tone-mapped, model/metrics) against the reference of the mean colour of the first
 1, 4 and `frames` frames. Frames with independent samples converge towards the reference as
 their count grows; frames that repeat their one sample a pixel converge to that point sample,

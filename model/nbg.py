@@ -14,8 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from quietframe.model.grid import bilateral_slice, bilateral_splat
-from quietframe.model.temporal import DEFAULT_SPP, STATE_CHANNELS, accumulate
-from quietframe.runtime.card import SAMPLES_INPUT
+from quietframe.model.temporal import DEFAULT_SPP, STATE_CHANNELS, accumulate, samples_input
 
 ALBEDO_EPSILON = 1e-2  # demodulation divides by (albedo + eps): invertible, gain bounded by 100
 # Below this max-channel albedo (sky, emitters, black paint) demodulation fades out linearly to a
@@ -268,11 +267,10 @@ class AccumulationDenoiser(nn.Module):
         the repeated-sample test reads it (version 3 of the aligned accumulation)."""
         if not self.config.restart_repeated:
             return []
-        return [{"name": SAMPLES_INPUT, "dtype": "float32", "shape": [1],
-                 "default": DEFAULT_SPP, "allowed": None, "minimum": 1.0,
-                 "doc": "the frame's samples per pixel (the service fills it from the EXR "
-                        "header, or auto's estimate): at 1, a still pixel whose aux repeat "
-                        "last frame's to the last bit restarts its accumulation"}]
+        return [samples_input(DEFAULT_SPP, "the frame's samples per pixel (the service fills "
+                              "it from the EXR header, or auto's estimate): at 1, a still pixel "
+                              "whose aux repeat last frame's to the last bit restarts its "
+                              "accumulation")]
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)

@@ -40,9 +40,9 @@ from quietframe.model.temporal import (
     history_weights,
     pixel_aligned,
     reproject_history,
+    samples_input,
     still_pixels,
 )
-from quietframe.runtime.card import SAMPLES_INPUT
 
 FAMILY = "output-history"  # the architecture's family (runtime/receptive.py tiling rule)
 # State planes: previous output O (3), depth (1), normal (3), history length n (1).
@@ -333,10 +333,9 @@ class OutputHistory(nn.Module):
 
     def run_time_inputs(self) -> list[dict]:
         """`quietframe.inputs` of the exported graph: the frame's samples per pixel."""
-        return [{"name": SAMPLES_INPUT, "dtype": "float32", "shape": [1],
-                 "default": self.config.default_spp, "allowed": None, "minimum": 1.0,
-                 "doc": "the frame's samples per pixel (the service fills it from the EXR "
-                        "header, or auto's estimate): how long a resampled history is kept"}]
+        return [samples_input(self.config.default_spp, "the frame's samples per pixel (the "
+                              "service fills it from the EXR header, or auto's estimate): how "
+                              "long a resampled history is kept")]
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)

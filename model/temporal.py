@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from quietframe.runtime.card import SAMPLES_INPUT
 from quietframe.runtime.receptive import STILL_BLOCK
 
 # History is kept where the reprojected surface matches the current one (disocclusion test).
@@ -32,6 +33,14 @@ REPEAT_TOLERANCE = 1e-6
 DEFAULT_SPP = 4.0
 # Channels of the accumulation state: radiance (3), depth (1), normal (3), history length (1).
 STATE_CHANNELS = 8
+
+
+def samples_input(default: float, doc: str) -> dict:
+    """The `quietframe.inputs` entry of a graph that reads the frame's samples per pixel
+    (SAMPLES_INPUT, shape [1]): the service fills it from the EXR header, a session option or
+    auto's estimate, else `default`."""
+    return {"name": SAMPLES_INPUT, "dtype": "float32", "shape": [1], "default": default,
+            "allowed": None, "minimum": 1.0, "doc": doc}
 
 
 # ai.quietframe::BackwardWarp attribute mode = index. Bicubic is PyTorch's (a = -0.75, each of
