@@ -61,11 +61,13 @@ def add_split(parser: argparse.ArgumentParser, choices: Sequence[str] | None = N
                         help=help or f"the split read (default {DEFAULT_SPLIT})")
 
 
-def add_zoo_shots(parser: argparse.ArgumentParser, zoo: str = ZOO_VERSION) -> None:
-    """`--split` (validation or test), `--zoo` (the round, default `zoo`), `--shots` (a comma
-    list of shot names, default every one) and `--data`: which zoo shots a run reads."""
+def add_zoo_shots(parser: argparse.ArgumentParser, zoo: str = ZOO_VERSION,
+                  also: tuple[str, ...] = ()) -> None:
+    """`--split` (validation or test), `--zoo` (the round, default `zoo`, or one of `also`),
+    `--shots` (a comma list of shot names, default every one) and `--data`: which zoo shots a
+    run reads."""
     add_split(parser, choices=ZOO_SPLITS)
-    parser.add_argument("--zoo", default=zoo, choices=ZOO_ROUNDS,
+    parser.add_argument("--zoo", default=zoo, choices=(*ZOO_ROUNDS, *also),
                         help=f"the round (default {zoo})")
     parser.add_argument("--shots", type=lambda text: tuple(text.split(",")) if text else (),
                         default=(), help="comma list of shot names (default: every one)")

@@ -13,6 +13,10 @@ flagged to the methods: Blender writes nothing into a frame that says "cut", so 
 shot with a camera switch as one sequence (`--flag-cuts` tells the methods, as a farm using
 `quietframe denoise --cut` would).
 
+`--zoo corpus --split validation` scores the training corpus's validation shots instead (the
+zoo's layout; scenes/corpus_shots.py), none of which a learned tier trains on; `--extra-models`
+adds .onnx files by stem (a candidate export beside the installed models).
+
 Writes <out>/zoo.json (every row, per shot) and <out>/README.md (tables per shot type).
 """
 
@@ -38,6 +42,7 @@ from quietframe.bench.harness import planar_frames
 from quietframe.bench.lookahead_method import LookaheadMethod, lookahead_methods
 from quietframe.runtime.oidn_prepass import PrepassUnavailable
 from quietframe.scenes import cycles_io
+from quietframe.scenes.corpus_shots import corpus_dir
 from quietframe.scenes.zoo_shots import ZOO_VERSION, zoo_dir
 
 HISTORY_TIERS = ("oidn-history", "oidn-fast-history", "oidn-history-cleanaux")
@@ -46,16 +51,26 @@ METHODS = ("blender-denoise", "oidn-high", "oidn-high-cleanaux", "oidn-frame", *
            *(f"{t}/frame" for t in HISTORY_TIERS), *LEARNED, "auto", "sid-temporal")
 
 
+CORPUS = "corpus"  # --zoo corpus: the training corpus's shots (validation only: train trains)
+
+
 def shot_folders(data: Path, split: str, spp_levels: tuple[int, ...],
                  zoo: str = ZOO_VERSION) -> list[Path]:
-    root = zoo_dir(data, split, zoo)
+    if zoo == CORPUS and split != "validation":
+        raise SystemExit("--zoo corpus: only its validation split is for scoring (the corpus "
+                         "has no test split, and its train split is what the tiers learn from)")
+    root = corpus_dir(data, split) if zoo == CORPUS else zoo_dir(data, split, zoo)
     return [p.parent for p in sorted(root.glob("*/manifest.json"))
             if cycles_io.finished(p.parent, spp_levels)]
 
 
 def shot_info(folder: Path) -> dict:
+    """The shot's name, camera work and tags: a zoo shot's `zoo` record, or a corpus shot's
+    `shot` record with its manifest's tags."""
     manifest = json.loads((folder / "manifest.json").read_text())
-    return manifest["zoo"]
+    if "zoo" in manifest:
+        return manifest["zoo"]
+    return {**manifest["shot"], "tags": manifest["tags"]}
 
 
 def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
@@ -181,8 +196,10 @@ def report(rows: list[dict], meta: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    cli_args.add_zoo_shots(p)
+    cli_args.add_zoo_shots(p, also=(CORPUS,))
     p.add_argument("--spp", type=cli_args.spp_levels, default="1,2,4,8,16,64")
+    p.add_argument("--extra-models", type=Path, nargs="+", default=[],
+                   help="more .onnx models, each a method named by its file stem")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--flag-cuts", action="store_true")
     cli_args.add_threads(p)
@@ -201,8 +218,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"no finished zoo {args.split} shots under {args.data} "
                          "(render them: scenes/render_zoo.sh)")
     wanted = args.methods.split(",")
-    everything = build_methods(args.threads, single_frame=HISTORY_TIERS, renderer="cycles",
-                               rendered_only=HISTORY_TIERS)
+    everything = build_methods(args.threads, args.extra_models, single_frame=HISTORY_TIERS,
+                               renderer="cycles", rendered_only=HISTORY_TIERS)
     everything |= lookahead_methods(everything, wanted)  # <tier>/lookahead-<k>
     methods = {m: everything[m] for m in wanted if m in everything}
     rows = evaluate(folders, spp_levels, methods, args.flag_cuts)

@@ -58,7 +58,7 @@ OIDN_TEMPORAL = Family(
 )
 NBG = Family(
     name="nbg", config_type=nbg.NBGConfig, model_type=nbg.NBGDenoiser, variants=nbg.VARIANTS,
-    tunable=("width", *CLAMP),
+    tunable=("width", "passthrough", *CLAMP),
     owns=lambda saved: True,  # the first family: its checkpoints carry no mark of their own
 )
 # In the order a checkpoint is tried against them: NBG, unmarked, last.

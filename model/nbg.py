@@ -54,6 +54,12 @@ class NBGConfig:
     # No history where the frame repeats last frame's sample (model/temporal.accumulate
     # restart_repeated): set with aligned_history for the oidn-history tiers' OIDN pass.
     restart_repeated: bool = False
+    # A pass-through candidate beside the grids (not in the paper): the blend's softmax also
+    # weighs the accumulated irradiance itself, a grid of no spatial extent. A sliced grid
+    # averages over sigma_s-pixel cells and can only keep detail its 1-D guide separates, so
+    # on thin geometry at 16-64 spp the paper's model was 4-10 dB below its own noisy input
+    # (docs/zoo.md); with this candidate it can keep the input where that is better.
+    passthrough: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -145,7 +151,7 @@ class GuideNet(nn.Module):
     def __init__(self, config: NBGConfig) -> None:
         super().__init__()
         self.grids = config.grids
-        out_channels = config.grids + (config.grids if config.grids > 1 else 0)
+        out_channels = config.grids + blend_candidates(config)
         self.first = nn.Conv2d(GUIDE_INPUT_CHANNELS, config.width, 5, padding=2)
         self.dense = nn.ModuleList()
         channels = config.width
@@ -164,8 +170,22 @@ class GuideNet(nn.Module):
         out = self.last(x)
         guides = torch.sigmoid(out[:, : self.grids])  # (N, grids, H, W)
         # The paper's w2 = 1 - w0 - w1 can go negative; a softmax keeps a convex combination.
-        weights = channel_softmax(out[:, self.grids :]) if self.grids > 1 else None
+        # Channel g weighs grid g; with a pass-through, the last weighs the irradiance.
+        weights = channel_softmax(out[:, self.grids :]) if out.shape[1] > self.grids + 1 else None
         return guides, weights
+
+
+def blend_candidates(config: NBGConfig) -> int:
+    """How many blend logits GuideNet outputs after its guides: one per candidate (each grid,
+    and the irradiance with a pass-through), none for a single grid alone."""
+    candidates = config.grids + int(config.passthrough)
+    return candidates if candidates > 1 else 0
+
+
+# The pass-through's logit where a fine-tune adds it to a model trained without one
+# (add_passthrough): the model's output moves towards its input by a few percent at first, a
+# few Adam steps on the conv's 5x5xwidth weights from wherever training needs it.
+PASSTHROUGH_INITIAL_LOGIT = -4.0
 
 
 def guide_features(radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> Tensor:
@@ -223,7 +243,14 @@ class NBGDenoiser(nn.Module):
             grid, weight = bilateral_splat(irradiance, guide, sigma_s, sigma_r)
             sliced = bilateral_slice(grid, weight, guide, sigma_s, sigma_r)
             result = result + (sliced if weights is None else weights[:, s : s + 1] * sliced)
+        if self.config.passthrough:
+            result = result + weights[:, -1:] * irradiance
         return result * safe_albedo, new_state
+
+    def adapt_state_dict(self, state: dict[str, Tensor]) -> dict[str, Tensor]:
+        """A checkpoint's weights for this model: as they are, or, where this model has the
+        pass-through and the checkpoint (trained without one) lacks it, add_passthrough's."""
+        return add_passthrough(state, self.config) if self.config.passthrough else state
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)
@@ -274,6 +301,25 @@ class AccumulationDenoiser(nn.Module):
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)
+
+
+def add_passthrough(state: dict[str, Tensor], config: NBGConfig) -> dict[str, Tensor]:
+    """Weights of a model without the pass-through, extended to `config`'s (which has it): the
+    GuideNet's last conv gains the pass-through logit (zero weights, PASSTHROUGH_INITIAL_LOGIT),
+    so the model starts as the one it was, its input weighed by about exp(-4)/(1 + ...)."""
+    weight, bias = state["guide_net.last.weight"], state["guide_net.last.bias"]
+    want = config.grids + blend_candidates(config)
+    if weight.shape[0] == want:
+        return state
+    if weight.shape[0] != want - 1 - int(config.grids == 1):
+        raise ValueError(f"a last conv of {weight.shape[0]} channels is not a {config.grids}-grid "
+                         "GuideNet without a pass-through")
+    new_weight = weight.new_zeros((want, *weight.shape[1:]))
+    new_bias = bias.new_full((want,), PASSTHROUGH_INITIAL_LOGIT)
+    new_weight[: weight.shape[0]], new_bias[: weight.shape[0]] = weight, bias
+    if config.grids == 1:  # a lone grid had no logit: give it 0, as the softmax's reference
+        new_bias[1] = 0.0
+    return {**state, "guide_net.last.weight": new_weight, "guide_net.last.bias": new_bias}
 
 
 VARIANTS: dict[str, NBGConfig] = {

@@ -89,6 +89,10 @@ class TrainConfig:
     # -1 = the variant's, or the --init checkpoint's: a fine-tune may switch it, it has no weights)
     outlier_sigmas: float = -1.0
     outlier_floor: float = -1.0  # NBGConfig/AffinityConfig.outlier_floor (-1 = as above)
+    # NBG: the pass-through candidate (NBGConfig.passthrough; 1 on, 0 off, -1 the variant's or
+    # the --init checkpoint's). A fine-tune may switch it on: the checkpoint's weights are
+    # extended with its logit (model/nbg.add_passthrough).
+    passthrough: int = -1
     net_scale: int = 0  # oidn-temporal: OIDNTemporalConfig.net_scale (0 = the variant's)
     # Fine-tuning: a checkpoint whose model (architecture and weights) starts a new run, with a
     # fresh optimizer and schedule (e.g. a shipped model on new data); empty: train from scratch
@@ -96,13 +100,15 @@ class TrainConfig:
     # Which score keeps best.pt: "validation" (the generator's validation split, and the
     # corpus's with --corpus 1) or "zoo": the zoo's validation shots rendered on this machine
     # (every round: <data>/zoo1|zoo2|zoo3-cycles/validation/<shot>/, model/zoo_selection.py),
-    # each through a runtime Stream with its state carried, mean per-frame PSNR per shot and spp.
+    # or "corpus": the training corpus's validation shots (corpus-cycles/validation/<shot>/),
+    # or "zoo+corpus": both; each shot through a runtime Stream with its state carried, mean
+    # per-frame PSNR per shot and spp.
     # A shot not rendered (or lacking an spp level) is skipped with a printed note; a shot still
     # rendering counts the frames it has; none rendered at all is an error at the start, never
     # a silent fall-back. The generator's validation is still logged beside it.
     select_on: str = "validation"
-    select_spp: str = "1,4,16"  # zoo: the spp levels scored
-    # zoo: the first frames of each shot, centre crop (whole frame where smaller). One pass
+    select_spp: str = "1,4,16"  # zoo/corpus: the spp levels scored
+    # zoo/corpus: the first frames of each shot, centre crop (whole frame where smaller). One pass
     # over the 8 shots rendered here (24 sequences of 8 frames at 1,4,16 spp, <= 192x192) costs
     # about 13 CPU-seconds on one thread for nbg-2l-3g and affinity-h16-k5gc alike (3 s of it
     # decoding the EXRs; 11-12 s wall on a loaded 2-core machine)
@@ -171,16 +177,26 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
     --kernel-size (affinity: also the exported graph's default, the size the model knows best)
     and the clamp."""
     if saved is not None:
-        return family_of_checkpoint(saved).from_saved(saved, **clamp_flags(cfg))
+        return family_of_checkpoint(saved).from_saved(saved, **weightless_flags(cfg))
     sizes = {"width": cfg.width, "net_scale": cfg.net_scale, "kernel_size": cfg.kernel_size}
-    overrides = {k: v for k, v in sizes.items() if v} | clamp_flags(cfg)
+    overrides = {k: v for k, v in sizes.items() if v} | weightless_flags(cfg)
     return family_of_variant(cfg.variant).variant(cfg.variant, **overrides)
 
 
-def clamp_flags(cfg: TrainConfig) -> dict[str, float]:
-    """The firefly-clamp settings the flags give (-1: none given, the model's own stay)."""
-    return {k: v for k, v in (("outlier_sigmas", cfg.outlier_sigmas),
-                              ("outlier_floor", cfg.outlier_floor)) if v >= 0}
+def weightless_flags(cfg: TrainConfig) -> dict[str, float | bool]:
+    """The settings a fine-tune may change on a checkpoint's model (-1: none given, the
+    model's own stay): the firefly clamp (no weights) and NBG's pass-through (whose weights
+    the model adds: load_weights)."""
+    given = {k: v for k, v in (("outlier_sigmas", cfg.outlier_sigmas),
+                               ("outlier_floor", cfg.outlier_floor)) if v >= 0}
+    return given | ({"passthrough": bool(cfg.passthrough)} if cfg.passthrough >= 0 else {})
+
+
+def load_weights(model: nn.Module, state: dict[str, Tensor]) -> None:
+    """A checkpoint's weights into `model`, through the model's adapt_state_dict where it has
+    one (an NBG that gained the pass-through in a fine-tune)."""
+    adapt = getattr(model, "adapt_state_dict", None)
+    model.load_state_dict(adapt(state) if adapt else state)
 
 
 def oidn_settings(cfg: TrainConfig) -> OIDNSettings | None:
@@ -319,10 +335,11 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     from tqdm import tqdm
 
     zoo_selection.check(cfg)
-    if cfg.select_on == "zoo":  # none rendered: an error now, not at the first evaluation
+    on_shots = bool(zoo_selection.sources(cfg))  # zoo or corpus shots, not the generator's
+    if on_shots:  # none rendered: an error now, not at the first evaluation
         notes: list[str] = []
         zoo_selection.zoo_sequences(cfg, notes)
-        print("\n".join(notes) if notes else "zoo selection: every validation shot rendered")
+        print("\n".join(notes) if notes else "selection: every validation shot rendered")
     run.mkdir(parents=True, exist_ok=True)
     (run / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     torch.manual_seed(cfg.seed)
@@ -334,7 +351,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
     start = ckpt or (load_init(cfg.init) if cfg.init else None)
     model = build_model(cfg, start["config"] if start else None)
     if start:
-        model.load_state_dict(start["model"])
+        load_weights(model, start["model"])
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if ckpt:
         optimizer.load_state_dict(ckpt["optimizer"])
@@ -369,9 +386,9 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
             # No validation split: no score (None; -inf is no JSON a card can carry).
             candidate = {"val_psnr_1spp_last_frame": round(val_psnr, 3) if val_batches else None,
                          "step": step, "val_sequences": len(val_batches)}
-            if cfg.select_on == "zoo":
+            if on_shots:
                 zoo = zoo_selection.score(model, zoo_selection.zoo_sequences(cfg),
-                                          cfg.select_crop, tqdm.write)
+                                          cfg.select_crop, tqdm.write, cfg.select_on)
                 score, comparable = zoo.psnr, zoo.same_set(metrics)
                 record |= {"zoo_psnr": zoo.psnr, "zoo_per_shot": zoo.per_shot}
                 candidate |= zoo.metrics()
@@ -387,9 +404,9 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
             if kept:
                 best_psnr, metrics = score, candidate
                 save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
-            if cfg.select_on == "zoo":
+            if on_shots:
                 tqdm.write(f"step {step}: best.pt is step {metrics['step']} "
-                           f"(zoo {best_psnr:.3f} dB)")
+                           f"({cfg.select_on} {best_psnr:.3f} dB)")
             save(latest, model, optimizer, step, cfg, best_psnr, metrics)
     if step % cfg.eval_every and step != cfg.steps:  # paused (--stop-at) between evaluations
         save(latest, model, optimizer, step, cfg, best_psnr, metrics)
@@ -398,9 +415,10 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
 
 
 ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fixed per run
-                       "outlier_sigmas", "outlier_floor", "net_scale")
-# Architecture a fine-tune (--init) may still change: the clamp has no weights to load.
-FINE_TUNE_MAY_CHANGE = ("outlier_sigmas", "outlier_floor")
+                       "outlier_sigmas", "outlier_floor", "net_scale", "passthrough")
+# Architecture a fine-tune (--init) may still change: the clamp has no weights to load, the
+# pass-through's are added (model/nbg.add_passthrough).
+FINE_TUNE_MAY_CHANGE = ("outlier_sigmas", "outlier_floor", "passthrough")
 
 
 def load_init(init: str) -> dict:
@@ -459,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
         dropped_buffers(cfg)
         renderers(cfg)
         zoo_selection.check(cfg)
-        if cfg.select_on == "zoo":
+        if zoo_selection.sources(cfg):
             zoo_selection.zoo_sequences(cfg)
     except (ValueError, FileNotFoundError) as exc:
         parser.error(str(exc))

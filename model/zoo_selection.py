@@ -1,9 +1,12 @@
-"""Checkpoint selection on the zoo's validation shots (`quietframe-train --select-on zoo`).
+"""Checkpoint selection on Cycles shots from outside the generator (`quietframe-train
+--select-on zoo|corpus|zoo+corpus`).
 
 The learned tiers' weakness is content unlike the generator's, so a run may keep the
-checkpoint that is best on the zoo's validation shots (scenes/zoo_shots.py: Cycles shots from
-outside the generator, <data>/<zoo>-cycles/validation/<shot>/, every round) rather than on the
-generator's validation split.
+checkpoint that is best on the zoo's validation shots (scenes/zoo_shots.py,
+<data>/<zoo>-cycles/validation/<shot>/, every round), on the training corpus's validation
+shots (scenes/corpus_shots.py, <data>/corpus-cycles/validation/<shot>/: the zoo's layout, drawn
+from the corpus's parts, none of them trained on) or on both, rather than on the generator's
+validation split.
 
 A shot is scored as the runtime would run it: its frames through `runtime.Stream` (the
 motion-evidence gate, motion estimated from the aux where a frame moves without vectors, a
@@ -40,9 +43,13 @@ from quietframe.runtime.denoiser import DenoiseResult
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
 from quietframe.runtime.stream import Stream
 from quietframe.scenes import cycles_io
+from quietframe.scenes.corpus_shots import corpus_dir, corpus_shots
 from quietframe.scenes.zoo_shots import ZOO_ROUNDS, shots, zoo_dir
 
-SELECT_ON = ("validation", "zoo")
+# "validation": the generator's split (model/train.validate); the others score shots here
+SHOT_SOURCES = ("zoo", "corpus")
+SELECT_ON = ("validation", "zoo", "corpus", "zoo+corpus")
+CORPUS = "corpus"  # ZooSequence.zoo of a corpus shot
 MODEL_STATE = "torch_state"  # the model's own state inside the stream's state dict
 
 Frame = tuple[dict[str, np.ndarray], np.ndarray, bool]  # (C, H, W) planes, (H, W, 3) ref, reset
@@ -81,19 +88,25 @@ def select_spp(cfg: SelectionConfig) -> tuple[int, ...]:
     return levels
 
 
+def sources(cfg: SelectionConfig) -> tuple[str, ...]:
+    """Where the shots a selection scores come from (SHOT_SOURCES); () for the generator's
+    validation split."""
+    return tuple(s for s in cfg.select_on.split("+") if s in SHOT_SOURCES)
+
+
 def check(cfg: SelectionConfig) -> None:
     """ValueError for a selection setting the run cannot use (before any step is taken)."""
     if cfg.select_on not in SELECT_ON:
         raise ValueError(f"select_on {cfg.select_on!r}: one of {', '.join(SELECT_ON)}")
-    if cfg.select_on != "zoo":
+    if not sources(cfg):
         return
     select_spp(cfg)
     if cfg.select_frames < 1 or cfg.select_crop < 16:
         raise ValueError("select_frames must be at least 1 and select_crop at least 16 px")
     if cfg.variant in OIDN_VARIANTS:
-        raise ValueError(f"--select-on zoo scores NBG and affinity variants; {cfg.variant} "
-                         "reads OIDN's output, which the zoo's frames do not carry: use "
-                         "--select-on validation")
+        raise ValueError(f"--select-on {cfg.select_on} scores NBG and affinity variants; "
+                         f"{cfg.variant} reads OIDN's output, which the shots' frames do not "
+                         "carry: use --select-on validation")
 
 
 def rendered_frames(folder: Path, spp: int) -> int:
@@ -111,32 +124,46 @@ def rendered_frames(folder: Path, spp: int) -> int:
     return count
 
 
+def shot_folders(cfg: SelectionConfig) -> list[tuple[str, str, Path]]:
+    """(source, shot, folder) of every validation shot the selection reads: each zoo round's
+    (scenes/zoo_shots.py) and the corpus's (scenes/corpus_shots.py), as `select_on` asks."""
+    out = []
+    for source in sources(cfg):
+        if source == CORPUS:
+            root = corpus_dir(cfg.data, "validation")
+            out += [(CORPUS, s.name, root / s.name) for s in corpus_shots("validation")]
+            continue
+        for zoo in ZOO_ROUNDS:
+            root = zoo_dir(cfg.data, "validation", zoo)
+            out += [(zoo, shot.name, root / shot.name) for shot in shots("validation", zoo)]
+    return out
+
+
 def zoo_sequences(cfg: SelectionConfig, notes: list[str] | None = None) -> list[ZooSequence]:
-    """The (shot, spp) pairs a pass scores: every round's validation shots rendered on this
-    machine at each of `select_spp`. What is skipped (a shot not rendered, an spp level it
-    lacks) is appended to `notes`. FileNotFoundError when nothing is rendered."""
+    """The (shot, spp) pairs a pass scores: the validation shots `select_on` names (the zoo's,
+    the corpus's) rendered on this machine, at each of `select_spp`. What is skipped (a shot not
+    rendered, an spp level it lacks) is appended to `notes`. FileNotFoundError when nothing is
+    rendered."""
     notes = [] if notes is None else notes
     out = []
-    for zoo in ZOO_ROUNDS:
-        root = zoo_dir(cfg.data, "validation", zoo)
-        for shot in shots("validation", zoo):
-            folder = root / shot.name
-            if not (folder / cycles_io.MANIFEST).exists():
-                notes.append(f"zoo selection: {zoo}/{shot.name} not rendered, skipped")
-                continue
-            for spp in select_spp(cfg):
-                frames = min(rendered_frames(folder, spp), cfg.select_frames)
-                if frames:
-                    out.append(ZooSequence(shot.name, zoo, folder, spp, frames))
-                else:
-                    notes.append(f"zoo selection: {zoo}/{shot.name} has no frame at {spp} spp, "
-                                 "skipped")
+    for source, name, folder in shot_folders(cfg):
+        if not (folder / cycles_io.MANIFEST).exists():
+            notes.append(f"selection: {source}/{name} not rendered, skipped")
+            continue
+        for spp in select_spp(cfg):
+            frames = min(rendered_frames(folder, spp), cfg.select_frames)
+            if frames:
+                out.append(ZooSequence(name, source, folder, spp, frames))
+            else:
+                notes.append(f"selection: {source}/{name} has no frame at {spp} spp, skipped")
     if not out:
+        where = {"zoo": f"<zoo>-cycles/validation/<shot>/ for {', '.join(ZOO_ROUNDS)}: "
+                        "docs/zoo.md",
+                 CORPUS: "corpus-cycles/validation/<shot>/: docs/data.md, 'Training corpus'"}
         raise FileNotFoundError(
-            f"--select-on zoo: no zoo validation shot is rendered under {cfg.data} at "
-            f"{cfg.select_spp} spp (<zoo>-cycles/validation/<shot>/ for {', '.join(ZOO_ROUNDS)});"
-            " render some (docs/zoo.md) or select on the generator's split (--select-on "
-            "validation)")
+            f"--select-on {cfg.select_on}: no validation shot is rendered under {cfg.data} at "
+            f"{cfg.select_spp} spp ({'; '.join(where[s] for s in sources(cfg))}); render some "
+            "or select on the generator's split (--select-on validation)")
     return out
 
 
@@ -216,10 +243,12 @@ def score_frames(model: nn.Module, frames: list[Frame], spp: int) -> list[float]
 class ZooScore:
     psnr: float  # the mean over (shot, spp) of each one's mean per-frame PSNR
     per_shot: dict[str, dict[str, Any]]  # shot -> {"frames": n, "psnr": {spp: dB}}
+    selected_on: str = "zoo"  # the run's select_on
 
     def metrics(self) -> dict[str, Any]:
-        """What best.pt's metrics (and an exported card's notes) record of the selection."""
-        return {"selected_on": "zoo", "zoo_psnr": round(self.psnr, 3),
+        """What best.pt's metrics (and an exported card's notes) record of the selection (the
+        keys keep the zoo's name whatever the shots: cards and reports read them)."""
+        return {"selected_on": self.selected_on, "zoo_psnr": round(self.psnr, 3),
                 "zoo_sequences": sum(len(s["psnr"]) for s in self.per_shot.values()),
                 "zoo_per_shot": self.per_shot}
 
@@ -228,7 +257,7 @@ class ZooScore:
         scores are comparable only then (a shot still rendering changes the set)."""
         def shape(per_shot: Mapping) -> dict:
             return {k: (v["frames"], sorted(v["psnr"])) for k, v in per_shot.items()}
-        return (metrics.get("selected_on") == "zoo"
+        return (metrics.get("selected_on") == self.selected_on
                 and shape(metrics.get("zoo_per_shot", {})) == shape(self.per_shot))
 
     def lines(self) -> list[str]:
@@ -239,8 +268,9 @@ class ZooScore:
 
 @torch.no_grad()
 def score(model: nn.Module, sequences: list[ZooSequence], crop: int,
-          log: Callable[[str], None] | None = None) -> ZooScore:
-    """The selection score of `model` on `sequences`; each shot's line goes to `log`."""
+          log: Callable[[str], None] | None = None, selected_on: str = "zoo") -> ZooScore:
+    """The selection score of `model` on `sequences` (`selected_on`: the run's select_on, for
+    the record); each shot's line goes to `log`."""
     model.eval()
     per_shot: dict[str, dict[str, Any]] = {}
     references: dict[Path, dict[int, np.ndarray]] = {}
@@ -255,7 +285,7 @@ def score(model: nn.Module, sequences: list[ZooSequence], crop: int,
             means.append(mean)
     finally:
         model.train()
-    result = ZooScore(float(np.mean(means)), per_shot)
+    result = ZooScore(float(np.mean(means)), per_shot, selected_on)
     for line in result.lines() if log else ():
         log(line)
     return result

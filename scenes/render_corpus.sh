@@ -6,8 +6,9 @@
 #   nohup nice -n 15 scenes/render_corpus.sh > ~/.cache/quietframe/logs/corpus.log 2>&1 &
 # Run from the repository root. CYCLES_PYTHON: the Cycles venv's interpreter (`make cycles`);
 # THREADS (default 2); SPLITS (default "validation train"); CHUNK (default 6 shots); OUT (the
-# data folder, default ~/.cache/quietframe/data). Budget and figures: docs/data.md, "Training
-# corpus".
+# data folder, default ~/.cache/quietframe/data); FRAMES (frames a shot, default the corpus's 8:
+# FRAMES=4 renders each shot's first 4 frames, what one training window reads, at half the cost).
+# Budget and figures: docs/data.md, "Training corpus".
 set -u
 PY=${CYCLES_PYTHON:-.venv-cycles/bin/python}
 CHUNK=${CHUNK:-6}
@@ -17,7 +18,7 @@ for split in ${SPLITS:-validation train}; do
     for ((start = 0; start < count; start += CHUNK)); do
         echo "corpus $split: shots $start-$((start + CHUNK - 1)) ($(date -u +%FT%TZ))"
         "$PY" -m quietframe.scenes.corpus_render --split "$split" --start "$start" \
-            --count "$CHUNK" --threads "${THREADS:-2}" ${OUT:+--out "$OUT"} \
+            --count "$CHUNK" --threads "${THREADS:-2}" ${OUT:+--out "$OUT"} ${FRAMES:+--frames "$FRAMES"} \
             || echo "corpus $split $start: some shots failed (re-run to retry)"
     done
 done

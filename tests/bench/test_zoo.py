@@ -181,3 +181,21 @@ def test_report_tables_per_shot_history_and_flicker():
     assert "| a | locked-off | 1 |" in text
     assert "+0.20" in text  # oidn-history against its per-frame stage
     assert "0.40" in text  # flicker ratio to Blender's denoise
+
+
+def test_zoo_eval_reads_corpus_validation_shots_and_refuses_other_corpus_splits(tmp_path):
+    from quietframe.bench import zoo_eval
+    from quietframe.scenes.corpus_shots import corpus_dir, corpus_shots
+
+    shot = corpus_shots("validation")[0]
+    folder = corpus_dir(tmp_path, "validation") / shot.name
+    folder.mkdir(parents=True)
+    manifest = {"shot": shot.record(), "tags": ["exterior", "thin geometry"],
+                "frame_count": 0, "config": {"spp_levels": [1]}, "frames": []}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    assert zoo_eval.shot_folders(tmp_path, "validation", (1,), zoo_eval.CORPUS) == [folder]
+    info = zoo_eval.shot_info(folder)
+    assert (info["name"], info["camera"], info["tags"]) == (
+        shot.name, shot.camera, ["exterior", "thin geometry"])
+    with pytest.raises(SystemExit, match="only its validation split"):
+        zoo_eval.shot_folders(tmp_path, "test", (1,), zoo_eval.CORPUS)

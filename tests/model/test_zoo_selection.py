@@ -1,6 +1,7 @@
-"""quietframe-train --select-on zoo: best.pt is picked on the zoo's validation shots. Tiny zoo
-shots in Blender's on-disk layout (per-spp folders of multilayer EXRs, two reference halves,
-the zoo's folder names), written without bpy; the generator's splits from dataset_support."""
+"""quietframe-train --select-on zoo|corpus|zoo+corpus: best.pt is picked on the zoo's or the
+training corpus's validation shots. Tiny shots in Blender's on-disk layout (per-spp folders of
+multilayer EXRs, two reference halves, the zoo's folder names), written without bpy; the
+generator's splits from dataset_support."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from quietframe.model import zoo_selection as zs  # noqa: E402
 from quietframe.model.metrics import psnr  # noqa: E402
 from quietframe.runtime.buffers import BUFFER_NAMES  # noqa: E402
 from quietframe.scenes import cycles_io  # noqa: E402
+from quietframe.scenes.corpus_shots import corpus_dir, corpus_shots  # noqa: E402
 from quietframe.scenes.generator import GENERATOR_VERSION  # noqa: E402
 from quietframe.scenes.zoo_shots import zoo_dir  # noqa: E402
 
@@ -65,9 +67,11 @@ def halves(frame: dict, seed: int, t: int) -> tuple[np.ndarray, np.ndarray]:
 
 def write_shot(data, zoo: str, name: str, seed: int, frames: int = 4, rendered: int | None = None,
                cuts=(), levels=LEVELS):
-    """A zoo validation shot as scenes/zoo_render.py leaves it: `rendered` of its `frames`
-    done (a render in progress), each with every spp level and both reference halves."""
-    folder = zoo_dir(data, "validation", zoo) / name
+    """A zoo validation shot as scenes/zoo_render.py leaves it (zoo "corpus": a corpus
+    validation shot, the same layout): `rendered` of its `frames` done (a render in progress),
+    each with every spp level and both reference halves."""
+    folder = (corpus_dir(data, "validation") if zoo == "corpus"
+              else zoo_dir(data, "validation", zoo)) / name
     done = frames if rendered is None else rendered
     truth = scene(seed, frames)
     for t in range(done):
@@ -220,14 +224,15 @@ def test_no_rendered_zoo_shot_is_an_error_before_any_step(data, tmp_path, capsys
     empty = tmp_path / "data"
     for split in ("train", "validation"):
         write_sequence(empty / GENERATOR_VERSION / split, 31, frames=3)
-    with pytest.raises(FileNotFoundError, match="no zoo validation shot is rendered"):
+    with pytest.raises(FileNotFoundError, match="no validation shot is rendered"):
         qt.train(zoo_config(empty), tmp_path / "run")
     assert not (tmp_path / "run").exists()
     with pytest.raises(SystemExit) as exit_:
         qt.main(["--select-on", "zoo", "--data", str(empty), "--run", str(tmp_path / "cli")])
     assert exit_.value.code == 2
     err = capsys.readouterr().err
-    assert "no zoo validation shot is rendered" in err and "--select-on validation" in err
+    assert "no validation shot is rendered" in err and "--select-on validation" in err
+    assert "docs/zoo.md" in err
     with pytest.raises(SystemExit):  # a shot lacking every level asked for counts as none
         qt.main(["--select-on", "zoo", "--select-spp", "64", "--data", str(data),
                  "--run", str(tmp_path / "cli")])
@@ -235,3 +240,24 @@ def test_no_rendered_zoo_shot_is_an_error_before_any_step(data, tmp_path, capsys
                        (dict(variant="oidn-temporal-fast"), "OIDN")):
         with pytest.raises(ValueError, match=match):
             zs.check(zoo_config(data, **bad))
+
+
+def test_corpus_selection_reads_the_corpus_validation_shots_and_not_the_zoos(data, tmp_path):
+    root = tmp_path / "data"
+    write_generator_splits(root)
+    first, second = (s.name for s in corpus_shots("validation")[:2])
+    write_shot(root, "corpus", first, seed=4, frames=3)
+    write_shot(root, "zoo1", "gallery-pan", seed=1, frames=4)
+    notes: list[str] = []
+    seqs = zs.zoo_sequences(zoo_config(root, select_on="corpus"), notes)
+    assert [(s.zoo, s.shot, s.spp, s.frames) for s in seqs] == [
+        ("corpus", first, 1, 3), ("corpus", first, 4, 3)]
+    assert f"corpus/{second} not rendered, skipped" in " ".join(notes)
+    both = zs.zoo_sequences(zoo_config(root, select_on="zoo+corpus"))
+    assert {(s.zoo, s.shot) for s in both} == {("zoo1", "gallery-pan"), ("corpus", first)}
+    best = torch.load(qt.train(zoo_config(root, select_on="corpus", steps=2), tmp_path / "run"),
+                      weights_only=False)
+    assert best["metrics"]["selected_on"] == "corpus"
+    assert set(best["metrics"]["zoo_per_shot"]) == {first}
+    with pytest.raises(FileNotFoundError, match="corpus-cycles/validation"):
+        zs.zoo_sequences(zoo_config(data, select_on="corpus"))  # zoo shots only there

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Fine-tune the shipped learned tiers (nbg-2l-3g, affinity-h16-k5gc) on the Cycles training
+# corpus (shots from outside the generator, scenes/corpus_shots.py) mixed with the generator's
+# Cycles train split, picking checkpoints on the corpus's validation shots at 1-64 spp through
+# the runtime's Stream (--select-on corpus; model/zoo_selection.py). Two runs side by side (one
+# thread each), each resumable from its run directory.
+#   nohup nice -n 5 model/finetune_corpus.sh > ~/.cache/quietframe/logs/finetune-corpus.log 2>&1 &
+# PYTHON: the interpreter (default python); RUNS: where runs go (default
+# ~/.cache/quietframe/runs/corpus); NBG_STEPS / AFFINITY_STEPS: schedule lengths; RENDERERS: the
+# generator's splits mixed in (default cycles: g2-cycles/train; "mitsuba,cycles" where the
+# Mitsuba split is rendered too). Data: scenes/render_corpus.sh, scenes/render_cycles_splits.sh.
+# nbg-2l-3g gains the pass-through candidate (--passthrough 1, model/nbg.py): the grids alone
+# cannot give back an input that is already clean (docs/training.md, "Training on the corpus").
+set -u
+PY=${PYTHON:-python}
+R=${RUNS:-$HOME/.cache/quietframe/runs/corpus}
+mkdir -p "$R"
+run() {  # name, then quietframe-train flags
+    local name=$1
+    shift
+    "$PY" -m quietframe.model.train --run "$R/$name" --init "models/training/$name/best.pt" \
+        --renderers "${RENDERERS:-cycles}" --corpus 1 --select-on corpus \
+        --select-spp 1,4,16,64 --threads 1 --seed 1 "$@" > "$R/$name.out" 2>&1 \
+        || echo "run $name failed (see $R/$name.out)"
+    echo "run $name: $(tail -c 300 "$R/$name/log.txt" 2>/dev/null | tail -1)"
+}
+run nbg-2l-3g --passthrough 1 --steps "${NBG_STEPS:-1500}" --eval-every 250 --lr 0.0003 \
+    --dropout 0.3 --loss smape+temporal --crop 128 --frames 4 --batch 4 &
+run affinity-h16-k5gc --steps "${AFFINITY_STEPS:-1200}" --eval-every 200 --lr 0.00015 \
+    --loss tau+temporal --crop 128 --frames 4 --batch 4 &
+wait
