@@ -138,6 +138,8 @@ def _register_schemas() -> None:
         type_constraints=float_t,
     ))
     float_attr = OpSchema.Attribute
+    blend_inputs = [param("logits", "T"), param("safe_albedo", "T"), param("sliced0", "T"),
+                    param("sliced1", "T"), param("sliced2", "T")]
     schemas += [
         OpSchema(
             "NBGAccumulate", OPS_DOMAIN, 1,
@@ -164,9 +166,13 @@ def _register_schemas() -> None:
             "NBGBlend", OPS_DOMAIN, 1,
             doc="softmax-weighted sum of three sliced grids, remodulated; "
                 "quietframe.model.nbg_fused.blend_sliced",
-            inputs=[param("logits", "T"), param("safe_albedo", "T"), param("sliced0", "T"),
-                    param("sliced1", "T"), param("sliced2", "T")],
-            outputs=[param("denoised", "T")],
+            inputs=blend_inputs, outputs=[param("denoised", "T")], type_constraints=float_t,
+        ),
+        OpSchema(
+            "NBGBlendPass", OPS_DOMAIN, 1,
+            doc="softmax-weighted sum of three sliced grids and the accumulated irradiance "
+                "(NBGConfig.passthrough), remodulated; quietframe.model.nbg_fused.blend_sliced",
+            inputs=[*blend_inputs, param("passthrough", "T")], outputs=[param("denoised", "T")],
             type_constraints=float_t,
         ),
     ]
@@ -238,6 +244,10 @@ def _blend_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2):
     return _QF.NBGBlend(logits, safe_albedo, sliced0, sliced1, sliced2)
 
 
+def _blend_pass_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2, passthrough):
+    return _QF.NBGBlendPass(logits, safe_albedo, sliced0, sliced1, sliced2, passthrough)
+
+
 def custom_translation_table() -> dict:
     """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
     return {
@@ -250,6 +260,7 @@ def custom_translation_table() -> dict:
         torch.ops.quietframe.nbg_accumulate.default: _accumulate_to_onnx,
         torch.ops.quietframe.nbg_features.default: _features_to_onnx,
         torch.ops.quietframe.nbg_blend.default: _blend_to_onnx,
+        torch.ops.quietframe.nbg_blend_pass.default: _blend_pass_to_onnx,
     }
 
 

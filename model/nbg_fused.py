@@ -2,9 +2,10 @@
 
 NBGDenoiser.forward (model/nbg.py) is what trains; `fused_forward` computes the same frame with
 the glue between its stages as torch custom ops, which the ONNX export maps onto
-ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend (export/ops/nbg_fused.cc). In onnxruntime
-that glue was ~60 element-wise nodes, a pass over full-frame tensors each, about a third of
-nbg-2l-3g's time at 720p; each fused op is one pass.
+ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend, or NBGBlendPass for a model with the
+pass-through candidate (export/ops/nbg_fused.cc). In onnxruntime that glue was ~60 element-wise
+nodes, a pass over full-frame tensors each, about a third of nbg-2l-3g's time at 720p; each
+fused op is one pass.
 
 Each op's implementation below is its reference, built from the functions NBGDenoiser calls, so
 the fused graph computes what the model computes (tests/export/test_ops_nbg_fused.py holds the
@@ -18,11 +19,17 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from quietframe.model.grid import bilateral_slice, bilateral_splat
-from quietframe.model.nbg import NBGDenoiser, demodulation_divisor, ldr, suppress_outliers
+from quietframe.model.nbg import (
+    NBGDenoiser,
+    channel_softmax,
+    demodulation_divisor,
+    ldr,
+    suppress_outliers,
+)
 from quietframe.model.temporal import backward_warp, history_valid, history_weights
 
 LDR_EXPONENT = 1 / 2.2  # model/nbg.ldr's gamma
-FUSED_GRIDS = 3  # NBGBlend weighs three sliced grids
+FUSED_GRIDS = 3  # NBGBlend (and NBGBlendPass) weigh three sliced grids
 
 
 def accumulate_warped(radiance: Tensor, warped: Tensor, inside: Tensor, depth: Tensor,
@@ -52,15 +59,15 @@ def features_scaled(radiance: Tensor, safe_albedo: Tensor, albedo: Tensor, norma
     )
 
 
-def blend_sliced(logits: Tensor, safe_albedo: Tensor, *sliced: Tensor) -> Tensor:
-    """The softmax of GuideNet's blend logits (channels G..2G of `logits`) weighing the sliced
-    grids, remodulated: NBGDenoiser.forward's last lines."""
-    grids = len(sliced)
-    logits = logits[:, grids:]
-    exp = torch.exp(logits - logits.amax(dim=1, keepdim=True))
-    weights = exp / exp.sum(dim=1, keepdim=True)  # model/nbg.channel_softmax
+def blend_sliced(logits: Tensor, safe_albedo: Tensor, *sliced: Tensor,
+                 passthrough: Tensor | None = None) -> Tensor:
+    """The softmax of GuideNet's blend logits (the channels after its G guides, G = the number
+    of sliced grids) weighing the sliced grids and, with NBGConfig.passthrough, last the
+    accumulated irradiance `passthrough`, remodulated: NBGDenoiser.forward's last lines."""
+    candidates = sliced if passthrough is None else (*sliced, passthrough)
+    weights = channel_softmax(logits[:, len(sliced) :])
     result = torch.zeros_like(sliced[0])
-    for s, image in enumerate(sliced):
+    for s, image in enumerate(candidates):
         result = result + weights[:, s : s + 1] * image
     return result * safe_albedo
 
@@ -97,14 +104,23 @@ def nbg_blend(logits: Tensor, safe_albedo: Tensor, sliced0: Tensor, sliced1: Ten
     return blend_sliced(logits, safe_albedo, sliced0, sliced1, sliced2)
 
 
+@torch.library.custom_op("quietframe::nbg_blend_pass", mutates_args=())
+def nbg_blend_pass(logits: Tensor, safe_albedo: Tensor, sliced0: Tensor, sliced1: Tensor,
+                   sliced2: Tensor, passthrough: Tensor) -> Tensor:
+    """ai.quietframe::NBGBlendPass: blend_sliced of three grids and the pass-through."""
+    return blend_sliced(logits, safe_albedo, sliced0, sliced1, sliced2, passthrough=passthrough)
+
+
 @nbg_blend.register_fake
-def _blend_fake(logits, safe_albedo, sliced0, sliced1, sliced2):
+@nbg_blend_pass.register_fake
+def _blend_fake(logits, safe_albedo, *candidates):
     return torch.empty_like(safe_albedo)
 
 
 def fusable(model: NBGDenoiser) -> bool:
-    """Whether fused_forward computes this model: a temporal 3-grid NBG without the
-    pixel-aligned history (NBGAccumulate keeps every valid history)."""
+    """Whether fused_forward computes this model: a temporal 3-grid NBG, with or without the
+    pass-through, without the pixel-aligned history (NBGAccumulate keeps every valid
+    history)."""
     config = model.config
     return (isinstance(model, NBGDenoiser) and config.temporal and config.grids == FUSED_GRIDS
             and not config.aligned_history)
@@ -136,4 +152,6 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
         guide = guides[:, s : s + 1]
         grid, weight = bilateral_splat(irradiance, guide, sigma_s, sigma_r)
         sliced.append(bilateral_slice(grid, weight, guide, sigma_s, sigma_r))
+    if config.passthrough:
+        return nbg_blend_pass(logits, safe_albedo, *sliced, irradiance), new_state
     return nbg_blend(logits, safe_albedo, *sliced), new_state

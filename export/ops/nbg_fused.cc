@@ -13,6 +13,10 @@
 //     -> denoised (N,3,H,W)
 //     the softmax of GuideNet's blend logits (channels 3..5) weighting the three sliced grids,
 //     remodulated by the albedo.
+//   NBGBlendPass(logits (N,7,H,W), safe_albedo (N,3,H,W), sliced0, sliced1, sliced2,
+//                passthrough (N,3,H,W)) -> denoised (N,3,H,W)
+//     the same with NBGConfig.passthrough: the softmax of channels 3..6 also weighs
+//     `passthrough`, the accumulated irradiance (one body with NBGBlend: BlendKernel).
 //
 // Each was 15–30 element-wise onnxruntime nodes, every one a pass over full-frame tensors
 // (about a third of nbg-2l-3g's time); here one pass per op. The arithmetic is the reference's,
@@ -233,53 +237,71 @@ struct NBGFeatures : Kernel<NBGFeatures, FeaturesAttributes, read_features> {
   }
 };
 
-// ---- NBGBlend --------------------------------------------------------------------------------
+// ---- NBGBlend, NBGBlendPass ------------------------------------------------------------------
 
 constexpr int64_t kGrids = 3;
 
-struct NBGBlend : Kernel<NBGBlend, NoAttributes, read_no_attributes> {
-  static constexpr const char* kName = "NBGBlend";
-  static constexpr const char* kInputNames[] = {"logits", "safe_albedo", "sliced0", "sliced1",
-                                                "sliced2"};
+// The blend of `kCandidates` images (the kGrids sliced grids, then NBGBlendPass's pass-through):
+// inputs logits (N, kGrids + kCandidates, H, W), safe_albedo, then the candidates (N, 3, H, W);
+// the candidates' weights are the softmax of the logits after GuideNet's kGrids guides. K names
+// the op and its inputs.
+template <class K, int64_t kCandidates>
+struct BlendKernel : Kernel<K, NoAttributes, read_no_attributes> {
   static constexpr size_t kOutputs = 1;
+  static constexpr size_t kInputs = 2 + kCandidates;
 
-  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<5>& in) const {
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<kInputs>& in) const {
+    static_assert(std::size(K::kInputNames) == kInputs, "logits, safe_albedo, the candidates");
+    constexpr int64_t kLogits = kGrids + kCandidates;
+    int64_t channels[kInputs];  // logits, safe_albedo, the candidates
+    channels[0] = kLogits;
+    std::fill(channels + 1, channels + kInputs, int64_t{3});
+    if (OrtStatus* s = check_image_inputs(api, K::kName, K::kInputNames, in, channels)) return s;
     const Shape& ls = in[0].shape;
-    // logits, safe_albedo, sliced0 … sliced2
-    static_assert(kGrids == 3, "one sliced input and channel count below per grid");
-    if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {2 * kGrids, 3, 3, 3, 3})) {
+    const int64_t N = ls[0], H = ls[2], W = ls[3], P = H * W;
+    float* denoised = nullptr;
+    if (OrtStatus* s =
+            get_float_output(api, K::kName, ctx, 0, "denoised", with_channels(ls, 3), &denoised)) {
       return s;
     }
-    const int64_t N = ls[0], H = ls[2], W = ls[3], P = H * W;
-    const Shape os = with_channels(ls, 3);
-    float* denoised = nullptr;
-    if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "denoised", os, &denoised)) return s;
     auto body = [&](int64_t n, int64_t first, int64_t end) {
-      const float* logits = in[0].data + (n * 2 * kGrids + kGrids) * P;  // the blend logits
+      const float* logits = in[0].data + (n * kLogits + kGrids) * P;  // the blend logits
       const float* safe = in[1].data + n * 3 * P;
-      const float* sliced[kGrids];
-      for (int64_t g = 0; g < kGrids; ++g) sliced[g] = in[2 + g].data + n * 3 * P;
+      const float* candidate[kCandidates];
+      for (int64_t g = 0; g < kCandidates; ++g) candidate[g] = in[2 + g].data + n * 3 * P;
       float* out = denoised + n * 3 * P;
       for (int64_t p = first; p < end; ++p) {
-        // model/nbg.channel_softmax
+        // model/nbg.channel_softmax: the max subtracted, so a large logit cannot overflow exp
         float peak = logits[p];
-        for (int64_t g = 1; g < kGrids; ++g) peak = std::max(peak, logits[g * P + p]);
-        float e[kGrids];
+        for (int64_t g = 1; g < kCandidates; ++g) peak = std::max(peak, logits[g * P + p]);
+        float e[kCandidates];
         float sum = 0.0f;
-        for (int64_t g = 0; g < kGrids; ++g) {
+        for (int64_t g = 0; g < kCandidates; ++g) {
           e[g] = std::exp(logits[g * P + p] - peak);
           sum += e[g];
         }
-        for (int64_t g = 0; g < kGrids; ++g) e[g] = e[g] / sum;
+        for (int64_t g = 0; g < kCandidates; ++g) e[g] = e[g] / sum;
         for (int64_t c = 0; c < 3; ++c) {
           float v = 0.0f;
-          for (int64_t g = 0; g < kGrids; ++g) v = v + e[g] * sliced[g][c * P + p];
+          for (int64_t g = 0; g < kCandidates; ++g) v = v + e[g] * candidate[g][c * P + p];
           out[c * P + p] = v * safe[c * P + p];
         }
       }
     };
-    return for_pixel_bands(api, kName, ctx, N, H, W, body);
+    return for_pixel_bands(api, K::kName, ctx, N, H, W, body);
   }
+};
+
+struct NBGBlend : BlendKernel<NBGBlend, kGrids> {
+  static constexpr const char* kName = "NBGBlend";
+  static constexpr const char* kInputNames[] = {"logits", "safe_albedo", "sliced0", "sliced1",
+                                                "sliced2"};
+};
+
+struct NBGBlendPass : BlendKernel<NBGBlendPass, kGrids + 1> {
+  static constexpr const char* kName = "NBGBlendPass";
+  static constexpr const char* kInputNames[] = {"logits",  "safe_albedo", "sliced0",
+                                                "sliced1", "sliced2",     "passthrough"};
 };
 
 }  // namespace
@@ -287,5 +309,6 @@ struct NBGBlend : Kernel<NBGBlend, NoAttributes, read_no_attributes> {
 const OrtCustomOp* nbg_accumulate_op() { return CustomOp<NBGAccumulate>::get(); }
 const OrtCustomOp* nbg_features_op() { return CustomOp<NBGFeatures>::get(); }
 const OrtCustomOp* nbg_blend_op() { return CustomOp<NBGBlend>::get(); }
+const OrtCustomOp* nbg_blend_pass_op() { return CustomOp<NBGBlendPass>::get(); }
 
 }  // namespace qf

@@ -15,5 +15,6 @@ const OrtCustomOp* upsample_bilinear_op();          // upsample_bilinear.cc
 const OrtCustomOp* nbg_accumulate_op();             // nbg_fused.cc
 const OrtCustomOp* nbg_features_op();               // nbg_fused.cc
 const OrtCustomOp* nbg_blend_op();                  // nbg_fused.cc
+const OrtCustomOp* nbg_blend_pass_op();             // nbg_fused.cc
 
 }  // namespace qf

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,9 @@ def test_metadata_describes_the_graph(exported):
     ops = {(n.domain, n.op_type) for n in _graph_nodes(info.path)}
     assert ("ai.quietframe", "BilateralSplat") in ops
     assert ("ai.quietframe", "BilateralSlice") in ops
+    # 3-grid models run their glue fused (model/nbg_fused.py); no pass-through, no NBGBlendPass
+    fused = {"NBGAccumulate", "NBGFeatures", "NBGBlend"} if model.config.grids == 3 else set()
+    assert {op for _, op in ops if op.startswith("NBG")} == fused
 
 
 def _graph_nodes(path):
@@ -83,6 +87,17 @@ def assert_runtime_matches_torch(model, runtime, rtol: float = 1e-4, atol: float
 
 def test_sequence_matches_pytorch_with_state_carried(exported):
     assert_runtime_matches_torch(*exported)
+
+
+def test_passthrough_model_exports_with_the_fused_pass_through_blend(tmp_path):
+    torch.manual_seed(0)
+    config = replace(VARIANTS["nbg-2l-3g"], passthrough=True, width=8)
+    model = NBGDenoiser(config).eval()
+    runtime = Denoiser(export_nbg(model, tmp_path / "nbg-pass.onnx"), threads=2)
+    ops = {n.op_type for n in _graph_nodes(runtime.info.path)}
+    assert "NBGBlendPass" in ops and "NBGBlend" not in ops
+    assert json.loads(runtime.info.metadata["quietframe.architecture"])["passthrough"] is True
+    assert_runtime_matches_torch(model, runtime)
 
 
 SHIPPED_NBG = [p.stem for p in installed_models() if p.stem.startswith("nbg")]

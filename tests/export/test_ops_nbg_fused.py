@@ -1,8 +1,8 @@
-"""ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend (export/ops/nbg_fused.cc) against their
-PyTorch references (quietframe.model.nbg_fused): odd sizes, several images, edge values (reset,
-out-of-frame history, zero-length and flipped normals, negative radiance, saturated logits); the
-thread count changes no bit; fused_forward computes NBGDenoiser.forward; the shipped
-nbg-2l-3g.onnx uses the fused ops."""
+"""ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend / NBGBlendPass (export/ops/nbg_fused.cc)
+against their PyTorch references (quietframe.model.nbg_fused): odd sizes, several images, edge
+values (reset, out-of-frame history, zero-length and flipped normals, negative radiance,
+saturated logits); the thread count changes no bit; fused_forward computes NBGDenoiser.forward,
+with and without the pass-through; the shipped nbg-2l-3g.onnx uses the fused ops."""
 
 from __future__ import annotations
 
@@ -30,6 +30,8 @@ OPS = {
     "NBGFeatures": (["radiance", "safe_albedo", "albedo", "normal", "depth", "depth_scale"],
                     ["features"], {"exponent": fused.LDR_EXPONENT}),
     "NBGBlend": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2"], ["denoised"], {}),
+    "NBGBlendPass": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2", "passthrough"],
+                     ["denoised"], {}),
 }
 
 
@@ -92,20 +94,31 @@ def features_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarr
             "depth_scale": np.maximum(depth.mean(axis=(2, 3), keepdims=True), 1e-6)}
 
 
-def blend_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarray]:
+def blend_inputs(n: int, h: int, w: int, seed: int = 0,
+                 passthrough: bool = False) -> dict[str, np.ndarray]:
+    """NBGBlend's inputs, or with `passthrough` NBGBlendPass's (a 7th logit, the irradiance)."""
     rng = np.random.default_rng(seed)
-    logits = (rng.standard_normal((n, 6, h, w)) * 4).astype(np.float32)
+    candidates = 3 + int(passthrough)
+    logits = (rng.standard_normal((n, 3 + candidates, h, w)) * 4).astype(np.float32)
     logits[:, 3, 0, :] = 90.0  # exp overflows without the max subtracted
+    logits[:, -1, -1, :] = 90.0  # the last candidate's too (a tie in a one-row image)
     feeds = {"logits": logits, "safe_albedo": (0.01 + rng.random((n, 3, h, w))).astype(np.float32)}
     for g in range(3):
         feeds[f"sliced{g}"] = (rng.random((n, 3, h, w)) * 3).astype(np.float32)
+    if passthrough:  # the accumulated irradiance: not clamped, may be negative
+        feeds["passthrough"] = (rng.random((n, 3, h, w)) * 4 - 0.5).astype(np.float32)
     return feeds
+
+
+def blend_pass_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarray]:
+    return blend_inputs(n, h, w, seed, passthrough=True)
 
 
 REFERENCES = {
     "NBGAccumulate": (fused.accumulate_warped, accumulate_inputs),
     "NBGFeatures": (fused.features_scaled, features_inputs),
     "NBGBlend": (fused.blend_sliced, blend_inputs),
+    "NBGBlendPass": (fused.nbg_blend_pass, blend_pass_inputs),  # blend_sliced(passthrough=)
 }
 
 
@@ -148,6 +161,19 @@ def test_wrong_shape_is_an_error(run) -> None:
         run("NBGBlend", feeds)
 
 
+def test_blend_logits_must_match_the_candidates(run) -> None:
+    """A pass-through model's 7 logits given to NBGBlend, or a plain model's 6 to NBGBlendPass,
+    is an error that says which count the op wants, not a read past the logits."""
+    feeds = blend_pass_inputs(1, 8, 8)
+    without = {k: v for k, v in feeds.items() if k != "passthrough"}
+    with pytest.raises(Exception, match=r"NBGBlend: logits must be \(N, 6, H, W\)"):
+        run("NBGBlend", without)
+    feeds["logits"] = feeds["logits"][:, :6]
+    with pytest.raises(Exception, match=r"NBGBlendPass: logits must be \(N, 7, H, W\) = "
+                                        r"\(1, 7, 8, 8\) like the image, got \(1, 6, 8, 8\)"):
+        run("NBGBlendPass", feeds)
+
+
 def _frames(model, count: int = 3, seed: int = 0):
     """(inputs, reference outputs) of `count` frames of a sequence through the PyTorch model,
     the state carried."""
@@ -164,11 +190,14 @@ def _frames(model, count: int = 3, seed: int = 0):
     return frames
 
 
-def test_fused_forward_is_the_model() -> None:
+@pytest.mark.parametrize("passthrough", [False, True])
+def test_fused_forward_is_the_model(passthrough: bool) -> None:
+    from dataclasses import replace
+
     from quietframe.model.nbg import VARIANTS, NBGDenoiser
 
     torch.manual_seed(0)
-    model = NBGDenoiser(VARIANTS["nbg-2l-3g"]).eval()
+    model = NBGDenoiser(replace(VARIANTS["nbg-2l-3g"], passthrough=passthrough)).eval()
     assert fused.fusable(model)
     for inputs, output, state in _frames(model):
         with torch.no_grad():
@@ -184,3 +213,13 @@ def test_shipped_nbg_2l_3g_uses_the_fused_ops() -> None:
         pytest.skip("nbg-2l-3g is not in this checkout")
     ops = {n.op_type for n in onnx.load(str(path)).graph.node}
     assert {"NBGAccumulate", "NBGFeatures", "NBGBlend"} <= ops
+
+
+def test_only_three_grids_fuse() -> None:
+    from dataclasses import replace
+
+    from quietframe.model.nbg import VARIANTS, NBGDenoiser
+
+    for passthrough in (False, True):
+        one_grid = replace(VARIANTS["nbg-2l-1g"], passthrough=passthrough)
+        assert not fused.fusable(NBGDenoiser(one_grid))
