@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     elif args.checkpoint:
         model, checkpoint = families.load_checkpoint(args.checkpoint)
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
+        if args.metrics_from:  # the old tables, with this checkpoint's own selection record
+            training, carried = carried_metrics(args.metrics_from, training)
+            metrics = {**carried, **metrics}
     else:
         family = families.family_of_variant(args.variant)
         torch.manual_seed(args.seed)

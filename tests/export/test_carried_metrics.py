@@ -54,3 +54,28 @@ def test_an_untrained_stage_re_exported_keeps_its_tables(tmp_path, variant):
     props = {p.key: p.value for p in onnx.load(str(new)).metadata_props}
     assert json.loads(props["quietframe.metrics"]) == tables
     assert json.loads(props["quietframe.training"])["tables_measured_with_version"] == "1"
+
+
+def test_a_fine_tuned_checkpoint_carries_the_old_tables_beside_its_selection(tmp_path):
+    """A fine-tune whose tables cannot be measured again here (their split is not rendered)
+    ships with the old version's tables, its own selection record on top."""
+    torch = pytest.importorskip("torch")
+    from quietframe.export.cli import main
+    from quietframe.model.families import family_of_variant
+
+    model = family_of_variant("nbg-2l-3g").variant("nbg-2l-3g", width=4)
+    selection = {"selected_on": "corpus", "zoo_psnr": 27.5, "step": 250}
+    checkpoint = tmp_path / "best.pt"
+    torch.save({"config": model.config.to_dict(), "model": model.state_dict(),
+                "training": {"variant": "nbg-2l-3g", "steps_done": 250},
+                "metrics": selection}, checkpoint)
+    old = tmp_path / "old.onnx"
+    tables = {"by_renderer": {"cycles": {"by_spp": [{"spp": 1, "psnr": 26.0}]}}, "step": 400}
+    tiny_model(old, "5", {"steps_done": 400}, tables)
+    new = tmp_path / "nbg-2l-3g.onnx"
+    assert main(["--checkpoint", str(checkpoint), "--version", "6", "--metrics-from", str(old),
+                 "--out", str(new)]) == 0
+    props = {p.key: p.value for p in onnx.load(str(new)).metadata_props}
+    assert json.loads(props["quietframe.metrics"]) == {**tables, **selection}
+    training = json.loads(props["quietframe.training"])
+    assert training["tables_measured_with_version"] == "5" and training["steps_done"] == 250
