@@ -10,12 +10,16 @@ OIDN-high" reads), then every model (bench/timing.py, median of `--repeats` call
 through the runtime's per-sequence step (runtime/stream.py: state carried, OIDN filters kept,
 as the service runs a session), so all of them see the same load. The figures per model are
 medians over rounds of its time over the baseline's and over plain OIDN's in that round. On a
-shared machine read the ratios, not the milliseconds.
+shared machine read the ratios, not the milliseconds. `--json PATH` also writes each row's
+median time over plain OIDN-high's (keys: `oidn-high`, `oidn-fast` for plain OIDN at fast
+quality, timed in each round too, and the model files' stems), what bench/learned_report.py's
+speed-versus-error plot reads.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 from pathlib import Path
 
@@ -38,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the OIDN-high model file (default models/oidn-frame.onnx)")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=3, help="timed calls per model and round")
+    parser.add_argument("--json", type=Path, help="write each row's time / plain OIDN-high here")
     cli_args.add_threads(parser)
     args = parser.parse_args(argv)
     buffers = frame_buffers()
@@ -47,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
         stream = Stream(Denoiser(path, threads=args.threads))
         state = stream.step(buffers, None).state  # a history, as in a running sequence
         runners.append(lambda s=stream, st=state: s.step(buffers, st))
-    names = ["plain OIDN-high", *(p.name for p in paths)]
+    runners.append(plain_oidn(buffers, args.threads, quality="fast"))
+    names = ["plain OIDN-high", *(p.name for p in paths), "plain OIDN-fast"]
     ms: list[list[float]] = [[] for _ in runners]
     for r in range(args.rounds):
         for i, run in enumerate(runners):
@@ -64,6 +70,12 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{name} (baseline)" if i == 1 else name
         print(f"| {label} | {statistics.median(times):.0f} | {_spread(faster)} | "
               f"{_spread(over_plain)} |")
+    if args.json:
+        keys = ["oidn-high", *(p.stem for p in paths), "oidn-fast"]
+        args.json.write_text(json.dumps({
+            key: round(statistics.median(t / plain for plain, t in zip(ms[0], times,
+                                                                        strict=True)), 4)
+            for key, times in zip(keys, ms, strict=True)}, indent=1))
     return 0
 
 
@@ -71,8 +83,9 @@ def _spread(ratios: list[float]) -> str:
     return f"{statistics.median(ratios):.2f} ({min(ratios):.2f}–{max(ratios):.2f})"
 
 
-def plain_oidn(buffers: dict[str, np.ndarray], threads: int):
-    """A call of pyoidn's RT filter (quality high, HDR, albedo and normal), committed once."""
+def plain_oidn(buffers: dict[str, np.ndarray], threads: int, quality: str = "high"):
+    """A call of pyoidn's RT filter (HDR, albedo and normal; quality high or fast), committed
+    once."""
     import pyoidn as oidn
 
     device = oidn.Device(oidn.OIDN_DEVICE_TYPE_CPU)
@@ -84,7 +97,7 @@ def plain_oidn(buffers: dict[str, np.ndarray], threads: int):
     flt = oidn.Filter(device, oidn.OIDN_FILTER_TYPE_RT)
     for name, image in images.items():
         flt.set_image(name, image, oidn.OIDN_FORMAT_FLOAT3)
-    flt.set_quality(oidn.OIDN_QUALITY_HIGH)
+    flt.set_quality({"high": oidn.OIDN_QUALITY_HIGH, "fast": oidn.OIDN_QUALITY_FAST}[quality])
     flt.set_bool("hdr", True)
     flt.commit()
     # the arrays and device live as long as the closure (pyoidn binds memory without a ref)

@@ -39,9 +39,11 @@ def describe(model: dict) -> str:
         return (f"temporal accumulation alone ({aligned} history, no spatial filter): a "
                 "baseline, and the history stage of the OIDN models")
     if "grids" in arch:
+        grids = f"{arch.get('grids', '?')} grid{'s' if arch.get('grids') != 1 else ''}"
+        if arch.get("passthrough"):
+            grids += " and a pass-through that can keep a clean input"
         return (f"learned preview: Neural Bilateral Grid ({arch.get('layers', '?')} layers, "
-                f"{arch.get('grids', '?')} grid{'s' if arch.get('grids') != 1 else ''}), "
-                "temporal; needs only colour")
+                f"{grids}), temporal; needs only colour")
     return str(arch.get("name", "")) or "-"
 
 
