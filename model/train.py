@@ -358,9 +358,47 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
         step, best_psnr, metrics = ckpt["step"], ckpt["best_psnr"], ckpt["metrics"]
     train_batches = TrainingBatches(cfg)
     log = (run / "log.txt").open("a")
+
+    def evaluate(step: int) -> tuple[float, dict]:
+        """Validate at `step`, keep best.pt where the score beats the best so far (or cannot be
+        compared with it), checkpoint; returns the best score and its metrics."""
+        best, kept_metrics = best_psnr, metrics
+        # Re-listed each time: the validation split may still be rendering.
+        val_batches = validation_batches(cfg)
+        val_psnr = validate(model, val_batches) if val_batches else -math.inf
+        record = {"step": step, "val_psnr": val_psnr, "val_sequences": len(val_batches)}
+        # No validation split: no score (None; -inf is no JSON a card can carry).
+        candidate = {"val_psnr_1spp_last_frame": round(val_psnr, 3) if val_batches else None,
+                     "step": step, "val_sequences": len(val_batches)}
+        if on_shots:
+            zoo = zoo_selection.score(model, zoo_selection.zoo_sequences(cfg),
+                                      cfg.select_crop, tqdm.write, cfg.select_on)
+            score, comparable = zoo.psnr, zoo.same_set(kept_metrics)
+            record |= {"zoo_psnr": zoo.psnr, "zoo_per_shot": zoo.per_shot}
+            candidate |= zoo.metrics()
+        else:
+            # Scores are comparable only on the same validation set, which grows while
+            # rendering (and not with a zoo score a resumed run kept).
+            score = val_psnr
+            comparable = (bool(val_batches) and "selected_on" not in kept_metrics
+                          and kept_metrics.get("val_sequences") == len(val_batches))
+        kept = score > best or not comparable
+        log.write(json.dumps({**record, "kept": kept}) + "\n")
+        log.flush()
+        if kept:
+            best, kept_metrics = score, candidate
+            save(run / "best.pt", model, optimizer, step, cfg, best, kept_metrics)
+        if on_shots:
+            tqdm.write(f"step {step}: best.pt is step {kept_metrics['step']} "
+                       f"({cfg.select_on} {best:.3f} dB)")
+        save(latest, model, optimizer, step, cfg, best, kept_metrics)
+        return best, kept_metrics
+
     bar = tqdm(total=cfg.steps, initial=step, desc=cfg.variant, dynamic_ncols=True)
     started, running = time.time(), None
     end = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
+    if cfg.init and not ckpt:  # the starting model is the score a fine-tune must beat
+        best_psnr, metrics = evaluate(0)
     while step < end:
         batch = drop_buffers(cfg, train_batches(step), step)
         for group in optimizer.param_groups:
@@ -379,35 +417,7 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
                                   "seconds": round(time.time() - started, 1)}) + "\n")
             log.flush()
         if step % cfg.eval_every == 0 or step == cfg.steps:
-            # Re-listed each time: the validation split may still be rendering.
-            val_batches = validation_batches(cfg)
-            val_psnr = validate(model, val_batches) if val_batches else -math.inf
-            record = {"step": step, "val_psnr": val_psnr, "val_sequences": len(val_batches)}
-            # No validation split: no score (None; -inf is no JSON a card can carry).
-            candidate = {"val_psnr_1spp_last_frame": round(val_psnr, 3) if val_batches else None,
-                         "step": step, "val_sequences": len(val_batches)}
-            if on_shots:
-                zoo = zoo_selection.score(model, zoo_selection.zoo_sequences(cfg),
-                                          cfg.select_crop, tqdm.write, cfg.select_on)
-                score, comparable = zoo.psnr, zoo.same_set(metrics)
-                record |= {"zoo_psnr": zoo.psnr, "zoo_per_shot": zoo.per_shot}
-                candidate |= zoo.metrics()
-            else:
-                # Scores are comparable only on the same validation set, which grows while
-                # rendering (and not with a zoo score a resumed run kept).
-                score = val_psnr
-                comparable = (bool(val_batches) and "selected_on" not in metrics
-                              and metrics.get("val_sequences") == len(val_batches))
-            kept = score > best_psnr or not comparable
-            log.write(json.dumps({**record, "kept": kept}) + "\n")
-            log.flush()
-            if kept:
-                best_psnr, metrics = score, candidate
-                save(run / "best.pt", model, optimizer, step, cfg, best_psnr, metrics)
-            if on_shots:
-                tqdm.write(f"step {step}: best.pt is step {metrics['step']} "
-                           f"({cfg.select_on} {best_psnr:.3f} dB)")
-            save(latest, model, optimizer, step, cfg, best_psnr, metrics)
+            best_psnr, metrics = evaluate(step)
     if step % cfg.eval_every and step != cfg.steps:  # paused (--stop-at) between evaluations
         save(latest, model, optimizer, step, cfg, best_psnr, metrics)
     bar.close()

@@ -181,3 +181,21 @@ def test_fine_tuning_starts_from_the_init_checkpoints_weights_with_a_fresh_sched
         qt.resume_config(tmp_path / "other", {"init": init, "width": 8})
     with pytest.raises(SystemExit):  # a missing init checkpoint is a usage error
         qt.main(["--run", str(tmp_path / "x"), "--init", str(tmp_path / "nope.pt")])
+
+
+def test_a_fine_tune_scores_its_starting_model_first_and_keeps_it_if_nothing_beats_it(
+        data, tmp_path, monkeypatch):
+    qt.train(config(data, steps=2), tmp_path / "base")
+    init = str(tmp_path / "base" / "checkpoint.pt")
+    scores = iter([30.0, 29.0, 28.5])  # steps 0, 2, 4: training only made it worse
+    monkeypatch.setattr(qt, "validate", lambda model, batches: next(scores))
+    cfg = qt.resume_config(tmp_path / "tuned", {"init": init, "data": str(data), "crop": 24,
+                                                "frames": 2, "batch": 2, "steps": 4,
+                                                "eval_every": 2, "threads": 1})
+    best = torch.load(qt.train(cfg, tmp_path / "tuned"), weights_only=False)
+    assert best["step"] == 0 and best["best_psnr"] == 30.0
+    start = torch.load(init, weights_only=False)
+    assert all(torch.equal(v, start["model"][n]) for n, v in best["model"].items())
+    evals = [json.loads(x) for x in (tmp_path / "tuned" / "log.txt").read_text().splitlines()]
+    assert [(r["step"], r["kept"]) for r in evals if "val_psnr" in r] == [
+        (0, True), (2, False), (4, False)]
