@@ -170,9 +170,11 @@ def _register_schemas() -> None:
         ),
         OpSchema(
             "NBGBlendPass", OPS_DOMAIN, 1,
-            doc="softmax-weighted sum of three sliced grids and the accumulated irradiance "
-                "(NBGConfig.passthrough), remodulated; quietframe.model.nbg_fused.blend_sliced",
-            inputs=[*blend_inputs, param("passthrough", "T")], outputs=[param("denoised", "T")],
+            doc="softmax-weighted sum of three sliced grids, the accumulated irradiance and "
+                "the frame's (NBGConfig.passthrough), remodulated; "
+                "quietframe.model.nbg_fused.blend_sliced",
+            inputs=[*blend_inputs, param("accumulated", "T"), param("frame", "T")],
+            outputs=[param("denoised", "T")],
             type_constraints=float_t,
         ),
     ]
@@ -244,8 +246,8 @@ def _blend_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2):
     return _QF.NBGBlend(logits, safe_albedo, sliced0, sliced1, sliced2)
 
 
-def _blend_pass_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2, passthrough):
-    return _QF.NBGBlendPass(logits, safe_albedo, sliced0, sliced1, sliced2, passthrough)
+def _blend_pass_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2, accumulated, frame):
+    return _QF.NBGBlendPass(logits, safe_albedo, sliced0, sliced1, sliced2, accumulated, frame)
 
 
 def custom_translation_table() -> dict:

@@ -54,11 +54,13 @@ class NBGConfig:
     # No history where the frame repeats last frame's sample (model/temporal.accumulate
     # restart_repeated): set with aligned_history for the oidn-history tiers' OIDN pass.
     restart_repeated: bool = False
-    # A pass-through candidate beside the grids (not in the paper): the blend's softmax also
-    # weighs the accumulated irradiance itself, a grid of no spatial extent. A sliced grid
-    # averages over sigma_s-pixel cells and can only keep detail its 1-D guide separates, so
-    # on thin geometry at 16-64 spp the paper's model was 4-10 dB below its own noisy input
-    # (docs/zoo.md); with this candidate it can keep the input where that is better.
+    # Pass-through candidates beside the grids (not in the paper): the blend's softmax also
+    # weighs the accumulated irradiance and the frame's own (demodulated, clamped), grids of no
+    # spatial extent. A sliced grid averages over sigma_s-pixel cells and keeps only the
+    # detail its 1-D guide separates, so on thin geometry at 16-64 spp the paper's model was
+    # 4-10 dB below its own noisy input (docs/zoo.md); the frame's own is there because the
+    # accumulation itself loses to the input where reflections move unlike the surface (a
+    # glossy studio: -3.4 dB at 64 spp by frame 4, docs/training.md).
     passthrough: bool = False
 
     def to_dict(self) -> dict:
@@ -107,6 +109,17 @@ def demodulation_divisor(albedo: Tensor) -> Tensor:
     return 1 + ramp * (albedo + ALBEDO_EPSILON - 1)
 
 
+def frame_irradiance(color: Tensor, albedo: Tensor, outlier_sigmas: float = OUTLIER_SIGMAS,
+                     outlier_floor: float = 0.0) -> tuple[Tensor, Tensor]:
+    """The frame demodulated, outliers suppressed (unless outlier_sigmas is 0) ->
+    (irradiance, safe albedo)."""
+    safe_albedo = demodulation_divisor(albedo)
+    irradiance = color / safe_albedo
+    if outlier_sigmas > 0:
+        irradiance = suppress_outliers(irradiance, sigmas=outlier_sigmas, floor=outlier_floor)
+    return irradiance, safe_albedo
+
+
 def prestage(
     color: Tensor,
     albedo: Tensor,
@@ -122,12 +135,8 @@ def prestage(
     restart_repeated: bool = False,
     spp: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Demodulate, suppress outliers (unless outlier_sigmas is 0), accumulate over time ->
-    (irradiance, safe albedo, state)."""
-    safe_albedo = demodulation_divisor(albedo)
-    irradiance = color / safe_albedo
-    if outlier_sigmas > 0:
-        irradiance = suppress_outliers(irradiance, sigmas=outlier_sigmas, floor=outlier_floor)
+    """frame_irradiance, then accumulated over time -> (irradiance, safe albedo, state)."""
+    irradiance, safe_albedo = frame_irradiance(color, albedo, outlier_sigmas, outlier_floor)
     if not temporal:
         return irradiance, safe_albedo, state
     irradiance, new_state = accumulate(irradiance, depth, normal, motion, reset, state,
@@ -175,14 +184,18 @@ class GuideNet(nn.Module):
         return guides, weights
 
 
+PASSTHROUGH_CANDIDATES = 2  # the accumulated irradiance, then the frame's own
+
+
 def blend_candidates(config: NBGConfig) -> int:
     """How many blend logits GuideNet outputs after its guides: one per candidate (each grid,
-    and the irradiance with a pass-through), none for a single grid alone."""
-    candidates = config.grids + int(config.passthrough)
+    then with a pass-through the accumulated and the frame's irradiance), none for a single
+    grid alone."""
+    candidates = config.grids + PASSTHROUGH_CANDIDATES * config.passthrough
     return candidates if candidates > 1 else 0
 
 
-# The pass-through's logit where a fine-tune adds it to a model trained without one
+# The pass-through logits where a fine-tune adds them to a model trained without them
 # (add_passthrough): the model's output moves towards its input by a few percent at first, a
 # few Adam steps on the conv's 5x5xwidth weights from wherever training needs it.
 PASSTHROUGH_INITIAL_LOGIT = -4.0
@@ -230,10 +243,12 @@ class NBGDenoiser(nn.Module):
         reset: Tensor,
         state: Tensor,
     ) -> tuple[Tensor, Tensor]:
-        irradiance, safe_albedo, new_state = prestage(
-            color, albedo, normal, depth, motion, reset, state, self.config.temporal,
-            self.config.outlier_sigmas, self.config.outlier_floor, self.config.aligned_history,
-        )
+        config = self.config
+        frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
+                                              config.outlier_floor)
+        irradiance, new_state = (accumulate(frame, depth, normal, motion, reset, state,
+                                            config.aligned_history)
+                                 if config.temporal else (frame, state))
         guides, weights = self.guide_net(
             guide_features(irradiance * safe_albedo, albedo, normal, depth)
         )
@@ -243,8 +258,8 @@ class NBGDenoiser(nn.Module):
             grid, weight = bilateral_splat(irradiance, guide, sigma_s, sigma_r)
             sliced = bilateral_slice(grid, weight, guide, sigma_s, sigma_r)
             result = result + (sliced if weights is None else weights[:, s : s + 1] * sliced)
-        if self.config.passthrough:
-            result = result + weights[:, -1:] * irradiance
+        if config.passthrough:
+            result = result + weights[:, -2:-1] * irradiance + weights[:, -1:] * frame
         return result * safe_albedo, new_state
 
     def adapt_state_dict(self, state: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -305,13 +320,14 @@ class AccumulationDenoiser(nn.Module):
 
 def add_passthrough(state: dict[str, Tensor], config: NBGConfig) -> dict[str, Tensor]:
     """Weights of a model without the pass-through, extended to `config`'s (which has it): the
-    GuideNet's last conv gains the pass-through logit (zero weights, PASSTHROUGH_INITIAL_LOGIT),
-    so the model starts as the one it was, its input weighed by about exp(-4)/(1 + ...)."""
+    GuideNet's last conv gains the pass-through logits (zero weights, PASSTHROUGH_INITIAL_LOGIT),
+    so the model starts as the one it was, each of its two inputs weighed by about
+    exp(-4)/(1 + ...)."""
     weight, bias = state["guide_net.last.weight"], state["guide_net.last.bias"]
     want = config.grids + blend_candidates(config)
     if weight.shape[0] == want:
         return state
-    if weight.shape[0] != want - 1 - int(config.grids == 1):
+    if weight.shape[0] != want - PASSTHROUGH_CANDIDATES - int(config.grids == 1):
         raise ValueError(f"a last conv of {weight.shape[0]} channels is not a {config.grids}-grid "
                          "GuideNet without a pass-through")
     new_weight = weight.new_zeros((want, *weight.shape[1:]))

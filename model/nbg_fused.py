@@ -19,13 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from quietframe.model.grid import bilateral_slice, bilateral_splat
-from quietframe.model.nbg import (
-    NBGDenoiser,
-    channel_softmax,
-    demodulation_divisor,
-    ldr,
-    suppress_outliers,
-)
+from quietframe.model.nbg import NBGDenoiser, channel_softmax, frame_irradiance, ldr
 from quietframe.model.temporal import backward_warp, history_valid, history_weights
 
 LDR_EXPONENT = 1 / 2.2  # model/nbg.ldr's gamma
@@ -60,11 +54,12 @@ def features_scaled(radiance: Tensor, safe_albedo: Tensor, albedo: Tensor, norma
 
 
 def blend_sliced(logits: Tensor, safe_albedo: Tensor, *sliced: Tensor,
-                 passthrough: Tensor | None = None) -> Tensor:
+                 passthrough: tuple[Tensor, ...] = ()) -> Tensor:
     """The softmax of GuideNet's blend logits (the channels after its G guides, G = the number
-    of sliced grids) weighing the sliced grids and, with NBGConfig.passthrough, last the
-    accumulated irradiance `passthrough`, remodulated: NBGDenoiser.forward's last lines."""
-    candidates = sliced if passthrough is None else (*sliced, passthrough)
+    of sliced grids) weighing the sliced grids and, with NBGConfig.passthrough, then the
+    `passthrough` candidates (the accumulated irradiance, the frame's), remodulated:
+    NBGDenoiser.forward's last lines."""
+    candidates = (*sliced, *passthrough)
     weights = channel_softmax(logits[:, len(sliced) :])
     result = torch.zeros_like(sliced[0])
     for s, image in enumerate(candidates):
@@ -106,9 +101,11 @@ def nbg_blend(logits: Tensor, safe_albedo: Tensor, sliced0: Tensor, sliced1: Ten
 
 @torch.library.custom_op("quietframe::nbg_blend_pass", mutates_args=())
 def nbg_blend_pass(logits: Tensor, safe_albedo: Tensor, sliced0: Tensor, sliced1: Tensor,
-                   sliced2: Tensor, passthrough: Tensor) -> Tensor:
-    """ai.quietframe::NBGBlendPass: blend_sliced of three grids and the pass-through."""
-    return blend_sliced(logits, safe_albedo, sliced0, sliced1, sliced2, passthrough=passthrough)
+                   sliced2: Tensor, accumulated: Tensor, frame: Tensor) -> Tensor:
+    """ai.quietframe::NBGBlendPass: blend_sliced of three grids and the two pass-through
+    candidates."""
+    return blend_sliced(logits, safe_albedo, sliced0, sliced1, sliced2,
+                        passthrough=(accumulated, frame))
 
 
 @nbg_blend.register_fake
@@ -131,13 +128,10 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
                   state: Tensor) -> tuple[Tensor, Tensor]:
     """NBGDenoiser.forward with its glue as the fused ops (`fusable` models only)."""
     config, net = model.config, model.guide_net
-    safe_albedo = demodulation_divisor(albedo)
-    irradiance = color / safe_albedo
-    if config.outlier_sigmas > 0:
-        irradiance = suppress_outliers(irradiance, sigmas=config.outlier_sigmas,
-                                       floor=config.outlier_floor)
+    frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
+                                          config.outlier_floor)  # the pass-through's second
     warped, inside = backward_warp(state, motion, mode="nearest")
-    irradiance, new_state = nbg_accumulate(irradiance, warped, inside, depth, normal, reset)
+    irradiance, new_state = nbg_accumulate(frame, warped, inside, depth, normal, reset)
     # The frame-wide reduction stays an onnx ReduceMean: a tiled run feeds the frame's value
     # to every tile (runtime/statistics.py).
     depth_scale = depth.mean(dim=(2, 3), keepdim=True).clamp_min(1e-6)
@@ -153,5 +147,5 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
         grid, weight = bilateral_splat(irradiance, guide, sigma_s, sigma_r)
         sliced.append(bilateral_slice(grid, weight, guide, sigma_s, sigma_r))
     if config.passthrough:
-        return nbg_blend_pass(logits, safe_albedo, *sliced, irradiance), new_state
+        return nbg_blend_pass(logits, safe_albedo, *sliced, irradiance, frame), new_state
     return nbg_blend(logits, safe_albedo, *sliced), new_state

@@ -13,10 +13,10 @@
 //     -> denoised (N,3,H,W)
 //     the softmax of GuideNet's blend logits (channels 3..5) weighting the three sliced grids,
 //     remodulated by the albedo.
-//   NBGBlendPass(logits (N,7,H,W), safe_albedo (N,3,H,W), sliced0, sliced1, sliced2,
-//                passthrough (N,3,H,W)) -> denoised (N,3,H,W)
-//     the same with NBGConfig.passthrough: the softmax of channels 3..6 also weighs
-//     `passthrough`, the accumulated irradiance (one body with NBGBlend: BlendKernel).
+//   NBGBlendPass(logits (N,8,H,W), safe_albedo (N,3,H,W), sliced0, sliced1, sliced2,
+//                accumulated, frame (N,3,H,W)) -> denoised (N,3,H,W)
+//     the same with NBGConfig.passthrough: the softmax of channels 3..7 also weighs the
+//     accumulated irradiance and the frame's own (one body with NBGBlend: BlendKernel).
 //
 // Each was 15–30 element-wise onnxruntime nodes, every one a pass over full-frame tensors
 // (about a third of nbg-2l-3g's time); here one pass per op. The arithmetic is the reference's,
@@ -241,8 +241,8 @@ struct NBGFeatures : Kernel<NBGFeatures, FeaturesAttributes, read_features> {
 
 constexpr int64_t kGrids = 3;
 
-// The blend of `kCandidates` images (the kGrids sliced grids, then NBGBlendPass's pass-through):
-// inputs logits (N, kGrids + kCandidates, H, W), safe_albedo, then the candidates (N, 3, H, W);
+// The blend of `kCandidates` images (the kGrids sliced grids, then NBGBlendPass's two
+// pass-through candidates): inputs logits (N, kGrids + kCandidates, H, W), safe_albedo, then the candidates (N, 3, H, W);
 // the candidates' weights are the softmax of the logits after GuideNet's kGrids guides. K names
 // the op and its inputs.
 template <class K, int64_t kCandidates>
@@ -298,10 +298,11 @@ struct NBGBlend : BlendKernel<NBGBlend, kGrids> {
                                                 "sliced2"};
 };
 
-struct NBGBlendPass : BlendKernel<NBGBlendPass, kGrids + 1> {
+struct NBGBlendPass : BlendKernel<NBGBlendPass, kGrids + 2> {
   static constexpr const char* kName = "NBGBlendPass";
   static constexpr const char* kInputNames[] = {"logits",  "safe_albedo", "sliced0",
-                                                "sliced1", "sliced2",     "passthrough"};
+                                                "sliced1", "sliced2",     "accumulated",
+                                                "frame"};
 };
 
 }  // namespace

@@ -30,8 +30,8 @@ OPS = {
     "NBGFeatures": (["radiance", "safe_albedo", "albedo", "normal", "depth", "depth_scale"],
                     ["features"], {"exponent": fused.LDR_EXPONENT}),
     "NBGBlend": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2"], ["denoised"], {}),
-    "NBGBlendPass": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2", "passthrough"],
-                     ["denoised"], {}),
+    "NBGBlendPass": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2", "accumulated",
+                      "frame"], ["denoised"], {}),
 }
 
 
@@ -96,17 +96,19 @@ def features_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarr
 
 def blend_inputs(n: int, h: int, w: int, seed: int = 0,
                  passthrough: bool = False) -> dict[str, np.ndarray]:
-    """NBGBlend's inputs, or with `passthrough` NBGBlendPass's (a 7th logit, the irradiance)."""
+    """NBGBlend's inputs, or with `passthrough` NBGBlendPass's (two more logits, the
+    accumulated and the frame's irradiance)."""
     rng = np.random.default_rng(seed)
-    candidates = 3 + int(passthrough)
+    candidates = 3 + 2 * int(passthrough)
     logits = (rng.standard_normal((n, 3 + candidates, h, w)) * 4).astype(np.float32)
     logits[:, 3, 0, :] = 90.0  # exp overflows without the max subtracted
     logits[:, -1, -1, :] = 90.0  # the last candidate's too (a tie in a one-row image)
     feeds = {"logits": logits, "safe_albedo": (0.01 + rng.random((n, 3, h, w))).astype(np.float32)}
     for g in range(3):
         feeds[f"sliced{g}"] = (rng.random((n, 3, h, w)) * 3).astype(np.float32)
-    if passthrough:  # the accumulated irradiance: not clamped, may be negative
-        feeds["passthrough"] = (rng.random((n, 3, h, w)) * 4 - 0.5).astype(np.float32)
+    if passthrough:  # irradiance: not clamped, may be negative
+        for name in ("accumulated", "frame"):
+            feeds[name] = (rng.random((n, 3, h, w)) * 4 - 0.5).astype(np.float32)
     return feeds
 
 
@@ -162,15 +164,15 @@ def test_wrong_shape_is_an_error(run) -> None:
 
 
 def test_blend_logits_must_match_the_candidates(run) -> None:
-    """A pass-through model's 7 logits given to NBGBlend, or a plain model's 6 to NBGBlendPass,
+    """A pass-through model's 8 logits given to NBGBlend, or a plain model's 6 to NBGBlendPass,
     is an error that says which count the op wants, not a read past the logits."""
     feeds = blend_pass_inputs(1, 8, 8)
-    without = {k: v for k, v in feeds.items() if k != "passthrough"}
+    without = {k: v for k, v in feeds.items() if k not in ("accumulated", "frame")}
     with pytest.raises(Exception, match=r"NBGBlend: logits must be \(N, 6, H, W\)"):
         run("NBGBlend", without)
     feeds["logits"] = feeds["logits"][:, :6]
-    with pytest.raises(Exception, match=r"NBGBlendPass: logits must be \(N, 7, H, W\) = "
-                                        r"\(1, 7, 8, 8\) like the image, got \(1, 6, 8, 8\)"):
+    with pytest.raises(Exception, match=r"NBGBlendPass: logits must be \(N, 8, H, W\) = "
+                                        r"\(1, 8, 8, 8\) like the image, got \(1, 6, 8, 8\)"):
         run("NBGBlendPass", feeds)
 
 
