@@ -11,6 +11,9 @@
 # Mitsuba split is rendered too). Data: scenes/render_corpus.sh, scenes/render_cycles_splits.sh.
 # nbg-2l-3g gains the pass-through candidate (--passthrough 1, model/nbg.py): the grids alone
 # cannot give back an input that is already clean (docs/training.md, "Training on the corpus").
+# Learning rates: half of each tier's original (1e-3, 5e-4), above model/finetune_cycles.sh's
+# third: this data is further from the generator's; each run scores its starting model at step 0,
+# so a fine-tune that does not help leaves best.pt at the shipped weights.
 set -u
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/corpus}
@@ -24,8 +27,8 @@ run() {  # name, then quietframe-train flags
         || echo "run $name failed (see $R/$name.out)"
     echo "run $name: $(tail -c 300 "$R/$name/log.txt" 2>/dev/null | tail -1)"
 }
-run nbg-2l-3g --passthrough 1 --steps "${NBG_STEPS:-1500}" --eval-every 250 --lr 0.0003 \
+run nbg-2l-3g --passthrough 1 --steps "${NBG_STEPS:-1500}" --eval-every 250 --lr 0.0005 \
     --dropout 0.3 --loss smape+temporal --crop 128 --frames 4 --batch 4 &
-run affinity-h16-k5gc --steps "${AFFINITY_STEPS:-1200}" --eval-every 200 --lr 0.00015 \
+run affinity-h16-k5gc --steps "${AFFINITY_STEPS:-1200}" --eval-every 200 --lr 0.0002 \
     --loss tau+temporal --crop 128 --frames 4 --batch 4 &
 wait
