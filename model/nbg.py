@@ -179,7 +179,8 @@ class GuideNet(nn.Module):
         out = self.last(x)
         guides = torch.sigmoid(out[:, : self.grids])  # (N, grids, H, W)
         # The paper's w2 = 1 - w0 - w1 can go negative; a softmax keeps a convex combination.
-        # Channel g weighs grid g; with a pass-through, the last weighs the irradiance.
+        # Channel g weighs grid g; with a pass-through the last two weigh the accumulated
+        # irradiance and the frame's own.
         weights = channel_softmax(out[:, self.grids :]) if out.shape[1] > self.grids + 1 else None
         return guides, weights
 
