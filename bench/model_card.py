@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from functools import partial
 from pathlib import Path
 
 from quietframe.bench import cli_args
@@ -37,6 +38,7 @@ from quietframe.runtime.card import (
     OIDNStage,
     worse_than_input_from,
 )
+from quietframe.scenes.corpus_shots import corpus_dir
 from quietframe.scenes.layout import RENDERERS, split_dir
 
 
@@ -65,31 +67,43 @@ def describe_split(root: Path) -> str:
 
 def data_lines(training: dict, previous: list[str] = (), metrics: dict | None = None
                ) -> list[str]:
-    """The training data's splits as on disk, one line per split and renderer the run read
-    (`renderers` in its config); a split not on this machine keeps the line an earlier card
-    (`previous`, its lines) wrote where the data was. `metrics`: the run's notes; a run that
-    validated on nothing (`val_sequences` 0) says so instead of naming a split it never saw."""
+    """The training data's splits as on disk, one line per split and source the run read (the
+    `renderers` of its config, and the Cycles training corpus with `corpus`); a split not on
+    this machine keeps the line an earlier card (`previous`, its lines) wrote where the data
+    was. `metrics`: the run's notes; a run that validated on nothing (`val_sequences` 0) says so
+    instead of naming a split it never saw, and one that picked `best.pt` on shots (the zoo's
+    or the corpus's validation shots, `selected_on`) says which and what they scored."""
     if "data" not in training:
         return []
     data = Path(training["data"]).expanduser()
     renderers = [r.strip() for r in str(training.get("renderers", "mitsuba")).split(",")
                  if r.strip()]
-    unvalidated = (metrics or {}).get("val_sequences") == 0
+    sources = [(r, partial(split_dir, data, renderer=r)) for r in renderers]
+    if training.get("corpus"):
+        sources.append(("corpus", partial(corpus_dir, data)))
+    metrics = metrics or {}
+    unvalidated = metrics.get("val_sequences") == 0 and "selected_on" not in metrics
     lines = ["## Data", ""]
+    picks = "" if "selected_on" in metrics else "; picks `best.pt`"
     for split, note in (("train", " (as on disk when this card was written; a run started "
                                   "while the split was still rendering saw fewer)"),
-                        ("validation", " (never trained on; picks `best.pt`)")):
+                        ("validation", f" (never trained on{picks})")):
         if split == "validation" and unvalidated:
             lines.append("- validation: none on the machine during the run, so `best.pt` is its "
                          "last step (nothing was selected)")
             continue
-        for renderer in renderers:
-            name = f"- {split}" + (f", {renderer}" if len(renderers) > 1 else "")
-            root = split_dir(data, split, renderer=renderer)
+        for source, root_of in sources:
+            name = f"- {split}" + (f", {source}" if len(sources) > 1 else "")
+            root = root_of(split)
             kept = [line for line in previous if line.startswith((name + " ", name + ":"))]
             present = any(root.glob("*/manifest.json"))
             lines.append(f"{name}{note}: {describe_split(root)}" if present or not kept
                          else kept[0])
+    if "selected_on" in metrics:
+        lines.append(f"- `best.pt` (step {metrics.get('step', '?')}) was picked on the "
+                     f"{metrics['selected_on']} validation shots through the runtime's stream "
+                     f"(model/zoo_selection.py): mean PSNR {metrics.get('zoo_psnr', '?')} dB over "
+                     f"{metrics.get('zoo_sequences', '?')} (shot, spp) sequences")
     return [*lines, ""]
 
 
@@ -233,7 +247,8 @@ def role_lines(path: Path, card: ModelCard) -> list[str]:
             f"1-64 spp, {worst:+.1f} dB on its worst shot, so `auto` does not choose it for "
             f"final frames." if mean else "")
     worth = worth_using(table)
-    kind = ("a learned tier trained on quietframe's scene generator"
+    corpus = " and its Cycles training corpus" if card.training.get("corpus") else ""
+    kind = (f"a learned tier trained on quietframe's scene generator{corpus}"
             if card.training.get("trained", True)
             else "no network, the temporal accumulation of the noisy frames alone")
     return ["## What it is for", "",

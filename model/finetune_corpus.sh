@@ -9,6 +9,9 @@
 # ~/.cache/quietframe/runs/corpus); NBG_STEPS / AFFINITY_STEPS: schedule lengths; RENDERERS: the
 # generator's splits mixed in (default cycles: g2-cycles/train; "mitsuba,cycles" where the
 # Mitsuba split is rendered too). Data: scenes/render_corpus.sh, scenes/render_cycles_splits.sh.
+# INIT_FROM: the git revision whose models/training/<name>/best.pt each run starts from (default
+# 6abc3cf28baa: the generator-trained checkpoints the shipped fine-tune of 2026-12-07 started
+# from; models/training/<name>/ now holds that fine-tune's own run).
 # nbg-2l-3g gains the pass-through candidate (--passthrough 1, model/nbg.py): the grids alone
 # cannot give back an input that is already clean (docs/training.md, "Training on the corpus").
 # Learning rates: half of each tier's original (1e-3, 5e-4), above model/finetune_cycles.sh's
@@ -17,11 +20,13 @@
 set -u
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/corpus}
+INIT_FROM=${INIT_FROM:-6abc3cf28baa}
 mkdir -p "$R"
 run() {  # name, then quietframe-train flags
     local name=$1
     shift
-    "$PY" -m quietframe.model.train --run "$R/$name" --init "models/training/$name/best.pt" \
+    git show "$INIT_FROM:models/training/$name/best.pt" > "$R/$name.init.pt" || return 1
+    "$PY" -m quietframe.model.train --run "$R/$name" --init "$R/$name.init.pt" \
         --renderers "${RENDERERS:-cycles}" --corpus 1 --select-on corpus \
         --select-spp 1,4,16,64 --threads 1 --seed 1 "$@" > "$R/$name.out" 2>&1 \
         || echo "run $name failed (see $R/$name.out)"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 import pytest
@@ -129,3 +130,23 @@ def test_card_lists_each_renderers_split_and_an_unvalidated_run(tmp_path):
     assert re.search(r"- train, cycles \(as on disk.*\): 1 sequences \(seeds 5–5", card)
     assert "- validation: none on the machine during the run" in card
     assert "picks `best.pt`" not in card
+
+
+def test_data_section_names_the_corpus_and_the_shots_that_picked_best(tmp_path):
+    from quietframe.bench.model_card import data_lines
+    from quietframe.scenes.corpus_shots import corpus_dir
+
+    shot = corpus_dir(tmp_path, "train") / "9000000-exterior-pan"
+    shot.mkdir(parents=True)
+    config = {"width": 160, "height": 160, "spp_levels": [1, 4, 16, 64], "reference_spp": 96}
+    (shot / "manifest.json").write_text(json.dumps(
+        {"generator": "corpus1", "seed": 9_000_000, "frame_count": 4, "config": config}))
+    training = {"data": str(tmp_path), "renderers": "cycles", "corpus": 1}
+    metrics = {"selected_on": "corpus", "step": 750, "zoo_psnr": 28.6, "zoo_sequences": 48,
+               "val_sequences": 12}
+    text = "\n".join(data_lines(training, [], metrics))
+    assert ("- train, corpus (as on disk when this card was written; a run started while the "
+            "split was still rendering saw fewer): 1 sequences (seeds 9000000–9000000, "
+            "generator corpus1), 4 frames, 160×160") in text
+    assert "- train, cycles" in text and "picks `best.pt`" not in text
+    assert "step 750) was picked on the corpus validation shots" in text and "48 (shot" in text

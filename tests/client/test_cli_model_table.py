@@ -53,6 +53,8 @@ def test_each_model_says_what_sets_it_apart(live_server):
     assert "plain aux" in descriptions["oidn-history"]
     assert "fast" in descriptions["oidn-fast-history"]
     assert "learned preview" in descriptions["nbg-2l-3g"]
+    assert "pass-through" in descriptions["nbg-2l-3g"]  # version 6 (docs/training.md)
+    assert "pass-through" not in descriptions["nbg-7l-3g"]
 
 
 def test_time_per_frame_is_measured_here_or_said_to_be_a_table_figure(tmp_path, live_server,

@@ -6,6 +6,7 @@ with and without the pass-through; the shipped nbg-2l-3g.onnx uses the fused ops
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -213,8 +214,12 @@ def test_shipped_nbg_2l_3g_uses_the_fused_ops() -> None:
     path = REPO / "models" / "nbg-2l-3g.onnx"
     if not path.is_file():
         pytest.skip("nbg-2l-3g is not in this checkout")
-    ops = {n.op_type for n in onnx.load(str(path)).graph.node}
-    assert {"NBGAccumulate", "NBGFeatures", "NBGBlend"} <= ops
+    model = onnx.load(str(path))
+    ops = {n.op_type for n in model.graph.node}
+    props = {p.key: p.value for p in model.metadata_props}
+    blend = ("NBGBlendPass" if json.loads(props["quietframe.architecture"]).get("passthrough")
+             else "NBGBlend")
+    assert {"NBGAccumulate", "NBGFeatures", blend} <= ops
 
 
 def test_only_three_grids_fuse() -> None:

@@ -16,7 +16,7 @@ from quietframe.service.model_profiles import ModelProfile
 from quietframe.wire.protocol import Header
 
 SIZE = {"width": 64, "height": 48}
-LEARNED = "nbg-2l-3g"  # below its input from 4.9 spp on the validation zoo (its card)
+LEARNED = "nbg-2l-3g"  # below its input from 9.6 spp on a validation shot (its card)
 
 
 def frame(spp: float | None, seed: int = 1) -> bytes:
@@ -63,8 +63,8 @@ def test_a_named_learned_model_above_its_range_is_served_with_the_warning(live_s
     assert reply.headers[Header.MODEL].startswith(f"{LEARNED} ")
     assert reply.content[:4] == b"v/1\x01"  # the denoised EXR, as asked
     text = reply.headers[Header.WARNING]
-    assert text == (f"{LEARNED} is below its own noisy input from 4.9 spp on a validation-zoo "
-                    "shot (this frame: 16 spp, -5.02 dB there); use model=auto or an OIDN tier")
+    assert text == (f"{LEARNED} is below its own noisy input from 9.6 spp on a validation-zoo "
+                    "shot (this frame: 16 spp, -1.10 dB there); use model=auto or an OIDN tier")
     assert text.isascii()
     # the retry's stored reply says it again, and so does every later frame at that spp
     again = send(url, sid, 0, body)
@@ -76,7 +76,7 @@ def test_a_named_learned_model_above_its_range_is_served_with_the_warning(live_s
 
 
 @pytest.mark.parametrize("spp, model", [
-    (1, LEARNED),  # in its range: +5.37 dB over its input on the worst shot
+    (1, LEARNED),  # in its range: +6.72 dB over its input on the worst shot
     (None, LEARNED),  # no spp known: nothing to judge
     (16, "auto"),  # auto never runs it there
     (16, "oidn-frame"),  # no input_margin section on its card
@@ -124,7 +124,7 @@ def test_a_session_created_with_an_spp_option_in_the_range_is_warned_at_creation
         live_server, monkeypatch):
     """No shipped model both takes an `spp` option and has the figure (the learned tiers take
     no spp; the OIDN tiers were not measured against their input): oidn-history is given
-    nbg-2l-3g's measured margins here, in the server's own process."""
+    nbg-2l-3g version 5's measured margins here, in the server's own process."""
     url = live_server.url
     installed(url, "oidn-history", LEARNED)
     margins = ((1, 5.366), (4, 0.856), (16, -5.019), (64, -10.859))
