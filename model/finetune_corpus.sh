@@ -18,6 +18,7 @@
 # third: this data is further from the generator's; each run scores its starting model at step 0,
 # so a fine-tune that does not help leaves best.pt at the shipped weights.
 set -u
+source "$(dirname "${BASH_SOURCE[0]}")/train_run.sh"
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/corpus}
 INIT_FROM=${INIT_FROM:-6abc3cf28baa}
@@ -26,11 +27,8 @@ run() {  # name, then quietframe-train flags
     local name=$1
     shift
     git show "$INIT_FROM:models/training/$name/best.pt" > "$R/$name.init.pt" || return 1
-    "$PY" -m quietframe.model.train --run "$R/$name" --init "$R/$name.init.pt" \
-        --renderers "${RENDERERS:-cycles}" --corpus 1 --select-on corpus \
-        --select-spp 1,4,16,64 --threads 1 --seed 1 "$@" > "$R/$name.out" 2>&1 \
-        || echo "run $name failed (see $R/$name.out)"
-    echo "run $name: $(tail -c 300 "$R/$name/log.txt" 2>/dev/null | tail -1)"
+    train_run "$R/$name" --init "$R/$name.init.pt" --renderers "${RENDERERS:-cycles}" \
+        --corpus 1 --select-on corpus --select-spp 1,4,16,64 --threads 1 --seed 1 "$@"
 }
 run nbg-2l-3g --passthrough 1 --steps "${NBG_STEPS:-1500}" --eval-every 250 --lr 0.0005 \
     --dropout 0.3 --loss smape+temporal --crop 128 --frames 4 --batch 4 &

@@ -12,16 +12,15 @@
 # Blackman-Harris pixels, 16-64 spp) without starting over. Each run keeps its original data,
 # loss, dropout and crop settings.
 set -u
+source "$(dirname "${BASH_SOURCE[0]}")/train_run.sh"
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/cycles-mix}
 mkdir -p "$R"
 run() {  # name, then quietframe-train flags
     local name=$1
     shift
-    "$PY" -m quietframe.model.train --run "$R/$name" --init "models/training/$name/best.pt" \
-        --renderers mitsuba,cycles --threads 1 --seed 1 "$@" > "$R/$name.out" 2>&1 \
-        || echo "run $name failed (see $R/$name.out)"
-    echo "run $name: $(tail -c 300 "$R/$name/log.txt" 2>/dev/null | tail -1)"
+    train_run "$R/$name" --init "models/training/$name/best.pt" --renderers mitsuba,cycles \
+        --threads 1 --seed 1 "$@"
 }
 run nbg-2l-3g --steps "${NBG_STEPS:-400}" --eval-every 100 --lr 0.0003 --dropout 0.3 \
     --loss smape+temporal --crop 128 --frames 4 --batch 4 &

@@ -89,9 +89,9 @@ class TrainConfig:
     # -1 = the variant's, or the --init checkpoint's: a fine-tune may switch it, it has no weights)
     outlier_sigmas: float = -1.0
     outlier_floor: float = -1.0  # NBGConfig/AffinityConfig.outlier_floor (-1 = as above)
-    # NBG: the pass-through candidate (NBGConfig.passthrough; 1 on, 0 off, -1 the variant's or
-    # the --init checkpoint's). A fine-tune may switch it on: the checkpoint's weights are
-    # extended with its logit (model/nbg.add_passthrough).
+    # NBG: the pass-through candidates (NBGConfig.passthrough; 1 on, 0 off, -1 the variant's or
+    # the --init checkpoint's). A fine-tune may switch them on: the checkpoint's weights are
+    # extended with their logits (model/nbg.add_passthrough).
     passthrough: int = -1
     net_scale: int = 0  # oidn-temporal: OIDNTemporalConfig.net_scale (0 = the variant's)
     # Fine-tuning: a checkpoint whose model (architecture and weights) starts a new run, with a

@@ -19,6 +19,7 @@
 # ~/.cache/quietframe/runs/g2); STEPS (default 3000): affinity-h24's schedule; SWEEP_STEPS
 # (default 600): the sweep's.
 set -u
+source "$(dirname "${BASH_SOURCE[0]}")/train_run.sh"
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
 S=${STEPS:-3000}
@@ -27,9 +28,7 @@ mkdir -p "$R/sweep" "$R/s6"
 run() {  # run directory, then quietframe-train flags
     local dir=$1
     shift
-    "$PY" -m quietframe.model.train --run "$dir" --threads 1 --kernel-size 5 --lr 0.0005 \
-        --frames 4 --batch 4 --seed 0 "$@" > "$dir.out" 2>&1 || echo "run $dir failed (see $dir.out)"
-    echo "run $dir: $(tail -c 300 "$dir/log.txt" 2>/dev/null | tail -1)"
+    train_run "$dir" --threads 1 --kernel-size 5 --lr 0.0005 --frames 4 --batch 4 --seed 0 "$@"
 }
 if [ "${1:-}" = k5 ]; then
     tau=(--crop 128 --loss tau+temporal --eval-every 200)

@@ -16,6 +16,7 @@
 # (down to the colour alone).
 # PYTHON: the interpreter (default python); STEPS (default 800): the schedule length.
 set -u
+source "$(dirname "${BASH_SOURCE[0]}")/train_run.sh"
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/g2}
 S=${STEPS:-800}
@@ -23,9 +24,7 @@ mkdir -p "$R"
 run() {  # name, then quietframe-train flags
     local name=$1
     shift
-    "$PY" -m quietframe.model.train --run "$R/$name" --steps "$S" --eval-every 250 \
-        --threads 1 "$@" > "$R/$name.out" 2>&1 || echo "run $name failed (see $R/$name.out)"
-    echo "run $name: $(tail -c 300 "$R/$name/log.txt" 2>/dev/null | tail -1)"
+    train_run "$R/$name" --steps "$S" --eval-every 250 --threads 1 "$@"
 }
 nbg=(--dropout 0.3)
 (
