@@ -1,4 +1,4 @@
-"""The learned tiers against their input, per-frame OIDN and Blender's denoise: issue 56's report.
+"""The learned tiers against their input, per-frame OIDN and Blender's denoise, in target terms.
 
     python -m quietframe.bench.learned_report RUN/zoo.json [RUN/zoo.json ...] \
         --tiers nbg-2l-3g,affinity-h16-k5gc,nbg-2l-3g-corpus --times times.json --out DIR
@@ -6,7 +6,8 @@
 Reads `bench/zoo_eval.py` runs that scored the tiers beside `noisy` (the input itself), per-frame
 OIDN at fast quality with plain aux (`oidn-fast-history/frame`, the OIDN-fast stage of the
 service's history tier), per-frame OIDN-high (`oidn-high`) and Blender's denoise, all on the same
-frames. Per tier it writes the three figures the issue's targets are stated in:
+frames. Per tier it writes the three figures the learned tiers' quality targets are stated in
+(docs/zoo.md, "After the corpus fine-tune"):
 
 - the margin over the noisy input, per spp, on the worst shot (target: at least +3 dB);
 - the mean gap to Blender's denoise at 1-4 spp (targets: -2.5 dB nbg, -2.0 dB affinity);
@@ -35,7 +36,7 @@ BLENDER = "blender-denoise"
 BASELINES = (OIDN_FAST, OIDN_HIGH, BLENDER)
 TIME_KEYS = {OIDN_FAST: "oidn-fast", OIDN_HIGH: "oidn-high"}  # their keys in --times
 LOW_SPP = (1.0, 4.0)  # the targets' "1-4 spp": every level in this range the runs scored
-# The issue's targets per tier family (a candidate is named after its tier: nbg-2l-3g-corpus)
+# The targets per tier family (a candidate is named after its tier: nbg-2l-3g-corpus)
 VS_BLENDER_TARGET = {"nbg": -2.5, "affinity": -2.0}
 VS_INPUT_TARGET = 3.0
 VS_OIDN_FAST_TARGET = -1.5

@@ -1,4 +1,4 @@
-"""bench/learned_report: the learned tiers' figures in the terms of issue 56's targets."""
+"""bench/learned_report: the learned tiers' figures in the terms of their quality targets."""
 
 from __future__ import annotations
 
