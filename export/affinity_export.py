@@ -20,7 +20,7 @@ from quietframe.export import onnx_export
 from quietframe.export.onnx_export import OPSET
 from quietframe.model.affinity import KERNEL_SIZES, AffinityDenoiser
 from quietframe.runtime.buffers import BUFFER_NAMES
-from quietframe.runtime.card import OUTPUT, RESET, STATE_IN, STATE_OUT
+from quietframe.runtime.card import OUTPUT, RESET, SAMPLES_INPUT, STATE_IN, STATE_OUT
 from quietframe.runtime.ops_library import OPS_DOMAIN
 
 KERNEL_SIZE_INPUT = "kernel_size"
@@ -40,6 +40,18 @@ class _ExportWrapper(nn.Module):
                 embedding: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         denoised, (state, embedding) = self.model(color, albedo, normal, depth, motion, reset,
                                                   (state, embedding))
+        return denoised, state, embedding
+
+
+class _ExportWrapperWithSamples(_ExportWrapper):
+    """The same, with the frame's samples per pixel (SAMPLES_INPUT, shape [1]) last (a model
+    with AffinityConfig.noise_input)."""
+
+    def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: Tensor, embedding: Tensor,
+                spp: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        denoised, (state, embedding) = self.model(color, albedo, normal, depth, motion, reset,
+                                                  (state, embedding), spp=spp)
         return denoised, state, embedding
 
 
@@ -105,12 +117,19 @@ def export_affinity(
     dynamic = {name: image_dims for name in BUFFER_NAMES} | {
         "reset": None, "state": image_dims, "embedding": low_dims}
     names = [spec["name"] for spec in model.state_specs()]
+    extra = model.run_time_inputs()  # the frame's spp, where the model reads it
+    example = example_inputs(model)
+    if extra:
+        example = (*example, torch.full((1,), float(extra[0]["default"])))
+        dynamic |= {SAMPLES_INPUT: None}
+    wrapper = _ExportWrapperWithSamples(model) if extra else _ExportWrapper(model)
     with torch.no_grad():
         program = torch.onnx.export(
-            _ExportWrapper(model).eval(), example_inputs(model), dynamo=True,
+            wrapper.eval(), example, dynamo=True,
             opset_version=OPSET, custom_translation_table=translation_table(),
             dynamic_shapes=dynamic,
-            input_names=[*BUFFER_NAMES, RESET, *(STATE_IN + n for n in names)],
+            input_names=[*BUFFER_NAMES, RESET, *(STATE_IN + n for n in names),
+                         *(i["name"] for i in extra)],
             output_names=[OUTPUT, *(STATE_OUT + n for n in names)],
             verbose=False,
         )
@@ -118,6 +137,6 @@ def export_affinity(
     proto = kernel_size_as_input(program.model_proto, config.kernel_size)
     metadata = onnx_export.model_metadata(
         config, version, model.state_specs(), training, metrics,
-        inputs=input_metadata(config.kernel_size),
+        inputs=[*input_metadata(config.kernel_size), *extra],
     )
     return onnx_export.save_described(proto, metadata, path)

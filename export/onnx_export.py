@@ -177,6 +177,17 @@ def _register_schemas() -> None:
             outputs=[param("denoised", "T")],
             type_constraints=float_t,
         ),
+        OpSchema(
+            "NBGBlendNoise", OPS_DOMAIN, 1,
+            doc="NBGBlendPass with the blend logits moved by the pixel's noise level, from the "
+                "frame's spp and the state's history length (NBGConfig.noise_blend); "
+                "quietframe.model.nbg_fused.blend_noise",
+            inputs=[*blend_inputs, param("accumulated", "T"), param("frame", "T"),
+                    param("state", "T"), param("spp", "T"), param("noise_scale", "T"),
+                    param("noise_shift", "T")],
+            outputs=[param("denoised", "T")],
+            type_constraints=float_t,
+        ),
     ]
     for schema in schemas:
         try:
@@ -250,6 +261,12 @@ def _blend_pass_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2, accumula
     return _QF.NBGBlendPass(logits, safe_albedo, sliced0, sliced1, sliced2, accumulated, frame)
 
 
+def _blend_noise_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2, accumulated, frame,
+                         state, spp, noise_scale, noise_shift):
+    return _QF.NBGBlendNoise(logits, safe_albedo, sliced0, sliced1, sliced2, accumulated, frame,
+                             state, spp, noise_scale, noise_shift)
+
+
 def custom_translation_table() -> dict:
     """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
     return {
@@ -263,6 +280,7 @@ def custom_translation_table() -> dict:
         torch.ops.quietframe.nbg_features.default: _features_to_onnx,
         torch.ops.quietframe.nbg_blend.default: _blend_to_onnx,
         torch.ops.quietframe.nbg_blend_pass.default: _blend_pass_to_onnx,
+        torch.ops.quietframe.nbg_blend_noise.default: _blend_noise_to_onnx,
     }
 
 
@@ -293,6 +311,16 @@ class _ExportWrapperWithSamples(_ExportWrapper):
                 motion: Tensor, reset: Tensor, state: Tensor,
                 spp: Tensor) -> tuple[Tensor, Tensor]:
         return self.model(color, albedo, normal, depth, motion, reset, state, spp)
+
+
+class _FusedExportWrapperWithSamples(_ExportWrapper):
+    """The fused graph with the frame's samples per pixel last (a noise-aware NBG blend)."""
+
+    def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
+                motion: Tensor, reset: Tensor, state: Tensor,
+                spp: Tensor) -> tuple[Tensor, Tensor]:
+        return fused_forward(self.model, color, albedo, normal, depth, motion, reset, state,
+                             spp)
 
 
 def example_inputs(height: int = 48, width: int = 64, seed: int = 0,
@@ -343,10 +371,11 @@ def export_nbg(
     extra = model.run_time_inputs() if hasattr(model, "run_time_inputs") else []
     if [i["name"] for i in extra] not in ([], [SAMPLES_INPUT]):
         raise ValueError(f"export_nbg exports no run-time input but {SAMPLES_INPUT!r}")
+    fused = fuse and fusable(model)
     if extra:
-        wrapper_type = _ExportWrapperWithSamples
+        wrapper_type = _FusedExportWrapperWithSamples if fused else _ExportWrapperWithSamples
     else:
-        wrapper_type = _FusedExportWrapper if fuse and fusable(model) else _ExportWrapper
+        wrapper_type = _FusedExportWrapper if fused else _ExportWrapper
     wrapper = wrapper_type(model).eval()
     example = example_inputs(state_channels=model.state_channels)
     if extra:

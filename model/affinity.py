@@ -37,9 +37,9 @@ from quietframe.model.affinity_kernels import (
     temporal_affinity_filter,
 )
 from quietframe.model.losses import bandwidth_regulariser
-from quietframe.model.nbg import demodulation_divisor, suppress_outliers
+from quietframe.model.nbg import demodulation_divisor, noise_level, suppress_outliers
 from quietframe.model.resample import upsample_bilinear
-from quietframe.model.temporal import backward_warp, history_valid
+from quietframe.model.temporal import DEFAULT_SPP, backward_warp, history_valid, samples_input
 
 EMBEDDING_INPUT_CHANNELS = 10  # log radiance (3) + albedo (3) + normal (3) + relative depth (1)
 EMBEDDING_CHANNELS = 32  # paper §3.2: 3 FC layers × 32
@@ -95,6 +95,11 @@ class AffinityConfig:
     # (66 951 where the reference is 1.3) left 17 523 in the output (docs/training.md).
     outlier_sigmas: float = 0.0
     outlier_floor: float = 0.0  # × the frame's mean luminance: the bound's floor (NBGConfig)
+    # The frame's noise level, log2(spp) on [0, 1] (model/nbg.noise_level), as one more U-Net
+    # input channel (not in the paper): the U-Net sees embeddings, not how many samples are
+    # behind them, and one set of kernels served 1 and 64 spp alike, below its own input at 64
+    # (docs/training.md). The frame's spp is then a run-time input of the exported graph.
+    noise_input: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "widths", tuple(self.widths))  # JSON round trip gives a list
@@ -156,9 +161,10 @@ class UNet(nn.Module):
     bilinear up, concatenated skips (the paper's structure, shallower and narrower for a CPU);
     a 1×1 convolution makes the raw kernel parameters."""
 
-    def __init__(self, widths: tuple[int, ...], kernels: int = KERNELS) -> None:
+    def __init__(self, widths: tuple[int, ...], kernels: int = KERNELS,
+                 noise_input: bool = False) -> None:
         super().__init__()
-        cin = 2 * EMBEDDING_CHANNELS  # e and W ē
+        cin = 2 * EMBEDDING_CHANNELS + noise_input  # e and W ē (and the noise level)
         self.down = nn.ModuleList()
         for w in widths:
             self.down.append(nn.ModuleList([_conv(cin, w), _conv(w, w)]))
@@ -290,7 +296,7 @@ class AffinityDenoiser(nn.Module):
         super().__init__()
         self.config = config or AffinityConfig()
         self.embedding = Embedding()
-        self.unet = UNet(self.config.widths, self.config.kernels)
+        self.unet = UNet(self.config.widths, self.config.kernels, self.config.noise_input)
         self.guide = (nn.Conv2d(GUIDE_CHANNELS, self.config.kernels * FEATURE_CHANNELS, 1,
                                 bias=False) if self.config.guide else None)
         self._init_hidden_layers()
@@ -324,9 +330,37 @@ class AffinityDenoiser(nn.Module):
         s = self.config.unet_scale
         return F.avg_pool2d(x, s, ceil_mode=True) if s > 1 else x
 
+    @property
+    def reads_spp(self) -> bool:
+        """Whether forward reads the frame's spp (training feeds each item's)."""
+        return self.config.noise_input
+
+    def adapt_state_dict(self, state: dict[str, Tensor]) -> dict[str, Tensor]:
+        """A checkpoint's weights for this model: as they are, or, where this model takes the
+        noise level and the checkpoint (trained without it) does not, its first convolution
+        extended by a zero-weight input channel, so that the model starts as the checkpoint's."""
+        key = "unet.down.0.0.weight"
+        weight = state[key]
+        if self.config.noise_input and weight.shape[1] == 2 * EMBEDDING_CHANNELS:
+            zero = weight.new_zeros((weight.shape[0], 1, *weight.shape[2:]))
+            state = {**state, key: torch.cat((weight, zero), dim=1)}
+        return state
+
+    def run_time_inputs(self) -> list[dict]:
+        """`quietframe.inputs` the model itself reads beside the kernel size (which the export
+        adds): the frame's spp, with noise_input."""
+        if not self.config.noise_input:
+            return []
+        return [samples_input(DEFAULT_SPP, "the frame's samples per pixel (the service fills "
+                              "it from the EXR header, or auto's estimate): its log, the noise "
+                              "level the U-Net reads beside the embeddings")]
+
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
                 motion: Tensor, reset: Tensor, state: State,
-                kernel_size: int | None = None) -> tuple[Tensor, State]:
+                kernel_size: int | None = None,
+                spp: Tensor | None = None) -> tuple[Tensor, State]:
+        """`spp` (N,) or (1,): the frame's samples per pixel, read with noise_input only
+        (DEFAULT_SPP where not given)."""
         size = self.config.kernel_size if kernel_size is None else kernel_size
         frame_state, embedding_state = state
         safe_albedo = demodulation_divisor(albedo)  # NBG's: remodulation undoes it exactly
@@ -355,7 +389,12 @@ class AffinityDenoiser(nn.Module):
         else:
             keep = low_keep = torch.zeros_like(inputs[:, :1])
             warped, warped_embedding = None, torch.zeros_like(embedding)
-        raw = self.unet(torch.cat((embedding, warped_embedding), dim=1))  # eq. 2, (N, 32, h, w)
+        unet_inputs = [embedding, warped_embedding]
+        if self.config.noise_input:
+            spp = torch.full((1,), DEFAULT_SPP) if spp is None else spp
+            level = noise_level(spp, torch.ones_like(embedding[:, :1]))  # (N, 1, h, w)
+            unet_inputs.append(level.expand(embedding.shape[0], 1, *embedding.shape[2:]))
+        raw = self.unet(torch.cat(unet_inputs, dim=1))  # eq. 2, (N, 32, h, w)
         low_params = kernel_params(raw)
         low_blend = low_params.blend * low_keep  # λ: no history where there is none
         new_embedding = accumulate_embedding(embedding, warped_embedding, low_blend)  # eq. 3

@@ -2,7 +2,7 @@
 # Score model/finetune_corpus.sh's candidates beside the shipped learned tiers, each figure from
 # one run with the input itself, per-frame OIDN (fast and high) and Blender's denoise:
 #   PYTHON=.venv/bin/python model/evaluate_corpus_candidates.sh export|speed|validation|test
-#   export:     RUNS/<name>/best.pt -> OUT/candidates/<name>-corpus.onnx (the shipped card's
+#   export:     RUNS/<name>/best.pt -> OUT/candidates/<name>-SUFFIX.onnx (the shipped card's
 #               tables carried: their splits may not be on the machine; named so that every run
 #               scores it as its own method beside the shipped file);
 #   validation: the corpus's validation shots (what chose the checkpoints) at 1-64 spp;
@@ -10,15 +10,19 @@
 #   speed:      1280x720 time of each beside plain OIDN-high and OIDN-fast (bench/oidn_speedup).
 # Then bench/learned_report.py writes OUT/<run>/report/README.md per run with the issue's
 # targets. RUNS: the fine-tune's runs (default ~/.cache/quietframe/runs/corpus); OUT (default
-# docs/evaluation/learned-corpus); VERSION_NBG / VERSION_AFFINITY: the versions the files get.
+# docs/evaluation/learned-corpus); SUFFIX (default corpus): the candidates' name after the tier's;
+# VERSION_NBG / VERSION_AFFINITY: the versions the files get. The second corpus fine-tune (the
+# noise level, 2026-12-07): OUT=docs/evaluation/learned-noise SUFFIX=noise VERSION_NBG=7
+# VERSION_AFFINITY=5.
 set -eu
 PY=${PYTHON:-python}
 RUNS=${RUNS:-$HOME/.cache/quietframe/runs/corpus}
 OUT=${OUT:-docs/evaluation/learned-corpus}
 NBG=nbg-2l-3g
 AFF=affinity-h16-k5gc
-CANDIDATES="$OUT/candidates/$NBG-corpus.onnx $OUT/candidates/$AFF-corpus.onnx"
-TIERS=$NBG,$AFF,$NBG-corpus,$AFF-corpus
+SUFFIX=${SUFFIX:-corpus}
+CANDIDATES="$OUT/candidates/$NBG-$SUFFIX.onnx $OUT/candidates/$AFF-$SUFFIX.onnx"
+TIERS=$NBG,$AFF,$NBG-$SUFFIX,$AFF-$SUFFIX
 METHODS=noisy,$TIERS,oidn-fast-history/frame,oidn-high,blender-denoise
 STAGE=${1:?export, validation, test or speed}
 score() {  # zoo split out [zoo_eval flags]
@@ -35,10 +39,10 @@ case "$STAGE" in
 export)
     mkdir -p "$OUT/candidates"
     "$PY" -m quietframe.export.cli --checkpoint "$RUNS/$NBG/best.pt" \
-        --out "$OUT/candidates/$NBG-corpus.onnx" --version "${VERSION_NBG:-6}" \
+        --out "$OUT/candidates/$NBG-$SUFFIX.onnx" --version "${VERSION_NBG:-6}" \
         --metrics-from "models/$NBG.onnx"
     "$PY" -m quietframe.export.cli --checkpoint "$RUNS/$AFF/best.pt" \
-        --out "$OUT/candidates/$AFF-corpus.onnx" --version "${VERSION_AFFINITY:-4}" \
+        --out "$OUT/candidates/$AFF-$SUFFIX.onnx" --version "${VERSION_AFFINITY:-4}" \
         --metrics-from "models/$AFF.onnx"
     ;;
 validation)

@@ -47,7 +47,7 @@ CLAMP = ("outlier_sigmas", "outlier_floor")
 
 AFFINITY = Family(
     name="affinity", config_type=affinity.AffinityConfig, model_type=affinity.AffinityDenoiser,
-    variants=affinity.VARIANTS, tunable=("kernel_size", *CLAMP),
+    variants=affinity.VARIANTS, tunable=("kernel_size", "noise_input", *CLAMP),
     owns=lambda saved: saved.get("family") == "affinity",  # AffinityConfig.family
 )
 OIDN_TEMPORAL = Family(
@@ -58,7 +58,7 @@ OIDN_TEMPORAL = Family(
 )
 NBG = Family(
     name="nbg", config_type=nbg.NBGConfig, model_type=nbg.NBGDenoiser, variants=nbg.VARIANTS,
-    tunable=("width", "passthrough", *CLAMP),
+    tunable=("width", "passthrough", "noise_blend", *CLAMP),
     owns=lambda saved: True,  # the first family: its checkpoints carry no mark of their own
 )
 # In the order a checkpoint is tried against them: NBG, unmarked, last.

@@ -10,10 +10,14 @@
 # generator's splits mixed in (default cycles: g2-cycles/train; "mitsuba,cycles" where the
 # Mitsuba split is rendered too). Data: scenes/render_corpus.sh, scenes/render_cycles_splits.sh.
 # INIT_FROM: the git revision whose models/training/<name>/best.pt each run starts from (default
-# 6abc3cf28baa: the generator-trained checkpoints the shipped fine-tune of 2026-12-07 started
-# from; models/training/<name>/ now holds that fine-tune's own run).
-# nbg-2l-3g gains the pass-through candidate (--passthrough 1, model/nbg.py): the grids alone
+# b0cc9f2: the first corpus fine-tune, nbg-2l-3g version 6 and affinity-h16-k5gc version 4; that
+# fine-tune itself started from 6abc3cf28baa, the generator-trained checkpoints, with
+# NOISE_LEVEL=0).
+# nbg-2l-3g gains the pass-through candidates (--passthrough 1, model/nbg.py): the grids alone
 # cannot give back an input that is already clean (docs/training.md, "Training on the corpus").
+# NOISE_LEVEL (default 1): both tiers read the frame's spp (nbg --noise-blend: the blend moves
+# with the pixel's noise level; affinity --noise-input: the U-Net reads it), each starting as the
+# checkpoint it extends (docs/training.md, "The noise level").
 # Learning rates: half of each tier's original (1e-3, 5e-4), above model/finetune_cycles.sh's
 # third: this data is further from the generator's; each run scores its starting model at step 0,
 # so a fine-tune that does not help leaves best.pt at the shipped weights.
@@ -21,7 +25,8 @@ set -u
 source "$(dirname "${BASH_SOURCE[0]}")/train_run.sh"
 PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/corpus}
-INIT_FROM=${INIT_FROM:-6abc3cf28baa}
+INIT_FROM=${INIT_FROM:-b0cc9f2}
+NOISE=${NOISE_LEVEL:-1}
 mkdir -p "$R"
 run() {  # name, then quietframe-train flags
     local name=$1
@@ -30,8 +35,8 @@ run() {  # name, then quietframe-train flags
     train_run "$R/$name" --init "$R/$name.init.pt" --renderers "${RENDERERS:-cycles}" \
         --corpus 1 --select-on corpus --select-spp 1,4,16,64 --threads 1 --seed 1 "$@"
 }
-run nbg-2l-3g --passthrough 1 --steps "${NBG_STEPS:-1500}" --eval-every 250 --lr 0.0005 \
+run nbg-2l-3g --passthrough 1 --noise-blend "$NOISE" --steps "${NBG_STEPS:-1500}" --eval-every 250 --lr 0.0005 \
     --dropout 0.3 --loss smape+temporal --crop 128 --frames 4 --batch 4 &
-run affinity-h16-k5gc --steps "${AFFINITY_STEPS:-1200}" --eval-every 200 --lr 0.0002 \
+run affinity-h16-k5gc --noise-input "$NOISE" --steps "${AFFINITY_STEPS:-1200}" --eval-every 200 --lr 0.0002 \
     --loss tau+temporal --crop 128 --frames 4 --batch 4 &
 wait

@@ -62,6 +62,11 @@ class NBGConfig:
     # accumulation itself loses to the input where reflections move unlike the surface (a
     # glossy studio: -3.4 dB at 64 spp by frame 4, docs/training.md).
     passthrough: bool = False
+    # Blend logits modulated by the pixel's noise level (not in the paper; noise_level,
+    # modulate_logits): the guide sees an LDR image, not how many samples are behind it, so one
+    # blend served 1 and 64 spp alike and stayed below its own input at 64 (docs/training.md).
+    # The frame's spp is then a run-time input of the exported graph.
+    noise_blend: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -144,6 +149,32 @@ def prestage(
     return irradiance, safe_albedo, new_state
 
 
+# log2 of a pixel's samples that maps to noise level 1: 1..1024 samples span the level's [0, 1]
+NOISE_LOG2_RANGE = 10.0
+# The modulation's parameters are stored divided by this: Adam moves a parameter by about the
+# learning rate a step whatever its gradient, and a fine-tune's (2e-4..5e-4) would take
+# thousands of steps to move a logit by the few units a blend needs.
+NOISE_PARAMETER_GAIN = 20.0
+
+
+def noise_level(spp: Tensor, count: Tensor) -> Tensor:
+    """A pixel's noise level in [0, 1]: log2(spp · history length) / NOISE_LOG2_RANGE, the
+    samples behind its accumulated irradiance on a log scale. spp (N,) or (1,), count (N,1,H,W):
+    the accumulation state's history length after this frame (1 without a history)."""
+    samples = spp.view(-1, 1, 1, 1) * count
+    return (torch.log2(samples.clamp_min(1.0)) / NOISE_LOG2_RANGE).clamp(0.0, 1.0)
+
+
+def modulate_logits(logits: Tensor, level: Tensor, scale: Tensor, shift: Tensor) -> Tensor:
+    """Blend logits (N, C, H, W) moved by the noise level (N, 1, H, W), per candidate c:
+    l_c (1 + scale_c · level) + shift_c · level. Zero scale and shift leave them as they are;
+    a shift moves the blend towards a candidate as the samples grow, a scale sharpens (or
+    flattens) the content's own preference. ai.quietframe::NBGBlendNoise evaluates it in this
+    order."""
+    scale, shift = scale.view(1, -1, 1, 1), shift.view(1, -1, 1, 1)
+    return logits * (1 + scale * level) + shift * level
+
+
 def channel_softmax(logits: Tensor) -> Tensor:
     """Softmax over dim 1 with element-wise ops: onnxruntime's Softmax on a non-last axis of
     an NCHW tensor transposes the whole frame (45 ms at 720p); this form stays element-wise."""
@@ -171,8 +202,18 @@ class GuideNet(nn.Module):
         elif config.layers != 2:
             raise ValueError(f"GuideNet has 2 or 7 layers, not {config.layers}")
         self.last = nn.Conv2d(channels, out_channels, 5, padding=2)
+        if config.noise_blend:  # zero: the blend the logits alone give (modulate_logits)
+            blend = blend_candidates(config)
+            self.noise_scale = nn.Parameter(torch.zeros(blend))
+            self.noise_shift = nn.Parameter(torch.zeros(blend))
 
-    def forward(self, features: Tensor) -> tuple[Tensor, Tensor | None]:
+    def noise_modulation(self) -> tuple[Tensor, Tensor]:
+        """modulate_logits' (scale, shift): the parameters times NOISE_PARAMETER_GAIN."""
+        return self.noise_scale * NOISE_PARAMETER_GAIN, self.noise_shift * NOISE_PARAMETER_GAIN
+
+    def forward(self, features: Tensor,
+                level: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+        """(guides, blend weights); `level` (noise_level) where the config has noise_blend."""
         x = F.leaky_relu(self.first(features), 0.2)  # (N, width, H, W)
         for conv in self.dense:
             x = torch.cat((x, F.leaky_relu(conv(x), 0.2)), dim=1)
@@ -181,8 +222,14 @@ class GuideNet(nn.Module):
         # The paper's w2 = 1 - w0 - w1 can go negative; a softmax keeps a convex combination.
         # Channel g weighs grid g; with a pass-through the last two weigh the accumulated
         # irradiance and the frame's own.
-        weights = channel_softmax(out[:, self.grids :]) if out.shape[1] > self.grids + 1 else None
-        return guides, weights
+        if out.shape[1] <= self.grids + 1:
+            return guides, None
+        logits = out[:, self.grids :]
+        if hasattr(self, "noise_scale"):
+            if level is None:
+                raise ValueError("a noise-aware blend (noise_blend) needs the noise level")
+            logits = modulate_logits(logits, level, *self.noise_modulation())
+        return guides, channel_softmax(logits)
 
 
 PASSTHROUGH_CANDIDATES = 2  # the accumulated irradiance, then the frame's own
@@ -234,6 +281,11 @@ class NBGDenoiser(nn.Module):
 
     state_channels = STATE_CHANNELS
 
+    @property
+    def reads_spp(self) -> bool:
+        """Whether forward reads the frame's spp (training feeds each item's)."""
+        return self.config.noise_blend
+
     def forward(
         self,
         color: Tensor,
@@ -243,15 +295,23 @@ class NBGDenoiser(nn.Module):
         motion: Tensor,
         reset: Tensor,
         state: Tensor,
+        spp: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
+        """`spp` (N,) or (1,): the frame's samples per pixel, read by a noise-aware blend only
+        (DEFAULT_SPP where not given)."""
         config = self.config
         frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                               config.outlier_floor)
         irradiance, new_state = (accumulate(frame, depth, normal, motion, reset, state,
                                             config.aligned_history)
                                  if config.temporal else (frame, state))
+        level = None
+        if config.noise_blend:
+            spp = torch.full((1,), DEFAULT_SPP) if spp is None else spp
+            count = new_state[:, 7:8] if config.temporal else torch.ones_like(depth)
+            level = noise_level(spp, count)
         guides, weights = self.guide_net(
-            guide_features(irradiance * safe_albedo, albedo, normal, depth)
+            guide_features(irradiance * safe_albedo, albedo, normal, depth), level
         )
         result = torch.zeros_like(irradiance)
         for s, (sigma_s, sigma_r) in enumerate(self.scales):
@@ -265,8 +325,25 @@ class NBGDenoiser(nn.Module):
 
     def adapt_state_dict(self, state: dict[str, Tensor]) -> dict[str, Tensor]:
         """A checkpoint's weights for this model: as they are, or, where this model has the
-        pass-through and the checkpoint (trained without one) lacks it, add_passthrough's."""
-        return add_passthrough(state, self.config) if self.config.passthrough else state
+        pass-through or the noise-aware blend and the checkpoint (trained without) lacks it,
+        extended so that the model starts as the checkpoint's (add_passthrough, zero
+        modulation)."""
+        state = add_passthrough(state, self.config) if self.config.passthrough else state
+        if self.config.noise_blend and "guide_net.noise_scale" not in state:
+            blend = blend_candidates(self.config)
+            state = {**state, "guide_net.noise_scale": torch.zeros(blend),
+                     "guide_net.noise_shift": torch.zeros(blend)}
+        return state
+
+    def run_time_inputs(self) -> list[dict]:
+        """`quietframe.inputs` of the exported graph: the frame's spp, where the blend reads
+        the noise level."""
+        if not self.config.noise_blend:
+            return []
+        return [samples_input(DEFAULT_SPP, "the frame's samples per pixel (the service fills "
+                              "it from the EXR header, or auto's estimate): with the history's "
+                              "length, the noise level that moves the blend between the grids "
+                              "and the pass-through")]
 
     def initial_state(self, batch: int, height: int, width: int) -> Tensor:
         return torch.zeros(batch, STATE_CHANNELS, height, width)

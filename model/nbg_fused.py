@@ -3,7 +3,8 @@
 NBGDenoiser.forward (model/nbg.py) is what trains; `fused_forward` computes the same frame with
 the glue between its stages as torch custom ops, which the ONNX export maps onto
 ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend, or NBGBlendPass for a model with the
-pass-through candidate (export/ops/nbg_fused.cc). In onnxruntime that glue was ~60 element-wise
+pass-through candidates, NBGBlendNoise for one whose blend also reads the noise level
+(export/ops/nbg_fused.cc). In onnxruntime that glue was ~60 element-wise
 nodes, a pass over full-frame tensors each, about a third of nbg-2l-3g's time at 720p; each
 fused op is one pass.
 
@@ -19,8 +20,20 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from quietframe.model.grid import bilateral_slice, bilateral_splat
-from quietframe.model.nbg import NBGDenoiser, channel_softmax, frame_irradiance, ldr
-from quietframe.model.temporal import backward_warp, history_valid, history_weights
+from quietframe.model.nbg import (
+    NBGDenoiser,
+    channel_softmax,
+    frame_irradiance,
+    ldr,
+    modulate_logits,
+    noise_level,
+)
+from quietframe.model.temporal import (
+    DEFAULT_SPP,
+    backward_warp,
+    history_valid,
+    history_weights,
+)
 
 LDR_EXPONENT = 1 / 2.2  # model/nbg.ldr's gamma
 FUSED_GRIDS = 3  # NBGBlend (and NBGBlendPass) weigh three sliced grids
@@ -108,25 +121,53 @@ def nbg_blend_pass(logits: Tensor, safe_albedo: Tensor, sliced0: Tensor, sliced1
                         passthrough=(accumulated, frame))
 
 
+def blend_noise(logits: Tensor, safe_albedo: Tensor, sliced: tuple[Tensor, ...],
+                passthrough: tuple[Tensor, Tensor], state: Tensor, spp: Tensor,
+                noise_scale: Tensor, noise_shift: Tensor) -> Tensor:
+    """blend_sliced with the blend logits first moved by the noise level (model/nbg
+    .modulate_logits of noise_level(spp, the state's history length)): NBGConfig.noise_blend."""
+    grids = len(sliced)
+    level = noise_level(spp, state[:, 7:8])
+    moved = modulate_logits(logits[:, grids:], level, noise_scale, noise_shift)
+    return blend_sliced(torch.cat((logits[:, :grids], moved), dim=1), safe_albedo, *sliced,
+                        passthrough=passthrough)
+
+
+@torch.library.custom_op("quietframe::nbg_blend_noise", mutates_args=())
+def nbg_blend_noise(logits: Tensor, safe_albedo: Tensor, sliced0: Tensor, sliced1: Tensor,
+                    sliced2: Tensor, accumulated: Tensor, frame: Tensor, state: Tensor,
+                    spp: Tensor, noise_scale: Tensor, noise_shift: Tensor) -> Tensor:
+    """ai.quietframe::NBGBlendNoise: blend_noise of three grids and the two pass-through
+    candidates, `state` the accumulation's new state (its history length)."""
+    return blend_noise(logits, safe_albedo, (sliced0, sliced1, sliced2), (accumulated, frame),
+                       state, spp, noise_scale, noise_shift)
+
+
 @nbg_blend.register_fake
 @nbg_blend_pass.register_fake
 def _blend_fake(logits, safe_albedo, *candidates):
     return torch.empty_like(safe_albedo)
 
 
+@nbg_blend_noise.register_fake
+def _blend_noise_fake(logits, safe_albedo, *rest):
+    return torch.empty_like(safe_albedo)
+
+
 def fusable(model: NBGDenoiser) -> bool:
     """Whether fused_forward computes this model: a temporal 3-grid NBG, with or without the
-    pass-through, without the pixel-aligned history (NBGAccumulate keeps every valid
-    history)."""
+    pass-through (and the noise-aware blend, which needs it), without the pixel-aligned history
+    (NBGAccumulate keeps every valid history)."""
     config = model.config
     return (isinstance(model, NBGDenoiser) and config.temporal and config.grids == FUSED_GRIDS
-            and not config.aligned_history)
+            and not config.aligned_history and (config.passthrough or not config.noise_blend))
 
 
 def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Tensor,
-                  depth: Tensor, motion: Tensor, reset: Tensor,
-                  state: Tensor) -> tuple[Tensor, Tensor]:
-    """NBGDenoiser.forward with its glue as the fused ops (`fusable` models only)."""
+                  depth: Tensor, motion: Tensor, reset: Tensor, state: Tensor,
+                  spp: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """NBGDenoiser.forward with its glue as the fused ops (`fusable` models only); `spp` as
+    there (a noise-aware blend's)."""
     config, net = model.config, model.guide_net
     frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                           config.outlier_floor)  # the pass-through's second
@@ -146,6 +187,10 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
         guide = guides[:, s : s + 1]
         grid, weight = bilateral_splat(irradiance, guide, sigma_s, sigma_r)
         sliced.append(bilateral_slice(grid, weight, guide, sigma_s, sigma_r))
+    if config.noise_blend:
+        spp = torch.full((1,), DEFAULT_SPP) if spp is None else spp
+        return nbg_blend_noise(logits, safe_albedo, *sliced, irradiance, frame, new_state, spp,
+                               *net.noise_modulation()), new_state
     if config.passthrough:
         return nbg_blend_pass(logits, safe_albedo, *sliced, irradiance, frame), new_state
     return nbg_blend(logits, safe_albedo, *sliced), new_state

@@ -93,6 +93,12 @@ class TrainConfig:
     # the --init checkpoint's). A fine-tune may switch them on: the checkpoint's weights are
     # extended with their logits (model/nbg.add_passthrough).
     passthrough: int = -1
+    # NBG: the noise-aware blend (NBGConfig.noise_blend, needs the pass-through; 1, 0, -1 as
+    # above). A fine-tune may switch it on: its modulation starts at zero (adapt_state_dict).
+    noise_blend: int = -1
+    # affinity: the noise level as a U-Net input (AffinityConfig.noise_input; 1, 0, -1 as
+    # above); a fine-tune may switch it on: its weights start at zero (adapt_state_dict).
+    noise_input: int = -1
     net_scale: int = 0  # oidn-temporal: OIDNTemporalConfig.net_scale (0 = the variant's)
     # Fine-tuning: a checkpoint whose model (architecture and weights) starts a new run, with a
     # fresh optimizer and schedule (e.g. a shipped model on new data); empty: train from scratch
@@ -186,15 +192,18 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
 def weightless_flags(cfg: TrainConfig) -> dict[str, float | bool]:
     """The settings a fine-tune may change on a checkpoint's model (-1: none given, the
     model's own stay): the firefly clamp (no weights) and NBG's pass-through (whose weights
-    the model adds: load_weights)."""
+    the model adds: load_weights) and the tiers' noise level (the same)."""
     given = {k: v for k, v in (("outlier_sigmas", cfg.outlier_sigmas),
                                ("outlier_floor", cfg.outlier_floor)) if v >= 0}
-    return given | ({"passthrough": bool(cfg.passthrough)} if cfg.passthrough >= 0 else {})
+    switches = {k: bool(v) for k, v in (("passthrough", cfg.passthrough),
+                                         ("noise_blend", cfg.noise_blend),
+                                         ("noise_input", cfg.noise_input)) if v >= 0}
+    return given | switches
 
 
 def load_weights(model: nn.Module, state: dict[str, Tensor]) -> None:
     """A checkpoint's weights into `model`, through the model's adapt_state_dict where it has
-    one (an NBG that gained the pass-through in a fine-tune)."""
+    one (a model that gained the pass-through or a noise level in a fine-tune)."""
     adapt = getattr(model, "adapt_state_dict", None)
     model.load_state_dict(adapt(state) if adapt else state)
 
@@ -226,9 +235,12 @@ def unroll(model: nn.Module, batch: dict[str, Tensor],
     state = model.initial_state(b, h, w)
     outputs = []
     inputs = getattr(model, "inputs", BUFFER_NAMES)  # oidn-temporal: "oidn" first
+    # A model that reads the frame's spp (an NBG with the noise-aware blend) gets each item's.
+    samples = {"spp": batch["spp"]} if getattr(model, "reads_spp", False) else {}
     for i in range(t):
         reset = torch.ones(b) if i == 0 else batch["reset"][:, i].float()
-        out, state = model(*(batch[k][:, i] for k in inputs), reset, state, **options)
+        out, state = model(*(batch[k][:, i] for k in inputs), reset, state, **samples,
+                           **options)
         outputs.append(out)
         if penalties is not None and getattr(model, "bandwidth_penalty", None) is not None:
             penalties.append(model.bandwidth_penalty)
@@ -425,10 +437,12 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
 
 
 ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fixed per run
-                       "outlier_sigmas", "outlier_floor", "net_scale", "passthrough")
+                       "outlier_sigmas", "outlier_floor", "net_scale", "passthrough",
+                       "noise_blend", "noise_input")
 # Architecture a fine-tune (--init) may still change: the clamp has no weights to load, the
-# pass-through's are added (model/nbg.add_passthrough).
-FINE_TUNE_MAY_CHANGE = ("outlier_sigmas", "outlier_floor", "passthrough")
+# pass-through's and the noise level's weights are added (the models' adapt_state_dict).
+FINE_TUNE_MAY_CHANGE = ("outlier_sigmas", "outlier_floor", "passthrough", "noise_blend",
+                        "noise_input")
 
 
 def load_init(init: str) -> dict:

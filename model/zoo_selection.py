@@ -39,8 +39,10 @@ from torch import nn
 from quietframe.model.metrics import psnr
 from quietframe.model.oidn_temporal import VARIANTS as OIDN_VARIANTS
 from quietframe.runtime.buffers import BUFFER_CHANNELS, BUFFER_NAMES
+from quietframe.runtime.card import SAMPLES_INPUT
 from quietframe.runtime.denoiser import DenoiseResult
 from quietframe.runtime.sanitize import sanitize_buffer, sanitize_output
+from quietframe.runtime.scalar_inputs import InputSpec
 from quietframe.runtime.stream import Stream
 from quietframe.scenes import cycles_io
 from quietframe.scenes.corpus_shots import corpus_dir, corpus_shots
@@ -195,10 +197,11 @@ def load_frames(seq: ZooSequence, crop: int,
 @dataclass(frozen=True)
 class _Info:
     """The part of runtime.ModelInfo a Stream reads: that the model keeps a state, and its
-    run-time inputs (none: the model's own kernel size, as `validate` runs it)."""
+    run-time inputs (the frame's spp, for a model that reads it; not a kernel size: the
+    model's own, as `validate` runs it)."""
 
     state_specs: tuple[str, ...] = (MODEL_STATE,)
-    inputs: tuple = ()
+    inputs: tuple[InputSpec, ...] = ()
 
 
 class TorchDenoiser:
@@ -209,7 +212,9 @@ class TorchDenoiser:
     prepass = None  # no OIDN stage
 
     def __init__(self, model: nn.Module) -> None:
-        self.model, self.info = model, _Info()
+        reads = [InputSpec.from_dict(i) for i in getattr(model, "run_time_inputs", list)()
+                 if i["name"] == SAMPLES_INPUT]
+        self.model, self.info = model, _Info(inputs=tuple(reads))
 
     def denoise(self, planes: Mapping[str, np.ndarray], state: Mapping[str, Any] | None,
                 options: Mapping[str, float | int] | None = None, renderer: str | None = None,
@@ -221,7 +226,9 @@ class TorchDenoiser:
         fresh = state is None or MODEL_STATE not in state
         previous = self.model.initial_state(1, h, w) if fresh else state[MODEL_STATE]
         reset = torch.ones(1) if fresh else torch.zeros(1)
-        out, new = self.model(*feeds, reset, previous)
+        spp = (options or {}).get(SAMPLES_INPUT) if self.info.inputs else None
+        extra = {} if spp is None else {"spp": torch.tensor([float(spp)])}
+        out, new = self.model(*feeds, reset, previous, **extra)
         color, _ = sanitize_output(out[0].numpy())
         # The state holds tensors, not arrays: nothing but this class reads MODEL_STATE.
         return DenoiseResult(color=color, state={MODEL_STATE: new}, sanitized={}, missing=())
