@@ -36,7 +36,7 @@ from quietframe.model.temporal import (
 )
 
 LDR_EXPONENT = 1 / 2.2  # model/nbg.ldr's gamma
-FUSED_GRIDS = 3  # NBGBlend (and NBGBlendPass) weigh three sliced grids
+FUSED_GRIDS = 3  # NBGBlend, NBGBlendPass and NBGBlendNoise weigh three sliced grids
 
 
 def accumulate_warped(radiance: Tensor, warped: Tensor, inside: Tensor, depth: Tensor,

@@ -60,29 +60,35 @@ def _graph_nodes(path):
     return onnx.load(str(path)).graph.node
 
 
-def assert_runtime_matches_torch(model, runtime, rtol: float = 1e-4, atol: float | None = None):
+def assert_runtime_matches_torch(model, runtime, rtol: float = 1e-4, atol: float | None = None,
+                                 spp: float | None = None) -> np.ndarray:
     """FRAMES frames through both with the state carried; outputs and state within rtol and
-    atol (default: rtol × the frame's largest output)."""
+    atol (default: rtol × the frame's largest output). `spp`: the frame's samples per pixel,
+    for a model that reads them (the graph's run-time input). Returns the last output."""
     torch_state = model.initial_state(1, HEIGHT, WIDTH)
     ort_state = None
+    samples = () if spp is None else (torch.tensor([spp]),)
+    options = None if spp is None else {"spp": spp}
     for index in range(FRAMES):
         color, albedo, normal, depth, motion = frame_inputs(index)
         reset = torch.tensor([1.0 if index == 0 else 0.0])
         with torch.no_grad():
-            expected, torch_state = model(color, albedo, normal, depth, motion, reset, torch_state)
+            expected, torch_state = model(color, albedo, normal, depth, motion, reset, torch_state,
+                                          *samples)
         buffers = {
             "color": planes(color), "albedo": planes(albedo), "normal": planes(normal),
             "depth": planes(depth), "motion": planes(motion),
         }
-        result = runtime.denoise(buffers, ort_state)
+        result = runtime.denoise(buffers, ort_state, options)
         ort_state = result.state
         scale = float(expected.abs().max())
         tolerance = {"rtol": rtol, "atol": rtol * scale if atol is None else atol}
         np.testing.assert_allclose(result.color, planes(expected), **tolerance)
         np.testing.assert_allclose(ort_state["accumulation"], torch_state.numpy(), **tolerance)
     # The history was used: the last frame differs from a reset run of the same inputs.
-    fresh = runtime.denoise(buffers, None)
+    fresh = runtime.denoise(buffers, None, options)
     assert np.abs(fresh.color - result.color).max() > 1e-3 * scale
+    return result.color
 
 
 def test_sequence_matches_pytorch_with_state_carried(exported):
@@ -98,6 +104,23 @@ def test_passthrough_model_exports_with_the_fused_pass_through_blend(tmp_path):
     assert "NBGBlendPass" in ops and "NBGBlend" not in ops
     assert json.loads(runtime.info.metadata["quietframe.architecture"])["passthrough"] is True
     assert_runtime_matches_torch(model, runtime)
+
+
+def test_noise_blend_model_exports_with_the_fused_noise_blend(tmp_path):
+    """NBGConfig.noise_blend: the graph blends with NBGBlendNoise and takes the frame's spp as
+    a run-time input; at each spp it is the PyTorch model given that spp."""
+    torch.manual_seed(0)
+    config = replace(VARIANTS["nbg-2l-3g"], passthrough=True, noise_blend=True, width=8)
+    model = NBGDenoiser(config).eval()
+    with torch.no_grad():  # a modulation of its own (zero is NBGBlendPass's blend), both signs
+        model.guide_net.noise_scale.copy_(torch.tensor([0.04, -0.03, 0.02, -0.05, 0.03]))
+        model.guide_net.noise_shift.copy_(torch.tensor([-0.1, 0.08, 0.05, -0.06, 0.12]))
+    runtime = Denoiser(export_nbg(model, tmp_path / "nbg-noise.onnx"), threads=2)
+    ops = {n.op_type for n in _graph_nodes(runtime.info.path)}
+    assert "NBGBlendNoise" in ops and not {"NBGBlend", "NBGBlendPass"} & ops
+    assert [(i.name, i.shape) for i in runtime.info.inputs] == [("spp", (1,))]
+    low, high = (assert_runtime_matches_torch(model, runtime, spp=spp) for spp in (1.0, 64.0))
+    assert np.abs(high - low).max() > 1e-3 * np.abs(low).max()  # the spp reached the blend
 
 
 SHIPPED_NBG = [p.stem for p in installed_models() if p.stem.startswith("nbg")]

@@ -1,8 +1,9 @@
-"""ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend / NBGBlendPass (export/ops/nbg_fused.cc)
-against their PyTorch references (quietframe.model.nbg_fused): odd sizes, several images, edge
-values (reset, out-of-frame history, zero-length and flipped normals, negative radiance,
-saturated logits); the thread count changes no bit; fused_forward computes NBGDenoiser.forward,
-with and without the pass-through; the shipped nbg-2l-3g.onnx uses the fused ops."""
+"""ai.quietframe::NBGAccumulate / NBGFeatures / NBGBlend / NBGBlendPass / NBGBlendNoise
+(export/ops/nbg_fused.cc) against their PyTorch references (quietframe.model.nbg_fused): odd
+sizes, several images, edge values (reset, out-of-frame history, zero-length and flipped
+normals, negative radiance, saturated logits, histories and spp the noise level spans); the
+thread count changes no bit; fused_forward computes NBGDenoiser.forward, with and without the
+pass-through; the shipped nbg-2l-3g.onnx uses the fused ops."""
 
 from __future__ import annotations
 
@@ -33,6 +34,8 @@ OPS = {
     "NBGBlend": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2"], ["denoised"], {}),
     "NBGBlendPass": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2", "accumulated",
                       "frame"], ["denoised"], {}),
+    "NBGBlendNoise": (["logits", "safe_albedo", "sliced0", "sliced1", "sliced2", "accumulated",
+                       "frame", "state", "spp", "noise_scale", "noise_shift"], ["denoised"], {}),
 }
 
 
@@ -117,11 +120,37 @@ def blend_pass_inputs(n: int, h: int, w: int, seed: int = 0) -> dict[str, np.nda
     return blend_inputs(n, h, w, seed, passthrough=True)
 
 
+def blend_noise_inputs(n: int, h: int, w: int, seed: int = 0,
+                       spp: tuple[float, ...] | None = None) -> dict[str, np.ndarray]:
+    """NBGBlendNoise's: NBGBlendPass's, a state with histories of 1..6 frames, `spp` (default:
+    1, 4, 64, ... one per image), and a modulation of both signs. The saturated logits of
+    candidates 0 and 4 get a positive scale, so they still overflow exp unless the max is
+    subtracted; the others' turn negative at the larger levels."""
+    rng = np.random.default_rng(seed + 100)
+    feeds = blend_pass_inputs(n, h, w, seed)
+    state = (rng.random((n, 8, h, w)) * 3).astype(np.float32)
+    state[:, 7] = rng.integers(1, 7, (n, h, w))
+    spp = tuple((1.0, 4.0, 64.0)[i % 3] for i in range(n)) if spp is None else spp
+    signs = np.array([1, -1, 1, -1, 1], np.float32)
+    return feeds | {
+        "state": state, "spp": np.array(spp, np.float32),
+        "noise_scale": (signs * rng.uniform(0.3, 1.5, 5)).astype(np.float32),
+        "noise_shift": (-signs * rng.uniform(0.5, 3.0, 5)).astype(np.float32)}
+
+
+def blend_noise(logits, safe_albedo, sliced0, sliced1, sliced2, accumulated, frame, state, spp,
+                noise_scale, noise_shift):
+    """fused.blend_noise with NBGBlendNoise's inputs in its order."""
+    return fused.blend_noise(logits, safe_albedo, (sliced0, sliced1, sliced2),
+                             (accumulated, frame), state, spp, noise_scale, noise_shift)
+
+
 REFERENCES = {
     "NBGAccumulate": (fused.accumulate_warped, accumulate_inputs),
     "NBGFeatures": (fused.features_scaled, features_inputs),
     "NBGBlend": (fused.blend_sliced, blend_inputs),
     "NBGBlendPass": (fused.nbg_blend_pass, blend_pass_inputs),  # blend_sliced(passthrough=)
+    "NBGBlendNoise": (blend_noise, blend_noise_inputs),
 }
 
 
@@ -136,6 +165,44 @@ def test_matches_reference(run, op: str, shape: tuple[int, int, int]) -> None:
     for g, w in zip(got, want, strict=True):
         assert g.shape == tuple(w.shape)
         np.testing.assert_allclose(g, w.numpy(), rtol=2e-6, atol=1e-6)
+
+
+def noise_reference(feeds: dict[str, np.ndarray]) -> np.ndarray:
+    return blend_noise(*(torch.from_numpy(feeds[name]) for name in OPS["NBGBlendNoise"][0]))
+
+
+@pytest.mark.parametrize("spp", [(1.0,), (4.0,), (64.0,), (1.0, 64.0), (64.0, 4.0)])
+def test_blend_noise_matches_reference_at_every_spp(run, spp: tuple[float, ...]) -> None:
+    """One spp for both images (shape [1]) or one each ([N]); with histories of 1..6 frames
+    the level spans log2(1..384) / 10. Larger than a block of the op, and in blocks of one
+    history length too (the op takes one log2 for those)."""
+    feeds = blend_noise_inputs(2, 37, 301, seed=5, spp=spp)
+    feeds["state"][0, 7, :20] = 3.0
+    (got,) = run("NBGBlendNoise", feeds)
+    np.testing.assert_allclose(got, noise_reference(feeds).numpy(), rtol=2e-6, atol=1e-6)
+
+
+def test_blend_noise_without_modulation_is_the_pass_through_blend(run) -> None:
+    feeds = blend_noise_inputs(2, 9, 11)
+    feeds["noise_scale"][:] = 0.0
+    feeds["noise_shift"][:] = 0.0
+    (noise,) = run("NBGBlendNoise", feeds)
+    (plain,) = run("NBGBlendPass", {name: feeds[name] for name in OPS["NBGBlendPass"][0]})
+    np.testing.assert_array_equal(noise, plain)
+
+
+def test_blend_noise_level_saturates_and_keeps_nan(run) -> None:
+    """Below one sample the level is 0, from 1024 on 1 (the clamps); a NaN history is NaN."""
+    feeds = blend_noise_inputs(1, 4, 8, spp=(512.0,))
+    state = feeds["state"]
+    state[0, 7, 0] = 0.0  # no samples: level 0
+    state[0, 7, 1] = 2.0  # 1024 samples: level 1
+    state[0, 7, 2] = 1e30  # far beyond: level 1
+    state[0, 7, 3, :4] = np.nan
+    (got,) = run("NBGBlendNoise", feeds)
+    want = noise_reference(feeds).numpy()
+    np.testing.assert_allclose(got, want, rtol=2e-6, atol=1e-6)  # NaN where the reference's
+    assert np.isnan(got[0, :, 3, :4]).all() and np.isfinite(got[0, :, :3]).all()
 
 
 def test_reset_and_out_of_frame_drop_history(run) -> None:
@@ -175,6 +242,30 @@ def test_blend_logits_must_match_the_candidates(run) -> None:
     with pytest.raises(Exception, match=r"NBGBlendPass: logits must be \(N, 8, H, W\) = "
                                         r"\(1, 8, 8, 8\) like the image, got \(1, 6, 8, 8\)"):
         run("NBGBlendPass", feeds)
+
+
+@pytest.mark.parametrize(("name", "value", "message"), [
+    ("logits", np.zeros((2, 6, 5, 7), np.float32),
+     r"logits must be \(N, 8, H, W\) = \(2, 8, 5, 7\) like the image, got \(2, 6, 5, 7\)"),
+    ("state", np.zeros((2, 7, 5, 7), np.float32),
+     r"state must be \(N, 8, H, W\) = \(2, 8, 5, 7\) like the image, got \(2, 7, 5, 7\)"),
+    ("state", np.zeros((2, 8, 5, 6), np.float32), r"state must be \(N, 8, H, W\)"),
+    ("frame", np.zeros((1, 3, 5, 7), np.float32),
+     r"frame must be \(N, 3, H, W\) = \(2, 3, 5, 7\) like the image, got \(1, 3, 5, 7\)"),
+    ("safe_albedo", np.zeros((2, 3, 4, 7), np.float32), r"safe_albedo must be \(N, 3, H, W\)"),
+    ("spp", np.ones(3, np.float32), r"spp must be \(1,\) or \(N,\) = \(2,\), got \(3\)"),
+    ("spp", np.ones((2, 1), np.float32),
+     r"spp must be \(1,\) or \(N,\) = \(2,\), got \(2, 1\)"),
+    ("noise_scale", np.ones(4, np.float32),
+     r"noise_scale must be \(5,\), one per blend candidate, got \(4\)"),
+    ("noise_shift", np.ones((1, 5), np.float32),
+     r"noise_shift must be \(5,\), one per blend candidate, got \(1, 5\)"),
+])
+def test_blend_noise_wrong_inputs_are_errors(run, name: str, value: np.ndarray,
+                                              message: str) -> None:
+    feeds = blend_noise_inputs(2, 5, 7) | {name: value}
+    with pytest.raises(Exception, match="NBGBlendNoise: " + message):
+        run("NBGBlendNoise", feeds)
 
 
 def _frames(model, count: int = 3, seed: int = 0):

@@ -16,8 +16,8 @@ torch = pytest.importorskip("torch", reason="the NBG model (torch) is not instal
 
 from dataset_support import write_generator_splits  # noqa: E402
 
-from quietframe.export.affinity_export import export_affinity  # noqa: E402
 from quietframe.export.affinity_export import example_inputs as affinity_inputs  # noqa: E402
+from quietframe.export.affinity_export import export_affinity  # noqa: E402
 from quietframe.export.onnx_export import example_inputs  # noqa: E402
 from quietframe.model import affinity, nbg  # noqa: E402
 from quietframe.model import train as qt  # noqa: E402
