@@ -39,7 +39,13 @@ from quietframe.model.affinity_kernels import (
 from quietframe.model.losses import bandwidth_regulariser
 from quietframe.model.nbg import demodulation_divisor, noise_level, suppress_outliers
 from quietframe.model.resample import upsample_bilinear
-from quietframe.model.temporal import DEFAULT_SPP, backward_warp, history_valid, samples_input
+from quietframe.model.temporal import (
+    DEFAULT_SPP,
+    backward_warp,
+    frame_samples,
+    history_valid,
+    samples_input,
+)
 
 EMBEDDING_INPUT_CHANNELS = 10  # log radiance (3) + albedo (3) + normal (3) + relative depth (1)
 EMBEDDING_CHANNELS = 32  # paper §3.2: 3 FC layers × 32
@@ -391,9 +397,8 @@ class AffinityDenoiser(nn.Module):
             warped, warped_embedding = None, torch.zeros_like(embedding)
         unet_inputs = [embedding, warped_embedding]
         if self.config.noise_input:
-            spp = torch.full((1,), DEFAULT_SPP) if spp is None else spp
-            level = noise_level(spp, torch.ones_like(embedding[:, :1]))  # (N, 1, h, w)
-            unet_inputs.append(level.expand(embedding.shape[0], 1, *embedding.shape[2:]))
+            spp = frame_samples(spp)
+            unet_inputs.append(noise_level(spp, torch.ones_like(embedding[:, :1])))  # (N,1,h,w)
         raw = self.unet(torch.cat(unet_inputs, dim=1))  # eq. 2, (N, 32, h, w)
         low_params = kernel_params(raw)
         low_blend = low_params.blend * low_keep  # λ: no history where there is none

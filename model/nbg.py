@@ -14,7 +14,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from quietframe.model.grid import bilateral_slice, bilateral_splat
-from quietframe.model.temporal import DEFAULT_SPP, STATE_CHANNELS, accumulate, samples_input
+from quietframe.model.temporal import (
+    DEFAULT_SPP,
+    STATE_CHANNELS,
+    accumulate,
+    frame_samples,
+    samples_input,
+)
 
 ALBEDO_EPSILON = 1e-2  # demodulation divides by (albedo + eps): invertible, gain bounded by 100
 # Below this max-channel albedo (sky, emitters, black paint) demodulation fades out linearly to a
@@ -307,7 +313,7 @@ class NBGDenoiser(nn.Module):
                                  if config.temporal else (frame, state))
         level = None
         if config.noise_blend:
-            spp = torch.full((1,), DEFAULT_SPP) if spp is None else spp
+            spp = frame_samples(spp)
             count = new_state[:, 7:8] if config.temporal else torch.ones_like(depth)
             level = noise_level(spp, count)
         guides, weights = self.guide_net(
@@ -372,8 +378,8 @@ class AccumulationDenoiser(nn.Module):
     def forward(self, color: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor,
                 motion: Tensor, reset: Tensor, state: Tensor,
                 spp: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        if self.config.restart_repeated and spp is None:
-            spp = torch.full((1,), DEFAULT_SPP)
+        if self.config.restart_repeated:
+            spp = frame_samples(spp)
         irradiance, safe_albedo, new_state = prestage(
             color, albedo, normal, depth, motion, reset, state,
             outlier_sigmas=self.config.outlier_sigmas,

@@ -29,8 +29,8 @@ from quietframe.model.nbg import (
     noise_level,
 )
 from quietframe.model.temporal import (
-    DEFAULT_SPP,
     backward_warp,
+    frame_samples,
     history_valid,
     history_weights,
 )
@@ -188,7 +188,7 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
         grid, weight = bilateral_splat(irradiance, guide, sigma_s, sigma_r)
         sliced.append(bilateral_slice(grid, weight, guide, sigma_s, sigma_r))
     if config.noise_blend:
-        spp = torch.full((1,), DEFAULT_SPP) if spp is None else spp
+        spp = frame_samples(spp)
         return nbg_blend_noise(logits, safe_albedo, *sliced, irradiance, frame, new_state, spp,
                                *net.noise_modulation()), new_state
     if config.passthrough:

@@ -35,6 +35,11 @@ DEFAULT_SPP = 4.0
 STATE_CHANNELS = 8
 
 
+def frame_samples(spp: Tensor | None) -> Tensor:
+    """The frame's spp as a model reads it: the one given, else DEFAULT_SPP (shape (1,))."""
+    return torch.full((1,), DEFAULT_SPP) if spp is None else spp
+
+
 def samples_input(default: float, doc: str) -> dict:
     """The `quietframe.inputs` entry of a graph that reads the frame's samples per pixel
     (SAMPLES_INPUT, shape [1]): the service fills it from the EXR header, a session option or

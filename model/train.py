@@ -235,7 +235,7 @@ def unroll(model: nn.Module, batch: dict[str, Tensor],
     state = model.initial_state(b, h, w)
     outputs = []
     inputs = getattr(model, "inputs", BUFFER_NAMES)  # oidn-temporal: "oidn" first
-    # A model that reads the frame's spp (an NBG with the noise-aware blend) gets each item's.
+    # A model that reads the frame's spp (a learned tier with a noise level) gets each item's.
     samples = {"spp": batch["spp"]} if getattr(model, "reads_spp", False) else {}
     for i in range(t):
         reset = torch.ones(b) if i == 0 else batch["reset"][:, i].float()
