@@ -59,14 +59,14 @@ def _run(frames: list[dict[str, torch.Tensor]], resets: list[bool], fixed_aux: b
         aux = first if fixed_aux else f
         depth, normal = aux["depth"], aux["normal"]
         warped, inside = temporal.backward_warp(state, f["motion"], mode="nearest")
-        depth_ok = temporal.history_valid(warped[:, 3:4], normal, depth, normal)
-        normal_ok = temporal.history_valid(depth, warped[:, 4:7], depth, normal)
+        depth_ok = temporal.history_valid(warped[:, temporal.DEPTH], normal, depth, normal)
+        normal_ok = temporal.history_valid(depth, warped[:, temporal.NORMAL], depth, normal)
         acc, state = temporal.accumulate(f["color"], depth, normal, f["motion"],
                                          torch.tensor([float(reset)]), state)
-        kept = state[:, 7:8] > 1.5  # history length grew past this frame alone
+        kept = state[:, temporal.HISTORY_LENGTH] > 1.5  # history length grew past this frame alone
         masks.append((kept, depth_ok * inside > 0, normal_ok * inside > 0))
         outputs.append(acc)
-    return torch.cat(outputs), masks, state[:, 7:8]
+    return torch.cat(outputs), masks, state[:, temporal.HISTORY_LENGTH]
 
 
 def measure_sequence(frames: list[dict[str, np.ndarray]], resets: list[bool]) -> dict:

@@ -40,7 +40,9 @@ from quietframe.bench.harness import planar_frames
 from quietframe.experiments.output_history import RUNTIME_BUFFERS, PreStage
 from quietframe.model.output_history import OutputHistoryConfig, clamp_to_neighbourhood
 from quietframe.model.temporal import (
+    HISTORY_LENGTH,
     MIN_CURRENT_WEIGHT,
+    RADIANCE,
     backward_warp,
     history_weights,
     pixel_aligned,
@@ -143,12 +145,12 @@ class HistoryRule:
             out, count = current, torch.ones_like(depth)
         else:
             warped, keep = reproject_history(self.state, motion, depth, normal, torch.zeros(1))
-            fetched = backward_warp(self.state[:, 0:3], motion, mode="bicubic")[0].clamp_min(0)
+            fetched = backward_warp(self.state[:, RADIANCE], motion, mode="bicubic")[0].clamp_min(0)
             fetched = (variance_clip(fetched, current, self.gamma) if self.gamma
                        else clamp_to_neighbourhood(fetched, current))
             exact = pixel_aligned(motion).to(current.dtype)
-            previous = fetched + exact * (warped[:, 0:3] - fetched)
-            alpha, count = history_weights(keep, warped[:, 7:8])
+            previous = fetched + exact * (warped[:, RADIANCE] - fetched)
+            alpha, count = history_weights(keep, warped[:, HISTORY_LENGTH])
             alpha = torch.maximum(alpha, exact * MIN_CURRENT_WEIGHT)
             alpha = torch.maximum(alpha, (1 - exact) * self._floor(current, planes))
             out = current + (1 - alpha) * (previous - current)

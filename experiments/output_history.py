@@ -60,6 +60,8 @@ from quietframe.model.nbg import AccumulationDenoiser, demodulation_divisor
 from quietframe.model.output_history import OutputHistory as ShippedOutputHistory
 from quietframe.model.output_history import OutputHistoryConfig, clamp_to_neighbourhood
 from quietframe.model.temporal import (
+    HISTORY_LENGTH,
+    RADIANCE,
     backward_warp,
     history_weights,
     pixel_aligned,
@@ -115,9 +117,9 @@ class OutputHistory:
             warped, keep = reproject_history(self.state, motion, depth, normal, torch.zeros(1))
             if self.sharp_only:
                 keep = keep * pixel_aligned(motion).to(keep.dtype)
-            previous = warped[:, 0:3]
+            previous = warped[:, RADIANCE]
             if self.resample in ("bicubic", "hybrid"):
-                fetched = resample_bicubic(self.state[:, 0:3], motion)
+                fetched = resample_bicubic(self.state[:, RADIANCE], motion)
                 if self.clamp or self.resample == "hybrid":
                     fetched = clamp_to_neighbourhood(fetched, current)
                 # hybrid: the exact pixel, unclamped, where the motion is pixel-aligned
@@ -125,7 +127,7 @@ class OutputHistory:
                             if self.resample == "hybrid" else fetched)
             elif self.clamp:
                 previous = clamp_to_neighbourhood(previous, current)
-            alpha, count = history_weights(keep, warped[:, 7:8])
+            alpha, count = history_weights(keep, warped[:, HISTORY_LENGTH])
             out = alpha * current + (1 - alpha) * previous
         self.state = torch.cat((out, depth, normal, count), dim=1)
         return (out * divisor)[0].numpy()

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from quietframe.model.grid import bilateral_slice, bilateral_splat
 from quietframe.model.temporal import (
     DEFAULT_SPP,
+    HISTORY_LENGTH,
     STATE_CHANNELS,
     accumulate,
     frame_samples,
@@ -314,7 +315,7 @@ class NBGDenoiser(nn.Module):
         level = None
         if config.noise_blend:
             spp = frame_samples(spp)
-            count = new_state[:, 7:8] if config.temporal else torch.ones_like(depth)
+            count = new_state[:, HISTORY_LENGTH] if config.temporal else torch.ones_like(depth)
             level = noise_level(spp, count)
         guides, weights = self.guide_net(
             guide_features(irradiance * safe_albedo, albedo, normal, depth), level

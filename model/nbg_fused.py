@@ -29,6 +29,10 @@ from quietframe.model.nbg import (
     noise_level,
 )
 from quietframe.model.temporal import (
+    DEPTH,
+    HISTORY_LENGTH,
+    NORMAL,
+    RADIANCE,
     backward_warp,
     frame_samples,
     history_valid,
@@ -43,10 +47,10 @@ def accumulate_warped(radiance: Tensor, warped: Tensor, inside: Tensor, depth: T
                       normal: Tensor, reset: Tensor) -> tuple[Tensor, Tensor]:
     """model/temporal.accumulate after its reprojection (`warped`, `inside` =
     backward_warp(state, motion, "nearest")): (accumulated radiance, new state)."""
-    keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal)
+    keep = inside * history_valid(warped[:, DEPTH], warped[:, NORMAL], depth, normal)
     keep = keep * (1 - reset.view(-1, 1, 1, 1))
-    alpha, count = history_weights(keep, warped[:, 7:8])
-    accumulated = alpha * radiance + (1 - alpha) * warped[:, 0:3]
+    alpha, count = history_weights(keep, warped[:, HISTORY_LENGTH])
+    accumulated = alpha * radiance + (1 - alpha) * warped[:, RADIANCE]
     return accumulated, torch.cat((accumulated, depth, normal, count), dim=1)
 
 
@@ -127,7 +131,7 @@ def blend_noise(logits: Tensor, safe_albedo: Tensor, sliced: tuple[Tensor, ...],
     """blend_sliced with the blend logits first moved by the noise level (model/nbg
     .modulate_logits of noise_level(spp, the state's history length)): NBGConfig.noise_blend."""
     grids = len(sliced)
-    level = noise_level(spp, state[:, 7:8])
+    level = noise_level(spp, state[:, HISTORY_LENGTH])
     moved = modulate_logits(logits[:, grids:], level, noise_scale, noise_shift)
     return blend_sliced(torch.cat((logits[:, :grids], moved), dim=1), safe_albedo, *sliced,
                         passthrough=passthrough)

@@ -33,9 +33,12 @@ from torch import Tensor, nn
 from quietframe.model.oidn_temporal import prepass_spec
 from quietframe.model.temporal import (
     DEFAULT_SPP,
+    DEPTH,
     DEPTH_REL_TOLERANCE,
+    HISTORY_LENGTH,
     MIN_CURRENT_WEIGHT,
     NORMAL_MIN_DOT,
+    RADIANCE,
     backward_warp,
     history_weights,
     pixel_aligned,
@@ -294,14 +297,14 @@ class OutputHistory(nn.Module):
                                                        - NORMAL_MIN_DOT)
         warped, keep = reproject_history(state, motion, depth, normal, reset, depth_tolerance,
                                          normal_min_dot)
-        fetched, _ = backward_warp(state[:, 0:3], motion, mode="bicubic")
+        fetched, _ = backward_warp(state[:, RADIANCE], motion, mode="bicubic")
         # bicubic overshoots below 0
         fetched = clamp_to_neighbourhood(F.relu(fetched), oidn, self.config.clip_sigma)
         # Arithmetic blends, not Where: onnxruntime broadcasts a 1-channel condition over 3
         # channels slowly (three Wheres were a quarter of this graph's time at 720p).
         exact = pixel_aligned(motion).to(oidn.dtype)  # 1: the nearest pixel is exact
-        previous = fetched + exact * (warped[:, 0:3] - fetched)
-        alpha, count = history_weights(keep, warped[:, 7:8])  # alpha = 1 where not kept
+        previous = fetched + exact * (warped[:, RADIANCE] - fetched)
+        alpha, count = history_weights(keep, warped[:, HISTORY_LENGTH])  # alpha = 1 where not kept
         if spp is None:
             spp = torch.full((1,), self.config.default_spp)
         alpha = torch.maximum(alpha, (1 - exact) * self.config.resampled_floor(spp))
@@ -312,7 +315,7 @@ class OutputHistory(nn.Module):
             # one 3×3 motion range for both tests (it is on the service's per-frame path)
             spread = (motion_spread(motion)
                       if config.edge_motion > 0 or config.exact_edge_motion > 0 else None)
-            trusted = trusted_resample(config, motion, depth, state[:, 3:4], spread)
+            trusted = trusted_resample(config, motion, depth, state[:, DEPTH], spread)
             # both tests read grey levels: a tone-mapped channel mean (Pow on three channels
             # was a quarter of this graph's time at 720p)
             mapped = (grey_level(oidn) if config.shading_change > 0

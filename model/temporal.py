@@ -31,8 +31,13 @@ REPEAT_TOLERANCE = 1e-6
 # The frame's spp a graph assumes where it is not given one (its `spp` input's default): the
 # count the oidn-history tiers shipped with before they read it.
 DEFAULT_SPP = 4.0
-# Channels of the accumulation state: radiance (3), depth (1), normal (3), history length (1).
+# Channels of the accumulation state: radiance (3), depth (1), normal (3), history length (1),
+# named here once so every reader slices the same channels (`state[:, HISTORY_LENGTH]`).
 STATE_CHANNELS = 8
+RADIANCE = slice(0, 3)
+DEPTH = slice(3, 4)
+NORMAL = slice(4, 7)
+HISTORY_LENGTH = slice(7, 8)
 
 
 def frame_samples(spp: Tensor | None) -> Tensor:
@@ -195,7 +200,7 @@ def reproject_history(state: Tensor, motion: Tensor, depth: Tensor, normal: Tens
     frame; on the validation set nearest halved relMSE and lowered TRMAE by 7% at equal PSNR
     (docs/training.md)."""
     warped, inside = backward_warp(state, motion, mode="nearest")
-    keep = inside * history_valid(warped[:, 3:4], warped[:, 4:7], depth, normal,
+    keep = inside * history_valid(warped[:, DEPTH], warped[:, NORMAL], depth, normal,
                                   depth_tolerance, normal_min_dot)
     return warped, keep * (1 - reset.view(-1, 1, 1, 1))
 
@@ -242,12 +247,12 @@ def accumulate(
     any spp though the colour's samples move. `spp` (1,), None: the test is off.
     """
     warped, keep = reproject_history(state, motion, depth, normal, reset)
-    prev_radiance, prev_count = warped[:, 0:3], warped[:, 7:8]
+    prev_radiance, prev_count = warped[:, RADIANCE], warped[:, HISTORY_LENGTH]
     if aligned_only:
         keep = keep * pixel_aligned(motion).to(keep.dtype)
     if restart_repeated and spp is not None:
         single = (spp < 2).to(keep.dtype).view(-1, 1, 1, 1)  # one sample a pixel
-        repeated = repeated_sample(warped[:, 3:4], warped[:, 4:7], depth, normal)
+        repeated = repeated_sample(warped[:, DEPTH], warped[:, NORMAL], depth, normal)
         keep = keep * (1 - single * repeated)
     alpha, count = history_weights(keep, prev_count)  # (N, 1, H, W) weight of the current frame
     accumulated = alpha * radiance + (1 - alpha) * prev_radiance
