@@ -187,13 +187,16 @@ class UNet(nn.Module):
                 self.out.bias[k * PARAMS_PER_KERNEL + FEATURE_CHANNELS] = 1.0
             self.out.bias[kernels * PARAMS_PER_KERNEL] = 1.0
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor, noise: Tensor | None = None) -> Tensor:
+        """`noise` (N, 1, h, w): the noise-level plane, the first convolution's last input
+        channel (noise_input), or None."""
         skips = []
-        for level, (a, b) in enumerate(self.down):
-            if level:
+        for depth, (a, b) in enumerate(self.down):
+            if depth:
                 # ceil_mode: odd sizes keep their last row/column, a 1×1 frame stays 1×1
                 x = F.max_pool2d(x, 2, ceil_mode=True)
-            x = F.leaky_relu(b(F.leaky_relu(a(x), LEAK)), LEAK)
+            x = F.leaky_relu(b(F.leaky_relu(self._first(a, x, noise) if depth == 0 else a(x),
+                                            LEAK)), LEAK)
             skips.append(x)
         for i, (a, b) in enumerate(self.up):
             skip = skips[-2 - i]
@@ -201,6 +204,17 @@ class UNet(nn.Module):
             x = torch.cat((x, skip), dim=1)
             x = F.leaky_relu(b(F.leaky_relu(a(x), LEAK)), LEAK)
         return self.out(x)  # (N, 10 K + 2, h, w), raw
+
+    @staticmethod
+    def _first(conv: nn.Conv2d, x: Tensor, noise: Tensor | None) -> Tensor:
+        """The first convolution, over [x, noise] where there is a noise plane, as two: the
+        same sum, but the 64 embedding channels stay a multiple of onnxruntime's channel
+        block, whose fast convolution a 65th channel pushed the whole layer off (+24 ms of
+        ~500 at 720p)."""
+        if noise is None:
+            return conv(x)
+        return (F.conv2d(x, conv.weight[:, :-1], conv.bias, padding=conv.padding)
+                + F.conv2d(noise, conv.weight[:, -1:], padding=conv.padding))
 
 
 @dataclass
@@ -395,11 +409,10 @@ class AffinityDenoiser(nn.Module):
         else:
             keep = low_keep = torch.zeros_like(inputs[:, :1])
             warped, warped_embedding = None, torch.zeros_like(embedding)
-        unet_inputs = [embedding, warped_embedding]
+        noise = None
         if self.config.noise_input:
-            spp = frame_samples(spp)
-            unet_inputs.append(noise_level(spp, torch.ones_like(embedding[:, :1])))  # (N,1,h,w)
-        raw = self.unet(torch.cat(unet_inputs, dim=1))  # eq. 2, (N, 32, h, w)
+            noise = noise_level(frame_samples(spp), torch.ones_like(embedding[:, :1]))  # (N,1,h,w)
+        raw = self.unet(torch.cat((embedding, warped_embedding), dim=1), noise)  # eq. 2
         low_params = kernel_params(raw)
         low_blend = low_params.blend * low_keep  # λ: no history where there is none
         new_embedding = accumulate_embedding(embedding, warped_embedding, low_blend)  # eq. 3

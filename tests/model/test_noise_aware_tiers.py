@@ -165,6 +165,19 @@ def test_affinity_noise_input_trains_and_makes_the_spp_matter() -> None:
     assert float((run_affinity(model, 1.0) - run_affinity(model, 64.0)).abs().max()) > 1e-3
 
 
+def test_the_unet_reads_the_noise_plane_as_its_first_convolutions_last_channel() -> None:
+    # the two-convolution form (kept for onnxruntime's channel blocks) is the same function
+    unet = affinity.UNet((8, 16), noise_input=True)
+    x = torch.randn(2, 2 * affinity.EMBEDDING_CHANNELS, 12, 10)
+    noise = torch.rand(2, 1, 1, 1).expand(2, 1, 12, 10)
+    first = unet.down[0][0]
+    with torch.no_grad():
+        split = unet._first(first, x, noise)
+        joined = first(torch.cat((x, noise), dim=1))
+    torch.testing.assert_close(split, joined, rtol=1e-5, atol=1e-5)
+    assert float((split - unet._first(first, x, noise + 0.5)).abs().max()) > 1e-3
+
+
 def test_exported_affinity_takes_the_spp_and_matches_pytorch(tmp_path) -> None:
     _, model = affinity_pair()
     with torch.no_grad():
