@@ -14,8 +14,8 @@ from conftest import LAYOUTS, make_buffers, write_exr
 
 from quietframe.client.cli import main
 
-LEARNED = "nbg-2l-3g"  # below its input from 9.6 spp on a validation shot (its card)
-WARNING = f"{LEARNED} is below its own noisy input from 9.6 spp"
+LEARNED = "nbg-2l-3g"  # below its input from 16.54 spp on a validation shot (its card)
+WARNING = f"{LEARNED} is below its own noisy input from 16.54 spp"
 
 
 def render(folder: Path, spp: int, frames: int = 3) -> None:
@@ -43,19 +43,19 @@ def learned(live_server) -> str:
 
 def test_the_warning_is_said_once_per_run_on_stderr_and_the_run_succeeds(
         tmp_path, learned, capsys):
-    render(tmp_path / "src", 16)
+    render(tmp_path / "src", 64)
     assert run(learned, tmp_path / "src", tmp_path / "out", LEARNED, "--quiet") == 0
     assert len(list((tmp_path / "out").glob("shot.*.exr"))) == 3
     captured = capsys.readouterr()
     lines = [line for line in captured.err.splitlines() if WARNING in line]
     assert lines == [f"quietframe: warning: frame 1001: {WARNING} on a validation-zoo shot "
-                     "(this frame: 16 spp, -1.10 dB there); use model=auto or an OIDN tier "
+                     "(this frame: 64 spp, -2.33 dB there); use model=auto or an OIDN tier "
                      "(said once per run)"], captured.err
     assert WARNING not in captured.out
 
 
 def test_json_says_it_as_one_warning_event_and_in_the_summary(tmp_path, learned, capsys):
-    render(tmp_path / "src", 16)
+    render(tmp_path / "src", 64)
     assert run(learned, tmp_path / "src", tmp_path / "out", LEARNED, "--json") == 0
     events = [json.loads(line) for line in capsys.readouterr().out.splitlines()
               if line.startswith("{")]
@@ -65,7 +65,7 @@ def test_json_says_it_as_one_warning_event_and_in_the_summary(tmp_path, learned,
     assert sum(WARNING in w for w in summary["warnings"]) == 1
 
 
-@pytest.mark.parametrize("spp, model", [(2, LEARNED), (16, "auto")])
+@pytest.mark.parametrize("spp, model", [(2, LEARNED), (64, "auto")])
 def test_no_warning_in_the_models_range_or_with_auto(tmp_path, learned, capsys, spp, model):
     render(tmp_path / "src", spp, frames=2)
     assert run(learned, tmp_path / "src", tmp_path / "out", model, "--quiet") == 0

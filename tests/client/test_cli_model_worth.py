@@ -28,8 +28,9 @@ def test_models_listing_and_table_say_from_which_spp_a_learned_tier_is_worse_tha
         for name in learned:
             margin = models[name]["metrics"]["by_renderer"]["cycles"]["input_margin"]
             worst = {r["spp"]: r["worst_db"] for r in margin["by_spp"]}
-            assert worst[1] > 0 > worst[16], (name, worst)  # garden-blur, docs/zoo.md
+            # garden-blur (generator tiers, docs/zoo.md), a glossy studio (corpus tiers)
+            assert worst[1] > 0 > worst[64], (name, worst)
             worse = margin["worse_than_input_from_spp"]
-            assert 1 < worse < 16
+            assert 1 < worse < 64
             assert f"worth using below {worse:g} spp" in row_of(text, name)
         assert "worth using" not in row_of(text, "oidn-frame")  # never measured against it

@@ -308,8 +308,9 @@ def test_shipped_nbg_2l_3g_uses_the_fused_ops() -> None:
     model = onnx.load(str(path))
     ops = {n.op_type for n in model.graph.node}
     props = {p.key: p.value for p in model.metadata_props}
-    blend = ("NBGBlendPass" if json.loads(props["quietframe.architecture"]).get("passthrough")
-             else "NBGBlend")
+    architecture = json.loads(props["quietframe.architecture"])
+    blend = ("NBGBlendNoise" if architecture.get("noise_blend")
+             else "NBGBlendPass" if architecture.get("passthrough") else "NBGBlend")
     assert {"NBGAccumulate", "NBGFeatures", blend} <= ops
 
 

@@ -71,6 +71,7 @@ def test_state_is_returned_not_mutated_and_history_matters(runtime):
     # The graph's reset flag ignores whatever state comes with it (a cut with a stale history).
     feeds = {f"state_in.{k}": v for k, v in first.state.items()}
     feeds.update({k: v[None] for k, v in frame(1).items()}, reset=np.ones(1, np.float32))
+    feeds.update(runtime.option_feeds)  # run-time inputs (the frame's spp) as the runtime feeds
     reset = runtime.session.run(["denoised"], feeds)[0][0]
     np.testing.assert_allclose(reset, fresh.color, rtol=1e-6, atol=1e-6)
 

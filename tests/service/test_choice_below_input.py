@@ -70,9 +70,10 @@ def test_the_shipped_learned_tiers_are_not_chosen_where_their_cards_say_they_fal
                     for n in ("oidn-frame", *learned)}
         for name in learned:
             assert profiles[name].input_margin(1) > 0, name
-            assert profiles[name].input_margin(16) < 0, name  # garden-blur: -4 to -8 dB
+            # garden-blur: -10 to -11 dB (generator tiers); a glossy studio: -2.2 (corpus tiers)
+            assert profiles[name].input_margin(64) < 0, name
         budget = min(profiles[n].expected_ms(1280 * 720) for n in learned) * 1.01
-        high = choose(ALL, NoiseLevel(16, "header"), list(profiles.values()), "oidn-frame",
+        high = choose(ALL, NoiseLevel(64, "header"), list(profiles.values()), "oidn-frame",
                       "fast", latency_ms=budget)
         assert high.model not in learned, high.reason
 
@@ -80,7 +81,7 @@ def test_the_shipped_learned_tiers_are_not_chosen_where_their_cards_say_they_fal
 def test_over_a_socket_a_latency_budget_gets_the_learned_tier_only_below_its_input_margin(
         live_server):
     """The shipped cards through a real server: a `fast` session whose budget only nbg-2l-3g
-    meets gets it on a 1-spp Cycles shot, and on a 16-spp one a model that is not below its
+    meets gets it on a 1-spp Cycles shot, and on a 64-spp one a model that is not below its
     input, with the reason naming what was left out and why."""
     import httpx
     from conftest import LAYOUTS, make_buffers, write_exr
@@ -93,7 +94,7 @@ def test_over_a_socket_a_latency_budget_gets_the_learned_tier_only_below_its_inp
     ms = models["nbg-2l-3g"]["metrics"]["by_renderer"]["cycles"]["ms_720p"]
     budget = ms * 64 * 48 / (1280 * 720) * 1.01
     chosen = {}
-    for spp in (1, 16):
+    for spp in (1, 64):
         sid = httpx.post(f"{url}/v1/sessions", json={**size, "quality": "fast",
                                                       "latency_ms": budget}).json()["id"]
         exr = write_exr(LAYOUTS["blender"](make_buffers(noise=spp)),
@@ -104,7 +105,7 @@ def test_over_a_socket_a_latency_budget_gets_the_learned_tier_only_below_its_inp
         chosen[spp] = httpx.get(f"{url}/v1/sessions/{sid}").json()["choice"]
         httpx.delete(f"{url}/v1/sessions/{sid}")
     assert chosen[1]["model"] == "nbg-2l-3g", chosen[1]["reason"]
-    assert chosen[16]["model"] not in ("nbg-2l-1g", "nbg-2l-3g", "nbg-7l-3g",
-                                       "affinity-h16-k5gc"), chosen[16]["reason"]
-    assert "worse than their noisy input at 16 spp on a validation-zoo shot" in \
-        chosen[16]["reason"] and "nbg-2l-3g (-" in chosen[16]["reason"]
+    assert chosen[64]["model"] not in ("nbg-2l-1g", "nbg-2l-3g", "nbg-7l-3g",
+                                       "affinity-h16-k5gc"), chosen[64]["reason"]
+    assert "worse than their noisy input at 64 spp on a validation-zoo shot" in \
+        chosen[64]["reason"] and "nbg-2l-3g (-" in chosen[64]["reason"]

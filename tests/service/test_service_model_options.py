@@ -2,8 +2,8 @@
 uvicorn server on 127.0.0.1: the affinity model's kernel size chosen per session changes the
 denoised frames, is checked at creation against the model's declared inputs (and, for auto,
 against every installed model that declares it), is listed by /v1/models and survives a
-restart of a durable server. Copies of the shipped affinity-h16-k5gc and nbg-2l-3g sit in
-models_dir; 64x64 frames."""
+restart of a durable server. Copies of the shipped affinity-h16-k5gc, nbg-2l-3g (both take the
+frame's spp) and nbg-2l-1g (no run-time options) sit in models_dir; 64x64 frames."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from quietframe.client.cli import build_parser, main, session_options
 SIZE = (64, 64)
 ALLOWED = [5, 7, 9, 11, 13]
 AFFINITY, DEFAULT = "affinity-h16-k5gc", 5  # the shipped affinity model and its card's default
+PLAIN = "nbg-2l-1g"  # a shipped model that takes no run-time options
 HINT = "GET /v1/models lists each model's options"
 
 
@@ -29,7 +30,7 @@ def models_dir(tmp_path_factory):
     from quietframe.runtime import find_model
 
     folder = tmp_path_factory.mktemp("models")
-    for name in (AFFINITY, "nbg-2l-3g"):
+    for name in (AFFINITY, "nbg-2l-3g", PLAIN):
         shutil.copy(find_model(name), folder / f"{name}.onnx")
     return folder
 
@@ -109,8 +110,8 @@ def test_an_unknown_option_names_the_models_options(server):
 
 
 def test_an_option_on_a_model_without_inputs_is_refused(server):
-    detail = refused(server.url, "nbg-2l-3g", {"kernel_size": 9})
-    assert "'nbg-2l-3g' has no option kernel_size: it takes no run-time options" in detail
+    detail = refused(server.url, PLAIN, {"kernel_size": 9})
+    assert f"'{PLAIN}' has no option kernel_size: it takes no run-time options" in detail
     # every installed model that takes the option is named (the shipped affinity tier too)
     named = detail.split("models with kernel_size: ")[1].split(";")[0].split(", ")
     assert AFFINITY in named and "nbg-2l-3g" not in named
@@ -133,10 +134,13 @@ def test_auto_takes_an_option_some_model_has_and_gives_it_only_to_those(server, 
 
 def test_models_lists_each_models_options(server, capsys):
     models = {m["name"]: m for m in httpx.get(f"{server.url}/v1/models").json()["models"]}
-    (option,) = models[AFFINITY]["options"]
+    options = {o["name"]: o for o in models[AFFINITY]["options"]}
+    assert set(options) == {"kernel_size", "spp"}  # spp: its noise level
+    option = options["kernel_size"]
     assert option["name"] == "kernel_size" and option["default"] == DEFAULT
     assert option["allowed"] == ALLOWED and "kernel size" in option["doc"]
-    assert models["nbg-2l-3g"]["options"] == []
+    assert [o["name"] for o in models["nbg-2l-3g"]["options"]] == ["spp"]
+    assert models[PLAIN]["options"] == []
     assert main(["models", "--server", server.url]) == 0
     listing = capsys.readouterr().out
     assert f"options: kernel_size (default {DEFAULT}; one of 5, 7, 9, 11, 13)" in listing
