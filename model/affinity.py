@@ -194,9 +194,10 @@ class UNet(nn.Module):
         for depth, (a, b) in enumerate(self.down):
             if depth:
                 # ceil_mode: odd sizes keep their last row/column, a 1×1 frame stays 1×1
-                x = F.max_pool2d(x, 2, ceil_mode=True)
-            x = F.leaky_relu(b(F.leaky_relu(self._first(a, x, noise) if depth == 0 else a(x),
-                                            LEAK)), LEAK)
+                x = a(F.max_pool2d(x, 2, ceil_mode=True))
+            else:
+                x = self._first(a, x, noise)
+            x = F.leaky_relu(b(F.leaky_relu(x, LEAK)), LEAK)
             skips.append(x)
         for i, (a, b) in enumerate(self.up):
             skip = skips[-2 - i]
