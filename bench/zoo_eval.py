@@ -74,7 +74,9 @@ def shot_info(folder: Path) -> dict:
 
 
 def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
-             flag_cuts: bool, log=print) -> list[dict]:
+             flag_cuts: bool, log=print, header_spp: bool = True) -> list[dict]:
+    """`header_spp` False: score the frames as a renderer whose files state no spp would send
+    them (a model that reads the spp gets its default, auto its estimate)."""
     rows = []
     for folder in folders:
         info = shot_info(folder)
@@ -90,7 +92,8 @@ def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
                     log(f"skipping {name}: {exc}")
                     del methods[name]
                     continue
-                give_header_spp(method, "cycles", spp)
+                if header_spp:
+                    give_header_spp(method, "cycles", spp)
                 scores = Scores()
                 run_sequence(method, frames, scores, None, locked)
                 summary = scores.summary()
@@ -202,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="more .onnx models, each a method named by its file stem")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--flag-cuts", action="store_true")
+    p.add_argument("--no-header-spp", action="store_true",
+                   help="score as frames whose header states no spp (Mitsuba, Arnold): a model "
+                        "that reads the spp runs at its default, auto at its estimate")
     cli_args.add_threads(p)
     p.add_argument("--merge", type=Path, nargs="+", default=[],
                    help="instead of evaluating: join these runs' zoo.json (shots evaluated one "
@@ -222,9 +228,11 @@ def main(argv: list[str] | None = None) -> int:
                                renderer="cycles", rendered_only=HISTORY_TIERS)
     everything |= lookahead_methods(everything, wanted)  # <tier>/lookahead-<k>
     methods = {m: everything[m] for m in wanted if m in everything}
-    rows = evaluate(folders, spp_levels, methods, args.flag_cuts)
+    rows = evaluate(folders, spp_levels, methods, args.flag_cuts,
+                    header_spp=not args.no_header_spp)
     meta = {"split": args.split, "zoo": args.zoo, "threads": args.threads,
-            "flag_cuts": args.flag_cuts, "shots": [f.name for f in folders],
+            "flag_cuts": args.flag_cuts, "header_spp": not args.no_header_spp,
+            "shots": [f.name for f in folders],
             "command": "python -m quietframe.bench.zoo_eval " + " ".join(
                 sys.argv[1:] if argv is None else argv)}
     return write(args.out, meta, rows)

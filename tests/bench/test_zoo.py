@@ -199,3 +199,41 @@ def test_zoo_eval_reads_corpus_validation_shots_and_refuses_other_corpus_splits(
         shot.name, shot.camera, ["exterior", "thin geometry"])
     with pytest.raises(SystemExit, match="only its validation split"):
         zoo_eval.shot_folders(tmp_path, "test", (1,), zoo_eval.CORPUS)
+
+
+@pytest.mark.parametrize("header_spp, seen", [(True, 64), (False, None)])
+def test_zoo_eval_can_score_frames_whose_header_states_no_spp(monkeypatch, header_spp, seen):
+    """--no-header-spp: a model that reads the spp is told none (it runs at its default), as
+    frames from a renderer whose files do not state it would reach it."""
+    from quietframe.bench import zoo_eval
+
+    class Method:
+        header_spp = None
+
+        def __init__(self) -> None:
+            self.told: list = []
+
+    made: list[Method] = []
+
+    def factory() -> Method:
+        made.append(Method())
+        return made[-1]
+
+    def run(method, frames, scores, *_) -> None:
+        method.told.append(method.header_spp)
+
+    class Scores:
+        per_frame = {"psnr": []}
+
+        def summary(self) -> dict:
+            return {"psnr": 30.0}
+
+    monkeypatch.setattr(zoo_eval, "Scores", Scores)
+    monkeypatch.setattr(zoo_eval, "shot_info", lambda f: {"name": "s", "tags": [],
+                                                         "camera": "pan"})
+    monkeypatch.setattr(zoo_eval, "load_sequence", lambda *a, **k: None)
+    monkeypatch.setattr(zoo_eval, "planar_frames", lambda seq: [])
+    monkeypatch.setattr(zoo_eval, "run_sequence", run)
+    zoo_eval.evaluate([Path("s")], (64,), {"m": factory}, False, log=lambda *a: None,
+                      header_spp=header_spp)
+    assert [m.told for m in made] == [[seen]]
