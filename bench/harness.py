@@ -25,6 +25,7 @@ from quietframe.model import metrics
 from quietframe.runtime import Denoiser
 from quietframe.runtime.buffers import BUFFER_CHANNELS, FORWARD, planes_from_hwc
 from quietframe.runtime.stream import Step, Stream
+from quietframe.service.noise_estimate import load_calibration, shot_samples
 
 Planes = dict[str, np.ndarray]  # canonical name -> (C, H, W) float32
 Frames = list[tuple[Planes, np.ndarray, bool]]  # (planes, reference (H, W, 3), reset)
@@ -55,7 +56,10 @@ class RuntimeMethod:
     renderer, as the service takes it from the header (an OIDN stage's row order follows it).
     `camera`, `motion`: the session's (`auto` or `locked`; `estimated` or `rendered-only`).
     `withhold_vectors`: the frames' motion vectors are not given (as a renderer with motion blur
-    on writes none), so a moving frame follows motion estimated from the aux."""
+    on writes none), so a moving frame follows motion estimated from the aux. A model reading
+    the spp with none stated (no header spp, no option) gets the shot's estimate, made at its
+    first frame (after each reset), as a session naming the model does
+    (service/shot_choice.estimate_for_shot); `shot_spp` holds it."""
 
     def __init__(self, path: Path | Denoiser, threads: int = 2, options: dict | None = None,
                  single_frame: bool = False, zeros_for_required: bool = False,
@@ -63,17 +67,19 @@ class RuntimeMethod:
                  motion: str = "estimated", withhold_vectors: bool = False) -> None:
         self.denoiser = path if isinstance(path, Denoiser) else Denoiser(
             path, threads=threads, options=options)
-        self.stream = Stream(self.denoiser, camera=camera, renderer=renderer, motion=motion)
+        self.stream = Stream(self.denoiser, camera=camera, options=options, renderer=renderer,
+                             motion=motion)
         self.single_frame, self.zeros_for_required = single_frame, zeros_for_required
         self.withhold_vectors = withhold_vectors  # the frames' motion is not given (estimated)
         self.state: dict | None = None
         self.header_spp: float | None = None
+        self.shot_spp: float | None = None
         self.dropped = 0  # frames whose history was not used: moved without motion vectors
         self.estimated = 0  # frames that followed motion estimated from the aux
         self.last_step: Step | None = None  # the last frame's (a look-ahead reads it)
 
     def reset(self) -> None:
-        self.state = None
+        self.state = self.shot_spp = None
 
     def __call__(self, planes: Planes) -> np.ndarray:
         if self.single_frame:
@@ -85,7 +91,10 @@ class RuntimeMethod:
                                    if name not in planes}}
         if self.withhold_vectors:
             planes = {name: plane for name, plane in planes.items() if name not in VECTORS}
-        step = self.stream.step(planes, self.state, self.header_spp)
+        if self.shot_spp is None and self.stream.wants_estimate(self.header_spp):
+            self.shot_spp = shot_samples(planes["color"], planes.get("albedo"),
+                                         load_calibration())
+        step = self.stream.step(planes, self.state, self.header_spp, self.shot_spp)
         self.last_step = step
         self.dropped += step.gate is not None and step.gate.dropped
         self.estimated += step.estimated is not None

@@ -76,7 +76,8 @@ def shot_info(folder: Path) -> dict:
 def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
              flag_cuts: bool, log=print, header_spp: bool = True) -> list[dict]:
     """`header_spp` False: score the frames as a renderer whose files state no spp would send
-    them (a model that reads the spp gets its default, auto its estimate)."""
+    them (a model that reads the spp gets the shot's estimate, as RuntimeMethod does; auto its
+    own)."""
     rows = []
     for folder in folders:
         info = shot_info(folder)
@@ -207,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--flag-cuts", action="store_true")
     p.add_argument("--no-header-spp", action="store_true",
                    help="score as frames whose header states no spp (Mitsuba, Arnold): a model "
-                        "that reads the spp runs at its default, auto at its estimate")
+                        "that reads the spp is given the shot's estimate, as the service gives "
+                        "a session naming it, and auto chooses at its estimate")
     cli_args.add_threads(p)
     p.add_argument("--merge", type=Path, nargs="+", default=[],
                    help="instead of evaluating: join these runs' zoo.json (shots evaluated one "

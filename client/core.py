@@ -66,6 +66,10 @@ class FrameResult:
     # a model asked for by name at an spp where its card says it is below its own noisy input
     # (X-Quietframe-Warning); the frame was denoised as asked
     warning: str = ""
+    # a model asked for by name that reads the frame's spp, none stated by the header or the
+    # session's options: the shot's estimated spp it was given (X-Quietframe-Samples,
+    # "<spp>; source=estimate")
+    samples: str = ""
 
 
 @dataclass(frozen=True)
@@ -181,6 +185,7 @@ def parse_frame(index: int, response: httpx.Response) -> FrameResult | None:
         motion=h.get(Header.MOTION, ""),
         pending=int(pending) if pending is not None and pending.isdigit() else None,
         warning=h.get(Header.WARNING, ""),
+        samples=h.get(Header.SAMPLES, ""),
     )
 
 

@@ -40,7 +40,7 @@ def chosen_samples(options: Mapping[str, float | int], stated: float | None,
                    estimate: float | None = None) -> tuple[float, str] | None:
     """The one rule for a frame's spp as a model is given it, with where it came from: the
     session's `spp` option (`session`), else the count the renderer's header states
-    (`header`), else `auto`'s estimate of the shot's noise (`estimate`), else None (the
+    (`header`), else the estimate of the shot's noise (`estimate`), else None (the
     model's default). At least 1."""
     for source, value in zip(("session", "header", "estimate"),
                              (options.get(SAMPLES_INPUT), stated, estimate), strict=True):
@@ -122,12 +122,20 @@ class Stream:
     def info(self) -> ModelInfo:
         return self.denoiser.info
 
+    def wants_estimate(self, stated_spp: float | None) -> bool:
+        """Whether the model would run at its default spp without an estimate: it reads the
+        frame's spp (SAMPLES_INPUT) and neither the session's options nor the header state one.
+        Its session then estimates the shot's spp (service/shot_choice.estimate_for_shot)."""
+        takes = any(spec.name == SAMPLES_INPUT for spec in self.denoiser.info.inputs)
+        return takes and chosen_samples(self.options, stated_spp) is None
+
     def step(self, planes: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray] | None,
              stated_spp: float | None = None, estimated_spp: float | None = None,
              renderer: str | None = None) -> Step:
         """Denoise one frame of (C, H, W) float32 planes from the previous step's `state`
         (None: a fresh history: first frame, a cut, a gap). `stated_spp`: the renderer's
-        header's count; `estimated_spp`: auto's estimate for the shot (samples_for);
+        header's count; `estimated_spp`: the shot's estimate (auto's, or a named model's where
+        `wants_estimate`; samples_for);
         `renderer`: this frame's, where it differs from the stream's."""
         info = self.denoiser.info
         options = options_for(info, self.options,

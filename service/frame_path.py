@@ -10,9 +10,10 @@ import numpy as np
 from quietframe.runtime import lookahead
 from quietframe.runtime.stream import Step, Stream
 from quietframe.service import frames, lookahead_queue, state_codec
-from quietframe.service.below_input import below_input_warning
+from quietframe.service.below_input import FRAME, SHOT_ESTIMATE, below_input_warning
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
+from quietframe.service.noise_estimate import ESTIMATE
 from quietframe.service.session import ProcessedFrame, Session
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply, request_digest
@@ -37,6 +38,7 @@ def process_frame(
     state: dict[str, np.ndarray] | None,
     choice: Choice | None = None,
     window: dict[str, np.ndarray] | None = None,
+    shot_spp: float | None = None,
 ) -> ProcessedFrame:
     """Decode, denoise, encode one frame. `stream`: the session's sequence on the model that
     runs (runtime/stream.py: options, spp, the motion-evidence gate, the history, OIDN's
@@ -45,14 +47,16 @@ def process_frame(
     `choice` (model=auto) is said in a header; a model asked for by name at an spp where it is
     below its own noisy input gets X-Quietframe-Warning (service/below_input.py). A look-ahead
     session (`spec.lookahead`) queues the frame in its `window` instead and replies with the
-    oldest pending one, once more than `lookahead` are pending (`_held_back`)."""
+    oldest pending one, once more than `lookahead` are pending (`_held_back`). `shot_spp`: a
+    named model's estimate of the shot's spp, where it reads one and none is stated
+    (Stream.wants_estimate); said in X-Quietframe-Samples and kept with the session."""
     if context.decoded is None:
         context = context.decode(body)
     frame, sources = context.decoded, context.sources
     assert frame is not None
     decoded = time.perf_counter()
     stated = context.stated.spp if context.stated is not None else None
-    step = stream.step(frame.buffers, state, stated, choice.spp if choice else None,
+    step = stream.step(frame.buffers, state, stated, choice.spp if choice else shot_spp,
                        context.renderer)
     # A temporal model reads its history only where the motion is evidence (motion_evidence):
     # a frame without vectors whose aux moved starts afresh, as after a cut.
@@ -65,11 +69,13 @@ def process_frame(
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     # auto's own choice leaves such a model out (choice_policy.not_below_input), and a shot's
     # kept model is auto's too: only a model the session names is warned of
-    warning = (below_input_warning(info.name, stream.denoiser, stated, context.renderer)
-               if choice is None else None)
+    warning = None
+    if choice is None:
+        spp, where = (stated, FRAME) if shot_spp is None else (shot_spp, SHOT_ESTIMATE)
+        warning = below_input_warning(info.name, stream.denoiser, spp, context.renderer, where)
     if spec.lookahead:
         return _held_back(stream, spec, index, body, context, reset, choice, window or {},
-                          step, extra, 1e3 * (denoised - decoded), warning)
+                          step, extra, 1e3 * (denoised - decoded), warning, shot_spp)
     body_out, clamped = frames.encode_denoised(
         step.color,
         frame,
@@ -90,7 +96,8 @@ def process_frame(
     sanitized = {k: v for k, v in step.sanitized.items() if v}
     if clamped:
         sanitized["denoised"] = sanitized.get("denoised", 0) + clamped
-    headers = frame_headers(index, reset, model, sanitized, timings, step, choice, warning)
+    headers = frame_headers(index, reset, model, sanitized, timings, step, choice, warning,
+                            shot_spp)
     # Where the colour is a state plane, a store keeps how to write the reply, not its bytes
     dtypes = frames.output_dtypes(frame, spec.precision)
     recipe = state_codec.reply_recipe(step.color, step.state, dtypes, sources["color"].channels,
@@ -105,13 +112,16 @@ def process_frame(
         timings_ms=timings,
         info=info,
         choice=choice,
+        shot_spp=shot_spp,
     )
 
 
 def frame_headers(index: int, reset: Reset, model: str, sanitized: dict[str, int],
                   timings: dict[str, float], step: Step, choice: Choice | None,
-                  warning: str | None = None) -> dict[str, str]:
-    """The headers that describe a denoised frame (`warning`: below_input_warning's)."""
+                  warning: str | None = None, shot_spp: float | None = None
+                  ) -> dict[str, str]:
+    """The headers that describe a denoised frame (`warning`: below_input_warning's;
+    `shot_spp`: a named model's estimate of the shot's spp)."""
     headers = {
         Header.FRAME: str(index),
         Header.RESET: reset.value,
@@ -127,6 +137,8 @@ def frame_headers(index: int, reset: Reset, model: str, sanitized: dict[str, int
         headers[Header.MOTION] = motion_header(step)
     if choice is not None:
         headers[Header.CHOICE] = choice_header(choice)
+    if shot_spp is not None:
+        headers[Header.SAMPLES] = f"{shot_spp:g}; source={ESTIMATE}"
     if warning:
         headers[Header.WARNING] = warning
     return headers
@@ -135,7 +147,8 @@ def frame_headers(index: int, reset: Reset, model: str, sanitized: dict[str, int
 def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | bytearray,
                context: FrameContext, reset: Reset, choice: Choice | None,
                window: dict[str, np.ndarray], step: Step, extra: dict[str, str],
-               denoise_ms: float, warning: str | None) -> ProcessedFrame:
+               denoise_ms: float, warning: str | None,
+               shot_spp: float | None = None) -> ProcessedFrame:
     """A look-ahead session's frame: queued with its headers and how to write its reply, and
     the reply to this request: the oldest pending frame finished (200) once more than
     `spec.lookahead` are pending, else 202 (docs/service.md, "Look-ahead")."""
@@ -146,7 +159,7 @@ def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | byte
                "total": context.decode_ms + denoise_ms}
     sanitized = {k: v for k, v in step.sanitized.items() if v}
     headers = frame_headers(index, reset, extra["quietframe.model"], sanitized, timings, step,
-                            choice, warning)
+                            choice, warning, shot_spp)
     dtypes = tuple(np.dtype(d).name for d in frames.output_dtypes(frame, spec.precision))
     recipe = state_codec.ReplyRecipe("", 0, dtypes, tuple(sources["color"].channels),
                                      spec.precision, spec.compression, spec.denoised_layer,
@@ -177,6 +190,7 @@ def _held_back(stream: Stream, spec: SessionSpec, index: int, body: bytes | byte
         info=info,
         choice=choice,
         pending=held,
+        shot_spp=shot_spp,
     )
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 CALIBRATION_FILE = Path(__file__).with_name("noise_calibration.json")
+ESTIMATE = "estimate"  # a NoiseLevel's source where the spp was estimated from the pixels
 
 
 @dataclass(frozen=True)
@@ -88,4 +89,13 @@ def estimate_spp(
         return NoiseLevel(header.spp, header.source, **measured)
     if calibration is None:  # no fit shipped: the choice then plans for the noisiest input
         return NoiseLevel(1.0, "unknown", **measured)
-    return NoiseLevel(round(spp_from_sigma(sigma, calibration), 2), "estimate", **measured)
+    return NoiseLevel(round(spp_from_sigma(sigma, calibration), 2), ESTIMATE, **measured)
+
+
+def shot_samples(color: np.ndarray, albedo: np.ndarray | None,
+                 calibration: Mapping | None) -> float | None:
+    """The spp a model reading one is given for a shot whose spp nothing states: the estimate
+    from its first frame, at least 1 as the model takes it (runtime/stream.chosen_samples);
+    None without a calibration (the model's default)."""
+    noise = estimate_spp(color, albedo, calibration)
+    return max(1.0, noise.spp) if noise.source == ESTIMATE else None

@@ -43,6 +43,7 @@ class ProcessedFrame:
     choice: Choice | None = None  # model=auto: set when this frame made (or kept) the choice
     pending: list[int] = field(default_factory=list)  # look-ahead: frames held back after it
     finish: bool = False  # a held-back frame finished (POST .../finish), not a frame denoised
+    shot_spp: float | None = None  # a named model's estimate of the shot's spp (see Session)
 
 
 @dataclass
@@ -68,6 +69,9 @@ class Session:
     sources: dict[str, list[str]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
     choice: Choice | None = None  # model=auto only
+    # A named model reading the frame's spp, none stated: the spp estimated at the shot's first
+    # frame (service/shot_choice.estimate_for_shot), kept for its other frames as auto's choice
+    shot_spp: float | None = None
     pending: list[int] = field(default_factory=list)  # look-ahead: frames held back, oldest first
     timing_sum: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     timing_last: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
@@ -146,6 +150,8 @@ class Session:
         self.info = frame.info
         if frame.choice is not None:
             self.choice = frame.choice
+        if frame.shot_spp is not None:
+            self.shot_spp = frame.shot_spp
         for stage in STAGES:
             self.timing_sum[stage] += frame.timings_ms[stage]
             self.timing_last[stage] = frame.timings_ms[stage]
@@ -155,8 +161,10 @@ class Session:
         """The stored record of the session, as it will be once `after` is committed."""
         choice = after.choice if after is not None and after.choice else self.choice
         frame = after if after is not None and not after.finish else None
+        shot_spp = frame.shot_spp if frame is not None and frame.shot_spp else self.shot_spp
         meta = {
             "choice": choice.to_dict() if choice else None,
+            "shot_spp": shot_spp,
             "id": self.id,
             **self.spec.model_dump(),
             "created_at": self.created_at,

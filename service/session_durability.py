@@ -188,6 +188,7 @@ class SessionDurability:
             "frames_done": meta["frames_done"],
             "resets": meta["resets"],
             "choice": Choice.from_dict(choice) if choice else None,
+            "shot_spp": meta.get("shot_spp"),
             "info": self._info_of(meta),
             "pending": list(meta.get("pending") or []),
         }
@@ -253,6 +254,7 @@ class SessionDurability:
         if not lost:
             progress = {k: meta[k] for k in progress}
             progress["pending"] = list(meta.get("pending") or [])
+            progress["shot_spp"] = meta.get("shot_spp")
         session = self._table.build(
             session_id,
             spec,

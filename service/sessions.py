@@ -236,9 +236,19 @@ class SessionRegistry:
                 context = context.for_model(info, installed)
                 if info.name != session.info.name:  # another model's state means nothing here
                     history = None
+            stream = self._stream(session, info.name)
+            shot_spp = None
+            if not auto and stream.wants_estimate(None if context.stated is None
+                                                  else context.stated.spp):
+                # a named model reading the spp, none stated: the shot's estimate, made at its
+                # first frame as auto's choice is, kept for its other frames (durably)
+                shot_spp = session.shot_spp
+                if plan in CHOICE_RESETS or shot_spp is None:
+                    context, shot_spp = await self.pool.estimate_for_shot(context, body,
+                                                                          self.models)
             frame = await self.pool.process_frame(
-                self._stream(session, info.name), spec, index, body, context, plan, history,
-                choice, session.window if spec.lookahead else None
+                stream, spec, index, body, context, plan, history, choice,
+                session.window if spec.lookahead else None, shot_spp
             )
             self._reserve_reply(session, len(frame.reply.body), info, len(body))
             if self.durability is not None:

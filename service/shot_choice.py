@@ -10,7 +10,7 @@ from quietframe.service.frame_context import FrameContext
 from quietframe.service.frame_evidence import SESSION_SAMPLES
 from quietframe.service.model_profiles import ModelProfile
 from quietframe.service.model_registry import ModelRegistry
-from quietframe.service.noise_estimate import NoiseLevel, estimate_spp
+from quietframe.service.noise_estimate import ESTIMATE, NoiseLevel, estimate_spp, shot_samples
 from quietframe.service.session_spec import SessionSpec
 from quietframe.wire.protocol import Reset
 
@@ -53,6 +53,18 @@ def choose_for_shot(context: FrameContext, body: bytes | bytearray, spec: Sessio
     )
 
 
+def estimate_for_shot(context: FrameContext, body: bytes | bytearray,
+                      models: ModelRegistry) -> tuple[FrameContext, float | None]:
+    """(the frame decoded, its estimated spp) on the worker pool, for a session that names a
+    model reading the frame's spp where neither its options nor the header state one
+    (Stream.wants_estimate), at the shot's first frame as `auto` measures it; the shot's
+    frames then share it (Session.shot_spp). None without a calibration: the model's default."""
+    context = context.decode(body)
+    assert context.decoded is not None
+    planes = context.decoded.buffers
+    return context, shot_samples(planes["color"], planes.get("albedo"), models.calibration)
+
+
 def kept_choice(name: str, present: list[str], noise: NoiseLevel,
                 profiles: list[ModelProfile], pixels: int) -> Choice:
     """A shot's choice made earlier, as the session reports it: that model, with what this
@@ -81,4 +93,4 @@ def noise_kind(choice: Choice) -> str:
     is `header`, the session's model_options `session`, else `estimate` or `unknown`."""
     if choice.noise_source == SESSION_SAMPLES:
         return "session"
-    return choice.noise_source if choice.noise_source in ("estimate", "unknown") else "header"
+    return choice.noise_source if choice.noise_source in (ESTIMATE, "unknown") else "header"

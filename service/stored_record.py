@@ -54,6 +54,7 @@ class StoredProgress(BaseModel):
     frames_done: Count
     resets: Count
     choice: StoredChoice | None = None
+    shot_spp: Annotated[float, Field(strict=True, ge=1, allow_inf_nan=False)] | None = None
     reply: StoredReply | None = None
     codec: dict[str, Any] | None = None
     manifest: dict[str, list[Count]] | None = None

@@ -22,7 +22,7 @@ from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.session import ProcessedFrame, Session
 from quietframe.service.session_spec import SessionSpec
 from quietframe.service.session_store import Reply, Store
-from quietframe.service.shot_choice import choose_for_shot
+from quietframe.service.shot_choice import choose_for_shot, estimate_for_shot
 from quietframe.service.state_store_redis import Loaded, RedisStore
 from quietframe.wire.protocol import Reset
 
@@ -51,13 +51,20 @@ class WorkerPool:
         """model=auto at a shot's first frame: decode, measure the noise, choose."""
         return await self._run(choose_for_shot, context, body, spec, models, keep)
 
+    async def estimate_for_shot(self, context: FrameContext, body: Body,
+                                models: ModelRegistry) -> tuple[FrameContext, float | None]:
+        """A named model reading the spp, none stated, at a shot's first frame: decode and
+        estimate the shot's spp."""
+        return await self._run(estimate_for_shot, context, body, models)
+
     async def process_frame(self, stream: Stream, spec: SessionSpec, index: int, body: Body,
                             context: FrameContext, reset: Reset,
                             state: dict[str, np.ndarray] | None, choice: Choice | None,
-                            window: dict[str, np.ndarray] | None = None) -> ProcessedFrame:
+                            window: dict[str, np.ndarray] | None = None,
+                            shot_spp: float | None = None) -> ProcessedFrame:
         """Decode, denoise, encode (service/frame_path.py)."""
-        return await self._run(
-            process_frame, stream, spec, index, body, context, reset, state, choice, window)
+        return await self._run(process_frame, stream, spec, index, body, context, reset, state,
+                               choice, window, shot_spp)
 
     async def finish_frame(self, session: Session) -> ProcessedFrame:
         """A look-ahead session's oldest pending frame finished (service/frame_path.py)."""

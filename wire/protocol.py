@@ -48,6 +48,9 @@ class Header:
     # model=auto sessions: "<model>; spp=<n>; source=<header attribute|estimate|unknown>;
     # reason=<why>" (the choice made at the shot's first frame, repeated on every frame of it)
     CHOICE = "X-Quietframe-Choice"
+    # A session naming a model that reads the frame's spp, where neither its options nor the
+    # header state one: "<spp>; source=estimate", the shot's estimate the model was given
+    SAMPLES = "X-Quietframe-Samples"
     PENDING = "X-Quietframe-Pending"
     # A model asked for by name at an spp where its card says it is worse than its own noisy
     # input (service/below_input.py); on a frame's reply, and on a session's creation where

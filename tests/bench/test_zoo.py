@@ -203,8 +203,8 @@ def test_zoo_eval_reads_corpus_validation_shots_and_refuses_other_corpus_splits(
 
 @pytest.mark.parametrize("header_spp, seen", [(True, 64), (False, None)])
 def test_zoo_eval_can_score_frames_whose_header_states_no_spp(monkeypatch, header_spp, seen):
-    """--no-header-spp: a model that reads the spp is told none (it runs at its default), as
-    frames from a renderer whose files do not state it would reach it."""
+    """--no-header-spp: a model that reads the spp is told none (it estimates the shot's, see
+    test_runtime_method), as frames from a renderer whose files do not state it reach it."""
     from quietframe.bench import zoo_eval
 
     class Method:

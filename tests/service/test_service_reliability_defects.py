@@ -118,10 +118,14 @@ def _meta_text(change):
     lambda m: m.update(frames_done=-1),
     lambda m: m.update(choice={"reason": "no model"}),
     lambda m: m.update(width="64"),
+    lambda m: m.update(shot_spp="16"),
+    lambda m: m.update(shot_spp=0.5),
+    lambda m: m.update(shot_spp=float("nan")),
     lambda m: b"[]",
     lambda m: b"[" * 200_000,
 ], ids=["reply-str", "last_index-str", "no-last_index", "negative-count", "choice-without-model",
-        "width-str", "meta-list", "deep-nesting"])
+        "width-str", "shot_spp-str", "shot_spp-below-1", "shot_spp-nan", "meta-list",
+        "deep-nesting"])
 def test_a_wrongly_shaped_record_is_quarantined_not_a_500(tmp_path, change, caplog):
     """Audit R4-4: the stored meta is untrusted input. Each of these gave a 500 on every frame
     (and some on GET); now the record is quarantined and the session goes on afresh."""

@@ -1,0 +1,119 @@
+"""A session naming a model that reads the frame's spp (the noise-aware learned tiers, the
+oidn-history tiers), on frames whose header states none and without a `spp` option: the spp is
+estimated at the shot's first frame (service/shot_choice.estimate_for_shot), the model given it
+for every frame of the shot, the reply saying it in X-Quietframe-Samples; a cut estimates again,
+and a durable session keeps the shot's estimate across a restart. Over a real socket."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+from conftest import LAYOUTS, LiveServer, make_buffers, read_exr, write_exr
+
+from quietframe.client import Client
+from quietframe.service.noise_estimate import load_calibration, shot_samples
+
+SIZE = (64, 48)
+LEARNED = "nbg-2l-3g"  # reads the spp; below its input from 16.54 spp (its card)
+PLAIN = "nbg-2l-1g"  # reads none
+
+
+def noisy_frame(amplitude: float, seed: int = 1) -> tuple[bytes, dict[str, np.ndarray]]:
+    """A smooth picture with relative noise of `amplitude` (std) and no spp in its header."""
+    b = make_buffers(height=SIZE[1], width=SIZE[0])
+    y, x = np.mgrid[0 : SIZE[1], 0 : SIZE[0]]
+    smooth = np.stack([0.5 + 0.3 * x / SIZE[0], 0.4 + 0.2 * y / SIZE[1], 0.3 + 0 * x], -1)
+    grain = np.random.default_rng(seed).standard_normal((SIZE[1], SIZE[0], 1))
+    b["color"] = np.maximum(smooth * (1 + amplitude * grain), 0).astype(np.float32)
+    b["albedo"][:] = 0.5
+    return write_exr(LAYOUTS["plain-normal"](b)), b
+
+
+CLEAN, GRAINY = 0.01, 1.0  # estimated at the calibration's ceiling, and at a few spp
+
+
+def expected(amplitude: float, seed: int = 1) -> float:
+    """What the service's estimate must say for noisy_frame(amplitude, seed) (the shipped
+    fit)."""
+    _, b = noisy_frame(amplitude, seed)
+    spp = shot_samples(b["color"].transpose(2, 0, 1), b["albedo"].transpose(2, 0, 1),
+                       load_calibration())
+    assert spp is not None
+    return spp
+
+
+def colour(data: bytes) -> np.ndarray:
+    _, channels = read_exr(data)
+    return np.stack([channels[c] for c in "RGB"])
+
+
+@pytest.fixture(scope="module")
+def models_dir(tmp_path_factory):
+    from quietframe.runtime import find_model
+
+    folder = tmp_path_factory.mktemp("models")
+    for name in (LEARNED, PLAIN):
+        shutil.copy(find_model(name), folder / f"{name}.onnx")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def server(models_dir):
+    with LiveServer(models_dir=str(models_dir)) as live:
+        yield live
+
+
+def test_a_named_model_is_given_the_shots_estimate_until_the_next_cut(server):
+    clean, grainy = expected(CLEAN), expected(GRAINY, seed=3)
+    assert clean > 16.54 > grainy >= 1  # the shipped fit tells them apart
+    with Client(server.url) as client:
+        sid = client.create_session(*SIZE, model=LEARNED)["id"]
+        first = client.send_frame(sid, 0, noisy_frame(CLEAN)[0])
+        assert first.samples == f"{clean:g}; source=estimate"
+        assert first.warning.startswith(
+            f"{LEARNED} is below its own noisy input from 16.54 spp on a validation-zoo shot "
+            f"(this shot's estimated spp: {clean:g} spp, ")
+        # the shot's other frames keep its estimate, whatever their own noise
+        later = client.send_frame(sid, 1, noisy_frame(GRAINY, seed=2)[0])
+        assert later.samples == first.samples and later.reset == "none"
+        # a cut starts a new shot: estimated again, in range, no warning
+        body = noisy_frame(GRAINY, seed=3)[0]
+        cut = client.send_frame(sid, 2, body, cut=True)
+        assert cut.samples == f"{grainy:g}; source=estimate" and not cut.warning
+        # the model was given the estimate: the same pixels as a session stating it
+        stated = client.create_session(*SIZE, model=LEARNED, model_options={"spp": grainy})
+        same = client.send_frame(stated["id"], 0, body)
+        assert not same.samples
+        np.testing.assert_allclose(colour(cut.exr), colour(same.exr), rtol=1e-5, atol=1e-6)
+
+
+def test_no_estimate_where_the_spp_is_stated_or_not_read(server):
+    body = noisy_frame(CLEAN)[0]
+    cycles = make_buffers(height=SIZE[1], width=SIZE[0], noise=4)
+    with Client(server.url) as client:
+        for model, options, frame in (
+            (LEARNED, {"spp": 8}, body),  # the session states it
+            (LEARNED, {}, write_exr(LAYOUTS["blender"](cycles),
+                                    {"cycles.ViewLayer.samples": "8"})),  # the header does
+            (PLAIN, {}, body),  # the model reads no spp
+            ("auto", {}, body),  # auto says its estimate in X-Quietframe-Choice
+        ):
+            sid = client.create_session(*SIZE, model=model, model_options=options)["id"]
+            result = client.send_frame(sid, 0, frame)
+            assert not result.samples, (model, options)
+            client.delete_session(sid)
+
+
+def test_a_durable_session_keeps_its_shots_estimate_across_a_restart(tmp_path, models_dir):
+    state = tmp_path / "state"
+    with LiveServer(models_dir=str(models_dir), state_dir=str(state)) as live, \
+            Client(live.url) as client:
+        sid = client.create_session(*SIZE, model=LEARNED)["id"]
+        first = client.send_frame(sid, 0, noisy_frame(CLEAN)[0])
+    with LiveServer(models_dir=str(models_dir), state_dir=str(state)) as live, \
+            Client(live.url) as client:
+        after = client.send_frame(sid, 1, noisy_frame(GRAINY, seed=2)[0])
+    assert after.reset == "none" and after.samples == first.samples
+    assert after.samples == f"{expected(CLEAN):g}; source=estimate"
