@@ -117,3 +117,29 @@ def test_a_durable_session_keeps_its_shots_estimate_across_a_restart(tmp_path, m
         after = client.send_frame(sid, 1, noisy_frame(GRAINY, seed=2)[0])
     assert after.reset == "none" and after.samples == first.samples
     assert after.samples == f"{expected(CLEAN):g}; source=estimate"
+
+
+@pytest.mark.skipif(not shutil.which("redis-server"), reason="needs redis-server")
+def test_a_replica_adopting_the_session_keeps_the_shots_estimate(tmp_path, models_dir):
+    """Two replicas sharing Redis: the shot's first frame on one, the next on the other, which
+    adopts the session from the store with its shot's estimate."""
+    from conftest import redis_server, service_settings
+    from fastapi.testclient import TestClient
+
+    from quietframe.service.main import create_app
+    from quietframe.wire.protocol import Header
+
+    with redis_server(tmp_path) as url:
+        a, b = (TestClient(create_app(service_settings(replica_id=name, store_url=url,
+                                                       models_dir=str(models_dir))))
+                for name in "ab")
+        with a, b:
+            sid = a.post("/v1/sessions", json={"width": SIZE[0], "height": SIZE[1],
+                                               "model": LEARNED}).json()["id"]
+            replies = [c.post(f"/v1/sessions/{sid}/frames/{i}", content=noisy_frame(amp, i)[0],
+                              headers={"content-type": "image/x-exr"})
+                       for i, (c, amp) in enumerate(((a, CLEAN), (b, GRAINY)))]
+    assert [r.status_code for r in replies] == [200, 200]
+    assert replies[1].headers[Header.RESET] == "none"
+    assert (replies[1].headers[Header.SAMPLES] == replies[0].headers[Header.SAMPLES]
+            == f"{expected(CLEAN, seed=0):g}; source=estimate")
