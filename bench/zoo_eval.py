@@ -105,6 +105,8 @@ def evaluate(folders: list[Path], spp_levels: tuple[int, ...], methods: dict,
                 chosen = getattr(method, "choices", None)
                 if chosen:
                     row["chosen"] = dict(chosen)
+                if getattr(method, "shot_spp", None) is not None:  # no spp stated: estimated
+                    row["estimated_spp"] = method.shot_spp
                 current = getattr(method, "current", method)
                 if hasattr(current, "dropped"):
                     row["history_dropped"] = current.dropped
