@@ -47,6 +47,7 @@ class Reporter:
         # server, which is what a farm plans with (the tables' figures come from elsewhere)
         self.server_ms: dict[str, list[float]] = defaultdict(list)
         self.below_input: set[str] = set()  # models whose X-Quietframe-Warning was said
+        self.estimated_spp: set[str] = set()  # models whose X-Quietframe-Samples was said
         self.bar = None
         if mode == "bar":
             self.bar = tqdm(total=total, initial=done, unit="frame", dynamic_ncols=True,
@@ -111,6 +112,7 @@ class Reporter:
         if share is not None:
             self.estimated[index] = share
         self._below_input(index, result)
+        self._estimated_samples(index, result)
         self.done += 1
         ms = result.timings_ms.get("total")
         if ms is not None:
@@ -141,6 +143,20 @@ class Reporter:
             return
         self.below_input.add(model)
         self.warn(f"frame {index}: {result.warning} (said once per run)")
+
+    def _estimated_samples(self, index: int, result) -> None:
+        """A model named in the run reads the frame's spp and neither the frames' header nor
+        --model-option states it: the server estimated it per shot (X-Quietframe-Samples);
+        said once per model and run, as a warning, with how to state it instead."""
+        model = result.model.split(" ")[0]
+        if not result.samples or model in self.estimated_spp:
+            return
+        self.estimated_spp.add(model)
+        spp = result.samples.split(";")[0]
+        self.warn(f"frame {index}: {model} reads the frame's samples per pixel and neither the "
+                  f"file's header nor --model-option states it; the server estimated {spp} spp "
+                  "for the shot from its first frame (an estimate, off by a stop or so): pass "
+                  "--model-option spp=N with the render's samples (said once per run)")
 
     def held(self, index: int, name: str) -> None:
         """A frame the server holds back for its look-ahead: its output comes later."""
