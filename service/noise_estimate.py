@@ -95,7 +95,10 @@ def estimate_spp(
 def shot_samples(color: np.ndarray, albedo: np.ndarray | None,
                  calibration: Mapping | None) -> float | None:
     """The spp a model reading one is given for a shot whose spp nothing states: the estimate
-    from its first frame, at least 1 as the model takes it (runtime/stream.chosen_samples);
-    None without a calibration (the model's default)."""
+    from its first frame, at least 1 as the model takes it (runtime/stream.chosen_samples).
+    None (the model's default; the next frame estimates again) without a calibration or where
+    the frame shows no noise to measure (black, or flat: a fade-in's first frame)."""
     noise = estimate_spp(color, albedo, calibration)
-    return max(1.0, noise.spp) if noise.source == ESTIMATE else None
+    if noise.source != ESTIMATE or noise.log2_sigma is None:
+        return None
+    return max(1.0, noise.spp)

@@ -43,7 +43,8 @@ class ProcessedFrame:
     choice: Choice | None = None  # model=auto: set when this frame made (or kept) the choice
     pending: list[int] = field(default_factory=list)  # look-ahead: frames held back after it
     finish: bool = False  # a held-back frame finished (POST .../finish), not a frame denoised
-    shot_spp: float | None = None  # a named model's estimate of the shot's spp (see Session)
+    # a named model's estimate of the shot's spp as of this frame (see Session); None: none
+    shot_spp: float | None = None
 
 
 @dataclass
@@ -150,8 +151,7 @@ class Session:
         self.info = frame.info
         if frame.choice is not None:
             self.choice = frame.choice
-        if frame.shot_spp is not None:
-            self.shot_spp = frame.shot_spp
+        self.shot_spp = frame.shot_spp
         for stage in STAGES:
             self.timing_sum[stage] += frame.timings_ms[stage]
             self.timing_last[stage] = frame.timings_ms[stage]
@@ -161,7 +161,7 @@ class Session:
         """The stored record of the session, as it will be once `after` is committed."""
         choice = after.choice if after is not None and after.choice else self.choice
         frame = after if after is not None and not after.finish else None
-        shot_spp = frame.shot_spp if frame is not None and frame.shot_spp else self.shot_spp
+        shot_spp = frame.shot_spp if frame is not None else self.shot_spp
         meta = {
             "choice": choice.to_dict() if choice else None,
             "shot_spp": shot_spp,

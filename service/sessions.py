@@ -242,8 +242,8 @@ class SessionRegistry:
                                                   else context.stated.spp):
                 # a named model reading the spp, none stated: the shot's estimate, made at its
                 # first frame as auto's choice is, kept for its other frames (durably)
-                shot_spp = session.shot_spp
-                if plan in CHOICE_RESETS or shot_spp is None:
+                shot_spp = None if plan in CHOICE_RESETS else session.shot_spp
+                if shot_spp is None:  # a new shot, or none measurable yet (a black frame)
                     context, shot_spp = await self.pool.estimate_for_shot(context, body,
                                                                           self.models)
             frame = await self.pool.process_frame(

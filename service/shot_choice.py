@@ -58,7 +58,8 @@ def estimate_for_shot(context: FrameContext, body: bytes | bytearray,
     """(the frame decoded, its estimated spp) on the worker pool, for a session that names a
     model reading the frame's spp where neither its options nor the header state one
     (Stream.wants_estimate), at the shot's first frame as `auto` measures it; the shot's
-    frames then share it (Session.shot_spp). None without a calibration: the model's default."""
+    frames then share it (Session.shot_spp). None where nothing is measurable
+    (noise_estimate.shot_samples): the model's default, and the next frame estimates again."""
     context = context.decode(body)
     assert context.decoded is not None
     planes = context.decoded.buffers

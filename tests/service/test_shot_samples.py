@@ -104,6 +104,18 @@ def test_a_named_model_is_given_the_shots_estimate_until_the_next_cut(server):
         np.testing.assert_allclose(colour(cut.exr), colour(same.exr), rtol=1e-5, atol=1e-6)
 
 
+def test_a_black_first_frame_leaves_the_estimate_to_the_next_frame(server):
+    b = make_buffers(height=SIZE[1], width=SIZE[0])
+    b["color"][:] = 0
+    black = write_exr(LAYOUTS["plain-normal"](b))
+    with Client(server.url) as client:
+        sid = client.create_session(*SIZE, model=LEARNED)["id"]
+        assert not client.send_frame(sid, 0, black).samples  # nothing to measure: the default
+        second = client.send_frame(sid, 1, noisy_frame(CLEAN)[0])
+        third = client.send_frame(sid, 2, noisy_frame(GRAINY, seed=2)[0])
+    assert second.samples == third.samples == f"{expected(CLEAN):g}; source=estimate"
+
+
 def test_no_estimate_where_the_spp_is_stated_or_not_read(server):
     body = noisy_frame(CLEAN)[0]
     cycles = make_buffers(height=SIZE[1], width=SIZE[0], noise=4)
