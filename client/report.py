@@ -155,7 +155,7 @@ class Reporter:
         spp = result.samples.split(";")[0]
         self.warn(f"frame {index}: {model} reads the frame's samples per pixel and neither the "
                   f"file's header nor --model-option states it; the server estimated {spp} spp "
-                  "for the shot from its first frame (an estimate, off by a stop or so): pass "
+                  "for the shot from its first frame (an estimate, often 1-2 stops off): pass "
                   "--model-option spp=N with the render's samples (said once per run)")
 
     def held(self, index: int, name: str) -> None:

@@ -15,7 +15,6 @@ from quietframe.service.model_registry import ModelRegistry
 from quietframe.service.session import Session
 
 FRAME = "this frame"
-SHOT_ESTIMATE = "this shot's estimated spp"  # a frame whose spp no header or option states
 SESSION_OPTION = f"the session's model_options.{SAMPLES_INPUT}"
 
 

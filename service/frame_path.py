@@ -10,7 +10,7 @@ import numpy as np
 from quietframe.runtime import lookahead
 from quietframe.runtime.stream import Step, Stream
 from quietframe.service import frames, lookahead_queue, state_codec
-from quietframe.service.below_input import FRAME, SHOT_ESTIMATE, below_input_warning
+from quietframe.service.below_input import below_input_warning
 from quietframe.service.choice_policy import Choice
 from quietframe.service.frame_context import FrameContext
 from quietframe.service.noise_estimate import ESTIMATE
@@ -69,10 +69,10 @@ def process_frame(
     extra = {"quietframe.model": model, "quietframe.frame": str(index)}
     # auto's own choice leaves such a model out (choice_policy.not_below_input), and a shot's
     # kept model is auto's too: only a model the session names is warned of
-    warning = None
-    if choice is None:
-        spp, where = (stated, FRAME) if shot_spp is None else (shot_spp, SHOT_ESTIMATE)
-        warning = below_input_warning(info.name, stream.denoiser, spp, context.renderer, where)
+    # Only a stated spp is judged: the shot's estimate reads 1-spp frames as ~6 spp and 64-spp
+    # ones as ~14 (docs/service.md), which would warn wrongly at the low end of the range.
+    warning = (below_input_warning(info.name, stream.denoiser, stated, context.renderer)
+               if choice is None else None)
     if spec.lookahead:
         return _held_back(stream, spec, index, body, context, reset, choice, window or {},
                           step, extra, 1e3 * (denoised - decoded), warning, shot_spp)

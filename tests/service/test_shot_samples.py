@@ -81,22 +81,23 @@ def server(models_dir):
 
 
 def test_a_named_model_is_given_the_shots_estimate_until_the_next_cut(server):
-    clean, grainy, start = expected(CLEAN), expected(GRAINY, seed=3), below_input_from(LEARNED)
-    assert clean > start > grainy >= 1  # the shipped fit tells them apart
+    clean, grainy = expected(CLEAN), expected(GRAINY, seed=3)
+    # the shipped fit tells them apart, on either side of where the card says the model goes
+    # below its input (a frame there would be warned, were its spp stated)
+    assert clean > below_input_from(LEARNED) > grainy >= 1
     with Client(server.url) as client:
         sid = client.create_session(*SIZE, model=LEARNED)["id"]
         first = client.send_frame(sid, 0, noisy_frame(CLEAN)[0])
         assert first.samples == f"{clean:g}; source=estimate"
-        assert first.warning.startswith(
-            f"{LEARNED} is below its own noisy input from {start:g} spp on a validation-zoo shot "
-            f"(this shot's estimated spp: {clean:g} spp, ")
+        # an estimate is not judged against the card: it is off by stops at either end
+        assert not first.warning
         # the shot's other frames keep its estimate, whatever their own noise
         later = client.send_frame(sid, 1, noisy_frame(GRAINY, seed=2)[0])
         assert later.samples == first.samples and later.reset == "none"
-        # a cut starts a new shot: estimated again, in range, no warning
+        # a cut starts a new shot: estimated again
         body = noisy_frame(GRAINY, seed=3)[0]
         cut = client.send_frame(sid, 2, body, cut=True)
-        assert cut.samples == f"{grainy:g}; source=estimate" and not cut.warning
+        assert cut.samples == f"{grainy:g}; source=estimate"
         # the model was given the estimate: the same pixels as a session stating it
         stated = client.create_session(*SIZE, model=LEARNED, model_options={"spp": grainy})
         same = client.send_frame(stated["id"], 0, body)
