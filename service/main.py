@@ -78,6 +78,9 @@ def create_app(settings: Settings | None = None,
         finally:
             reaper.cancel()
             pool.shutdown(wait=True)
+            registry.close_streams()
+            if loaded is None:  # a registry handed in is its owner's to close
+                registry_models.close()
 
     app = FastAPI(
         title="quietframe",

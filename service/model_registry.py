@@ -116,6 +116,14 @@ class ModelRegistry:
         return {name: (tuple(i.required_buffers), tuple(i.optional_buffers))
                 for name, i in infos.items()}
 
+    def close(self) -> None:
+        """Release every model's OIDN devices (one a worker thread each; each holds one of the
+        process's ~1000 pthread keys, so a process that starts many servers runs out without
+        this). No frame may be running."""
+        for denoiser in self._denoisers.values():
+            if denoiser.prepass is not None:
+                denoiser.prepass.close()
+
     def warm_up(self) -> None:
         """Run one tiny frame through every model: loads the custom ops, allocates kernels."""
         for denoiser in self._denoisers.values():

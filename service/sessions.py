@@ -162,6 +162,12 @@ class SessionRegistry:
                 if self.durability is not None:  # gone from the store when DELETE answers
                     await self.durability.delete(session.id)
 
+    def close_streams(self) -> None:
+        """At shutdown (no frame running): let go of every session's stream (its kept OIDN
+        filters and device); a durable session's state stays in its store."""
+        for session in list(self.table.sessions.values()):
+            session.close_stream()
+
     # ---- frames -------------------------------------------------------------------------------
 
     def frame_need(self, session: Session, header: frames.ExrHeader, body_bytes: int,

@@ -181,7 +181,11 @@ def test_the_unet_reads_the_noise_plane_as_its_first_convolutions_last_channel()
 def test_exported_affinity_takes_the_spp_and_matches_pytorch(tmp_path) -> None:
     _, model = affinity_pair()
     with torch.no_grad():
-        model.unet.down[0][0].weight[:, -1] = 2.0
+        # enough for the spp to move the output, not so much that log2(64)·w saturates the
+        # first layer: at 2.0 one pixel's kernel weights differed by 0.5% between onnxruntime's
+        # float32 and PyTorch's on an AMD EPYC (rounding amplified, not a wrong graph)
+        model.unet.down[0][0].weight[:, -1] = 0.5
+    assert float((run_affinity(model, 1.0) - run_affinity(model, 64.0)).abs().max()) > 1e-3
     runtime = Denoiser(export_affinity(model, tmp_path / "noisy.onnx"), threads=1)
     assert SAMPLES_INPUT in [i.name for i in runtime.info.inputs]
     *buffers, _, _, _ = affinity_inputs(model, 24, 32)
