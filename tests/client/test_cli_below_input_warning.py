@@ -1,7 +1,9 @@
 """`quietframe denoise --model NAME` on frames at an spp where that model's card says it is below
 its own noisy input: the server's X-Quietframe-Warning is said once per run as a warning (not
-once per frame), the frames are written as asked and the exit code stays 0. Against a real
-server, with the shipped cards."""
+once per frame), the frames are written as asked and the exit code stays 0. Likewise the
+server's estimate of the shot's spp (X-Quietframe-Samples) where the model reads one and
+neither the header nor --model-option states it, with how to state it. Against a real server,
+with the shipped cards."""
 
 from __future__ import annotations
 
@@ -18,13 +20,17 @@ LEARNED = "nbg-2l-3g"  # below its input from 5.44 spp on a validation shot (its
 WARNING = f"{LEARNED} is below its own noisy input from 5.44 spp"
 
 
-def render(folder: Path, spp: int, frames: int = 3) -> None:
-    """`frames` Cycles frames of a locked-off shot, each stating `spp` in its header."""
+def render(folder: Path, spp: int | None, frames: int = 3) -> None:
+    """`frames` Cycles frames of a locked-off shot, each stating `spp` in its header (None: a
+    renderer that states none, Mitsuba's or Arnold's layout)."""
     folder.mkdir(parents=True, exist_ok=True)
     for i in range(frames):
         buffers = make_buffers(noise=100 + i)
         buffers["motion"][:] = 0
-        data = write_exr(LAYOUTS["blender"](buffers), {"cycles.ViewLayer.samples": str(spp)})
+        if spp is None:
+            data = write_exr(LAYOUTS["plain-normal"](buffers))
+        else:
+            data = write_exr(LAYOUTS["blender"](buffers), {"cycles.ViewLayer.samples": str(spp)})
         (folder / f"shot.{1001 + i:04d}.exr").write_bytes(data)
 
 
@@ -71,3 +77,24 @@ def test_no_warning_in_the_models_range_or_with_auto(tmp_path, learned, capsys, 
     assert run(learned, tmp_path / "src", tmp_path / "out", model, "--quiet") == 0
     captured = capsys.readouterr()
     assert "below its own noisy input" not in captured.err + captured.out
+
+
+ESTIMATED = f"{LEARNED} reads the frame's samples per pixel and neither the file's header"
+
+
+@pytest.mark.parametrize("spp, flags, said", [
+    (None, (), True),
+    (None, ("--model-option", "spp=8"), False),
+    (8, (), False),
+])
+def test_the_estimated_spp_is_said_once_unless_the_spp_is_stated(tmp_path, learned, capsys, spp,
+                                                                flags, said):
+    render(tmp_path / "src", spp)
+    assert run(learned, tmp_path / "src", tmp_path / "out", LEARNED, "--quiet", *flags) == 0
+    assert len(list((tmp_path / "out").glob("shot.*.exr"))) == 3
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if ESTIMATED in line]
+    assert len(lines) == int(said), err
+    if said:
+        assert lines[0].startswith("quietframe: warning: frame 1001: ")
+        assert "--model-option spp=N" in lines[0] and lines[0].endswith("(said once per run)")

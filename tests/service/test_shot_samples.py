@@ -64,28 +64,12 @@ def colour(data: bytes) -> np.ndarray:
     return np.stack([channels[c] for c in "RGB"])
 
 
-@pytest.fixture(scope="module")
-def models_dir(tmp_path_factory):
-    from quietframe.runtime import find_model
-
-    folder = tmp_path_factory.mktemp("models")
-    for name in (LEARNED, PLAIN):
-        shutil.copy(find_model(name), folder / f"{name}.onnx")
-    return folder
-
-
-@pytest.fixture(scope="module")
-def server(models_dir):
-    with LiveServer(models_dir=str(models_dir)) as live:
-        yield live
-
-
-def test_a_named_model_is_given_the_shots_estimate_until_the_next_cut(server):
+def test_a_named_model_is_given_the_shots_estimate_until_the_next_cut(live_server):
     clean, grainy = expected(CLEAN), expected(GRAINY, seed=3)
     # the shipped fit tells them apart, on either side of where the card says the model goes
     # below its input (a frame there would be warned, were its spp stated)
     assert clean > below_input_from(LEARNED) > grainy >= 1
-    with Client(server.url) as client:
+    with Client(live_server.url) as client:
         sid = client.create_session(*SIZE, model=LEARNED)["id"]
         first = client.send_frame(sid, 0, noisy_frame(CLEAN)[0])
         assert first.samples == f"{clean:g}; source=estimate"
@@ -105,11 +89,11 @@ def test_a_named_model_is_given_the_shots_estimate_until_the_next_cut(server):
         np.testing.assert_allclose(colour(cut.exr), colour(same.exr), rtol=1e-5, atol=1e-6)
 
 
-def test_a_black_first_frame_leaves_the_estimate_to_the_next_frame(server):
+def test_a_black_first_frame_leaves_the_estimate_to_the_next_frame(live_server):
     b = make_buffers(height=SIZE[1], width=SIZE[0])
     b["color"][:] = 0
     black = write_exr(LAYOUTS["plain-normal"](b))
-    with Client(server.url) as client:
+    with Client(live_server.url) as client:
         sid = client.create_session(*SIZE, model=LEARNED)["id"]
         assert not client.send_frame(sid, 0, black).samples  # nothing to measure: the default
         second = client.send_frame(sid, 1, noisy_frame(CLEAN)[0])
@@ -117,10 +101,10 @@ def test_a_black_first_frame_leaves_the_estimate_to_the_next_frame(server):
     assert second.samples == third.samples == f"{expected(CLEAN):g}; source=estimate"
 
 
-def test_no_estimate_where_the_spp_is_stated_or_not_read(server):
+def test_no_estimate_where_the_spp_is_stated_or_not_read(live_server):
     body = noisy_frame(CLEAN)[0]
     cycles = make_buffers(height=SIZE[1], width=SIZE[0], noise=4)
-    with Client(server.url) as client:
+    with Client(live_server.url) as client:
         for model, options, frame in (
             (LEARNED, {"spp": 8}, body),  # the session states it
             (LEARNED, {}, write_exr(LAYOUTS["blender"](cycles),
@@ -134,13 +118,13 @@ def test_no_estimate_where_the_spp_is_stated_or_not_read(server):
             client.delete_session(sid)
 
 
-def test_a_durable_session_keeps_its_shots_estimate_across_a_restart(tmp_path, models_dir):
+def test_a_durable_session_keeps_its_shots_estimate_across_a_restart(tmp_path):
     state = tmp_path / "state"
-    with LiveServer(models_dir=str(models_dir), state_dir=str(state)) as live, \
+    with LiveServer(state_dir=str(state)) as live, \
             Client(live.url) as client:
         sid = client.create_session(*SIZE, model=LEARNED)["id"]
         first = client.send_frame(sid, 0, noisy_frame(CLEAN)[0])
-    with LiveServer(models_dir=str(models_dir), state_dir=str(state)) as live, \
+    with LiveServer(state_dir=str(state)) as live, \
             Client(live.url) as client:
         after = client.send_frame(sid, 1, noisy_frame(GRAINY, seed=2)[0])
     assert after.reset == "none" and after.samples == first.samples
@@ -148,7 +132,7 @@ def test_a_durable_session_keeps_its_shots_estimate_across_a_restart(tmp_path, m
 
 
 @pytest.mark.skipif(not shutil.which("redis-server"), reason="needs redis-server")
-def test_a_replica_adopting_the_session_keeps_the_shots_estimate(tmp_path, models_dir):
+def test_a_replica_adopting_the_session_keeps_the_shots_estimate(tmp_path):
     """Two replicas sharing Redis: the shot's first frame on one, the next on the other, which
     adopts the session from the store with its shot's estimate."""
     from conftest import redis_server, service_settings
@@ -158,8 +142,7 @@ def test_a_replica_adopting_the_session_keeps_the_shots_estimate(tmp_path, model
     from quietframe.wire.protocol import Header
 
     with redis_server(tmp_path) as url:
-        a, b = (TestClient(create_app(service_settings(replica_id=name, store_url=url,
-                                                       models_dir=str(models_dir))))
+        a, b = (TestClient(create_app(service_settings(replica_id=name, store_url=url)))
                 for name in "ab")
         with a, b:
             sid = a.post("/v1/sessions", json={"width": SIZE[0], "height": SIZE[1],
