@@ -13,6 +13,7 @@ layout model/metrics computes in, so every figure is the one the metrics have al
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -26,6 +27,9 @@ from quietframe.runtime import Denoiser
 from quietframe.runtime.buffers import BUFFER_CHANNELS, FORWARD, planes_from_hwc
 from quietframe.runtime.stream import Step, Stream
 from quietframe.service.noise_estimate import load_calibration, shot_samples
+
+# The shipped noise fit, read once per process (not at every shot's reset); read-only
+_calibration = functools.cache(load_calibration)
 
 Planes = dict[str, np.ndarray]  # canonical name -> (C, H, W) float32
 Frames = list[tuple[Planes, np.ndarray, bool]]  # (planes, reference (H, W, 3), reset)
@@ -92,8 +96,7 @@ class RuntimeMethod:
         if self.withhold_vectors:
             planes = {name: plane for name, plane in planes.items() if name not in VECTORS}
         if self.shot_spp is None and self.stream.wants_estimate(self.header_spp):
-            self.shot_spp = shot_samples(planes["color"], planes.get("albedo"),
-                                         load_calibration())
+            self.shot_spp = shot_samples(planes["color"], planes.get("albedo"), _calibration())
         step = self.stream.step(planes, self.state, self.header_spp, self.shot_spp)
         self.last_step = step
         self.dropped += step.gate is not None and step.gate.dropped
