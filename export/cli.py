@@ -14,7 +14,7 @@ import torch
 from quietframe.export.affinity_export import export_affinity
 from quietframe.export.onnx_export import export_nbg, export_oidn_only
 from quietframe.model import affinity, families, oidn_temporal, output_history
-from quietframe.model.nbg import AccumulationDenoiser
+from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
 
 
 def carried_metrics(old: Path, training: dict) -> tuple[dict, dict]:
@@ -48,7 +48,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="carry the measured tables of an earlier version of this model "
                              "into the new file (its training notes say which version measured "
                              "them), for a change the tables could not yet be measured again for")
+    parser.add_argument("--resampled-weight-per-doubling", type=float, metavar="W",
+                        help="NBG checkpoint: the accumulation's resampled history fades with "
+                             "the frame's spp (NBGConfig.resampled_weight_per_doubling; no "
+                             "weights, so a trained model takes it as it is)")
     args = parser.parse_args(argv)
+    overrides = ({} if args.resampled_weight_per_doubling is None else
+                 {"resampled_weight_per_doubling": args.resampled_weight_per_doubling})
+    if overrides and not args.checkpoint:
+        parser.error("--resampled-weight-per-doubling applies to an NBG --checkpoint")
 
     if args.variant in oidn_temporal.OIDN_ONLY_VARIANTS and not args.checkpoint:
         path = export_oidn_only(oidn_temporal.OIDN_ONLY_VARIANTS[args.variant], args.out,
@@ -66,7 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.metrics_from:
             training, metrics = carried_metrics(args.metrics_from, training)
     elif args.checkpoint:
-        model, checkpoint = families.load_checkpoint(args.checkpoint)
+        model, checkpoint = families.load_checkpoint(args.checkpoint, **overrides)
+        if overrides and not isinstance(model, NBGDenoiser):
+            parser.error("--resampled-weight-per-doubling applies to an NBG checkpoint")
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
         if args.metrics_from:  # the old tables, with this checkpoint's own selection record
             training, carried = carried_metrics(args.metrics_from, training)

@@ -58,7 +58,7 @@ OIDN_TEMPORAL = Family(
 )
 NBG = Family(
     name="nbg", config_type=nbg.NBGConfig, model_type=nbg.NBGDenoiser, variants=nbg.VARIANTS,
-    tunable=("width", "passthrough", "noise_blend", *CLAMP),
+    tunable=("width", "passthrough", "noise_blend", "resampled_weight_per_doubling", *CLAMP),
     owns=lambda saved: True,  # the first family: its checkpoints carry no mark of their own
 )
 # In the order a checkpoint is tried against them: NBG, unmarked, last.
@@ -78,10 +78,12 @@ def family_of_variant(variant: str) -> Family:
     raise KeyError(variant)
 
 
-def load_checkpoint(path: str | Path) -> tuple[nn.Module, dict]:
+def load_checkpoint(path: str | Path, **overrides: Any) -> tuple[nn.Module, dict]:
     """Rebuild any family's model from a training checkpoint: {"config", "model", "training",
-    "metrics"}; returns the model and the checkpoint."""
+    "metrics"}; returns the model and the checkpoint. `overrides`: settings without weights
+    of the family's `tunable` (others are ignored)."""
     checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    model = family_of_checkpoint(checkpoint["config"]).from_saved(checkpoint["config"])
+    family = family_of_checkpoint(checkpoint["config"])
+    model = family.from_saved(checkpoint["config"], **overrides)
     model.load_state_dict(checkpoint["model"])
     return model, checkpoint

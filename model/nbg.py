@@ -17,9 +17,11 @@ from quietframe.model.grid import bilateral_slice, bilateral_splat
 from quietframe.model.temporal import (
     DEFAULT_SPP,
     HISTORY_LENGTH,
+    MIN_CURRENT_WEIGHT,
     STATE_CHANNELS,
     accumulate,
     frame_samples,
+    resampled_floor,
     samples_input,
 )
 
@@ -74,6 +76,22 @@ class NBGConfig:
     # blend served 1 and 64 spp alike and stayed below its own input at 64 (docs/training.md).
     # The frame's spp is then a run-time input of the exported graph.
     noise_blend: bool = False
+    # The accumulation's resampled history fades with the frame's spp (not in the paper;
+    # model/temporal.resampled_floor, resampled_trust): where the motion is not a whole number
+    # of pixels the current frame weighs at least clamp(0.2 + this · log2 spp, 0.2, 1). A
+    # nearest fetch under sub-pixel motion is up to half a pixel off, every frame again, and on
+    # thin geometry that error outgrows the noise the history removes once the frame is clean:
+    # turning wireframes at 64 spp lost 4.8 dB to the frame's own NBG (zoo round 2,
+    # studio-spin; docs/training.md "The resampled history"). 0: every valid history is kept
+    # (the paper's, and versions before 8). The frame's spp is a run-time input of the graph.
+    resampled_weight_per_doubling: float = 0.0
+
+    def history_floor(self, spp: Tensor | None) -> Tensor | None:
+        """The accumulation's `floor` for a frame of `spp` (None: no floor)."""
+        if self.resampled_weight_per_doubling <= 0:
+            return None
+        return resampled_floor(frame_samples(spp), MIN_CURRENT_WEIGHT,
+                               self.resampled_weight_per_doubling, 1.0)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -291,7 +309,7 @@ class NBGDenoiser(nn.Module):
     @property
     def reads_spp(self) -> bool:
         """Whether forward reads the frame's spp (training feeds each item's)."""
-        return self.config.noise_blend
+        return self.config.noise_blend or self.config.resampled_weight_per_doubling > 0
 
     def forward(
         self,
@@ -310,7 +328,8 @@ class NBGDenoiser(nn.Module):
         frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                               config.outlier_floor)
         irradiance, new_state = (accumulate(frame, depth, normal, motion, reset, state,
-                                            config.aligned_history)
+                                            config.aligned_history,
+                                            floor=config.history_floor(spp))
                                  if config.temporal else (frame, state))
         level = None
         if config.noise_blend:
@@ -344,8 +363,8 @@ class NBGDenoiser(nn.Module):
 
     def run_time_inputs(self) -> list[dict]:
         """`quietframe.inputs` of the exported graph: the frame's spp, where the blend reads
-        the noise level."""
-        if not self.config.noise_blend:
+        the noise level (or the history's floor follows it)."""
+        if not self.reads_spp:
             return []
         return [samples_input(DEFAULT_SPP, "the frame's samples per pixel (the service fills "
                               "it from the EXR header, or auto's estimate): with the history's "

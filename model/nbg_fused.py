@@ -37,6 +37,7 @@ from quietframe.model.temporal import (
     frame_samples,
     history_valid,
     history_weights,
+    resampled_trust,
 )
 
 LDR_EXPONENT = 1 / 2.2  # model/nbg.ldr's gamma
@@ -176,6 +177,9 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
     frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                           config.outlier_floor)  # the pass-through's second
     warped, inside = backward_warp(state, motion, mode="nearest")
+    floor = config.history_floor(spp)
+    if floor is not None:  # the resampled history's share rides on NBGAccumulate's `inside`
+        inside = inside * resampled_trust(motion, warped[:, HISTORY_LENGTH], floor)
     irradiance, new_state = nbg_accumulate(frame, warped, inside, depth, normal, reset)
     # The frame-wide reduction stays an onnx ReduceMean: a tiled run feeds the frame's value
     # to every tile (runtime/statistics.py).

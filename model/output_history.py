@@ -43,6 +43,7 @@ from quietframe.model.temporal import (
     history_weights,
     pixel_aligned,
     reproject_history,
+    resampled_floor,
     samples_input,
     still_pixels,
 )
@@ -159,9 +160,8 @@ class OutputHistoryConfig:
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
-        doublings = torch.log2(spp.clamp_min(1.0))
-        floor = self.resampled_weight + self.resampled_weight_per_doubling * doublings
-        return floor.clamp(MIN_CURRENT_WEIGHT, self.resampled_weight_max).view(-1, 1, 1, 1)
+        return resampled_floor(spp, self.resampled_weight, self.resampled_weight_per_doubling,
+                               self.resampled_weight_max)
 
     def untrusted_floor(self, spp: Tensor) -> Tensor:
         """u(spp) of the comment above, (1,) -> (1, 1, 1, 1)."""

@@ -186,6 +186,31 @@ def history_weights(keep: Tensor, previous_count: Tensor) -> tuple[Tensor, Tenso
     return (1 / count).clamp_min(MIN_CURRENT_WEIGHT), count
 
 
+def resampled_floor(spp: Tensor, weight: float, per_doubling: float, maximum: float) -> Tensor:
+    """The current frame's least weight where a history is resampled (fetched under sub-pixel
+    motion), (1,) -> (1, 1, 1, 1): clamp(weight + per_doubling · log2 spp, MIN_CURRENT_WEIGHT,
+    maximum), spp below 1 counting as 1. Each frame resamples such a history again, so a long
+    one compounds the fetch's error, which outweighs the noise it removes the sooner the
+    cleaner the frame."""
+    floor = weight + per_doubling * torch.log2(spp.clamp_min(1.0))
+    return floor.clamp(MIN_CURRENT_WEIGHT, maximum).view(-1, 1, 1, 1)
+
+
+def resampled_trust(motion: Tensor, previous_count: Tensor, floor: Tensor) -> Tensor:
+    """(N, 1, H, W) in [0, 1]: the share of a reprojected history to keep so that the current
+    frame's weight (history_weights) is at least `floor` ((N or 1, 1, 1, 1), resampled_floor)
+    where the motion is not pixel-aligned; 1 where it is (the nearest fetch is exact there)
+    and wherever the floor asks for no more than MIN_CURRENT_WEIGHT. A kept share k of a
+    history of n frames gives n' = k·n + 1, so k = (1/floor - 1) / n caps n' at 1/floor:
+    1/floor frames of history, α = floor. As a factor on `keep` it passes through
+    NBGAccumulate's `inside` input unchanged (model/nbg_fused.py)."""
+    aligned = pixel_aligned(motion).to(motion.dtype)
+    count = previous_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT)
+    share = ((1.0 / floor - 1.0) / count.clamp_min(1e-6)).clamp(max=1.0)
+    share = torch.where(floor > MIN_CURRENT_WEIGHT, share, torch.ones_like(share))
+    return aligned + (1 - aligned) * share
+
+
 def reproject_history(state: Tensor, motion: Tensor, depth: Tensor, normal: Tensor,
                       reset: Tensor, depth_tolerance: Tensor | float = DEPTH_REL_TOLERANCE,
                       normal_min_dot: Tensor | float = NORMAL_MIN_DOT
@@ -228,6 +253,7 @@ def accumulate(
     aligned_only: bool = False,
     restart_repeated: bool = False,
     spp: Tensor | None = None,
+    floor: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """One step of temporal accumulation of demodulated radiance (NBG §4.6).
 
@@ -245,6 +271,8 @@ def accumulate(
     docs/zoo.md "Repeated samples"). Only there do equal aux say the colour's sample is the
     same: a 1-spp frame's aux are its one sample's, while a pixel-centre G-buffer repeats at
     any spp though the colour's samples move. `spp` (1,), None: the test is off.
+    `floor` ((N or 1, 1, 1, 1), resampled_floor): where the motion is not pixel-aligned the
+    current frame weighs at least this much (resampled_trust); None: every valid history kept.
     """
     warped, keep = reproject_history(state, motion, depth, normal, reset)
     prev_radiance, prev_count = warped[:, RADIANCE], warped[:, HISTORY_LENGTH]
@@ -254,6 +282,8 @@ def accumulate(
         single = (spp < 2).to(keep.dtype).view(-1, 1, 1, 1)  # one sample a pixel
         repeated = repeated_sample(warped[:, DEPTH], warped[:, NORMAL], depth, normal)
         keep = keep * (1 - single * repeated)
+    if floor is not None:
+        keep = keep * resampled_trust(motion, prev_count, floor)
     alpha, count = history_weights(keep, prev_count)  # (N, 1, H, W) weight of the current frame
     accumulated = alpha * radiance + (1 - alpha) * prev_radiance
     new_state = torch.cat((accumulated, depth, normal, count), dim=1)
