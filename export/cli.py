@@ -49,14 +49,15 @@ def main(argv: list[str] | None = None) -> int:
                              "into the new file (its training notes say which version measured "
                              "them), for a change the tables could not yet be measured again for")
     parser.add_argument("--resampled-weight-per-doubling", type=float, metavar="W",
-                        help="NBG checkpoint: the accumulation's resampled history fades with "
-                             "the frame's spp (NBGConfig.resampled_weight_per_doubling; no "
-                             "weights, so a trained model takes it as it is)")
+                        help="NBG or affinity checkpoint: the resampled history fades with "
+                             "the frame's spp (NBGConfig / AffinityConfig."
+                             "resampled_weight_per_doubling; no weights, so a trained model "
+                             "takes it as it is)")
     args = parser.parse_args(argv)
     overrides = ({} if args.resampled_weight_per_doubling is None else
                  {"resampled_weight_per_doubling": args.resampled_weight_per_doubling})
     if overrides and not args.checkpoint:
-        parser.error("--resampled-weight-per-doubling applies to an NBG --checkpoint")
+        parser.error("--resampled-weight-per-doubling applies to a --checkpoint")
 
     if args.variant in oidn_temporal.OIDN_ONLY_VARIANTS and not args.checkpoint:
         path = export_oidn_only(oidn_temporal.OIDN_ONLY_VARIANTS[args.variant], args.out,
@@ -75,8 +76,9 @@ def main(argv: list[str] | None = None) -> int:
             training, metrics = carried_metrics(args.metrics_from, training)
     elif args.checkpoint:
         model, checkpoint = families.load_checkpoint(args.checkpoint, **overrides)
-        if overrides and not isinstance(model, NBGDenoiser):
-            parser.error("--resampled-weight-per-doubling applies to an NBG checkpoint")
+        if overrides and not isinstance(model, NBGDenoiser | affinity.AffinityDenoiser):
+            parser.error("--resampled-weight-per-doubling applies to an NBG or affinity "
+                         "checkpoint")
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
         if args.metrics_from:  # the old tables, with this checkpoint's own selection record
             training, carried = carried_metrics(args.metrics_from, training)

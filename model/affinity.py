@@ -41,9 +41,12 @@ from quietframe.model.nbg import demodulation_divisor, noise_level, suppress_out
 from quietframe.model.resample import upsample_bilinear
 from quietframe.model.temporal import (
     DEFAULT_SPP,
+    MIN_CURRENT_WEIGHT,
     backward_warp,
+    fading_floor,
     frame_samples,
     history_valid,
+    pixel_aligned,
     samples_input,
 )
 
@@ -72,6 +75,10 @@ for _name, _channels in _STATE_LAYOUT:
     STATE_SLICES[_name] = slice(_offset, _offset + _channels)
     _offset += _channels
 STATE_CHANNELS = _offset
+# Added to each warped feature of a pixel whose previous output eq. 8 must not gather: its
+# distance to any current feature vector is then ~8·offset² and ω underflows to 0 (as
+# model/oidn_temporal's disoccluded pixels).
+STALE_FEATURE_OFFSET = 1000.0
 State = tuple[Tensor, Tensor]  # (N, STATE_CHANNELS, H, W), (N, 32, ⌈H/s⌉, ⌈W/s⌉)
 
 
@@ -106,6 +113,14 @@ class AffinityConfig:
     # behind them, and one set of kernels served 1 and 64 spp alike, below its own input at 64
     # (docs/training.md). The frame's spp is then a run-time input of the exported graph.
     noise_input: bool = False
+    # The resampled history fades with the frame's spp, as NBG's (NBGConfig; not in the paper):
+    # where the motion is not a whole number of pixels (temporal.pixel_aligned) eq. 5's λ is at
+    # most 1 - w(spp), w = clamp(0.2 + this · log2 spp, 0.2, 1) (temporal.fading_floor), and
+    # from 2 spp (w > 0.2) eq. 8's temporal kernel gathers nothing from a resampled previous
+    # output (its features offset as a disoccluded pixel's). A nearest fetch under sub-pixel
+    # motion is up to half a pixel off every frame; on thin geometry at 16-64 spp that outgrows
+    # the noise the history removes (docs/training.md, "The resampled history"). 0: off.
+    resampled_weight_per_doubling: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "widths", tuple(self.widths))  # JSON round trip gives a list
@@ -354,7 +369,7 @@ class AffinityDenoiser(nn.Module):
     @property
     def reads_spp(self) -> bool:
         """Whether forward reads the frame's spp (training feeds each item's)."""
-        return self.config.noise_input
+        return self.config.noise_input or self.config.resampled_weight_per_doubling > 0
 
     def adapt_state_dict(self, state: dict[str, Tensor]) -> dict[str, Tensor]:
         """A checkpoint's weights for this model: as they are, or, where this model takes the
@@ -369,8 +384,8 @@ class AffinityDenoiser(nn.Module):
 
     def run_time_inputs(self) -> list[dict]:
         """`quietframe.inputs` the model itself reads beside the kernel size (which the export
-        adds): the frame's spp, with noise_input."""
-        if not self.config.noise_input:
+        adds): the frame's spp, with noise_input (or a history that fades with it)."""
+        if not self.reads_spp:
             return []
         return [samples_input(DEFAULT_SPP, "the frame's samples per pixel (the service fills "
                               "it from the EXR header, or auto's estimate): its log, the noise "
@@ -423,11 +438,15 @@ class AffinityDenoiser(nn.Module):
         if self.guide is not None:
             params = guided_features(params, guide_inputs(albedo, normal, depth), self.guide)
         if warped is not None:
-            acc = accumulate_radiance(radiance, warped[:, s["radiance"]],
-                                      params.blend * keep)  # eq. 5
+            blend, previous_features = params.blend * keep, warped[:, s["features"]]
+            floor = fading_floor(self.config.resampled_weight_per_doubling, spp)
+            if floor is not None:
+                blend, previous_features = fade_resampled(blend, previous_features, motion,
+                                                          floor)
+            acc = accumulate_radiance(radiance, warped[:, s["radiance"]], blend)  # eq. 5
             filtered = spatial_kernels(acc, params, size, self.config.coarse_first)  # eq. 4, 6
             output = final_kernel(filtered, params, warped[:, s["output"]],
-                                  warped[:, s["features"]], temporal_on, size,
+                                  previous_features, temporal_on, size,
                                   self.config.temporal_kernel_size,
                                   self.config.coarse_first)  # eq. 7, 8
         else:  # single-frame variant: all K kernels spatial, no temporal term (eq. 4, 6)
@@ -438,6 +457,18 @@ class AffinityDenoiser(nn.Module):
         new_state = torch.cat((acc, output, params.features[-1], depth, normal),
                               dim=1)  # (N, STATE_CHANNELS, H, W)
         return output * safe_albedo, (new_state, new_embedding)
+
+
+def fade_resampled(blend: Tensor, previous_features: Tensor, motion: Tensor,
+                   floor: Tensor) -> tuple[Tensor, Tensor]:
+    """AffinityConfig.resampled_weight_per_doubling: eq. 5's λ capped at 1 - floor where the
+    history was resampled (the motion not pixel-aligned), and there, once the floor is above
+    MIN_CURRENT_WEIGHT, the warped features of eq. 7 offset by STALE_FEATURE_OFFSET so that
+    ω = exp(-b·d²) is 0 for them."""
+    resampled = 1 - pixel_aligned(motion).to(blend.dtype)
+    blend = torch.minimum(blend, 1 - resampled * floor)
+    stale = resampled * (floor > MIN_CURRENT_WEIGHT).to(blend.dtype)
+    return blend, previous_features + STALE_FEATURE_OFFSET * stale
 
 
 def bandwidth_penalty_of(params: KernelParams) -> Tensor:

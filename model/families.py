@@ -47,7 +47,8 @@ CLAMP = ("outlier_sigmas", "outlier_floor")
 
 AFFINITY = Family(
     name="affinity", config_type=affinity.AffinityConfig, model_type=affinity.AffinityDenoiser,
-    variants=affinity.VARIANTS, tunable=("kernel_size", "noise_input", *CLAMP),
+    variants=affinity.VARIANTS,
+    tunable=("kernel_size", "noise_input", "resampled_weight_per_doubling", *CLAMP),
     owns=lambda saved: saved.get("family") == "affinity",  # AffinityConfig.family
 )
 OIDN_TEMPORAL = Family(
@@ -76,6 +77,17 @@ def family_of_variant(variant: str) -> Family:
         if variant in family.variants:
             return family
     raise KeyError(variant)
+
+
+# Settings without weights that quietframe-export may put on a trained checkpoint
+# (--resampled-weight-per-doubling): a shipped file may differ from its checkpoint in these.
+EXPORT_SETTINGS = ("resampled_weight_per_doubling",)
+
+
+def export_settings(architecture: Mapping[str, Any]) -> dict[str, Any]:
+    """The EXPORT_SETTINGS an exported file's architecture (its card's) holds: with them,
+    load_checkpoint rebuilds the model the file was exported from."""
+    return {k: architecture[k] for k in EXPORT_SETTINGS if k in architecture}
 
 
 def load_checkpoint(path: str | Path, **overrides: Any) -> tuple[nn.Module, dict]:

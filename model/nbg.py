@@ -17,11 +17,10 @@ from quietframe.model.grid import bilateral_slice, bilateral_splat
 from quietframe.model.temporal import (
     DEFAULT_SPP,
     HISTORY_LENGTH,
-    MIN_CURRENT_WEIGHT,
     STATE_CHANNELS,
     accumulate,
+    fading_floor,
     frame_samples,
-    resampled_floor,
     samples_input,
 )
 
@@ -85,13 +84,6 @@ class NBGConfig:
     # studio-spin; docs/training.md "The resampled history"). 0: every valid history is kept
     # (the paper's, and versions before 8). The frame's spp is a run-time input of the graph.
     resampled_weight_per_doubling: float = 0.0
-
-    def history_floor(self, spp: Tensor | None) -> Tensor | None:
-        """The accumulation's `floor` for a frame of `spp` (None: no floor)."""
-        if self.resampled_weight_per_doubling <= 0:
-            return None
-        return resampled_floor(frame_samples(spp), MIN_CURRENT_WEIGHT,
-                               self.resampled_weight_per_doubling, 1.0)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -327,9 +319,9 @@ class NBGDenoiser(nn.Module):
         config = self.config
         frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                               config.outlier_floor)
+        floor = fading_floor(config.resampled_weight_per_doubling, spp)
         irradiance, new_state = (accumulate(frame, depth, normal, motion, reset, state,
-                                            config.aligned_history,
-                                            floor=config.history_floor(spp))
+                                            config.aligned_history, floor=floor)
                                  if config.temporal else (frame, state))
         level = None
         if config.noise_blend:

@@ -34,6 +34,7 @@ from quietframe.model.temporal import (
     NORMAL,
     RADIANCE,
     backward_warp,
+    fading_floor,
     frame_samples,
     history_valid,
     history_weights,
@@ -177,7 +178,7 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
     frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                           config.outlier_floor)  # the pass-through's second
     warped, inside = backward_warp(state, motion, mode="nearest")
-    floor = config.history_floor(spp)
+    floor = fading_floor(config.resampled_weight_per_doubling, spp)
     if floor is not None:  # the resampled history's share rides on NBGAccumulate's `inside`
         inside = inside * resampled_trust(motion, warped[:, HISTORY_LENGTH], floor)
     irradiance, new_state = nbg_accumulate(frame, warped, inside, depth, normal, reset)

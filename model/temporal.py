@@ -196,6 +196,15 @@ def resampled_floor(spp: Tensor, weight: float, per_doubling: float, maximum: fl
     return floor.clamp(MIN_CURRENT_WEIGHT, maximum).view(-1, 1, 1, 1)
 
 
+def fading_floor(per_doubling: float, spp: Tensor | None) -> Tensor | None:
+    """The floor of a learned tier whose resampled history fades with the frame's spp
+    (NBGConfig / AffinityConfig.resampled_weight_per_doubling): resampled_floor from
+    MIN_CURRENT_WEIGHT at 1 spp to 1; None where per_doubling is 0 (every valid history kept)."""
+    if per_doubling <= 0:
+        return None
+    return resampled_floor(frame_samples(spp), MIN_CURRENT_WEIGHT, per_doubling, 1.0)
+
+
 def resampled_trust(motion: Tensor, previous_count: Tensor, floor: Tensor) -> Tensor:
     """(N, 1, H, W) in [0, 1]: the share of a reprojected history to keep so that the current
     frame's weight (history_weights) is at least `floor` ((N or 1, 1, 1, 1), resampled_floor)

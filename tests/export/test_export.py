@@ -13,7 +13,7 @@ from sequence_support import moving_frame
 torch = pytest.importorskip("torch")
 
 from quietframe.export.onnx_export import example_inputs, export_nbg  # noqa: E402
-from quietframe.model.families import load_checkpoint  # noqa: E402
+from quietframe.model.families import export_settings, load_checkpoint  # noqa: E402
 from quietframe.model.nbg import VARIANTS, NBGDenoiser  # noqa: E402
 from quietframe.runtime import Denoiser, find_model, installed_models  # noqa: E402
 from quietframe.runtime.card import json_safe  # noqa: E402
@@ -131,12 +131,10 @@ TRAINING_RUNS = Path(__file__).resolve().parents[2] / "models" / "training"
 def test_shipped_model_is_the_export_of_its_shipped_checkpoint(name):
     # models/<name>.onnx must be what quietframe-export makes of models/training/<name>/best.pt
     # with today's model code: a stale export (older pre-stage, other weights) fails here. The
-    # one weightless setting an export may put on a checkpoint (quietframe-export
-    # --resampled-weight-per-doubling) is taken from the file's architecture.
+    # weightless settings an export may put on a checkpoint come from the file's architecture.
     runtime = Denoiser(find_model(name), threads=2)
-    fading = runtime.info.card.architecture.get("resampled_weight_per_doubling", 0.0)
     model, checkpoint = load_checkpoint(str(TRAINING_RUNS / name / "best.pt"),
-                                        resampled_weight_per_doubling=fading)
+                                        **export_settings(runtime.info.card.architecture))
     training = json.loads(runtime.info.metadata["quietframe.training"])
     assert training["steps_done"] == checkpoint["training"]["steps_done"]
     # the checkpoint's validation score, plus measured tables stamped after export

@@ -233,10 +233,12 @@ SHIPPED = [p.stem for p in installed_models() if p.stem.startswith("affinity")]
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_model_is_the_export_of_its_shipped_checkpoint(name):
     """models/<name>.onnx is what quietframe-export makes of models/training/<name>/best.pt with
-    today's model code (a stale export fails), at its default and another kernel size."""
+    today's model code (a stale export fails), at its default and another kernel size, with the
+    weightless settings the export put on it (families.export_settings)."""
     checkpoint_path = Path(__file__).resolve().parents[2] / "models" / "training" / name / "best.pt"
-    model, checkpoint = families.load_checkpoint(str(checkpoint_path))
     runtime = Denoiser(find_model(name), threads=2)
+    model, checkpoint = families.load_checkpoint(
+        str(checkpoint_path), **families.export_settings(runtime.info.card.architecture))
     assert runtime.info.training["steps_done"] == checkpoint["training"]["steps_done"]
     default = next(i.default for i in runtime.info.inputs if i.name == "kernel_size")
     assert default == model.config.kernel_size

@@ -1,8 +1,10 @@
-"""NBG's resampled history fades with the frame's spp (NBGConfig.resampled_weight_per_doubling,
+"""The learned tiers' resampled history fades with the frame's spp
+(NBGConfig / AffinityConfig.resampled_weight_per_doubling,
 model/temporal.resampled_floor and resampled_trust): where the motion is not a whole number of
-pixels the current frame weighs at least w(spp) = clamp(0.2 + k · log2 spp, 0.2, 1); an exact
-(pixel-aligned) fetch keeps its history; the fused graph and the exported file compute what the
-PyTorch model does."""
+pixels NBG's current frame weighs at least w(spp) = clamp(0.2 + k · log2 spp, 0.2, 1), the
+affinity tier's λ (eq. 5) is at most 1 - w and from 2 spp its temporal kernel (eq. 8) gathers
+nothing there; an exact (pixel-aligned) fetch keeps its history; the fused graph and the
+exported files compute what the PyTorch models do."""
 
 from __future__ import annotations
 
@@ -14,8 +16,10 @@ import pytest
 torch = pytest.importorskip("torch", reason="the NBG model (torch) is not installed")
 
 from quietframe.export import cli as export_cli  # noqa: E402
+from quietframe.export.affinity_export import example_inputs as affinity_inputs  # noqa: E402
+from quietframe.export.affinity_export import export_affinity  # noqa: E402
 from quietframe.export.onnx_export import example_inputs, export_nbg  # noqa: E402
-from quietframe.model import nbg, nbg_fused, temporal  # noqa: E402
+from quietframe.model import affinity, nbg, nbg_fused, temporal  # noqa: E402
 from quietframe.runtime import Denoiser  # noqa: E402
 from quietframe.runtime.card import SAMPLES_INPUT  # noqa: E402
 
@@ -147,7 +151,7 @@ def test_exported_graph_with_the_floor_matches_pytorch(tmp_path) -> None:
                                        atol=1e-4 * float(np.abs(expected).max()))
 
 
-def test_export_sets_the_floor_on_an_nbg_checkpoint_only(tmp_path) -> None:
+def test_export_sets_the_floor_on_a_checkpoint_only(tmp_path) -> None:
     torch.manual_seed(0)
     checkpoint = tmp_path / "nbg.pt"
     torch.save({"config": NOISE.to_dict(), "model": nbg.NBGDenoiser(NOISE).state_dict()},
@@ -159,3 +163,62 @@ def test_export_sets_the_floor_on_an_nbg_checkpoint_only(tmp_path) -> None:
     with pytest.raises(SystemExit):
         export_cli.main(["--variant", "nbg-2l-3g", "--out", str(tmp_path / "x.onnx"),
                          "--resampled-weight-per-doubling", "0.1"])
+
+
+# ---- the affinity tier (AffinityConfig.resampled_weight_per_doubling) -------------------------
+
+AFFINITY = replace(affinity.VARIANTS["affinity-h16-k5gc"], noise_input=True)
+AFFINITY_FADING = replace(AFFINITY, resampled_weight_per_doubling=PER_DOUBLING)
+
+
+def test_fade_caps_the_blend_and_hides_resampled_features_above_one_sample() -> None:
+    motion = half_pixel_motion(8, 12, aligned_columns=4)
+    blend = torch.full((1, 1, 8, 12), 0.9)
+    features = torch.zeros(1, affinity.FEATURE_CHANNELS, 8, 12)
+    for spp, hidden in ((1.0, False), (16.0, True), (64.0, True)):
+        floor = floor_at(spp)
+        capped, shifted = affinity.fade_resampled(blend, features, motion, floor)
+        assert torch.all(capped[..., :2] == 0.9) and torch.all(shifted[..., :2] == 0)  # exact
+        torch.testing.assert_close(capped[..., 5:], torch.full_like(capped[..., 5:],
+                                                                    min(0.9, 1 - float(floor))))
+        assert bool(torch.all(shifted[..., 5:] == affinity.STALE_FEATURE_OFFSET)) == hidden
+
+
+def two_affinity_frames(model: affinity.AffinityDenoiser, spp: float):
+    *buffers, reset, state, embedding = affinity_inputs(model, 24, 32, seed=1)
+    second = example_inputs(24, 32, seed=2)[:4]
+    motion = half_pixel_motion(24, 32, aligned_columns=8)
+    with torch.no_grad():
+        out1, new = model(*buffers, reset, (state, embedding), spp=torch.tensor([spp]))
+        out2, _ = model(*second, motion, torch.zeros(1), new, spp=torch.tensor([spp]))
+    return (buffers, out1), ((*second, motion), out2)
+
+
+def test_affinity_fading_changes_only_frames_of_more_than_one_sample() -> None:
+    torch.manual_seed(0)
+    fading = affinity.AffinityDenoiser(AFFINITY_FADING).eval()
+    keeping = affinity.AffinityDenoiser(AFFINITY).eval()
+    keeping.load_state_dict(fading.state_dict())
+    assert fading.reads_spp and fading.run_time_inputs()[0]["name"] == SAMPLES_INPUT
+    for spp, differs in ((1.0, False), (64.0, True)):
+        (_, a1), (_, a2) = two_affinity_frames(fading, spp)
+        (_, b1), (_, b2) = two_affinity_frames(keeping, spp)
+        torch.testing.assert_close(a1, b1, rtol=0, atol=0)
+        assert (float((a2 - b2).abs().max()) > 1e-3) == differs
+
+
+def test_exported_affinity_with_the_fading_history_matches_pytorch(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = affinity.AffinityDenoiser(AFFINITY_FADING).eval()
+    runtime = Denoiser(export_affinity(model, tmp_path / "fading.onnx"), threads=1)
+    names = ("color", "albedo", "normal", "depth", "motion")
+    for spp in (4.0, 64.0):
+        (first, out1), (second, out2) = two_affinity_frames(model, spp)
+        options = {SAMPLES_INPUT: spp}
+        r1 = runtime.denoise({k: b[0].numpy() for k, b in zip(names, first, strict=True)},
+                             None, options=options)
+        r2 = runtime.denoise({k: b[0].numpy() for k, b in zip(names, second, strict=True)},
+                             r1.state, options=options)
+        for got, expected in ((r1.color, out1[0].numpy()), (r2.color, out2[0].numpy())):
+            np.testing.assert_allclose(got, expected, rtol=1e-4,
+                                       atol=1e-4 * float(np.abs(expected).max()))
