@@ -24,6 +24,7 @@ from quietframe.model.nbg import AccumulationDenoiser, NBGDenoiser
 from quietframe.model.nbg_fused import LDR_EXPONENT, fusable, fused_forward
 from quietframe.model.oidn_temporal import OIDNOnlyConfig, OIDNTemporal
 from quietframe.model.temporal import (
+    ALIGNED_TOLERANCE,
     DEPTH_REL_TOLERANCE,
     MIN_CURRENT_WEIGHT,
     NORMAL_MIN_DOT,
@@ -129,6 +130,14 @@ def _register_schemas() -> None:
             type_constraints=[*float_t, int_t], attributes=affinity_attrs,
         ),
     ]
+    schemas.append(OpSchema(
+        "PixelAligned", OPS_DOMAIN, 1,
+        doc="1 where the pixel and its 3x3 neighbours move by the same whole number of pixels; "
+            "quietframe.model.temporal.aligned_mask",
+        inputs=[param("motion", "T")], outputs=[param("aligned", "T")],
+        type_constraints=float_t,
+        attributes=[OpSchema.Attribute("tolerance", OpSchema.AttrType.FLOAT, "pixels")],
+    ))
     schemas.append(OpSchema(
         "UpsampleBilinear", OPS_DOMAIN, 1,
         doc="image resampled to the height and width of `like` (only its shape is read) as "
@@ -267,6 +276,10 @@ def _blend_noise_to_onnx(logits, safe_albedo, sliced0, sliced1, sliced2, accumul
                              state, spp, noise_scale, noise_shift)
 
 
+def _aligned_to_onnx(motion):
+    return _QF.PixelAligned(motion, tolerance=ALIGNED_TOLERANCE)
+
+
 def custom_translation_table() -> dict:
     """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
     return {
@@ -281,6 +294,7 @@ def custom_translation_table() -> dict:
         torch.ops.quietframe.nbg_blend.default: _blend_to_onnx,
         torch.ops.quietframe.nbg_blend_pass.default: _blend_pass_to_onnx,
         torch.ops.quietframe.nbg_blend_noise.default: _blend_noise_to_onnx,
+        torch.ops.quietframe.aligned_mask.default: _aligned_to_onnx,
     }
 
 

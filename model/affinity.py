@@ -42,11 +42,11 @@ from quietframe.model.resample import upsample_bilinear
 from quietframe.model.temporal import (
     DEFAULT_SPP,
     MIN_CURRENT_WEIGHT,
+    aligned_mask,
     backward_warp,
     fading_floor,
     frame_samples,
     history_valid,
-    pixel_aligned,
     samples_input,
 )
 
@@ -465,7 +465,7 @@ def fade_resampled(blend: Tensor, previous_features: Tensor, motion: Tensor,
     history was resampled (the motion not pixel-aligned), and there, once the floor is above
     MIN_CURRENT_WEIGHT, the warped features of eq. 7 offset by STALE_FEATURE_OFFSET so that
     ω = exp(-b·d²) is 0 for them."""
-    resampled = 1 - pixel_aligned(motion).to(blend.dtype)
+    resampled = 1 - aligned_mask(motion)
     blend = torch.minimum(blend, 1 - resampled * floor)
     stale = resampled * (floor > MIN_CURRENT_WEIGHT).to(blend.dtype)
     return blend, previous_features + STALE_FEATURE_OFFSET * stale

@@ -159,6 +159,20 @@ def pixel_aligned(motion: Tensor) -> Tensor:
     return -F.max_pool2d(-alike, 3, 1, 1) > 0.5  # every 3×3 neighbour alike and whole
 
 
+@torch.library.custom_op("quietframe::aligned_mask", mutates_args=())
+def aligned_mask(motion: Tensor) -> Tensor:
+    """pixel_aligned as a float mask (N, 1, H, W) of 0 and 1, as a torch custom op: the ONNX
+    export maps it onto ai.quietframe::PixelAligned (export/ops/pixel_aligned.cc), one pass
+    where the max pools and reductions were ~15 nodes (tests/export/test_ops_pixel_aligned.py
+    holds the C++ op to this). No gradient: the mask is a test on the motion."""
+    return pixel_aligned(motion).to(motion.dtype)
+
+
+@aligned_mask.register_fake
+def _aligned_mask_fake(motion: Tensor) -> Tensor:
+    return motion.new_empty((motion.shape[0], 1, *motion.shape[2:]))
+
+
 def still_pixels(motion: Tensor, radius: int) -> Tensor:
     """(N, 1, H, W) 1 where every pixel within at least `radius` moves by the same whole
     number of pixels: a locked-off camera's pixels away from anything that moves (NaN: not
@@ -213,7 +227,7 @@ def resampled_trust(motion: Tensor, previous_count: Tensor, floor: Tensor) -> Te
     history of n frames gives n' = k·n + 1, so k = (1/floor - 1) / n caps n' at 1/floor:
     1/floor frames of history, α = floor. As a factor on `keep` it passes through
     NBGAccumulate's `inside` input unchanged (model/nbg_fused.py)."""
-    aligned = pixel_aligned(motion).to(motion.dtype)
+    aligned = aligned_mask(motion)
     count = previous_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT)
     share = ((1.0 / floor - 1.0) / count.clamp_min(1e-6)).clamp(max=1.0)
     share = torch.where(floor > MIN_CURRENT_WEIGHT, share, torch.ones_like(share))

@@ -17,5 +17,6 @@ const OrtCustomOp* nbg_features_op();               // nbg_fused.cc
 const OrtCustomOp* nbg_blend_op();                  // nbg_fused.cc
 const OrtCustomOp* nbg_blend_pass_op();             // nbg_fused.cc
 const OrtCustomOp* nbg_blend_noise_op();            // nbg_fused.cc
+const OrtCustomOp* pixel_aligned_op();              // pixel_aligned.cc
 
 }  // namespace qf

@@ -122,35 +122,6 @@ def test_fused_forward_is_the_model_with_the_floor(spp: float) -> None:
     torch.testing.assert_close(got_state2, state2, rtol=1e-6, atol=1e-6)
 
 
-def test_the_floor_changes_only_frames_of_more_than_one_sample() -> None:
-    torch.manual_seed(0)
-    fading = nbg.NBGDenoiser(FADING).eval()
-    keeping = nbg.NBGDenoiser(NOISE).eval()
-    keeping.load_state_dict(fading.state_dict())
-    for spp, differs in ((1.0, False), (64.0, True)):
-        (_, a1), (_, a2, _) = two_frames(fading, spp)
-        (_, b1), (_, b2, _) = two_frames(keeping, spp)
-        torch.testing.assert_close(a1, b1, rtol=0, atol=0)  # no history yet
-        assert (float((a2 - b2).abs().max()) > 1e-3) == differs
-
-
-def test_exported_graph_with_the_floor_matches_pytorch(tmp_path) -> None:
-    torch.manual_seed(0)
-    model = nbg.NBGDenoiser(FADING).eval()
-    runtime = Denoiser(export_nbg(model, tmp_path / "fading.onnx"), threads=1)
-    names = ("color", "albedo", "normal", "depth", "motion")
-    for spp in (4.0, 64.0):
-        (first, out1), (second, out2, _) = two_frames(model, spp)
-        options = {SAMPLES_INPUT: spp}
-        r1 = runtime.denoise({k: b[0].numpy() for k, b in zip(names, first, strict=False)},
-                             None, options=options)
-        r2 = runtime.denoise({k: b[0].numpy() for k, b in zip(names, second, strict=False)},
-                             r1.state, options=options)
-        for got, expected in ((r1.color, out1[0].numpy()), (r2.color, out2[0].numpy())):
-            np.testing.assert_allclose(got, expected, rtol=1e-4,
-                                       atol=1e-4 * float(np.abs(expected).max()))
-
-
 def test_export_sets_the_floor_on_a_checkpoint_only(tmp_path) -> None:
     torch.manual_seed(0)
     checkpoint = tmp_path / "nbg.pt"
@@ -194,31 +165,52 @@ def two_affinity_frames(model: affinity.AffinityDenoiser, spp: float):
     return (buffers, out1), ((*second, motion), out2)
 
 
-def test_affinity_fading_changes_only_frames_of_more_than_one_sample() -> None:
+BUFFERS = ("color", "albedo", "normal", "depth", "motion")
+# tier -> (model class, config keeping every history, config fading it, exporter)
+TIERS = {
+    "nbg": (nbg.NBGDenoiser, NOISE, FADING, export_nbg),
+    "affinity": (affinity.AffinityDenoiser, AFFINITY, AFFINITY_FADING, export_affinity),
+}
+
+
+def frames_of(model, spp: float) -> list[tuple[dict[str, np.ndarray], torch.Tensor]]:
+    """Two frames through the PyTorch model (the second moving by half a pixel over most of
+    it): each frame's buffers by name and its output."""
+    if isinstance(model, affinity.AffinityDenoiser):
+        pairs = two_affinity_frames(model, spp)
+    else:
+        (first, out1), (second, out2, _) = two_frames(model, spp)
+        pairs = ((first, out1), (second, out2))
+    return [({k: b[0].numpy() for k, b in zip(BUFFERS, inputs[:5], strict=True)}, out)
+            for inputs, out in pairs]
+
+
+@pytest.mark.parametrize("tier", sorted(TIERS))
+def test_fading_changes_only_frames_of_more_than_one_sample(tier: str) -> None:
+    model_type, keeping_config, fading_config, _ = TIERS[tier]
     torch.manual_seed(0)
-    fading = affinity.AffinityDenoiser(AFFINITY_FADING).eval()
-    keeping = affinity.AffinityDenoiser(AFFINITY).eval()
+    fading = model_type(fading_config).eval()
+    keeping = model_type(keeping_config).eval()
     keeping.load_state_dict(fading.state_dict())
     assert fading.reads_spp and fading.run_time_inputs()[0]["name"] == SAMPLES_INPUT
     for spp, differs in ((1.0, False), (64.0, True)):
-        (_, a1), (_, a2) = two_affinity_frames(fading, spp)
-        (_, b1), (_, b2) = two_affinity_frames(keeping, spp)
-        torch.testing.assert_close(a1, b1, rtol=0, atol=0)
+        (_, a1), (_, a2) = frames_of(fading, spp)
+        (_, b1), (_, b2) = frames_of(keeping, spp)
+        torch.testing.assert_close(a1, b1, rtol=0, atol=0)  # no history yet
         assert (float((a2 - b2).abs().max()) > 1e-3) == differs
 
 
-def test_exported_affinity_with_the_fading_history_matches_pytorch(tmp_path) -> None:
+@pytest.mark.parametrize("tier", sorted(TIERS))
+def test_exported_graph_with_the_fading_history_matches_pytorch(tier: str, tmp_path) -> None:
+    model_type, _, fading_config, export = TIERS[tier]
     torch.manual_seed(0)
-    model = affinity.AffinityDenoiser(AFFINITY_FADING).eval()
-    runtime = Denoiser(export_affinity(model, tmp_path / "fading.onnx"), threads=1)
-    names = ("color", "albedo", "normal", "depth", "motion")
+    model = model_type(fading_config).eval()
+    runtime = Denoiser(export(model, tmp_path / "fading.onnx"), threads=1)
     for spp in (4.0, 64.0):
-        (first, out1), (second, out2) = two_affinity_frames(model, spp)
-        options = {SAMPLES_INPUT: spp}
-        r1 = runtime.denoise({k: b[0].numpy() for k, b in zip(names, first, strict=True)},
-                             None, options=options)
-        r2 = runtime.denoise({k: b[0].numpy() for k, b in zip(names, second, strict=True)},
-                             r1.state, options=options)
-        for got, expected in ((r1.color, out1[0].numpy()), (r2.color, out2[0].numpy())):
-            np.testing.assert_allclose(got, expected, rtol=1e-4,
+        state = None
+        for planes, expected in frames_of(model, spp):
+            result = runtime.denoise(planes, state, options={SAMPLES_INPUT: spp})
+            state = result.state
+            expected = expected[0].numpy()
+            np.testing.assert_allclose(result.color, expected, rtol=1e-4,
                                        atol=1e-4 * float(np.abs(expected).max()))
