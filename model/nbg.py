@@ -76,7 +76,7 @@ class NBGConfig:
     # The frame's spp is then a run-time input of the exported graph.
     noise_blend: bool = False
     # The accumulation's resampled history fades with the frame's spp (not in the paper;
-    # model/temporal.resampled_floor, resampled_trust): where the motion is not a whole number
+    # model/temporal.fading_floor, resampled_trust): where the motion is not a whole number
     # of pixels the current frame weighs at least clamp(0.2 + this · log2 spp, 0.2, 1). A
     # nearest fetch under sub-pixel motion is up to half a pixel off, every frame again, and on
     # thin geometry that error outgrows the noise the history removes once the frame is clean:

@@ -36,16 +36,15 @@ from quietframe.model.temporal import (
     DEPTH,
     DEPTH_REL_TOLERANCE,
     HISTORY_LENGTH,
-    MIN_CURRENT_WEIGHT,
     NORMAL_MIN_DOT,
     RADIANCE,
+    aligned_mask,
     backward_warp,
     history_weights,
-    pixel_aligned,
     reproject_history,
-    resampled_floor,
     samples_input,
     still_pixels,
+    weight_floor,
 )
 
 FAMILY = "output-history"  # the architecture's family (runtime/receptive.py tiling rule)
@@ -160,14 +159,12 @@ class OutputHistoryConfig:
 
     def resampled_floor(self, spp: Tensor) -> Tensor:
         """w(spp) of the comment above, (1,) -> (1, 1, 1, 1); spp below 1 counts as 1."""
-        return resampled_floor(spp, self.resampled_weight, self.resampled_weight_per_doubling,
-                               self.resampled_weight_max)
+        return weight_floor(spp, self.resampled_weight, self.resampled_weight_per_doubling,
+                            self.resampled_weight_max)
 
     def untrusted_floor(self, spp: Tensor) -> Tensor:
         """u(spp) of the comment above, (1,) -> (1, 1, 1, 1)."""
-        doublings = torch.log2(spp.clamp_min(1.0))
-        floor = self.untrusted_weight + self.untrusted_weight_per_doubling * doublings
-        return floor.clamp(MIN_CURRENT_WEIGHT, 1.0).view(-1, 1, 1, 1)
+        return weight_floor(spp, self.untrusted_weight, self.untrusted_weight_per_doubling, 1.0)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -302,7 +299,7 @@ class OutputHistory(nn.Module):
         fetched = clamp_to_neighbourhood(F.relu(fetched), oidn, self.config.clip_sigma)
         # Arithmetic blends, not Where: onnxruntime broadcasts a 1-channel condition over 3
         # channels slowly (three Wheres were a quarter of this graph's time at 720p).
-        exact = pixel_aligned(motion).to(oidn.dtype)  # 1: the nearest pixel is exact
+        exact = aligned_mask(motion)  # 1: the nearest pixel is exact
         previous = fetched + exact * (warped[:, RADIANCE] - fetched)
         alpha, count = history_weights(keep, warped[:, HISTORY_LENGTH])  # alpha = 1 where not kept
         if spp is None:

@@ -200,28 +200,29 @@ def history_weights(keep: Tensor, previous_count: Tensor) -> tuple[Tensor, Tenso
     return (1 / count).clamp_min(MIN_CURRENT_WEIGHT), count
 
 
-def resampled_floor(spp: Tensor, weight: float, per_doubling: float, maximum: float) -> Tensor:
-    """The current frame's least weight where a history is resampled (fetched under sub-pixel
-    motion), (1,) -> (1, 1, 1, 1): clamp(weight + per_doubling · log2 spp, MIN_CURRENT_WEIGHT,
-    maximum), spp below 1 counting as 1. Each frame resamples such a history again, so a long
-    one compounds the fetch's error, which outweighs the noise it removes the sooner the
-    cleaner the frame."""
+def weight_floor(spp: Tensor, weight: float, per_doubling: float, maximum: float) -> Tensor:
+    """A least weight of the current frame that rises with its spp, (1,) -> (1, 1, 1, 1):
+    clamp(weight + per_doubling · log2 spp, MIN_CURRENT_WEIGHT, maximum), spp below 1 counting
+    as 1. Where a history is resampled (fetched under sub-pixel motion) each frame resamples it
+    again, so a long one compounds the fetch's error, which outweighs the noise it removes the
+    sooner the cleaner the frame (the learned tiers' fading_floor, the output history's w(spp));
+    the output history's untrusted pixels follow one too (u(spp))."""
     floor = weight + per_doubling * torch.log2(spp.clamp_min(1.0))
     return floor.clamp(MIN_CURRENT_WEIGHT, maximum).view(-1, 1, 1, 1)
 
 
 def fading_floor(per_doubling: float, spp: Tensor | None) -> Tensor | None:
     """The floor of a learned tier whose resampled history fades with the frame's spp
-    (NBGConfig / AffinityConfig.resampled_weight_per_doubling): resampled_floor from
+    (NBGConfig / AffinityConfig.resampled_weight_per_doubling): weight_floor from
     MIN_CURRENT_WEIGHT at 1 spp to 1; None where per_doubling is 0 (every valid history kept)."""
     if per_doubling <= 0:
         return None
-    return resampled_floor(frame_samples(spp), MIN_CURRENT_WEIGHT, per_doubling, 1.0)
+    return weight_floor(frame_samples(spp), MIN_CURRENT_WEIGHT, per_doubling, 1.0)
 
 
 def resampled_trust(motion: Tensor, previous_count: Tensor, floor: Tensor) -> Tensor:
     """(N, 1, H, W) in [0, 1]: the share of a reprojected history to keep so that the current
-    frame's weight (history_weights) is at least `floor` ((N or 1, 1, 1, 1), resampled_floor)
+    frame's weight (history_weights) is at least `floor` ((N or 1, 1, 1, 1), fading_floor)
     where the motion is not pixel-aligned; 1 where it is (the nearest fetch is exact there)
     and wherever the floor asks for no more than MIN_CURRENT_WEIGHT. A kept share k of a
     history of n frames gives n' = k·n + 1, so k = (1/floor - 1) / n caps n' at 1/floor:
@@ -294,13 +295,13 @@ def accumulate(
     docs/zoo.md "Repeated samples"). Only there do equal aux say the colour's sample is the
     same: a 1-spp frame's aux are its one sample's, while a pixel-centre G-buffer repeats at
     any spp though the colour's samples move. `spp` (1,), None: the test is off.
-    `floor` ((N or 1, 1, 1, 1), resampled_floor): where the motion is not pixel-aligned the
+    `floor` ((N or 1, 1, 1, 1), fading_floor): where the motion is not pixel-aligned the
     current frame weighs at least this much (resampled_trust); None: every valid history kept.
     """
     warped, keep = reproject_history(state, motion, depth, normal, reset)
     prev_radiance, prev_count = warped[:, RADIANCE], warped[:, HISTORY_LENGTH]
     if aligned_only:
-        keep = keep * pixel_aligned(motion).to(keep.dtype)
+        keep = keep * aligned_mask(motion)
     if restart_repeated and spp is not None:
         single = (spp < 2).to(keep.dtype).view(-1, 1, 1, 1)  # one sample a pixel
         repeated = repeated_sample(warped[:, DEPTH], warped[:, NORMAL], depth, normal)

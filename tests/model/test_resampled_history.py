@@ -1,6 +1,6 @@
 """The learned tiers' resampled history fades with the frame's spp
 (NBGConfig / AffinityConfig.resampled_weight_per_doubling,
-model/temporal.resampled_floor and resampled_trust): where the motion is not a whole number of
+model/temporal.fading_floor and resampled_trust): where the motion is not a whole number of
 pixels NBG's current frame weighs at least w(spp) = clamp(0.2 + k · log2 spp, 0.2, 1), the
 affinity tier's λ (eq. 5) is at most 1 - w and from 2 spp its temporal kernel (eq. 8) gathers
 nothing there; an exact (pixel-aligned) fetch keeps its history; the fused graph and the
@@ -29,8 +29,8 @@ FADING = replace(NOISE, resampled_weight_per_doubling=PER_DOUBLING)
 
 
 def floor_at(spp: float) -> torch.Tensor:
-    return temporal.resampled_floor(torch.tensor([spp]), temporal.MIN_CURRENT_WEIGHT,
-                                    PER_DOUBLING, 1.0)
+    return temporal.weight_floor(torch.tensor([spp]), temporal.MIN_CURRENT_WEIGHT,
+                                 PER_DOUBLING, 1.0)
 
 
 def test_floor_rises_with_the_spp_from_the_fixed_weight_to_one() -> None:
