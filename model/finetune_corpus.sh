@@ -18,6 +18,11 @@
 # NOISE_LEVEL (default 1): both tiers read the frame's spp (nbg --noise-blend: the blend moves
 # with the pixel's noise level; affinity --noise-input: the U-Net reads it), each starting as the
 # checkpoint it extends (docs/training.md, "The noise level").
+# SELECT_ON (default corpus): the shots that pick the checkpoint; zoo+corpus adds the zoo's
+# validation shots rendered here (model/zoo_selection.py).
+# FADE (default 0.134, the shipped files' setting; 0 off): both tiers train with the resampled
+# history fading with the frame's spp (--resampled-weight-per-doubling, docs/training.md, "The
+# resampled history"), so the blend learns the faded history and the checkpoint carries it.
 # Learning rates: half of each tier's original (1e-3, 5e-4), above model/finetune_cycles.sh's
 # third: this data is further from the generator's; each run scores its starting model at step 0,
 # so a fine-tune that does not help leaves best.pt at the shipped weights.
@@ -27,13 +32,15 @@ PY=${PYTHON:-python}
 R=${RUNS:-$HOME/.cache/quietframe/runs/corpus}
 INIT_FROM=${INIT_FROM:-b0cc9f2}
 NOISE=${NOISE_LEVEL:-1}
+FADE=${FADE:-0.134}
 mkdir -p "$R"
 run() {  # name, then quietframe-train flags
     local name=$1
     shift
     git show "$INIT_FROM:models/training/$name/best.pt" > "$R/$name.init.pt" || return 1
     train_run "$R/$name" --init "$R/$name.init.pt" --renderers "${RENDERERS:-cycles}" \
-        --corpus 1 --select-on corpus --select-spp 1,4,16,64 --threads 1 --seed 1 "$@"
+        --corpus 1 --select-on "${SELECT_ON:-corpus}" --select-spp 1,4,16,64 \
+        --resampled-weight-per-doubling "$FADE" --threads 1 --seed 1 "$@"
 }
 run nbg-2l-3g --passthrough 1 --noise-blend "$NOISE" --steps "${NBG_STEPS:-1500}" --eval-every 250 --lr 0.0005 \
     --dropout 0.3 --loss smape+temporal --crop 128 --frames 4 --batch 4 &

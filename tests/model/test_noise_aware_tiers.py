@@ -221,3 +221,23 @@ def test_a_fine_tune_switches_the_noise_level_on(data, tmp_path, variant, switch
     assert key in tuned["model"]
     if key.startswith("unet"):  # the first conv read the noise level: one more input channel
         assert tuned["model"][key].shape[1] == 2 * affinity.EMBEDDING_CHANNELS + 1
+
+
+@pytest.mark.parametrize("variant", ["nbg-2l-3g", "affinity-h8"])
+def test_a_fine_tune_trains_with_the_fading_history_and_its_checkpoint_keeps_it(
+        data, tmp_path, variant) -> None:
+    base = dict(variant=variant, data=str(data), crop=24, frames=2, batch=2, steps=1,
+                eval_every=1, log_every=1, threads=1, seed=5)
+    qt.train(qt.TrainConfig(**base), tmp_path / "base")
+    flags = {"init": str(tmp_path / "base" / "checkpoint.pt"), "data": str(data), "crop": 24,
+             "frames": 2, "batch": 2, "steps": 1, "threads": 1,
+             "resampled_weight_per_doubling": 0.134}
+    cfg = qt.resume_config(tmp_path / "tuned", flags)
+    assert qt.build_model(cfg).reads_spp  # training feeds each item's spp to the fade
+    qt.train(cfg, tmp_path / "tuned")
+    tuned = torch.load(tmp_path / "tuned" / "checkpoint.pt", weights_only=False)
+    assert tuned["config"]["resampled_weight_per_doubling"] == pytest.approx(0.134)
+    assert qt.build_model(cfg, tuned["config"]).config.resampled_weight_per_doubling == pytest.approx(0.134)
+    # the run, once started, keeps it: a resumed run cannot switch it off
+    with pytest.raises(ValueError, match="resampled_weight_per_doubling"):
+        qt.resume_config(tmp_path / "tuned", {**flags, "resampled_weight_per_doubling": 0.0})
