@@ -139,6 +139,20 @@ def _register_schemas() -> None:
         attributes=[OpSchema.Attribute("tolerance", OpSchema.AttrType.FLOAT, "pixels")],
     ))
     schemas.append(OpSchema(
+        "ResampledTrust", OPS_DOMAIN, 1,
+        doc="the share of a reprojected history kept so that the current frame weighs at least "
+            "`floor` where the motion is not pixel-aligned; "
+            "quietframe.model.temporal.resampled_trust",
+        inputs=[param("motion", "T"), param("previous_count", "T"), param("floor", "T")],
+        outputs=[param("trust", "T")],
+        type_constraints=float_t,
+        attributes=[OpSchema.Attribute("tolerance", OpSchema.AttrType.FLOAT, "pixels"),
+                    OpSchema.Attribute("min_weight", OpSchema.AttrType.FLOAT,
+                                       "a floor at or below it keeps every history"),
+                    OpSchema.Attribute("max_count", OpSchema.AttrType.FLOAT,
+                                       "the longest history length read")],
+    ))
+    schemas.append(OpSchema(
         "UpsampleBilinear", OPS_DOMAIN, 1,
         doc="image resampled to the height and width of `like` (only its shape is read) as "
             "F.interpolate(mode='bilinear', align_corners=False); "
@@ -280,6 +294,11 @@ def _aligned_to_onnx(motion):
     return _QF.PixelAligned(motion, tolerance=ALIGNED_TOLERANCE)
 
 
+def _trust_to_onnx(motion, previous_count, floor):
+    return _QF.ResampledTrust(motion, previous_count, floor, tolerance=ALIGNED_TOLERANCE,
+                              min_weight=MIN_CURRENT_WEIGHT, max_count=1.0 / MIN_CURRENT_WEIGHT)
+
+
 def custom_translation_table() -> dict:
     """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
     return {
@@ -295,6 +314,7 @@ def custom_translation_table() -> dict:
         torch.ops.quietframe.nbg_blend_pass.default: _blend_pass_to_onnx,
         torch.ops.quietframe.nbg_blend_noise.default: _blend_noise_to_onnx,
         torch.ops.quietframe.aligned_mask.default: _aligned_to_onnx,
+        torch.ops.quietframe.resampled_trust.default: _trust_to_onnx,
     }
 
 

@@ -227,12 +227,27 @@ def resampled_trust(motion: Tensor, previous_count: Tensor, floor: Tensor) -> Te
     and wherever the floor asks for no more than MIN_CURRENT_WEIGHT. A kept share k of a
     history of n frames gives n' = k·n + 1, so k = (1/floor - 1) / n caps n' at 1/floor:
     1/floor frames of history, α = floor. As a factor on `keep` it passes through
-    NBGAccumulate's `inside` input unchanged (model/nbg_fused.py)."""
-    aligned = aligned_mask(motion)
+    NBGAccumulate's `inside` input unchanged (model/nbg_fused.py). No gradient (a test on the
+    motion and the history's length): the custom op `trust_of_resampled`, which the ONNX
+    export maps onto ai.quietframe::ResampledTrust (export/ops/pixel_aligned.cc), one pass
+    where the aligned test's op and ~8 nodes over full-resolution planes were."""
+    return trust_of_resampled(motion.detach(), previous_count.detach(), floor.detach())
+
+
+@torch.library.custom_op("quietframe::resampled_trust", mutates_args=())
+def trust_of_resampled(motion: Tensor, previous_count: Tensor, floor: Tensor) -> Tensor:
+    """resampled_trust's arithmetic (tests/export/test_ops_resampled_trust.py holds the C++ op
+    to this, bit for bit)."""
+    aligned = pixel_aligned(motion).to(motion.dtype)
     count = previous_count.clamp(0.0, 1.0 / MIN_CURRENT_WEIGHT)
     share = ((1.0 / floor - 1.0) / count.clamp_min(1e-6)).clamp(max=1.0)
     share = torch.where(floor > MIN_CURRENT_WEIGHT, share, torch.ones_like(share))
     return aligned + (1 - aligned) * share
+
+
+@trust_of_resampled.register_fake
+def _trust_fake(motion: Tensor, previous_count: Tensor, floor: Tensor) -> Tensor:
+    return motion.new_empty((motion.shape[0], 1, *motion.shape[2:]))
 
 
 def reproject_history(state: Tensor, motion: Tensor, depth: Tensor, normal: Tensor,

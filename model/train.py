@@ -196,8 +196,9 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
 
 def weightless_flags(cfg: TrainConfig) -> dict[str, float | bool]:
     """The settings a fine-tune may change on a checkpoint's model (-1: none given, the
-    model's own stay): the firefly clamp and the resampled history's fade (no weights) and NBG's pass-through (whose weights
-    the model adds: load_weights) and the tiers' noise level (the same)."""
+    model's own stay): the firefly clamp and the resampled history's fade (no weights), NBG's
+    pass-through (whose weights the model adds: load_weights) and the tiers' noise level (the
+    same)."""
     given = {k: v for k, v in (("outlier_sigmas", cfg.outlier_sigmas),
                                ("outlier_floor", cfg.outlier_floor),
                                ("resampled_weight_per_doubling",

@@ -1,4 +1,5 @@
-"""Helpers shared by the tests of the custom-op library (test_ops_library, test_ops_parity)."""
+"""Helpers shared by the tests of the custom-op library (test_ops_library, test_ops_parity,
+test_ops_pixel_aligned, test_ops_resampled_trust)."""
 
 from __future__ import annotations
 
@@ -45,3 +46,19 @@ def make_session(library: str, model: bytes, threads: int = 2) -> ort.InferenceS
     options.intra_op_num_threads = threads
     options.register_custom_ops_library(library)
     return ort.InferenceSession(model, options, providers=["CPUExecutionProvider"])
+
+
+def patchy_motion(n: int, h: int, w: int, seed: int, tolerance: float) -> np.ndarray:
+    """(n, 2, h, w) motion: whole pixels in random rectangles (some nudged by up to twice the
+    alignment `tolerance`), sub-pixel elsewhere."""
+    rng = np.random.default_rng(seed)
+    motion = rng.uniform(-3, 3, (n, 2, h, w)).astype(np.float32)
+    for i in range(n):
+        for _ in range(6):
+            y, x = rng.integers(0, h), rng.integers(0, w)
+            dy, dx = rng.integers(1, 17), rng.integers(1, 17)
+            motion[i, :, y:y + dy, x:x + dx] = rng.integers(-4, 5, (2, 1, 1))
+            if rng.random() < 0.3:  # a nudge inside or just outside the tolerance
+                nudge = rng.uniform(-2 * tolerance, 2 * tolerance, (2, 1, 1))
+                motion[i, :, y:y + dy, x:x + dx] += nudge.astype(np.float32)
+    return motion

@@ -12,6 +12,18 @@
 // (temporal.resampled_trust, affinity.fade_resampled): as ~15 onnxruntime nodes over
 // full-resolution planes it cost ~15 ms of nbg-2l-3g's ~450 at 720p.
 //
+// ResampledTrust(motion (N,2,H,W), previous_count (N,1,H,W), floor (N or 1 values))
+//   -> trust (N,1,H,W), attributes tolerance (as above), min_weight (> 0), max_count (> 0)
+//
+// quietframe.model.temporal.resampled_trust: the share of NBG's reprojected history to keep so
+// that the current frame weighs at least `floor` where the motion is not pixel-aligned,
+//   share = min((1/floor - 1) / max(clamp(count, 0, max_count), 1e-6), 1) if floor > min_weight,
+//           else 1;
+//   trust = aligned + (1 - aligned) · share,
+// each step in float32 in the reference's order (bit-identical; a NaN count gives NaN, as
+// there). As the aligned test plus ~8 onnxruntime nodes over full-resolution planes the share
+// cost nbg-2l-3g ~3% of its 720p time; here it is one pass after the test.
+//
 // Parallel over bands of rows of each image; a band computes `alike` for its rows and one row
 // above and below into scratch, so results do not depend on the thread count.
 #include <algorithm>
@@ -123,7 +135,87 @@ struct PixelAligned : Kernel<PixelAligned, AlignedAttributes, read_aligned> {
   }
 };
 
+struct TrustAttributes {
+  float tolerance = 0;
+  float min_weight = 0;  // temporal.MIN_CURRENT_WEIGHT: a floor at or below it keeps everything
+  float max_count = 0;   // 1 / MIN_CURRENT_WEIGHT: the longest history the share reads
+};
+
+OrtStatus* read_trust(const ort::Api& api, const char* op, const OrtKernelInfo* info,
+                      TrustAttributes* a) {
+  AlignedAttributes aligned;
+  if (OrtStatus* s = read_aligned(api, op, info, &aligned)) return s;
+  a->tolerance = aligned.tolerance;
+  if (OrtStatus* s = get_float_attribute(api, op, info, "min_weight", &a->min_weight)) return s;
+  if (OrtStatus* s = get_float_attribute(api, op, info, "max_count", &a->max_count)) return s;
+  if (!(a->min_weight > 0 && a->min_weight < 1)) {
+    return op_error(api, op, "min_weight must be in (0, 1), got " + format_float(a->min_weight));
+  }
+  if (!(a->max_count > 0)) {
+    return op_error(api, op, "max_count must be > 0, got " + format_float(a->max_count));
+  }
+  return nullptr;
+}
+
+// trust over rows [ya, yb) of one image, `out` holding the aligned mask there (0 or 1).
+void trust_rows(const float* count, float* out, int64_t W, int64_t ya, int64_t yb, float floor,
+                const TrustAttributes& a) {
+  float* dst = out + ya * W;
+  const float* c = count + ya * W;
+  const int64_t m = (yb - ya) * W;
+  if (!(floor > a.min_weight)) {  // a + (1 - a) · 1
+    std::fill(dst, dst + m, 1.0f);
+    return;
+  }
+  const float numerator = 1.0f / floor - 1.0f;
+  for (int64_t i = 0; i < m; ++i) {
+    // std::max/min with the value first keep a NaN, as torch's clamp does
+    const float clamped = std::min(std::max(c[i], 0.0f), a.max_count);
+    const float share = std::min(numerator / std::max(clamped, 1e-6f), 1.0f);
+    const float aligned = dst[i];
+    dst[i] = aligned + (1.0f - aligned) * share;
+  }
+}
+
+struct ResampledTrust : Kernel<ResampledTrust, TrustAttributes, read_trust> {
+  static constexpr const char* kName = "ResampledTrust";
+  static constexpr const char* kInputNames[] = {"motion", "previous_count", "floor"};
+  static constexpr size_t kOutputs = 1;
+
+  OrtStatus* Run(const ort::Api& api, OrtKernelContext* ctx, const FloatInputs<3>& in) const {
+    if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {2, 1})) return s;
+    const Shape& ms = in[0].shape;
+    const int64_t N = ms[0], H = ms[2], W = ms[3];
+    int64_t floors = 1;
+    for (size_t i = 0; i < in[2].shape.rank; ++i) floors *= in[2].shape[i];
+    if (floors != 1 && floors != N) {
+      return op_error(api, kName, "floor must hold 1 or N = " + std::to_string(N) +
+                                      " values, got " + in[2].shape.str());
+    }
+    float* out = nullptr;
+    if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "trust", with_channels(ms, 1),
+                                        &out)) {
+      return s;
+    }
+    if (N == 0 || H == 0 || W == 0) return nullptr;
+    const TrustAttributes a = attributes_;
+    const float* motion = in[0].data;
+    const int64_t bands = band_count(H, N, kMinRowsPerBand);
+    auto task = [&](size_t i) {
+      const int64_t n = static_cast<int64_t>(i) / bands, band = static_cast<int64_t>(i) % bands;
+      const int64_t ya = band_start(band, bands, H), yb = band_start(band + 1, bands, H);
+      std::vector<uint8_t> scratch;
+      aligned_band(motion + n * 2 * H * W, out + n * H * W, H, W, ya, yb, a.tolerance, scratch);
+      trust_rows(in[1].data + n * H * W, out + n * H * W, W, ya, yb,
+                 in[2].data[floors == 1 ? 0 : n], a);
+    };
+    return run_tasks(api, kName, ctx, N * bands, task);
+  }
+};
+
 }  // namespace
+
+const OrtCustomOp* resampled_trust_op() { return CustomOp<ResampledTrust>::get(); }
 
 const OrtCustomOp* pixel_aligned_op() { return CustomOp<PixelAligned>::get(); }
 

@@ -237,7 +237,8 @@ def test_a_fine_tune_trains_with_the_fading_history_and_its_checkpoint_keeps_it(
     qt.train(cfg, tmp_path / "tuned")
     tuned = torch.load(tmp_path / "tuned" / "checkpoint.pt", weights_only=False)
     assert tuned["config"]["resampled_weight_per_doubling"] == pytest.approx(0.134)
-    assert qt.build_model(cfg, tuned["config"]).config.resampled_weight_per_doubling == pytest.approx(0.134)
+    rebuilt = qt.build_model(cfg, tuned["config"])
+    assert rebuilt.config.resampled_weight_per_doubling == pytest.approx(0.134)
     # the run, once started, keeps it: a resumed run cannot switch it off
     with pytest.raises(ValueError, match="resampled_weight_per_doubling"):
         qt.resume_config(tmp_path / "tuned", {**flags, "resampled_weight_per_doubling": 0.0})
