@@ -18,6 +18,8 @@
 # NOISE_LEVEL (default 1): both tiers read the frame's spp (nbg --noise-blend: the blend moves
 # with the pixel's noise level; affinity --noise-input: the U-Net reads it), each starting as the
 # checkpoint it extends (docs/training.md, "The noise level").
+# The third run (training with the fade, nothing shipped; docs/training.md): INIT_FROM=6fba52b
+# SELECT_ON=zoo+corpus NBG_STEPS=1000 AFFINITY_STEPS=800.
 # SELECT_ON (default corpus): the shots that pick the checkpoint; zoo+corpus adds the zoo's
 # validation shots rendered here (model/zoo_selection.py).
 # FADE (default 0.134, the shipped files' setting; 0 off): both tiers train with the resampled
