@@ -25,6 +25,8 @@ def op_model(op: str, **attributes) -> bytes:
     names = {
         "BilateralSplat": (["image", "guide"], ["grid", "weight"]),
         "BilateralSlice": (["grid", "weight", "guide"], ["image"]),
+        "PixelAligned": (["motion"], ["aligned"]),
+        "ResampledTrust": (["motion", "previous_count", "floor"], ["trust"]),
     }[op]
     inputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names[0]]
     outputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names[1]]

@@ -8,23 +8,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from onnx import TensorProto, helper
-from ops_support import make_session, patchy_motion
+from ops_support import make_session, op_model, patchy_motion
 
-from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
+from quietframe.runtime.ops_library import ops_library_path
 
 torch = pytest.importorskip("torch")
 temporal = pytest.importorskip("quietframe.model.temporal")
 
 
 def aligned_model(tolerance: float = temporal.ALIGNED_TOLERANCE) -> bytes:
-    node = helper.make_node("PixelAligned", ["motion"], ["aligned"], domain=OPS_DOMAIN,
-                            tolerance=tolerance)
-    graph = helper.make_graph(
-        [node], "aligned", [helper.make_tensor_value_info("motion", TensorProto.FLOAT, None)],
-        [helper.make_tensor_value_info("aligned", TensorProto.FLOAT, None)])
-    opsets = [helper.make_opsetid("", 17), helper.make_opsetid(OPS_DOMAIN, 1)]
-    return helper.make_model(graph, opset_imports=opsets, ir_version=9).SerializeToString()
+    return op_model("PixelAligned", tolerance=tolerance)
 
 
 @pytest.fixture(scope="module")

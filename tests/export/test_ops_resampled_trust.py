@@ -8,28 +8,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from onnx import TensorProto, helper
-from ops_support import make_session, patchy_motion
+from ops_support import make_session, op_model, patchy_motion
 
-from quietframe.runtime.ops_library import OPS_DOMAIN, ops_library_path
+from quietframe.runtime.ops_library import ops_library_path
 
 torch = pytest.importorskip("torch")
 temporal = pytest.importorskip("quietframe.model.temporal")
 
-INPUTS = ("motion", "previous_count", "floor")
-
-
 def trust_model(min_weight: float = temporal.MIN_CURRENT_WEIGHT,
                 max_count: float = 1 / temporal.MIN_CURRENT_WEIGHT) -> bytes:
-    node = helper.make_node("ResampledTrust", list(INPUTS), ["trust"], domain=OPS_DOMAIN,
-                            tolerance=temporal.ALIGNED_TOLERANCE, min_weight=min_weight,
-                            max_count=max_count)
-    graph = helper.make_graph(
-        [node], "trust",
-        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in INPUTS],
-        [helper.make_tensor_value_info("trust", TensorProto.FLOAT, None)])
-    opsets = [helper.make_opsetid("", 17), helper.make_opsetid(OPS_DOMAIN, 1)]
-    return helper.make_model(graph, opset_imports=opsets, ir_version=9).SerializeToString()
+    return op_model("ResampledTrust", tolerance=temporal.ALIGNED_TOLERANCE,
+                    min_weight=min_weight, max_count=max_count)
 
 
 @pytest.fixture(scope="module")
