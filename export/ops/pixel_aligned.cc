@@ -8,9 +8,10 @@
 //   aligned(p) = 1 where alike(q) for every q of p's 3×3 window.
 // Windows hold only the pixels inside the frame (the reference's max pools pad with -inf); a NaN
 // anywhere in a window makes it not alike (torch's max pool propagates NaN, and NaN compares
-// false). The learned tiers test this at every pixel of every frame to fade a resampled history
-// (temporal.resampled_trust, affinity.fade_resampled): as ~15 onnxruntime nodes over
-// full-resolution planes it cost ~15 ms of nbg-2l-3g's ~450 at 720p.
+// false). The affinity tier tests this at every pixel of every frame to fade a resampled history
+// (affinity.fade_resampled), NBG inside ResampledTrust below, and the aligned accumulation and
+// the output history to keep a history only where it is exact: as ~15 onnxruntime nodes over
+// full-resolution planes it cost ~15 ms of nbg-2l-3g's ~450 at 720p on a slow machine.
 //
 // ResampledTrust(motion (N,2,H,W), previous_count (N,1,H,W), floor (N or 1 values))
 //   -> trust (N,1,H,W), attributes tolerance (as above), min_weight (> 0), max_count (> 0)

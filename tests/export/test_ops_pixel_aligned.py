@@ -2,7 +2,8 @@
 quietframe.model.temporal.aligned_mask (pixel_aligned as 0/1): motion that is whole in patches,
 sub-pixel elsewhere, within and just beyond the tolerance, NaN, the frame's border, 1-pixel and
 odd sizes, several images; the thread count changes no bit; a bad shape or tolerance is an
-error; the learned tiers' exported graphs use the op."""
+error; the affinity tier's, the aligned accumulation's and the output history's exported
+graphs use the op (nbg-2l-3g uses ResampledTrust, which holds the same test)."""
 
 from __future__ import annotations
 
