@@ -53,11 +53,17 @@ def main(argv: list[str] | None = None) -> int:
                              "the frame's spp (NBGConfig / AffinityConfig."
                              "resampled_weight_per_doubling; no weights, so a trained model "
                              "takes it as it is)")
+    parser.add_argument("--albedo-prefilter", type=float, metavar="SIGMA",
+                        help="NBG or affinity checkpoint: the albedo is blurred by SIGMA px at "
+                             "1 spp, less at more, before demodulation (NBGConfig / "
+                             "AffinityConfig.albedo_prefilter; no weights)")
     args = parser.parse_args(argv)
-    overrides = ({} if args.resampled_weight_per_doubling is None else
-                 {"resampled_weight_per_doubling": args.resampled_weight_per_doubling})
+    overrides = {k: v for k, v in (("resampled_weight_per_doubling",
+                                    args.resampled_weight_per_doubling),
+                                   ("albedo_prefilter", args.albedo_prefilter)) if v is not None}
     if overrides and not args.checkpoint:
-        parser.error("--resampled-weight-per-doubling applies to a --checkpoint")
+        parser.error("--resampled-weight-per-doubling and --albedo-prefilter apply to a "
+                     "--checkpoint")
 
     if args.variant in oidn_temporal.OIDN_ONLY_VARIANTS and not args.checkpoint:
         path = export_oidn_only(oidn_temporal.OIDN_ONLY_VARIANTS[args.variant], args.out,
@@ -77,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.checkpoint:
         model, checkpoint = families.load_checkpoint(args.checkpoint, **overrides)
         if overrides and not isinstance(model, NBGDenoiser | affinity.AffinityDenoiser):
-            parser.error("--resampled-weight-per-doubling applies to an NBG or affinity "
-                         "checkpoint")
+            parser.error("--resampled-weight-per-doubling and --albedo-prefilter apply to an "
+                         "NBG or affinity checkpoint")
         training, metrics = checkpoint.get("training", {}), checkpoint.get("metrics", {})
         if args.metrics_from:  # the old tables, with this checkpoint's own selection record
             training, carried = carried_metrics(args.metrics_from, training)

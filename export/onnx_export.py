@@ -153,6 +153,17 @@ def _register_schemas() -> None:
                                        "the longest history length read")],
     ))
     schemas.append(OpSchema(
+        "AlbedoPrefilter", OPS_DOMAIN, 1,
+        doc="the albedo blurred by a Gaussian of sigma_at_one_spp * spp^-exponent px per image "
+            "(separable, edges replicated); quietframe.model.albedo_prefilter.albedo_blur",
+        inputs=[param("albedo", "T"), param("spp", "T")], outputs=[param("albedo_out", "T")],
+        type_constraints=float_t,
+        attributes=[OpSchema.Attribute("sigma_at_one_spp", OpSchema.AttrType.FLOAT, "pixels"),
+                    OpSchema.Attribute("exponent", OpSchema.AttrType.FLOAT,
+                                       "how fast the width falls with spp"),
+                    OpSchema.Attribute("radius", OpSchema.AttrType.INT, "taps each way")],
+    ))
+    schemas.append(OpSchema(
         "UpsampleBilinear", OPS_DOMAIN, 1,
         doc="image resampled to the height and width of `like` (only its shape is read) as "
             "F.interpolate(mode='bilinear', align_corners=False); "
@@ -299,6 +310,11 @@ def _trust_to_onnx(motion, previous_count, floor):
                               min_weight=MIN_CURRENT_WEIGHT, max_count=1.0 / MIN_CURRENT_WEIGHT)
 
 
+def _albedo_prefilter_to_onnx(albedo, spp, at_one_spp: float, exponent: float, radius: int):
+    return _QF.AlbedoPrefilter(albedo, spp, sigma_at_one_spp=at_one_spp, exponent=exponent,
+                               radius=radius)
+
+
 def custom_translation_table() -> dict:
     """torch custom op -> its ai.quietframe op, for torch.onnx.export(custom_translation_table=)."""
     return {
@@ -315,6 +331,7 @@ def custom_translation_table() -> dict:
         torch.ops.quietframe.nbg_blend_noise.default: _blend_noise_to_onnx,
         torch.ops.quietframe.aligned_mask.default: _aligned_to_onnx,
         torch.ops.quietframe.resampled_trust.default: _trust_to_onnx,
+        torch.ops.quietframe.albedo_prefilter.default: _albedo_prefilter_to_onnx,
     }
 
 

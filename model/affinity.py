@@ -36,6 +36,7 @@ from quietframe.model.affinity_kernels import (
     spatial_affinity_filter,
     temporal_affinity_filter,
 )
+from quietframe.model.albedo_prefilter import check_albedo_prefilter, prefilter_albedo
 from quietframe.model.losses import bandwidth_regulariser
 from quietframe.model.nbg import demodulation_divisor, noise_level, suppress_outliers
 from quietframe.model.resample import upsample_bilinear
@@ -121,8 +122,12 @@ class AffinityConfig:
     # motion is up to half a pixel off every frame; on thin geometry at 16-64 spp that outgrows
     # the noise the history removes (docs/training.md, "The resampled history"). 0: off.
     resampled_weight_per_doubling: float = 0.0
+    # The albedo anti-aliased before demodulation, as NBG's (NBGConfig.albedo_prefilter; not
+    # in the paper): σ px at 1 spp, narrowing with the frame's spp. 0: off (before version 7).
+    albedo_prefilter: float = 0.0
 
     def __post_init__(self) -> None:
+        check_albedo_prefilter(self.albedo_prefilter)
         object.__setattr__(self, "widths", tuple(self.widths))  # JSON round trip gives a list
         if self.unet_scale not in (1, 2):
             raise ValueError(f"unet_scale must be 1 or 2, got {self.unet_scale}")
@@ -369,7 +374,9 @@ class AffinityDenoiser(nn.Module):
     @property
     def reads_spp(self) -> bool:
         """Whether forward reads the frame's spp (training feeds each item's)."""
-        return self.config.noise_input or self.config.resampled_weight_per_doubling > 0
+        config = self.config
+        return (config.noise_input or config.resampled_weight_per_doubling > 0
+                or config.albedo_prefilter > 0)
 
     def adapt_state_dict(self, state: dict[str, Tensor]) -> dict[str, Tensor]:
         """A checkpoint's weights for this model: as they are, or, where this model takes the
@@ -399,6 +406,7 @@ class AffinityDenoiser(nn.Module):
         (DEFAULT_SPP where not given)."""
         size = self.config.kernel_size if kernel_size is None else kernel_size
         frame_state, embedding_state = state
+        albedo = prefilter_albedo(albedo, spp, self.config.albedo_prefilter)
         safe_albedo = demodulation_divisor(albedo)  # NBG's: remodulation undoes it exactly
         radiance = color / safe_albedo  # (N, 3, H, W) demodulated: the kernels filter this
         if self.config.outlier_sigmas > 0:  # the embedding then sees the clamped colour too

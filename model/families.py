@@ -44,11 +44,14 @@ class Family:
 
 
 CLAMP = ("outlier_sigmas", "outlier_floor")
+# The learned tiers' settings without weights beside the clamp: the resampled history's fade
+# and the albedo's prefilter (NBGConfig / AffinityConfig).
+WEIGHTLESS = ("resampled_weight_per_doubling", "albedo_prefilter")
 
 AFFINITY = Family(
     name="affinity", config_type=affinity.AffinityConfig, model_type=affinity.AffinityDenoiser,
     variants=affinity.VARIANTS,
-    tunable=("kernel_size", "noise_input", "resampled_weight_per_doubling", *CLAMP),
+    tunable=("kernel_size", "noise_input", *WEIGHTLESS, *CLAMP),
     owns=lambda saved: saved.get("family") == "affinity",  # AffinityConfig.family
 )
 OIDN_TEMPORAL = Family(
@@ -59,7 +62,7 @@ OIDN_TEMPORAL = Family(
 )
 NBG = Family(
     name="nbg", config_type=nbg.NBGConfig, model_type=nbg.NBGDenoiser, variants=nbg.VARIANTS,
-    tunable=("width", "passthrough", "noise_blend", "resampled_weight_per_doubling", *CLAMP),
+    tunable=("width", "passthrough", "noise_blend", *WEIGHTLESS, *CLAMP),
     owns=lambda saved: True,  # the first family: its checkpoints carry no mark of their own
 )
 # In the order a checkpoint is tried against them: NBG, unmarked, last.
@@ -80,8 +83,9 @@ def family_of_variant(variant: str) -> Family:
 
 
 # Settings without weights that quietframe-export may put on a trained checkpoint
-# (--resampled-weight-per-doubling): a shipped file may differ from its checkpoint in these.
-EXPORT_SETTINGS = ("resampled_weight_per_doubling",)
+# (--resampled-weight-per-doubling, --albedo-prefilter): a shipped file may differ from its
+# checkpoint in these.
+EXPORT_SETTINGS = WEIGHTLESS
 
 
 def export_settings(architecture: Mapping[str, Any]) -> dict[str, Any]:

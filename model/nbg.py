@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from quietframe.model.albedo_prefilter import check_albedo_prefilter, prefilter_albedo
 from quietframe.model.grid import bilateral_slice, bilateral_splat
 from quietframe.model.temporal import (
     DEFAULT_SPP,
@@ -85,6 +86,17 @@ class NBGConfig:
     # valid history is kept (the paper's, and versions before 8). The frame's spp is a run-time
     # input of the graph.
     resampled_weight_per_doubling: float = 0.0
+    # The albedo anti-aliased before demodulation (not in the paper; model/albedo_prefilter): a
+    # Gaussian of this many pixels at 1 spp, narrowing with the frame's spp. Remodulation
+    # multiplies the output by the albedo, so a few point samples of the texture under a pixel
+    # put their sampling noise back at full strength, however well the irradiance is filtered:
+    # on the corpus's validation shots the reference's albedo gained ~2.9 dB at 1 spp
+    # (docs/training.md, "The albedo's own noise"). 0: off (versions before 10). The frame's
+    # spp is a run-time input of the graph.
+    albedo_prefilter: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_albedo_prefilter(self.albedo_prefilter)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -302,7 +314,9 @@ class NBGDenoiser(nn.Module):
     @property
     def reads_spp(self) -> bool:
         """Whether forward reads the frame's spp (training feeds each item's)."""
-        return self.config.noise_blend or self.config.resampled_weight_per_doubling > 0
+        config = self.config
+        return (config.noise_blend or config.resampled_weight_per_doubling > 0
+                or config.albedo_prefilter > 0)
 
     def forward(
         self,
@@ -318,6 +332,7 @@ class NBGDenoiser(nn.Module):
         """`spp` (N,) or (1,): the frame's samples per pixel, read by a noise-aware blend only
         (DEFAULT_SPP where not given)."""
         config = self.config
+        albedo = prefilter_albedo(albedo, spp, config.albedo_prefilter)
         frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                               config.outlier_floor)
         floor = fading_floor(config.resampled_weight_per_doubling, spp)

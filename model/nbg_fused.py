@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from quietframe.model.albedo_prefilter import prefilter_albedo
 from quietframe.model.grid import bilateral_slice, bilateral_splat
 from quietframe.model.nbg import (
     NBGDenoiser,
@@ -175,6 +176,7 @@ def fused_forward(model: NBGDenoiser, color: Tensor, albedo: Tensor, normal: Ten
     """NBGDenoiser.forward with its glue as the fused ops (`fusable` models only); `spp` as
     there (a noise-aware blend's)."""
     config, net = model.config, model.guide_net
+    albedo = prefilter_albedo(albedo, spp, config.albedo_prefilter)
     frame, safe_albedo = frame_irradiance(color, albedo, config.outlier_sigmas,
                                           config.outlier_floor)  # the pass-through's second
     warped, inside = backward_warp(state, motion, mode="nearest")

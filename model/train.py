@@ -104,6 +104,10 @@ class TrainConfig:
     # training with it on lets the blend learn what the faded history looks like, and the
     # checkpoint then carries it (an export no longer has to set it again).
     resampled_weight_per_doubling: float = -1.0
+    # NBG and affinity: the albedo's prefilter (NBGConfig/AffinityConfig.albedo_prefilter, σ px
+    # at 1 spp; 0 off, -1 as above). No weights: training with it on lets the tiers learn from
+    # the albedo they will be served.
+    albedo_prefilter: float = -1.0
     net_scale: int = 0  # oidn-temporal: OIDNTemporalConfig.net_scale (0 = the variant's)
     # Fine-tuning: a checkpoint whose model (architecture and weights) starts a new run, with a
     # fresh optimizer and schedule (e.g. a shipped model on new data); empty: train from scratch
@@ -196,13 +200,15 @@ def build_model(cfg: TrainConfig, saved: dict | None = None) -> nn.Module:
 
 def weightless_flags(cfg: TrainConfig) -> dict[str, float | bool]:
     """The settings a fine-tune may change on a checkpoint's model (-1: none given, the
-    model's own stay): the firefly clamp and the resampled history's fade (no weights), NBG's
+    model's own stay): the firefly clamp, the resampled history's fade and the albedo's
+    prefilter (no weights), NBG's
     pass-through (whose weights the model adds: load_weights) and the tiers' noise level (the
     same)."""
     given = {k: v for k, v in (("outlier_sigmas", cfg.outlier_sigmas),
                                ("outlier_floor", cfg.outlier_floor),
                                ("resampled_weight_per_doubling",
-                                cfg.resampled_weight_per_doubling)) if v >= 0}
+                                cfg.resampled_weight_per_doubling),
+                               ("albedo_prefilter", cfg.albedo_prefilter)) if v >= 0}
     switches = {k: bool(v) for k, v in (("passthrough", cfg.passthrough),
                                          ("noise_blend", cfg.noise_blend),
                                          ("noise_input", cfg.noise_input)) if v >= 0}
@@ -446,12 +452,13 @@ def train(cfg: TrainConfig, run: Path, stop_at: int | None = None) -> Path:
 
 ARCHITECTURE_FIELDS = ("variant", "width", "kernel_size", "kernel_sizes",  # fixed per run
                        "outlier_sigmas", "outlier_floor", "net_scale", "passthrough",
-                       "noise_blend", "noise_input", "resampled_weight_per_doubling")
-# Architecture a fine-tune (--init) may still change: the clamp and the fade have no weights to
-# load, the pass-through's and the noise level's weights are added (the models'
-# adapt_state_dict).
+                       "noise_blend", "noise_input", "resampled_weight_per_doubling",
+                       "albedo_prefilter")
+# Architecture a fine-tune (--init) may still change: the clamp, the fade and the albedo's
+# prefilter have no weights to load, the pass-through's and the noise level's weights are
+# added (the models' adapt_state_dict).
 FINE_TUNE_MAY_CHANGE = ("outlier_sigmas", "outlier_floor", "passthrough", "noise_blend",
-                        "noise_input", "resampled_weight_per_doubling")
+                        "noise_input", "resampled_weight_per_doubling", "albedo_prefilter")
 
 
 def load_init(init: str) -> dict:

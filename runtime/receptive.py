@@ -19,6 +19,10 @@ from dataclasses import dataclass, field
 
 from quietframe.runtime.scalar_inputs import InputSpec
 
+# px each way: the learned tiers' albedo prefilter (model/albedo_prefilter), a separable Gaussian
+# that every later stage reads through, where the architecture has it on
+ALBEDO_PREFILTER_RADIUS = 3
+
 # px: the output history's still test reads the motion's range per block of this size
 # (model/temporal.still_pixels), so a tiled frame's tiles align to it
 STILL_BLOCK = 8
@@ -103,14 +107,20 @@ def firefly_clamp(arch: Mapping) -> tuple[int, tuple[FrameStatistic, ...]]:
     return 2, (MEAN_LUMINANCE,) if float(arch.get("outlier_floor", 0) or 0) > 0 else ()
 
 
+def albedo_prefilter_radius(arch: Mapping) -> int:
+    """What the albedo's prefilter adds to a learned tier's radius (0 where it is off)."""
+    return ALBEDO_PREFILTER_RADIUS if float(arch.get("albedo_prefilter", 0) or 0) > 0 else 0
+
+
 def nbg_tiling(arch: Mapping) -> Tiling:
     """2 cells of the coarsest grid (splat then slice reach one cell each way, a cell is sigma
     pixels) + 2 px per 5x5 GuideNet layer + 2 px of outlier suppression (5x5; counted whether
-    or not the clamp is on, as every NBG card so far says)."""
+    or not the clamp is on, as every NBG card so far says) + the albedo's prefilter."""
     grids, layers, sigma = int(arch["grids"]), int(arch["layers"]), int(arch["sigma_s"])
     coarsest = sigma * 2 ** max(grids - 1, 0) if grids else 1
     statistics = ((MEAN_DEPTH,) if layers > 0 else ()) + firefly_clamp(arch)[1]
-    return Tiling(radius=2 * coarsest * (grids > 0) + 2 * layers + 2, align=max(coarsest, 1),
+    radius = 2 * coarsest * (grids > 0) + 2 * layers + 2 + albedo_prefilter_radius(arch)
+    return Tiling(radius=radius, align=max(coarsest, 1),
                   statistics=statistics,
                   bytes_per_pixel=NBG_BYTES_PER_PIXEL_PER_LAYER * (layers + 1))
 
@@ -129,9 +139,9 @@ def affinity_tiling(arch: Mapping, inputs: Sequence[InputSpec]) -> Tiling:
     """K dilated k×k kernels in sequence (dilations 2^0..2^(K-1), either order) reach
     (k // 2)·(2^K - 1) px, at the `kernel_size` input's value; the kernel parameters come from
     the U-Net at 1/s resolution on s×s block means, upsampled bilinearly (one block each way);
-    the temporal kernel gathers the warped history within temporal_kernel_size // 2. Tile
-    origins are multiples of s·2^(levels-1), so blocks and U-Net pooling cells keep their
-    places."""
+    the temporal kernel gathers the warped history within temporal_kernel_size // 2; the
+    albedo's prefilter reaches before all of it. Tile origins are multiples of s·2^(levels-1),
+    so blocks and U-Net pooling cells keep their places."""
     scale, levels = int(arch.get("unet_scale", 1)), len(arch["widths"])
     kernels = int(arch.get("kernels", 3))
     dilation_sum = 2**kernels - 1
@@ -140,7 +150,7 @@ def affinity_tiling(arch: Mapping, inputs: Sequence[InputSpec]) -> Tiling:
     sizes = next((spec.allowed for spec in inputs if spec.name == "kernel_size"), None)
     sizes = sizes or (int(arch["kernel_size"]),)
     clamp, statistics = firefly_clamp(arch)
-    return Tiling(radius=params + temporal + scale + clamp,
+    return Tiling(radius=params + temporal + scale + clamp + albedo_prefilter_radius(arch),
                   align=scale * 2 ** (levels - 1),
                   reach={"kernel_size": {int(k): (int(k) // 2) * dilation_sum for k in sizes}},
                   statistics=(MEAN_DEPTH, *statistics),

@@ -95,6 +95,12 @@ def load_reference(folder: Path, t: int) -> np.ndarray:
     return ((halves[0] + halves[1]) / 2).astype(np.float32)
 
 
+def load_reference_aux(folder: Path, t: int) -> dict[str, np.ndarray]:
+    """Frame t's buffers as the reference's first half holds them (hundreds of samples: aux
+    far cleaner than any input's; experiments/albedo_noise.py)."""
+    return _decode(folder / REFERENCE_HALVES[0] / frame_file(reference_frame(folder, t)))
+
+
 def frame_resets(folder: Path) -> list[bool]:
     """Per frame: first frame or after a cut (history must restart)."""
     manifest = json.loads((folder / MANIFEST).read_text())

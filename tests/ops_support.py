@@ -1,5 +1,5 @@
 """Helpers shared by the tests of the custom-op library (test_ops_library, test_ops_parity,
-test_ops_pixel_aligned, test_ops_resampled_trust)."""
+test_ops_pixel_aligned, test_ops_resampled_trust, test_ops_albedo_prefilter)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ def op_model(op: str, **attributes) -> bytes:
         "BilateralSlice": (["grid", "weight", "guide"], ["image"]),
         "PixelAligned": (["motion"], ["aligned"]),
         "ResampledTrust": (["motion", "previous_count", "floor"], ["trust"]),
+        "AlbedoPrefilter": (["albedo", "spp"], ["albedo_out"]),
     }[op]
     inputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names[0]]
     outputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names[1]]

@@ -19,5 +19,6 @@ const OrtCustomOp* nbg_blend_pass_op();             // nbg_fused.cc
 const OrtCustomOp* nbg_blend_noise_op();            // nbg_fused.cc
 const OrtCustomOp* pixel_aligned_op();              // pixel_aligned.cc
 const OrtCustomOp* resampled_trust_op();            // pixel_aligned.cc
+const OrtCustomOp* albedo_prefilter_op();           // albedo_prefilter.cc
 
 }  // namespace qf

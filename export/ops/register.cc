@@ -60,7 +60,8 @@ OrtStatus* register_ops(OrtSessionOptions* options, const OrtApiBase* base) {
                                 affinity_filter_op(), affinity_temporal_filter_op(),
                                 upsample_bilinear_op(), nbg_accumulate_op(), nbg_features_op(),
                                 nbg_blend_op(), nbg_blend_pass_op(), nbg_blend_noise_op(),
-                                pixel_aligned_op(), resampled_trust_op()}) {
+                                pixel_aligned_op(), resampled_trust_op(),
+                                albedo_prefilter_op()}) {
     if (status == nullptr) status = api.CustomOpDomain_Add(domain, op);
   }
   if (status == nullptr) status = api.AddCustomOpDomain(options, domain);
