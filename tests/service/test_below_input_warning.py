@@ -13,7 +13,7 @@ from conftest import LAYOUTS, make_buffers, write_exr
 from quietframe.wire.protocol import Header
 
 SIZE = {"width": 64, "height": 48}
-LEARNED = "nbg-2l-3g"  # below its input from 8.54 spp on a validation shot (its card)
+LEARNED = "nbg-2l-3g"  # below its input from 11.6 spp on a validation shot (its card)
 
 
 def frame(spp: float | None, seed: int = 1) -> bytes:
@@ -60,8 +60,8 @@ def test_a_named_learned_model_above_its_range_is_served_with_the_warning(live_s
     assert reply.headers[Header.MODEL].startswith(f"{LEARNED} ")
     assert reply.content[:4] == b"v/1\x01"  # the denoised EXR, as asked
     text = reply.headers[Header.WARNING]
-    assert text == (f"{LEARNED} is below its own noisy input from 8.54 spp on a validation-zoo "
-                    "shot (this frame: 64 spp, -1.36 dB there); use model=auto or an OIDN tier")
+    assert text == (f"{LEARNED} is below its own noisy input from 11.6 spp on a validation-zoo "
+                    "shot (this frame: 64 spp, -1.35 dB there); use model=auto or an OIDN tier")
     assert text.isascii()
     # the retry's stored reply says it again, and so does every later frame at that spp
     again = send(url, sid, 0, body)
@@ -123,12 +123,12 @@ def test_a_session_created_with_an_spp_option_in_the_range_is_warned_at_creation
     installed(url, LEARNED)
     created = create(url, model=LEARNED, model_options={"spp": 64})
     text = created.headers[Header.WARNING]
-    assert text.startswith(f"{LEARNED} is below its own noisy input from 8.54 spp")
-    assert "(the session's model_options.spp: 64 spp, -1.36 dB there)" in text
+    assert text.startswith(f"{LEARNED} is below its own noisy input from 11.6 spp")
+    assert "(the session's model_options.spp: 64 spp, -1.35 dB there)" in text
     sid = created.json()["id"]
     try:  # the option is the frame's spp too, whatever its header says (none here)
         reply = send(url, sid, 0, frame(None))
-        assert "(this frame: 64 spp, -1.36 dB there)" in reply.headers[Header.WARNING]
+        assert "(this frame: 64 spp, -1.35 dB there)" in reply.headers[Header.WARNING]
     finally:
         httpx.delete(f"{url}/v1/sessions/{sid}")
     low = create(url, model=LEARNED, model_options={"spp": 4})  # +0.81 dB there: in range
