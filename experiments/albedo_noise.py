@@ -31,11 +31,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from quietframe.bench import cli_args
 from quietframe.bench.evaluate import Scores, give_header_spp, load_sequence, run_sequence
 from quietframe.bench.harness import RuntimeMethod, planar_frames
 from quietframe.bench.zoo_eval import CORPUS, shot_folders
+from quietframe.model.albedo_prefilter import RADIUS, albedo_blur
 from quietframe.scenes import cycles_io
 
 CLEAN = {"clean-aux": ("albedo", "normal", "depth"), "clean-albedo": ("albedo",),
@@ -47,9 +49,6 @@ Buffers = dict[str, np.ndarray]
 
 def blurred(sigma: float, exponent: float) -> Callable[[np.ndarray, int], np.ndarray]:
     """The albedo ((H, W, 3)) blurred as the tiers' prefilter does at `spp`."""
-    import torch
-
-    from quietframe.model.albedo_prefilter import RADIUS, albedo_blur
 
     def blur(albedo: np.ndarray, spp: int) -> np.ndarray:
         planar = torch.from_numpy(np.ascontiguousarray(albedo.transpose(2, 0, 1)))[None]
