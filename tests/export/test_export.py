@@ -12,6 +12,7 @@ from sequence_support import moving_frame
 
 torch = pytest.importorskip("torch")
 
+from quietframe.export import cli as export_cli  # noqa: E402
 from quietframe.export.onnx_export import example_inputs, export_nbg  # noqa: E402
 from quietframe.model.families import export_settings, load_checkpoint  # noqa: E402
 from quietframe.model.nbg import VARIANTS, NBGDenoiser  # noqa: E402
@@ -202,3 +203,27 @@ def test_the_export_module_runs_as_a_script():
     done = subprocess.run([sys.executable, "-m", "quietframe.export.cli", "--help"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "--checkpoint" in done.stdout
+
+
+@pytest.mark.parametrize(("flag", "setting", "value"), [
+    ("--resampled-weight-per-doubling", "resampled_weight_per_doubling", 0.134),
+    ("--albedo-prefilter", "albedo_prefilter", 1.0)])
+def test_export_puts_a_weightless_setting_on_a_checkpoint_only(tmp_path, flag: str,
+                                                               setting: str, value: float):
+    """quietframe-export's flags for the learned tiers' settings without weights
+    (families.EXPORT_SETTINGS): on a trained checkpoint the file's card holds the value and the
+    checkpoint's other settings stay; an untrained variant is refused."""
+    torch.manual_seed(0)
+    config = replace(VARIANTS["nbg-2l-3g"], passthrough=True, noise_blend=True,
+                     outlier_sigmas=2.5)
+    checkpoint = tmp_path / "nbg.pt"
+    torch.save({"config": config.to_dict(), "model": NBGDenoiser(config).state_dict()},
+               checkpoint)
+    out = tmp_path / "nbg.onnx"
+    assert export_cli.main(["--checkpoint", str(checkpoint), "--out", str(out), flag,
+                            str(value)]) == 0
+    architecture = Denoiser(out, threads=1).info.card.architecture
+    assert architecture[setting] == value and architecture["outlier_sigmas"] == 2.5
+    with pytest.raises(SystemExit):
+        export_cli.main(["--variant", "nbg-2l-3g", "--out", str(tmp_path / "x.onnx"), flag,
+                         str(value)])

@@ -15,7 +15,6 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the learned tiers (torch) are not installed")
 
-from quietframe.export import cli as export_cli  # noqa: E402
 from quietframe.export.affinity_export import example_inputs as affinity_inputs  # noqa: E402
 from quietframe.export.affinity_export import export_affinity  # noqa: E402
 from quietframe.export.onnx_export import example_inputs, export_nbg  # noqa: E402
@@ -120,20 +119,11 @@ def test_exported_graph_with_the_prefilter_matches_pytorch(tmp_path) -> None:
                                    atol=1e-4 * float(np.abs(expected).max()))
 
 
-def test_export_and_a_fine_tune_set_the_prefilter_on_a_checkpoint(tmp_path) -> None:
-    torch.manual_seed(0)
-    checkpoint = tmp_path / "nbg.pt"
-    torch.save({"config": NBG.to_dict(), "model": nbg.NBGDenoiser(NBG).state_dict()},
-               checkpoint)
-    out = tmp_path / "nbg.onnx"
-    assert export_cli.main(["--checkpoint", str(checkpoint), "--out", str(out),
-                            "--albedo-prefilter", "1.0"]) == 0
-    architecture = Denoiser(out, threads=1).info.card.architecture
-    assert architecture["albedo_prefilter"] == 1.0
-    assert architecture["resampled_weight_per_doubling"] == 0.134  # the checkpoint's own
-    with pytest.raises(SystemExit):
-        export_cli.main(["--variant", "nbg-2l-3g", "--out", str(tmp_path / "x.onnx"),
-                         "--albedo-prefilter", "1.0"])
+def test_a_fine_tune_may_switch_the_prefilter_on() -> None:
+    """No weights, like the fade: quietframe-train --albedo-prefilter on a checkpoint's model
+    (the export's flag: test_export)."""
     flags = train.weightless_flags(train.TrainConfig(albedo_prefilter=1.0))
     assert flags == {"albedo_prefilter": 1.0}
     assert "albedo_prefilter" in train.FINE_TUNE_MAY_CHANGE
+    model = nbg.NBGDenoiser(replace(NBG, **flags))
+    assert model.reads_spp and model.config.albedo_prefilter == 1.0

@@ -15,7 +15,6 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the NBG model (torch) is not installed")
 
-from quietframe.export import cli as export_cli  # noqa: E402
 from quietframe.export.affinity_export import example_inputs as affinity_inputs  # noqa: E402
 from quietframe.export.affinity_export import export_affinity  # noqa: E402
 from quietframe.export.onnx_export import example_inputs, export_nbg  # noqa: E402
@@ -120,20 +119,6 @@ def test_fused_forward_is_the_model_with_the_floor(spp: float) -> None:
     torch.testing.assert_close(got1, out1, rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(got2, out2, rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(got_state2, state2, rtol=1e-6, atol=1e-6)
-
-
-def test_export_sets_the_floor_on_a_checkpoint_only(tmp_path) -> None:
-    torch.manual_seed(0)
-    checkpoint = tmp_path / "nbg.pt"
-    torch.save({"config": NOISE.to_dict(), "model": nbg.NBGDenoiser(NOISE).state_dict()},
-               checkpoint)
-    out = tmp_path / "nbg.onnx"
-    assert export_cli.main(["--checkpoint", str(checkpoint), "--out", str(out),
-                            "--resampled-weight-per-doubling", "0.134"]) == 0
-    assert Denoiser(out, threads=1).info.card.architecture["resampled_weight_per_doubling"] == 0.134
-    with pytest.raises(SystemExit):
-        export_cli.main(["--variant", "nbg-2l-3g", "--out", str(tmp_path / "x.onnx"),
-                         "--resampled-weight-per-doubling", "0.1"])
 
 
 # ---- the affinity tier (AffinityConfig.resampled_weight_per_doubling) -------------------------
