@@ -115,12 +115,8 @@ struct AlbedoPrefilter : Kernel<AlbedoPrefilter, PrefilterAttributes, read_prefi
     if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {kAnyChannels})) return s;
     const Shape& as = in[0].shape;
     const int64_t N = as[0], C = as[1], H = as[2], W = as[3];
-    int64_t values = 1;
-    for (size_t i = 0; i < in[1].shape.rank; ++i) values *= in[1].shape[i];
-    if (values != 1 && values != N) {
-      return op_error(api, kName, "spp must hold 1 or N = " + std::to_string(N) +
-                                      " values, got " + in[1].shape.str());
-    }
+    int64_t values = 0;
+    if (OrtStatus* s = check_per_image(api, kName, "spp", in[1].shape, N, &values)) return s;
     float* out = nullptr;
     if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "albedo", as, &out)) return s;
     const PrefilterAttributes a = attributes_;

@@ -218,6 +218,19 @@ inline OrtStatus* check_image_inputs(const ort::Api& api, const char* op, const 
   return nullptr;
 }
 
+// A per-image scalar input (`name`, of any rank): one value for every image, or one per image of
+// `images`; *count is how many it holds (index value n as data[*count == 1 ? 0 : n]).
+inline OrtStatus* check_per_image(const ort::Api& api, const char* op, const char* name,
+                                  const Shape& shape, int64_t images, int64_t* count) {
+  *count = 1;
+  for (size_t i = 0; i < shape.rank; ++i) *count *= shape[i];
+  if (*count != 1 && *count != images) {
+    return op_error(api, op, std::string(name) + " must hold 1 or N = " +
+                                 std::to_string(images) + " values, got " + shape.str());
+  }
+  return nullptr;
+}
+
 // The (N, channels, H, W) shape of an output that goes with the (N, C, H, W) `image`.
 inline Shape with_channels(const Shape& image, int64_t channels) {
   Shape out = image;

@@ -187,12 +187,8 @@ struct ResampledTrust : Kernel<ResampledTrust, TrustAttributes, read_trust> {
     if (OrtStatus* s = check_image_inputs(api, kName, kInputNames, in, {2, 1})) return s;
     const Shape& ms = in[0].shape;
     const int64_t N = ms[0], H = ms[2], W = ms[3];
-    int64_t floors = 1;
-    for (size_t i = 0; i < in[2].shape.rank; ++i) floors *= in[2].shape[i];
-    if (floors != 1 && floors != N) {
-      return op_error(api, kName, "floor must hold 1 or N = " + std::to_string(N) +
-                                      " values, got " + in[2].shape.str());
-    }
+    int64_t floors = 0;
+    if (OrtStatus* s = check_per_image(api, kName, "floor", in[2].shape, N, &floors)) return s;
     float* out = nullptr;
     if (OrtStatus* s = get_float_output(api, kName, ctx, 0, "trust", with_channels(ms, 1),
                                         &out)) {
